@@ -1,0 +1,3 @@
+"""Reconstruction: conductivity images from boundary voltages."""
+
+from .one_step import OneStep as OneStep

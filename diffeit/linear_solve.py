@@ -1,0 +1,184 @@
+"""The one differentiable linear solve of diffeit, and its backends.
+
+Every forward and adjoint solve goes through `solve_spd`: a symmetric positive definite system
+given by its values on a fixed `SparsityPattern`. Differentiation is defined once, here, by
+`jax.lax.custom_linear_solve` (implicit differentiation: a tangent or cotangent costs one more
+solve with the same matrix), so backends only have to solve.
+"""
+
+from __future__ import annotations
+
+import abc
+import hashlib
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+
+@dataclass(frozen=True, eq=False)
+class SparsityPattern:
+    """The nonzero positions of a symmetric n x n matrix, in compressed sparse column order.
+
+    Static data for JAX: values live in a separate (nnz,) array, traced and differentiable.
+    """
+
+    rows: np.ndarray
+    cols: np.ndarray
+    indptr: np.ndarray
+    size: int
+    fingerprint: bytes = field(repr=False)
+
+    @classmethod
+    def from_entries(cls, rows: np.ndarray, cols: np.ndarray, size: int) -> tuple[SparsityPattern, np.ndarray]:
+        """The pattern holding the given (row, col) entries, and the slot of each entry in it.
+
+        Repeated entries share a slot: assembling `values = zeros(nnz).at[slots].add(entries)`
+        sums them, as finite-element assembly does.
+        """
+        flat = np.asarray(cols, dtype=np.int64) * size + np.asarray(rows, dtype=np.int64)
+        unique, slots = np.unique(flat, return_inverse=True)  # sorted by column, then row
+        pattern_cols, pattern_rows = np.divmod(unique, size)
+        indptr = np.searchsorted(pattern_cols, np.arange(size + 1)).astype(np.int64)
+        if not np.array_equal(np.sort(pattern_rows * size + pattern_cols), unique):
+            raise ValueError("the sparsity pattern is not symmetric")
+        fingerprint = hashlib.blake2b(unique.tobytes(), digest_size=16).digest()
+        pattern = cls(pattern_rows, pattern_cols, indptr, size, fingerprint)
+        return pattern, slots.ravel()
+
+    @property
+    def nnz(self) -> int:
+        return len(self.rows)
+
+    def matvec(self, values: jax.Array, x: jax.Array) -> jax.Array:
+        """A @ x for x of shape (n,) or (n, k). A is symmetric, so A @ x = A^T @ x, which
+        sums over the column-sorted indices."""
+        products = values.reshape((-1,) + (1,) * (x.ndim - 1)) * x[self.rows]
+        return jax.ops.segment_sum(products, self.cols, num_segments=self.size, indices_are_sorted=True)
+
+    def to_scipy(self, values: np.ndarray) -> scipy.sparse.csc_matrix:
+        return scipy.sparse.csc_matrix((values, self.rows, self.indptr), shape=(self.size, self.size))
+
+
+jax.tree_util.register_static(SparsityPattern)
+
+
+class AbstractLinearSolver(abc.ABC):
+    """A backend: solves A X = B for a symmetric positive definite A given on a pattern.
+
+    `solve` need not be differentiable (`solve_spd` defines derivatives); it must accept
+    `values` (nnz,) and `rhs` (n, k) and work under `jax.vmap`.
+    """
+
+    @abc.abstractmethod
+    def solve(self, pattern: SparsityPattern, values: jax.Array, rhs: jax.Array) -> jax.Array: ...
+
+
+@dataclass(frozen=True)
+class HostSparse(AbstractLinearSolver):
+    """Sparse LU (SciPy's SuperLU, symmetric mode) on the host, through `jax.pure_callback`.
+
+    The CPU default. Under `vmap` all right-hand sides of one matrix go to the host in one call
+    and share one factorisation; the last `cache_size` factorisations are kept, keyed by the
+    matrix values, so a forward solve and its adjoint factorise once. Computes in float64
+    whatever the input dtype. A matrix that cannot be factorised gives NaN, not an exception
+    (exceptions cannot cross the callback).
+    """
+
+    cache_size: int = 4
+
+    def solve(self, pattern: SparsityPattern, values: jax.Array, rhs: jax.Array) -> jax.Array:
+        def host(values: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+            return _host_solve(pattern, np.asarray(values), np.asarray(rhs), self.cache_size)
+
+        # expand_dims: an unbatched argument arrives with a leading axis of size 1, so a batch
+        # of right-hand sides meets one matrix in a single call.
+        return jax.pure_callback(
+            host, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), values, rhs, vmap_method="expand_dims"
+        )
+
+
+_factor_cache: OrderedDict[tuple[bytes, bytes], object] = OrderedDict()
+_factor_lock = threading.Lock()
+
+
+def _factorise(pattern: SparsityPattern, values: np.ndarray, cache_size: int):
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    key = (pattern.fingerprint, hashlib.blake2b(values.tobytes(), digest_size=16).digest())
+    with _factor_lock:
+        if key in _factor_cache:
+            _factor_cache.move_to_end(key)
+            return _factor_cache[key]
+    try:
+        factor = scipy.sparse.linalg.splu(
+            pattern.to_scipy(values),
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+    except RuntimeError:  # exactly singular
+        factor = None
+    with _factor_lock:
+        _factor_cache[key] = factor
+        while len(_factor_cache) > max(cache_size, 1):
+            _factor_cache.popitem(last=False)
+    return factor
+
+
+def _host_solve(pattern: SparsityPattern, values: np.ndarray, rhs: np.ndarray, cache_size: int) -> np.ndarray:
+    batch = np.broadcast_shapes(values.shape[:-1], rhs.shape[:-2])
+    n, k = rhs.shape[-2:]
+    matrices = np.broadcast_to(values, batch + values.shape[-1:]) if values[..., 0].size > 1 else values
+    matrices = matrices.reshape(-1, pattern.nnz)
+    if len(matrices) == 1:
+        # One matrix: every right-hand side of the batch in one triangular solve.
+        columns = np.moveaxis(np.broadcast_to(rhs, (*batch, n, k)).reshape(-1, n, k), 1, 0).reshape(n, -1)
+        solution = _solve_columns(_factorise(pattern, matrices[0], cache_size), columns)
+        solution = np.moveaxis(solution.reshape(n, -1, k), 0, 1)
+    else:
+        right = np.broadcast_to(rhs, (*batch, n, k)).reshape(-1, n, k)
+        solution = np.stack(
+            [_solve_columns(_factorise(pattern, m, cache_size), b) for m, b in zip(matrices, right, strict=True)]
+        )
+    return solution.reshape((*batch, n, k)).astype(rhs.dtype, copy=False)
+
+
+def _solve_columns(factor, columns: np.ndarray) -> np.ndarray:
+    if factor is None:
+        return np.full(columns.shape, np.nan)
+    return factor.solve(np.asarray(columns, dtype=np.float64))
+
+
+def solve_spd(
+    pattern: SparsityPattern,
+    values: jax.Array,
+    rhs: jax.Array,
+    solver: AbstractLinearSolver,
+) -> jax.Array:
+    """X = A^-1 B for the symmetric positive definite A with `values` on `pattern`.
+
+    Differentiable in `values` and `rhs`, in forward and reverse mode: the derivative of the
+    solution is another solve with the same matrix (A is symmetric, so the transposed solve
+    is the solve). `rhs` has shape (n,) or (n, k).
+    """
+
+    def matvec(x: jax.Array) -> jax.Array:
+        return pattern.matvec(values, x)
+
+    def solve(_matvec, b: jax.Array) -> jax.Array:
+        columns = b if b.ndim == 2 else b[:, None]
+        x = solver.solve(pattern, jax.lax.stop_gradient(values), columns)
+        return x if b.ndim == 2 else x[:, 0]
+
+    return jax.lax.custom_linear_solve(matvec, rhs, solve, symmetric=True)
+
+
+def relative_residual(pattern: SparsityPattern, values: jax.Array, x: jax.Array, rhs: jax.Array) -> jax.Array:
+    """||A x - b|| / ||b|| per right-hand side (column of `rhs`, or the single vector)."""
+    residual = pattern.matvec(values, x) - rhs
+    return jnp.linalg.norm(residual, axis=0) / jnp.linalg.norm(rhs, axis=0)

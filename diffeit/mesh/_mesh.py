@@ -1,0 +1,209 @@
+"""The triangle mesh of a 2D sheet with electrodes on its boundary."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import jax
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
+
+# A triangle is degenerate when its area is below this fraction of its longest edge squared.
+_DEGENERACY_TOLERANCE = 1e-12
+
+
+def _name_indices(indices: np.ndarray, limit: int = 10) -> str:
+    shown = ", ".join(str(int(i)) for i in indices[:limit])
+    return f"[{shown}{', ...' if len(indices) > limit else ''}]"
+
+
+def _signed_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    a, b, c = (nodes[triangles[:, k]] for k in range(3))
+    return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    array = np.array(array)
+    array.setflags(write=False)
+    return array
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """An immutable P1 triangle mesh of a sheet, with electrodes on its boundary.
+
+    Construct with `Mesh.from_arrays` (or a generator such as `diffeit.mesh.disc`). Construction
+    reorients clockwise triangles and refuses meshes a forward model cannot use, with a
+    `ValueError` naming the offending triangles, nodes or electrodes.
+
+    **Fields:**
+
+    - `nodes`: (N, 2) node coordinates in metres.
+    - `triangles`: (E, 3) node indices per element, counter-clockwise.
+    - `electrodes`: one integer array per electrode: a chain of at least two boundary nodes,
+      consecutive nodes joined by boundary edges, in order along the boundary.
+    - `boundary_edges`: (B, 2) boundary edges, oriented so that the sheet lies on their left
+      (counter-clockwise along the outer boundary).
+    - `element_areas`: (E,) triangle areas in m^2.
+
+    A mesh is static data for JAX: it is a pytree without leaves, hashed by identity.
+    """
+
+    nodes: np.ndarray
+    triangles: np.ndarray
+    electrodes: tuple[np.ndarray, ...]
+    boundary_edges: np.ndarray = field(init=False, repr=False)
+    element_areas: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        nodes = np.asarray(self.nodes, dtype=np.float64)
+        if nodes.ndim != 2 or nodes.shape[1] != 2:
+            raise ValueError(f"nodes must have shape (N, 2); got {nodes.shape}")
+        if not np.all(np.isfinite(nodes)):
+            bad = np.flatnonzero(~np.all(np.isfinite(nodes), axis=1))
+            raise ValueError(f"nodes {_name_indices(bad)} have non-finite coordinates")
+        triangles = _checked_triangles(self.triangles, len(nodes))
+        areas = _signed_areas(nodes, triangles)
+        triangles = np.where((areas < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
+        areas = np.abs(areas)
+        _check_nondegenerate(nodes, triangles, areas)
+        _check_all_nodes_used(triangles, len(nodes))
+        boundary_edges = _boundary_edges(triangles)
+        _check_connected(triangles, len(nodes))
+        electrodes = _checked_electrodes(self.electrodes, boundary_edges, len(nodes))
+        object.__setattr__(self, "nodes", _readonly(nodes))
+        object.__setattr__(self, "triangles", _readonly(triangles))
+        object.__setattr__(self, "electrodes", tuple(_readonly(e) for e in electrodes))
+        object.__setattr__(self, "boundary_edges", _readonly(boundary_edges))
+        object.__setattr__(self, "element_areas", _readonly(areas))
+
+    @classmethod
+    def from_arrays(cls, nodes: np.ndarray, triangles: np.ndarray, electrodes: list) -> Mesh:
+        """Build a mesh from external arrays (scikit-fem, EIDORS, gmsh, ...).
+
+        **Arguments:**
+
+        - `nodes`: (N, 2) coordinates in metres.
+        - `triangles`: (E, 3) node indices, either orientation (clockwise ones are reoriented).
+        - `electrodes`: one sequence of boundary node indices per electrode, a chain along the
+          boundary (at least two nodes: the complete electrode model needs a width).
+
+        **Raises:** `ValueError` naming degenerate triangles, unused nodes, a disconnected
+        mesh, electrodes off the boundary, overlapping electrodes or electrodes of one node.
+        """
+        return cls(nodes, triangles, tuple(electrodes))
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.triangles)
+
+    @property
+    def n_electrodes(self) -> int:
+        return len(self.electrodes)
+
+    @property
+    def element_centroids(self) -> np.ndarray:
+        """(E, 2) triangle centroids in metres."""
+        return self.nodes[self.triangles].mean(axis=1)
+
+    def __repr__(self) -> str:
+        return f"Mesh(n_nodes={self.n_nodes}, n_elements={self.n_elements}, n_electrodes={self.n_electrodes})"
+
+
+jax.tree_util.register_static(Mesh)
+
+
+def _checked_triangles(triangles: np.ndarray, n_nodes: int) -> np.ndarray:
+    triangles = np.asarray(triangles)
+    if triangles.ndim != 2 or triangles.shape[1] != 3:
+        raise ValueError(f"triangles must have shape (E, 3); got {triangles.shape}")
+    if len(triangles) == 0:
+        raise ValueError("the mesh has no triangles")
+    if not np.issubdtype(triangles.dtype, np.integer) and not np.all(np.equal(np.mod(triangles, 1), 0)):
+        raise ValueError("triangles must hold integer node indices")
+    triangles = triangles.astype(np.int64)
+    out_of_range = np.flatnonzero(np.any((triangles < 0) | (triangles >= n_nodes), axis=1))
+    if len(out_of_range):
+        raise ValueError(f"triangles {_name_indices(out_of_range)} index nodes outside [0, {n_nodes})")
+    return triangles
+
+
+def _check_nondegenerate(nodes: np.ndarray, triangles: np.ndarray, areas: np.ndarray) -> None:
+    corners = nodes[triangles]
+    edges = corners - np.roll(corners, 1, axis=1)
+    longest_squared = np.max(np.sum(edges**2, axis=2), axis=1)
+    degenerate = np.flatnonzero(areas <= _DEGENERACY_TOLERANCE * longest_squared)
+    if len(degenerate):
+        raise ValueError(f"degenerate triangles (zero area or repeated vertices): {_name_indices(degenerate)}")
+
+
+def _check_all_nodes_used(triangles: np.ndarray, n_nodes: int) -> None:
+    unused = np.setdiff1d(np.arange(n_nodes), triangles)
+    if len(unused):
+        raise ValueError(f"nodes {_name_indices(unused)} belong to no triangle; remove them")
+
+
+def _boundary_edges(triangles: np.ndarray) -> np.ndarray:
+    """Edges used by exactly one triangle, in that triangle's counter-clockwise direction."""
+    directed = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    undirected = np.sort(directed, axis=1)
+    _, inverse, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    if np.any(counts > 2):
+        shared = np.unique(undirected[counts[inverse] > 2], axis=0)
+        raise ValueError(f"edges shared by more than two triangles (non-manifold mesh): {shared[:5].tolist()}")
+    return directed[counts[inverse] == 1]
+
+
+def _check_connected(triangles: np.ndarray, n_nodes: int) -> None:
+    rows = np.repeat(triangles, 3, axis=1).ravel()
+    cols = np.tile(triangles, 3).ravel()
+    graph = scipy.sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n_nodes, n_nodes))
+    n_components, _ = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    if n_components > 1:
+        raise ValueError(f"the mesh falls apart into {n_components} disconnected pieces")
+
+
+def _checked_electrodes(electrodes, boundary_edges: np.ndarray, n_nodes: int) -> list[np.ndarray]:
+    if len(electrodes) == 0:
+        raise ValueError("the mesh has no electrodes")
+    boundary_nodes = np.unique(boundary_edges)
+    edge_set = {tuple(e) for e in np.sort(boundary_edges, axis=1).tolist()}
+    owner = np.full(n_nodes, -1)
+    checked = []
+    for index, chain in enumerate(electrodes):
+        chain = np.asarray(chain)
+        if chain.ndim != 1 or not np.issubdtype(chain.dtype, np.integer):
+            raise ValueError(f"electrode {index} must be a 1D array of node indices; got {chain!r}")
+        chain = chain.astype(np.int64)
+        if len(chain) < 2:
+            raise ValueError(
+                f"electrode {index} has {len(chain)} node(s); a complete-electrode-model electrode "
+                "needs a chain of at least 2 boundary nodes"
+            )
+        if np.any((chain < 0) | (chain >= n_nodes)):
+            raise ValueError(f"electrode {index} indexes nodes outside [0, {n_nodes})")
+        if len(np.unique(chain)) != len(chain):
+            raise ValueError(f"electrode {index} repeats a node: {chain.tolist()}")
+        off_boundary = np.setdiff1d(chain, boundary_nodes)
+        if len(off_boundary):
+            raise ValueError(f"electrode {index}: nodes {_name_indices(off_boundary)} are not on the boundary")
+        for a, b in itertools.pairwise(chain):
+            if (min(a, b), max(a, b)) not in edge_set:
+                raise ValueError(
+                    f"electrode {index}: nodes {a} and {b} are not joined by a boundary edge; "
+                    "give the electrode's nodes in order along the boundary"
+                )
+        shared = chain[owner[chain] >= 0]
+        if len(shared):
+            other = owner[shared[0]]
+            raise ValueError(f"electrodes {other} and {index} overlap at nodes {_name_indices(shared)}")
+        owner[chain] = index
+        checked.append(chain)
+    return checked
