@@ -22,7 +22,7 @@ TOUCH_CENTRE = (0.5, 0.0)  # m, on the unit disc
 TOUCH_RADIUS = 0.1  # m
 TOUCH_CHANGE = -0.3  # dsigma / sigma: a touch strains the skin and lowers its conductivity
 NOISE_PERCENT = 1.0  # of RMS(V_reference), DESIGN.md
-HYPERPARAMETER = 0.05
+HYPERPARAMETER = 0.5  # the 1% noise is twice the touch's signal (0.5% of RMS(V_ref)): regularise firmly
 DATA_H, RECONSTRUCTION_H = 0.03, 0.06  # element sizes: data on a finer mesh
 
 

@@ -7,7 +7,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import triangle
 
-from ._mesh import Mesh
+from ._mesh import Mesh, _signed_areas
 
 # triangle's mean element area is about 0.65 of the area bound it is given: this factor makes
 # the mean edge length about the requested h.
@@ -135,8 +135,7 @@ def _triangulate(
     for _ in range(4):
         centroids = mesh["vertices"][mesh["triangles"]].mean(axis=1)
         bound = _AREA_PER_H_SQUARED * target_size(centroids) ** 2
-        corners = mesh["vertices"][mesh["triangles"]]
-        area = 0.5 * np.abs(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+        area = np.abs(_signed_areas(mesh["vertices"], mesh["triangles"]))
         if np.all(area <= 1.5 * bound):
             break
         mesh = triangle.triangulate({**mesh, "triangle_max_area": bound}, "rpq30Ya")

@@ -1,0 +1,90 @@
+"""The fast Jacobian, reverse- and forward-mode autodiff and finite differences agree."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _relative(a, b) -> float:
+    return float(np.abs(np.asarray(a) - np.asarray(b)).max() / np.abs(np.asarray(b)).max())
+
+
+def test_fast_jacobian_equals_jacrev(small_model, rough_conductivity):
+    fast = small_model.jacobian(rough_conductivity)
+    assert fast.shape == (208, small_model.n_elements)
+    reverse = jax.jacrev(small_model.measure)(rough_conductivity)
+    forward = jax.jacfwd(small_model.measure)(rough_conductivity)
+    assert _relative(fast, reverse) < 1e-9
+    assert _relative(forward, reverse) < 1e-9
+
+
+def test_jacobian_matches_central_differences_in_random_directions(small_model, rough_conductivity):
+    jacobian = small_model.jacobian(rough_conductivity)
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        direction = rng.normal(size=small_model.n_elements) * rough_conductivity
+        step = 1e-4
+        difference = (
+            small_model.measure(rough_conductivity + step * direction)
+            - small_model.measure(rough_conductivity - step * direction)
+        ) / (2 * step)
+        assert _relative(jacobian @ direction, difference) < 1e-6
+        tangent = jax.jvp(small_model.measure, (rough_conductivity,), (direction,))[1]
+        assert _relative(tangent, jacobian @ direction) < 1e-10
+
+
+def test_gradient_of_a_scalar_loss_matches_finite_differences(small_model, rough_conductivity):
+    target = small_model.measure(jnp.ones(small_model.n_elements))
+
+    def loss(sigma):
+        return jnp.sum((small_model.measure(sigma) - target) ** 2) / jnp.sum(target**2)
+
+    gradient = jax.grad(loss)(rough_conductivity)
+    np.testing.assert_allclose(
+        gradient, 2 * small_model.jacobian(rough_conductivity).T @ (small_model.measure(rough_conductivity) - target)
+        / jnp.sum(target**2), rtol=1e-9, atol=1e-12 * np.abs(gradient).max(),
+    )
+    rng = np.random.default_rng(11)
+    for _ in range(3):
+        direction = rng.normal(size=small_model.n_elements)
+        step = 1e-5
+        difference = (loss(rough_conductivity + step * direction) - loss(rough_conductivity - step * direction)) / (2 * step)
+        np.testing.assert_allclose(gradient @ direction, difference, rtol=1e-6)
+
+
+def test_jacobian_works_under_jit_and_vmap(small_model, rough_conductivity):
+    expected = small_model.jacobian(rough_conductivity)
+    assert _relative(jax.jit(small_model.jacobian)(rough_conductivity), expected) < 1e-12
+    batched = jax.vmap(small_model.jacobian)(jnp.stack([rough_conductivity, 3 * rough_conductivity]))
+    assert _relative(batched[0], expected) < 1e-12
+    assert _relative(batched[1], small_model.jacobian(3 * rough_conductivity)) < 1e-12
+
+
+def test_derivatives_with_respect_to_contact_impedance(small_model, rough_conductivity):
+    z = jnp.linspace(0.005, 0.05, 16)
+
+    def measure(z):
+        return small_model.measure(rough_conductivity, z)
+
+    reverse = jax.jacrev(measure)(z)
+    forward = jax.jacfwd(measure)(z)
+    assert reverse.shape == (208, 16)
+    assert _relative(forward, reverse) < 1e-9
+    step = 1e-6
+    for l in (0, 5, 15):
+        bump = jnp.zeros(16).at[l].set(step * z[l])
+        difference = (measure(z + bump) - measure(z - bump)) / (2 * step * z[l])
+        assert _relative(reverse[:, l], difference) < 1e-6
+    scalar = jax.grad(lambda z: jnp.sum(small_model.measure(rough_conductivity, z) ** 2))(0.02)
+    difference = (
+        jnp.sum(small_model.measure(rough_conductivity, 0.02 * (1 + 1e-6)) ** 2)
+        - jnp.sum(small_model.measure(rough_conductivity, 0.02 * (1 - 1e-6)) ** 2)
+    ) / (2 * 0.02e-6)
+    np.testing.assert_allclose(scalar, difference, rtol=1e-6)
+
+
+def test_gradient_through_the_model_as_a_pytree(small_model, rough_conductivity):
+    """The model's contact impedance is its leaf: grad with respect to the model reaches it."""
+    gradient = jax.grad(lambda model: jnp.sum(model.measure(rough_conductivity)))(small_model)
+    expected = jax.grad(lambda z: jnp.sum(small_model.measure(rough_conductivity, z)))(small_model.contact_impedance)
+    np.testing.assert_allclose(gradient.contact_impedance, expected, rtol=1e-12)

@@ -1,0 +1,136 @@
+import diffeit as de
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import skfem
+
+
+def test_disc_puts_electrode_ends_on_the_circle_at_their_angles():
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1, first_electrode_angle=0.3)
+    assert mesh.n_electrodes == 16
+    for k, chain in enumerate(mesh.electrodes):
+        ends = mesh.nodes[chain[[0, -1]]]
+        np.testing.assert_allclose(np.linalg.norm(ends, axis=1), 1.0, atol=1e-14)
+        angles = np.arctan2(ends[:, 1], ends[:, 0])
+        centre = 0.3 + 2 * np.pi * k / 16
+        expected = np.angle(np.exp(1j * (centre + np.array([-0.1, 0.1]))))
+        np.testing.assert_allclose(angles, expected, atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(mesh.nodes[chain], axis=1), 1.0, atol=1e-14)
+    boundary = np.unique(mesh.boundary_edges)
+    np.testing.assert_allclose(np.linalg.norm(mesh.nodes[boundary], axis=1), 1.0, atol=1e-14)
+    assert np.all(mesh.element_areas > 0)
+
+
+def test_disc_element_count_follows_h_and_refines_near_electrodes():
+    counts = [de.mesh.disc(h=h, electrode_h=h).n_elements for h in (0.2, 0.1, 0.05)]
+    ratios = np.array(counts[1:]) / np.array(counts[:-1])
+    assert np.all((ratios > 3.0) & (ratios < 5.0)), counts  # ~4x per halving of h
+    uniform = de.mesh.disc(h=0.1, electrode_h=0.1)
+    refined = de.mesh.disc(h=0.1, electrode_h=0.025)
+    assert refined.n_elements > uniform.n_elements
+    radius = np.linalg.norm(refined.element_centroids, axis=1)
+    rim, centre = refined.element_areas[radius > 0.95].mean(), refined.element_areas[radius < 0.5].mean()
+    assert rim < 0.25 * centre
+    assert all(len(chain) >= 9 for chain in refined.electrodes)  # width 0.2 at spacing 0.025
+
+
+def test_disc_aligns_elements_to_interior_circles():
+    mesh = de.mesh.disc(h=0.1, interior_circles=(0.5,))
+    radius = np.linalg.norm(mesh.nodes[mesh.triangles], axis=2)  # (E, 3)
+    inside = np.all(radius <= 0.5 + 1e-12, axis=1)
+    outside = np.all(radius >= 0.5 - 1e-12, axis=1)
+    assert np.all(inside | outside)
+    # The inscribed polygon of the circle has area close to pi r^2.
+    assert abs(mesh.element_areas[inside].sum() - np.pi * 0.25) < 0.01
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"n_electrodes": 32, "electrode_width": 0.2}, "do not fit"),
+        ({"h": -1.0}, "must be positive"),
+        ({"electrode_h": 0.5, "h": 0.1}, "electrode_h"),
+        ({"interior_circles": (1.2,)}, "strictly inside"),
+    ],
+)
+def test_disc_refuses_impossible_layouts(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        de.mesh.disc(**kwargs)
+
+
+def _square():
+    """The unit square from scikit-fem, 4 electrodes: one chain of boundary nodes per side."""
+    skmesh = skfem.MeshTri().refined(3)
+    nodes, triangles = skmesh.p.T, skmesh.t.T
+    electrodes = []
+    for axis, value in [(1, 0.0), (0, 1.0), (1, 1.0), (0, 0.0)]:
+        on_side = np.flatnonzero(np.isclose(nodes[:, axis], value))
+        along = nodes[on_side, 1 - axis]
+        chain = on_side[np.argsort(along)]
+        middle = (along[np.argsort(along)] > 0.3) & (along[np.argsort(along)] < 0.7)
+        electrodes.append(chain[middle])
+    return nodes, triangles, electrodes
+
+
+def test_from_arrays_reorients_clockwise_triangles():
+    nodes, triangles, electrodes = _square()
+    flipped = triangles.copy()
+    flipped[::2] = flipped[::2, [0, 2, 1]]  # half of them clockwise
+    a = de.Mesh.from_arrays(nodes, triangles, electrodes)
+    b = de.Mesh.from_arrays(nodes, flipped, electrodes)
+    np.testing.assert_allclose(a.element_areas, b.element_areas)
+    assert np.all(b.element_areas > 0)
+    np.testing.assert_allclose(a.element_areas.sum(), 1.0)
+    protocol = de.protocol.adjacent(4)
+    sigma = jnp.linspace(0.5, 2.0, a.n_elements)
+    np.testing.assert_allclose(
+        de.ForwardModel(a, protocol).measure(sigma), de.ForwardModel(b, protocol).measure(sigma), rtol=1e-12
+    )
+
+
+def test_from_arrays_refuses_bad_meshes_naming_the_problem():
+    nodes, triangles, electrodes = _square()
+    degenerate = triangles.copy()
+    degenerate[5] = [degenerate[5, 0], degenerate[5, 0], degenerate[5, 1]]
+    with pytest.raises(ValueError, match=r"degenerate triangles .*\[5\]"):
+        de.Mesh.from_arrays(nodes, degenerate, electrodes)
+    collinear = np.vstack([nodes, [[0.25, 0.25], [0.5, 0.5], [0.75, 0.75]]])
+    flat = np.vstack([triangles, [len(nodes), len(nodes) + 1, len(nodes) + 2]])
+    with pytest.raises(ValueError, match=rf"degenerate triangles .*\[{len(triangles)}\]"):
+        de.Mesh.from_arrays(collinear, flat, electrodes)
+    with pytest.raises(ValueError, match="index nodes outside"):
+        de.Mesh.from_arrays(nodes, triangles + 1000, electrodes)
+    with pytest.raises(ValueError, match="belong to no triangle"):
+        de.Mesh.from_arrays(np.vstack([nodes, [[3.0, 3.0]]]), triangles, electrodes)
+    interior = int(np.flatnonzero(np.all(np.abs(nodes - 0.5) < 0.3, axis=1))[0])
+    with pytest.raises(ValueError, match=rf"electrode 1: nodes \[{interior}\] are not on the boundary"):
+        de.Mesh.from_arrays(nodes, triangles, [electrodes[0], [*electrodes[1], interior]])
+    with pytest.raises(ValueError, match="electrodes 0 and 1 overlap"):
+        de.Mesh.from_arrays(nodes, triangles, [electrodes[0], electrodes[0][1:]])
+    with pytest.raises(ValueError, match="electrode 2 has 1 node"):
+        de.Mesh.from_arrays(nodes, triangles, [electrodes[0], electrodes[1], electrodes[2][:1]])
+    with pytest.raises(ValueError, match="not joined by a boundary edge"):
+        de.Mesh.from_arrays(nodes, triangles, [electrodes[0][::2]])
+    with pytest.raises(ValueError, match="non-finite"):
+        de.Mesh.from_arrays(np.where(np.arange(len(nodes))[:, None] == 3, np.nan, nodes), triangles, electrodes)
+
+
+def test_from_arrays_refuses_disconnected_meshes():
+    nodes = np.array([[0, 0], [1, 0], [0, 1], [5, 5], [6, 5], [5, 6]], dtype=float)
+    triangles = np.array([[0, 1, 2], [3, 4, 5]])
+    with pytest.raises(ValueError, match="2 disconnected pieces"):
+        de.Mesh.from_arrays(nodes, triangles, [[0, 1], [3, 4]])
+
+
+def test_mesh_is_immutable(small_disc):
+    with pytest.raises(AttributeError):
+        small_disc.nodes = small_disc.nodes
+    with pytest.raises(ValueError, match="read-only"):
+        small_disc.nodes[0, 0] = 1.0
+
+
+def test_disc_fraction_integrates_the_disc_area():
+    mesh = de.mesh.disc(h=0.05)
+    fraction = de.mesh.disc_fraction(mesh, (0.3, -0.2), 0.25)
+    assert np.all((fraction >= 0) & (fraction <= 1))
+    np.testing.assert_allclose(fraction @ mesh.element_areas, np.pi * 0.25**2, rtol=2e-3)
