@@ -1,0 +1,120 @@
+"""The differentiable sparse SPD solve and its host backend."""
+
+import diffeit.linear_solve as linear_solve
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse.linalg
+
+
+def _laplacian_system(n: int = 30, seed: int = 0):
+    """A random SPD matrix on a path-plus-chords pattern: its pattern and values."""
+    rng = np.random.default_rng(seed)
+    rows = np.concatenate([np.arange(n), np.arange(n - 1), np.arange(1, n), [0, 5], [5, 0]])
+    cols = np.concatenate([np.arange(n), np.arange(1, n), np.arange(n - 1), [5, 0], [0, 5]])
+    pattern, slots = linear_solve.SparsityPattern.from_entries(rows, cols, n)
+    weights = rng.uniform(0.5, 2.0, n - 1)
+    dense = np.zeros((n, n))
+    for i, w in enumerate(weights):
+        dense[[i, i + 1], [i, i + 1]] += w
+        dense[i, i + 1] -= w
+        dense[i + 1, i] -= w
+    dense[0, 5] = dense[5, 0] = -0.3
+    dense[[0, 5], [0, 5]] += 0.3
+    dense += np.diag(rng.uniform(0.1, 1.0, n))
+    values = dense[pattern.rows, pattern.cols]
+    return pattern, jnp.asarray(values), dense
+
+
+def test_pattern_round_trip_and_matvec():
+    pattern, values, dense = _laplacian_system()
+    np.testing.assert_allclose(pattern.to_scipy(np.asarray(values)).toarray(), dense)
+    x = np.random.default_rng(1).normal(size=(30, 3))
+    np.testing.assert_allclose(pattern.matvec(values, jnp.asarray(x)), dense @ x, rtol=1e-13)
+
+
+def test_solve_matches_dense_solution_and_its_derivatives():
+    pattern, values, dense = _laplacian_system()
+    solver = linear_solve.HostSparse()
+    rhs = jnp.asarray(np.random.default_rng(2).normal(size=(30, 4)))
+    x = linear_solve.solve_spd(pattern, values, rhs, solver)
+    np.testing.assert_allclose(x, np.linalg.solve(dense, rhs), rtol=1e-11)
+    vector = linear_solve.solve_spd(pattern, values, rhs[:, 0], solver)
+    np.testing.assert_allclose(vector, x[:, 0], rtol=1e-13)
+    # d x / d values: reverse and forward mode against the dense formula -A^-1 dA x.
+    tangent = jnp.asarray(np.random.default_rng(3).normal(size=pattern.nnz))
+    tangent = 0.5 * (tangent + tangent[_transpose_slots(pattern)])  # a symmetric perturbation
+    forward = jax.jvp(lambda v: linear_solve.solve_spd(pattern, v, rhs, solver), (values,), (tangent,))[1]
+    perturbation = pattern.to_scipy(np.asarray(tangent)).toarray()
+    np.testing.assert_allclose(forward, -np.linalg.solve(dense, perturbation @ np.asarray(x)), rtol=1e-10)
+    reverse = jax.grad(lambda v: jnp.sum(linear_solve.solve_spd(pattern, v, rhs, solver)))(values)
+    np.testing.assert_allclose(reverse @ tangent, forward.sum(), rtol=1e-10)
+
+
+def _transpose_slots(pattern):
+    position = {(r, c): i for i, (r, c) in enumerate(zip(pattern.rows, pattern.cols, strict=True))}
+    return np.array([position[c, r] for r, c in zip(pattern.rows, pattern.cols, strict=True)])
+
+
+@pytest.fixture
+def counted_host_calls(monkeypatch):
+    calls = []
+    original = linear_solve._host_solve
+
+    def counting(pattern, values, rhs, cache_size):
+        calls.append((values.shape, rhs.shape))
+        return original(pattern, values, rhs, cache_size)
+
+    monkeypatch.setattr(linear_solve, "_host_solve", counting)
+    return calls
+
+
+def test_a_batch_of_right_hand_sides_is_one_host_call(counted_host_calls):
+    pattern, values, dense = _laplacian_system()
+    rhs = jnp.asarray(np.random.default_rng(4).normal(size=(7, 30, 2)))
+    solve = jax.vmap(lambda b: linear_solve.solve_spd(pattern, values, b, linear_solve.HostSparse()))
+    x = solve(rhs)
+    np.testing.assert_allclose(x, np.linalg.solve(dense, np.asarray(rhs)), rtol=1e-11)
+    assert len(counted_host_calls) == 1
+    assert counted_host_calls[0] == ((1, pattern.nnz), (7, 30, 2))  # the matrix is not copied 7 times
+
+
+def test_a_batch_of_matrices_is_one_host_call(counted_host_calls):
+    pattern, values, dense = _laplacian_system()
+    scales = jnp.array([1.0, 2.0, 5.0])
+    rhs = jnp.ones((30, 1))
+    x = jax.vmap(lambda s: linear_solve.solve_spd(pattern, s * values, rhs, linear_solve.HostSparse()))(scales)
+    for s, xi in zip(scales, x, strict=True):
+        np.testing.assert_allclose(xi, np.linalg.solve(float(s) * dense, np.ones((30, 1))), rtol=1e-11)
+    assert len(counted_host_calls) == 1
+
+
+def test_a_factorisation_is_reused_for_the_same_matrix(monkeypatch):
+    pattern, values, _ = _laplacian_system(seed=5)
+    factorisations = []
+    original = scipy.sparse.linalg.splu
+
+    def counting(*args, **kwargs):
+        factorisations.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", counting)
+    solver = linear_solve.HostSparse()
+    first = linear_solve.solve_spd(pattern, values, jnp.ones((30, 1)), solver)
+    second = linear_solve.solve_spd(pattern, values, 2 * jnp.ones((30, 1)), solver)
+    np.testing.assert_allclose(second, 2 * first, rtol=1e-14)
+    assert len(factorisations) == 1
+    linear_solve.solve_spd(pattern, 1.5 * values, jnp.ones((30, 1)), solver)
+    assert len(factorisations) == 2
+
+
+def test_a_singular_matrix_gives_nan_not_an_exception():
+    pattern, values, _ = _laplacian_system()
+    x = linear_solve.solve_spd(pattern, jnp.zeros_like(values), jnp.ones((30, 1)), linear_solve.HostSparse())
+    assert np.all(np.isnan(x))
+
+
+def test_non_symmetric_patterns_are_refused():
+    with pytest.raises(ValueError, match="not symmetric"):
+        linear_solve.SparsityPattern.from_entries(np.array([0, 1]), np.array([1, 1]), 2)
