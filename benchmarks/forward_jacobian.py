@@ -55,9 +55,10 @@ def _timed(function, repeats: int) -> tuple[float, float]:
 
 
 def run_one(n_triangles: int, repeats: int) -> dict:
-    import diffeit as de
     import jax
     import numpy as np
+
+    import diffeit as de
 
     mesh = _disc_with_about(n_triangles)
     model = de.ForwardModel(mesh, de.protocol.adjacent(16), contact_impedance=0.01)
@@ -157,7 +158,9 @@ def main() -> None:
     for size in arguments.sizes:
         output = subprocess.run(
             [sys.executable, __file__, "--one", str(size), "--repeats", str(arguments.repeats)],
-            check=True, capture_output=True, text=True,
+            check=True,
+            capture_output=True,
+            text=True,
         ).stdout
         row = json.loads(output.strip().splitlines()[-1])
         print(

@@ -1,7 +1,8 @@
-import diffeit as de
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
+import diffeit as de
 
 
 @pytest.fixture(scope="session")

@@ -1,6 +1,7 @@
 """The demo: a touch on the skin is found where it is."""
 
 import matplotlib.image
+
 from diffeit.cli import main
 from diffeit.demo import TOUCH_RADIUS, run_demo
 

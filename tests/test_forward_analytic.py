@@ -4,11 +4,12 @@
 method to about 1e-9 relative (tests/analytic.py), far below every discretisation error here.
 """
 
-import diffeit as de
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from analytic import cem_disc_electrode_potentials
+
+import diffeit as de
 
 ANGLES = 2 * np.pi * np.arange(16) / 16  # electrode centres of de.mesh.disc
 HALF_ANGLE = 0.1  # electrode width 0.2 on the unit disc

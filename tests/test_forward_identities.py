@@ -1,11 +1,12 @@
 """Identities the complete electrode model satisfies exactly, so its discretisation must too."""
 
-import diffeit as de
 import jax
 import jax.numpy as jnp
 import numpy as np
 import skfem
 from skfem.helpers import dot, grad
+
+import diffeit as de
 
 Z_PER_ELECTRODE = np.linspace(0.005, 0.05, 16)
 
@@ -31,8 +32,12 @@ def test_scaling_conductivity_and_contact_impedance(small_model, rough_conductiv
 
 def test_voltages_are_linear_in_the_drive_current(small_disc, small_model, rough_conductivity):
     doubled = de.ForwardModel(small_disc, small_model.protocol, 0.01, drive_current=2e-3)
-    np.testing.assert_allclose(doubled.measure(rough_conductivity), 2 * small_model.measure(rough_conductivity), rtol=1e-12)
-    np.testing.assert_allclose(small_model.jacobian(rough_conductivity) * 2, doubled.jacobian(rough_conductivity), rtol=1e-12)
+    np.testing.assert_allclose(
+        doubled.measure(rough_conductivity), 2 * small_model.measure(rough_conductivity), rtol=1e-12
+    )
+    np.testing.assert_allclose(
+        small_model.jacobian(rough_conductivity) * 2, doubled.jacobian(rough_conductivity), rtol=1e-12
+    )
 
 
 def test_power_identity_against_an_independent_assembly(small_disc, small_model, rough_conductivity):
@@ -69,8 +74,10 @@ def test_electrode_potentials_sum_to_zero_and_currents_balance(small_model, roug
     # Current through electrode l is int (U_l - u)/z_l: it must equal the driven current.
     z = 0.01
     for nodal, electrode, current in zip(
-        np.asarray(potentials.nodal), np.asarray(potentials.electrode),
-        small_model.drive_current * small_model.protocol.drive, strict=True,
+        np.asarray(potentials.nodal),
+        np.asarray(potentials.electrode),
+        small_model.drive_current * small_model.protocol.drive,
+        strict=True,
     ):
         through = []
         for chain, level in zip(small_model.mesh.electrodes, electrode, strict=True):

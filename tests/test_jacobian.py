@@ -41,14 +41,21 @@ def test_gradient_of_a_scalar_loss_matches_finite_differences(small_model, rough
 
     gradient = jax.grad(loss)(rough_conductivity)
     np.testing.assert_allclose(
-        gradient, 2 * small_model.jacobian(rough_conductivity).T @ (small_model.measure(rough_conductivity) - target)
-        / jnp.sum(target**2), rtol=1e-9, atol=1e-12 * np.abs(gradient).max(),
+        gradient,
+        2
+        * small_model.jacobian(rough_conductivity).T
+        @ (small_model.measure(rough_conductivity) - target)
+        / jnp.sum(target**2),
+        rtol=1e-9,
+        atol=1e-12 * np.abs(gradient).max(),
     )
     rng = np.random.default_rng(11)
     for _ in range(3):
         direction = rng.normal(size=small_model.n_elements)
         step = 1e-5
-        difference = (loss(rough_conductivity + step * direction) - loss(rough_conductivity - step * direction)) / (2 * step)
+        difference = (loss(rough_conductivity + step * direction) - loss(rough_conductivity - step * direction)) / (
+            2 * step
+        )
         np.testing.assert_allclose(gradient @ direction, difference, rtol=1e-6)
 
 

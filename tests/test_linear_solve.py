@@ -1,11 +1,12 @@
 """The differentiable sparse SPD solve and its host backend."""
 
-import diffeit.linear_solve as linear_solve
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse.linalg
+
+import diffeit.linear_solve as linear_solve
 
 
 def _laplacian_system(n: int = 30, seed: int = 0):
@@ -13,7 +14,7 @@ def _laplacian_system(n: int = 30, seed: int = 0):
     rng = np.random.default_rng(seed)
     rows = np.concatenate([np.arange(n), np.arange(n - 1), np.arange(1, n), [0, 5], [5, 0]])
     cols = np.concatenate([np.arange(n), np.arange(1, n), np.arange(n - 1), [5, 0], [0, 5]])
-    pattern, slots = linear_solve.SparsityPattern.from_entries(rows, cols, n)
+    pattern, _slots = linear_solve.SparsityPattern.from_entries(rows, cols, n)
     weights = rng.uniform(0.5, 2.0, n - 1)
     dense = np.zeros((n, n))
     for i, w in enumerate(weights):

@@ -1,8 +1,9 @@
-import diffeit as de
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import skfem
+
+import diffeit as de
 
 
 def test_disc_puts_electrode_ends_on_the_circle_at_their_angles():

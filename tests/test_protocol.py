@@ -1,6 +1,7 @@
-import diffeit as de
 import numpy as np
 import pytest
+
+import diffeit as de
 
 
 def test_adjacent_order_and_sign_follow_eidors():
