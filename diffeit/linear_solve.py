@@ -103,27 +103,81 @@ class HostSparse(AbstractLinearSolver):
         )
 
 
-_factor_cache: OrderedDict[tuple[bytes, bytes], object] = OrderedDict()
-_factor_lock = threading.Lock()
+@dataclass(frozen=True)
+class _Ordering:
+    """A pattern symmetrically permuted by a fill-reducing order, in CSC form: the permuted
+    matrix is A[order][:, order], its data `values[take]`."""
+
+    order: np.ndarray
+    take: np.ndarray
+    indices: np.ndarray
+    indptr: np.ndarray
 
 
-def _factorise(pattern: SparsityPattern, values: np.ndarray, cache_size: int):
+@dataclass(frozen=True)
+class _Factor:
+    """The sparse LU factors of a permuted matrix; `solve` undoes the permutation."""
+
+    lu: scipy.sparse.linalg.SuperLU
+    order: np.ndarray
+
+    def solve(self, columns: np.ndarray) -> np.ndarray:
+        solution = np.empty_like(columns, dtype=np.float64)
+        solution[self.order] = self.lu.solve(np.asarray(columns[self.order], dtype=np.float64))
+        return solution
+
+
+_orderings: OrderedDict[bytes, _Ordering] = OrderedDict()
+_factor_cache: OrderedDict[tuple[bytes, bytes], _Factor | None] = OrderedDict()
+_host_lock = threading.Lock()
+_ORDERINGS_KEPT = 8
+
+
+def _splu(matrix: scipy.sparse.csc_matrix, permc_spec: str) -> scipy.sparse.linalg.SuperLU:
+    # Diagonal pivots and symmetric mode: right for an SPD matrix, and they keep the order.
+    return scipy.sparse.linalg.splu(
+        matrix, permc_spec=permc_spec, diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+    )
+
+
+def _ordering(pattern: SparsityPattern) -> _Ordering:
+    """The fill-reducing order of a pattern, computed once (it depends on the structure only):
+    later factorisations skip SuperLU's ordering step, about a quarter of their time."""
+    with _host_lock:
+        if pattern.fingerprint in _orderings:
+            return _orderings[pattern.fingerprint]
+    # Any SPD matrix on the pattern gives the order: a graph Laplacian plus the identity.
+    off_diagonal = pattern.rows != pattern.cols
+    degree = np.bincount(pattern.cols[off_diagonal], minlength=pattern.size)
+    laplacian = np.where(off_diagonal, -1.0, degree[pattern.rows] + 1.0)
+    position = _splu(pattern.to_scipy(laplacian), "MMD_AT_PLUS_A").perm_c
+    rows, cols = position[pattern.rows], position[pattern.cols]
+    take = np.argsort(cols * pattern.size + rows)
+    indptr = np.searchsorted(cols[take], np.arange(pattern.size + 1)).astype(np.int64)
+    ordering = _Ordering(np.argsort(position), take, rows[take], indptr)
+    with _host_lock:
+        _orderings[pattern.fingerprint] = ordering
+        while len(_orderings) > _ORDERINGS_KEPT:
+            _orderings.popitem(last=False)
+    return ordering
+
+
+def _factorise(pattern: SparsityPattern, values: np.ndarray, cache_size: int) -> _Factor | None:
     values = np.ascontiguousarray(values, dtype=np.float64)
     key = (pattern.fingerprint, hashlib.blake2b(values.tobytes(), digest_size=16).digest())
-    with _factor_lock:
+    with _host_lock:
         if key in _factor_cache:
             _factor_cache.move_to_end(key)
             return _factor_cache[key]
+    ordering = _ordering(pattern)
+    permuted = scipy.sparse.csc_matrix(
+        (values[ordering.take], ordering.indices, ordering.indptr), shape=(pattern.size, pattern.size)
+    )
     try:
-        factor = scipy.sparse.linalg.splu(
-            pattern.to_scipy(values),
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
-            options={"SymmetricMode": True},
-        )
+        factor = _Factor(_splu(permuted, "NATURAL"), ordering.order)
     except RuntimeError:  # exactly singular
         factor = None
-    with _factor_lock:
+    with _host_lock:
         _factor_cache[key] = factor
         while len(_factor_cache) > max(cache_size, 1):
             _factor_cache.popitem(last=False)
@@ -148,10 +202,10 @@ def _host_solve(pattern: SparsityPattern, values: np.ndarray, rhs: np.ndarray, c
     return solution.reshape((*batch, n, k)).astype(rhs.dtype, copy=False)
 
 
-def _solve_columns(factor, columns: np.ndarray) -> np.ndarray:
+def _solve_columns(factor: _Factor | None, columns: np.ndarray) -> np.ndarray:
     if factor is None:
         return np.full(columns.shape, np.nan)
-    return factor.solve(np.asarray(columns, dtype=np.float64))
+    return factor.solve(columns)
 
 
 def solve_spd(

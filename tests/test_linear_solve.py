@@ -92,22 +92,24 @@ def test_a_batch_of_matrices_is_one_host_call(counted_host_calls):
 
 
 def test_a_factorisation_is_reused_for_the_same_matrix(monkeypatch):
-    pattern, values, _ = _laplacian_system(seed=5)
+    pattern, values, dense = _laplacian_system(seed=5)
+    solver = linear_solve.HostSparse()
+    linear_solve.solve_spd(pattern, 3 * values, jnp.ones((30, 1)), solver)  # orders the pattern once
     factorisations = []
     original = scipy.sparse.linalg.splu
 
     def counting(*args, **kwargs):
-        factorisations.append(1)
+        factorisations.append(kwargs["permc_spec"])
         return original(*args, **kwargs)
 
     monkeypatch.setattr(scipy.sparse.linalg, "splu", counting)
-    solver = linear_solve.HostSparse()
     first = linear_solve.solve_spd(pattern, values, jnp.ones((30, 1)), solver)
     second = linear_solve.solve_spd(pattern, values, 2 * jnp.ones((30, 1)), solver)
     np.testing.assert_allclose(second, 2 * first, rtol=1e-14)
-    assert len(factorisations) == 1
+    np.testing.assert_allclose(first, np.linalg.solve(dense, np.ones((30, 1))), rtol=1e-12)
+    assert factorisations == ["NATURAL"]  # the fill-reducing order was computed once, before
     linear_solve.solve_spd(pattern, 1.5 * values, jnp.ones((30, 1)), solver)
-    assert len(factorisations) == 2
+    assert factorisations == ["NATURAL", "NATURAL"]
 
 
 def test_a_singular_matrix_gives_nan_not_an_exception():
