@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._messages import name_indices
 from .assembly import CompleteElectrodeSystem
 from .linear_solve import AbstractLinearSolver, HostSparse, relative_residual, solve_spd
 from .mesh import Mesh
@@ -34,9 +35,7 @@ def _is_concrete(x) -> bool:
 
 
 def _name_elements(mask: np.ndarray) -> str:
-    indices = np.flatnonzero(mask)
-    shown = ", ".join(map(str, indices[:10]))
-    return f"{len(indices)} element(s) [{shown}{', ...' if len(indices) > 10 else ''}]"
+    return f"{np.count_nonzero(mask)} element(s) {name_indices(np.flatnonzero(mask))}"
 
 
 @jax.tree_util.register_pytree_node_class

@@ -8,10 +8,7 @@ from dataclasses import dataclass, field
 import jax
 import numpy as np
 
-
-def _readonly(array: np.ndarray) -> np.ndarray:
-    array.setflags(write=False)
-    return array
+from ._arrays import readonly
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,11 +60,11 @@ class Protocol:
             raise ValueError("the protocol has no measurements")
         drive_index = np.repeat(np.arange(n_drives), [len(m) for m in per_drive])
         patterns, pattern_index = np.unique(flat, axis=0, return_inverse=True)
-        object.__setattr__(self, "drive", _readonly(drive))
-        object.__setattr__(self, "measure", _readonly(flat))
-        object.__setattr__(self, "drive_index", _readonly(drive_index))
-        object.__setattr__(self, "measure_patterns", _readonly(patterns))
-        object.__setattr__(self, "pattern_index", _readonly(pattern_index.ravel()))
+        object.__setattr__(self, "drive", readonly(drive))
+        object.__setattr__(self, "measure", readonly(flat))
+        object.__setattr__(self, "drive_index", readonly(drive_index))
+        object.__setattr__(self, "measure_patterns", readonly(patterns))
+        object.__setattr__(self, "pattern_index", readonly(pattern_index.ravel()))
 
     @property
     def n_electrodes(self) -> int:

@@ -2,6 +2,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import skfem
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import diffeit as de
 
@@ -86,6 +88,21 @@ def test_from_arrays_reorients_clockwise_triangles():
     sigma = jnp.linspace(0.5, 2.0, a.n_elements)
     np.testing.assert_allclose(
         de.ForwardModel(a, protocol).measure(sigma), de.ForwardModel(b, protocol).measure(sigma), rtol=1e-12
+    )
+
+
+@settings(max_examples=15, deadline=None)
+@given(flips=st.lists(st.booleans(), min_size=128, max_size=128), seed=st.integers(0, 2**31 - 1))
+def test_any_mix_of_orientations_gives_the_same_mesh_and_voltages(flips, seed):
+    nodes, triangles, electrodes = _square()
+    mixed = np.where(np.array(flips)[:, None], triangles[:, [0, 2, 1]], triangles)
+    reference, mesh = de.Mesh.from_arrays(nodes, triangles, electrodes), de.Mesh.from_arrays(nodes, mixed, electrodes)
+    np.testing.assert_allclose(mesh.element_areas, reference.element_areas, rtol=1e-15)
+    np.testing.assert_array_equal(np.sort(mesh.boundary_edges, axis=0), np.sort(reference.boundary_edges, axis=0))
+    sigma = jnp.asarray(np.random.default_rng(seed).uniform(0.1, 10.0, mesh.n_elements))
+    protocol = de.protocol.adjacent(4)
+    np.testing.assert_allclose(
+        de.ForwardModel(mesh, protocol).measure(sigma), de.ForwardModel(reference, protocol).measure(sigma), rtol=1e-11
     )
 
 

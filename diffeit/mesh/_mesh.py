@@ -10,24 +10,16 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
+from .._arrays import readonly
+from .._messages import name_indices
+
 # A triangle is degenerate when its area is below this fraction of its longest edge squared.
 _DEGENERACY_TOLERANCE = 1e-12
-
-
-def _name_indices(indices: np.ndarray, limit: int = 10) -> str:
-    shown = ", ".join(str(int(i)) for i in indices[:limit])
-    return f"[{shown}{', ...' if len(indices) > limit else ''}]"
 
 
 def _signed_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     a, b, c = (nodes[triangles[:, k]] for k in range(3))
     return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
-
-
-def _readonly(array: np.ndarray) -> np.ndarray:
-    array = np.array(array)
-    array.setflags(write=False)
-    return array
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,7 +55,7 @@ class Mesh:
             raise ValueError(f"nodes must have shape (N, 2); got {nodes.shape}")
         if not np.all(np.isfinite(nodes)):
             bad = np.flatnonzero(~np.all(np.isfinite(nodes), axis=1))
-            raise ValueError(f"nodes {_name_indices(bad)} have non-finite coordinates")
+            raise ValueError(f"nodes {name_indices(bad)} have non-finite coordinates")
         triangles = _checked_triangles(self.triangles, len(nodes))
         areas = _signed_areas(nodes, triangles)
         triangles = np.where((areas < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
@@ -73,11 +65,11 @@ class Mesh:
         boundary_edges = _boundary_edges(triangles)
         _check_connected(triangles, len(nodes))
         electrodes = _checked_electrodes(self.electrodes, boundary_edges, len(nodes))
-        object.__setattr__(self, "nodes", _readonly(nodes))
-        object.__setattr__(self, "triangles", _readonly(triangles))
-        object.__setattr__(self, "electrodes", tuple(_readonly(e) for e in electrodes))
-        object.__setattr__(self, "boundary_edges", _readonly(boundary_edges))
-        object.__setattr__(self, "element_areas", _readonly(areas))
+        object.__setattr__(self, "nodes", readonly(nodes))
+        object.__setattr__(self, "triangles", readonly(triangles))
+        object.__setattr__(self, "electrodes", tuple(readonly(e) for e in electrodes))
+        object.__setattr__(self, "boundary_edges", readonly(boundary_edges))
+        object.__setattr__(self, "element_areas", readonly(areas))
 
     @classmethod
     def from_arrays(cls, nodes: np.ndarray, triangles: np.ndarray, electrodes: list) -> Mesh:
@@ -130,7 +122,7 @@ def _checked_triangles(triangles: np.ndarray, n_nodes: int) -> np.ndarray:
     triangles = triangles.astype(np.int64)
     out_of_range = np.flatnonzero(np.any((triangles < 0) | (triangles >= n_nodes), axis=1))
     if len(out_of_range):
-        raise ValueError(f"triangles {_name_indices(out_of_range)} index nodes outside [0, {n_nodes})")
+        raise ValueError(f"triangles {name_indices(out_of_range)} index nodes outside [0, {n_nodes})")
     return triangles
 
 
@@ -140,13 +132,13 @@ def _check_nondegenerate(nodes: np.ndarray, triangles: np.ndarray, areas: np.nda
     longest_squared = np.max(np.sum(edges**2, axis=2), axis=1)
     degenerate = np.flatnonzero(areas <= _DEGENERACY_TOLERANCE * longest_squared)
     if len(degenerate):
-        raise ValueError(f"degenerate triangles (zero area or repeated vertices): {_name_indices(degenerate)}")
+        raise ValueError(f"degenerate triangles (zero area or repeated vertices): {name_indices(degenerate)}")
 
 
 def _check_all_nodes_used(triangles: np.ndarray, n_nodes: int) -> None:
     unused = np.setdiff1d(np.arange(n_nodes), triangles)
     if len(unused):
-        raise ValueError(f"nodes {_name_indices(unused)} belong to no triangle; remove them")
+        raise ValueError(f"nodes {name_indices(unused)} belong to no triangle; remove them")
 
 
 def _boundary_edges(triangles: np.ndarray) -> np.ndarray:
@@ -193,7 +185,7 @@ def _checked_electrodes(electrodes, boundary_edges: np.ndarray, n_nodes: int) ->
             raise ValueError(f"electrode {index} repeats a node: {chain.tolist()}")
         off_boundary = np.setdiff1d(chain, boundary_nodes)
         if len(off_boundary):
-            raise ValueError(f"electrode {index}: nodes {_name_indices(off_boundary)} are not on the boundary")
+            raise ValueError(f"electrode {index}: nodes {name_indices(off_boundary)} are not on the boundary")
         for a, b in itertools.pairwise(chain):
             if (min(a, b), max(a, b)) not in edge_set:
                 raise ValueError(
@@ -203,7 +195,7 @@ def _checked_electrodes(electrodes, boundary_edges: np.ndarray, n_nodes: int) ->
         shared = chain[owner[chain] >= 0]
         if len(shared):
             other = owner[shared[0]]
-            raise ValueError(f"electrodes {other} and {index} overlap at nodes {_name_indices(shared)}")
+            raise ValueError(f"electrodes {other} and {index} overlap at nodes {name_indices(shared)}")
         owner[chain] = index
         checked.append(chain)
     return checked
