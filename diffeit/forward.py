@@ -164,12 +164,22 @@ class ForwardModel:
 
 
 # The computations, jitted once per model (hashed by identity), shape and dtype. The methods
-# above validate concrete inputs first, which jit cannot.
+# above validate concrete inputs first with messages naming the elements; under an outer jit or
+# vmap only `_positive` can see the values.
+
+
+def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The value checks of `_checked_inputs` for traced inputs: an error at run time, never a
+    silent NaN or a solve of an indefinite system."""
+    sigma = eqx.error_if(sigma, ~jnp.all(jnp.isfinite(sigma) & (sigma > 0)), "conductivity must be finite and positive")
+    z = eqx.error_if(z, ~jnp.all(jnp.isfinite(z) & (z > 0)), "contact_impedance must be finite and positive")
+    return sigma, z
 
 
 @jax.jit
 def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentials:
     system = model.system
+    sigma, z = _positive(sigma, z)
     values = system.values(sigma, z)
     currents = model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype)
     rhs = system.current_rhs(currents)
@@ -194,6 +204,7 @@ def _measure(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
 @jax.jit
 def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
     system, protocol = model.system, model.protocol
+    sigma, z = _positive(sigma, z)
     n_free = system.n_electrodes - 1
     unit_currents = jnp.eye(n_free, system.n_electrodes, dtype=sigma.dtype)
     basis = solve_spd(system.pattern, system.values(sigma, z), system.current_rhs(unit_currents), model.solver)

@@ -41,9 +41,19 @@ def test_bad_contact_impedance_is_refused(small_disc, small_model):
         de.ForwardModel(small_disc, de.protocol.adjacent(16), drive_current=0.0)
 
 
-def test_traced_inputs_are_not_checked_but_still_work(small_model):
-    """Under jit the values are unknown at trace time: only the shape is checked."""
+@pytest.mark.parametrize("method", ["measure", "jacobian"])
+def test_traced_inputs_are_checked_at_run_time(small_model, method):
+    """Under jit or vmap the values are unknown at trace time: shapes raise ValueError then,
+    values raise at run time instead of giving NaN or solving an indefinite system."""
     sigma = jnp.ones(small_model.n_elements)
-    np.testing.assert_allclose(jax.jit(small_model.measure)(sigma), small_model.measure(sigma), rtol=1e-13)
+    call = jax.jit(getattr(small_model, method))
+    np.testing.assert_allclose(call(sigma), getattr(small_model, method)(sigma), rtol=1e-13)
     with pytest.raises(ValueError, match="expected"):
-        jax.jit(small_model.measure)(sigma[:-1])
+        call(sigma[:-1])
+    for bad in (sigma.at[3].set(jnp.nan), sigma.at[3].set(-1.0), sigma.at[0].set(0.0)):
+        with pytest.raises(Exception, match="conductivity must be finite and positive"):
+            call(bad).block_until_ready()
+    with pytest.raises(Exception, match="conductivity must be finite and positive"):
+        jax.vmap(getattr(small_model, method))(jnp.stack([sigma, -sigma])).block_until_ready()
+    with pytest.raises(Exception, match="contact_impedance must be finite and positive"):
+        jax.jit(lambda z: getattr(small_model, method)(sigma, z))(-0.01).block_until_ready()
