@@ -81,7 +81,10 @@ class CompleteElectrodeSystem:
             ]
             for r, c, w in entries:
                 r, c, w = np.broadcast_arrays(r, c, w)
-                rows.append(r), cols.append(c), weights.append(w), owner.append(np.full(len(w), l))
+                rows.append(r)
+                cols.append(c)
+                weights.append(w)
+                owner.append(np.full(len(w), l))
         rows, cols, weights, owner = map(np.concatenate, (rows, cols, weights, owner))
         size = n_nodes + n_electrodes - 1
         kept = (rows < size) & (cols < size)

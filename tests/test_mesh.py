@@ -1,3 +1,5 @@
+import itertools
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -127,10 +129,26 @@ def test_from_arrays_refuses_bad_meshes_naming_the_problem():
         de.Mesh.from_arrays(nodes, triangles, [electrodes[0], electrodes[0][1:]])
     with pytest.raises(ValueError, match="electrode 2 has 1 node"):
         de.Mesh.from_arrays(nodes, triangles, [electrodes[0], electrodes[1], electrodes[2][:1]])
-    with pytest.raises(ValueError, match="not joined by a boundary edge"):
+    with pytest.raises(ValueError, match="do not form one contiguous piece of the boundary"):
         de.Mesh.from_arrays(nodes, triangles, [electrodes[0][::2]])
     with pytest.raises(ValueError, match="non-finite"):
         de.Mesh.from_arrays(np.where(np.arange(len(nodes))[:, None] == 3, np.nan, nodes), triangles, electrodes)
+
+
+def test_electrode_nodes_in_any_order_are_ordered_along_the_boundary():
+    nodes, triangles, electrodes = _square()
+    mesh = de.Mesh.from_arrays(nodes, triangles, electrodes)
+    shuffled = [np.random.default_rng(k).permutation(e) for k, e in enumerate(electrodes)]
+    reordered = de.Mesh.from_arrays(nodes, triangles, shuffled)
+    reversed_ = de.Mesh.from_arrays(nodes, triangles, [e[::-1] for e in electrodes])
+    for a, b, c in zip(mesh.electrodes, reordered.electrodes, reversed_.electrodes, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
+        # Each step is a boundary edge in its counter-clockwise direction.
+        steps = {tuple(edge) for edge in mesh.boundary_edges.tolist()}
+        assert all((int(p), int(q)) in steps for p, q in itertools.pairwise(a))
+    # The bottom side's electrode runs in +x: counter-clockwise around the square.
+    assert np.all(np.diff(mesh.nodes[mesh.electrodes[0], 0]) > 0)
 
 
 def test_from_arrays_refuses_disconnected_meshes():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 
 import jax
@@ -35,7 +34,7 @@ class Mesh:
     - `nodes`: (N, 2) node coordinates in metres.
     - `triangles`: (E, 3) node indices per element, counter-clockwise.
     - `electrodes`: one integer array per electrode: a chain of at least two boundary nodes,
-      consecutive nodes joined by boundary edges, in order along the boundary.
+      consecutive nodes joined by boundary edges, in the direction of `boundary_edges`.
     - `boundary_edges`: (B, 2) boundary edges, oriented so that the sheet lies on their left
       (counter-clockwise along the outer boundary).
     - `element_areas`: (E,) triangle areas in m^2.
@@ -79,8 +78,9 @@ class Mesh:
 
         - `nodes`: (N, 2) coordinates in metres.
         - `triangles`: (E, 3) node indices, either orientation (clockwise ones are reoriented).
-        - `electrodes`: one sequence of boundary node indices per electrode, a chain along the
-          boundary (at least two nodes: the complete electrode model needs a width).
+        - `electrodes`: one sequence of boundary node indices per electrode: a contiguous run
+          of the boundary, in any order (stored ordered along the boundary); at least two nodes,
+          as the complete electrode model needs a width.
 
         **Raises:** `ValueError` naming degenerate triangles, unused nodes, a disconnected
         mesh, electrodes off the boundary, overlapping electrodes or electrodes of one node.
@@ -166,32 +166,31 @@ def _checked_electrodes(electrodes, boundary_edges: np.ndarray, n_nodes: int) ->
     if len(electrodes) == 0:
         raise ValueError("the mesh has no electrodes")
     boundary_nodes = np.unique(boundary_edges)
-    edge_set = {tuple(e) for e in np.sort(boundary_edges, axis=1).tolist()}
     owner = np.full(n_nodes, -1)
     checked = []
-    for index, chain in enumerate(electrodes):
-        chain = np.asarray(chain)
-        if chain.ndim != 1 or not np.issubdtype(chain.dtype, np.integer):
-            raise ValueError(f"electrode {index} must be a 1D array of node indices; got {chain!r}")
-        chain = chain.astype(np.int64)
-        if len(chain) < 2:
+    for index, nodes in enumerate(electrodes):
+        nodes = np.asarray(nodes)
+        if nodes.ndim != 1 or not np.issubdtype(nodes.dtype, np.integer):
+            raise ValueError(f"electrode {index} must be a 1D array of node indices; got {nodes!r}")
+        nodes = nodes.astype(np.int64)
+        if len(nodes) < 2:
             raise ValueError(
-                f"electrode {index} has {len(chain)} node(s); a complete-electrode-model electrode "
+                f"electrode {index} has {len(nodes)} node(s); a complete-electrode-model electrode "
                 "needs a chain of at least 2 boundary nodes"
             )
-        if np.any((chain < 0) | (chain >= n_nodes)):
+        if np.any((nodes < 0) | (nodes >= n_nodes)):
             raise ValueError(f"electrode {index} indexes nodes outside [0, {n_nodes})")
-        if len(np.unique(chain)) != len(chain):
-            raise ValueError(f"electrode {index} repeats a node: {chain.tolist()}")
-        off_boundary = np.setdiff1d(chain, boundary_nodes)
+        if len(np.unique(nodes)) != len(nodes):
+            raise ValueError(f"electrode {index} repeats a node: {nodes.tolist()}")
+        off_boundary = np.setdiff1d(nodes, boundary_nodes)
         if len(off_boundary):
             raise ValueError(f"electrode {index}: nodes {name_indices(off_boundary)} are not on the boundary")
-        for a, b in itertools.pairwise(chain):
-            if (min(a, b), max(a, b)) not in edge_set:
-                raise ValueError(
-                    f"electrode {index}: nodes {a} and {b} are not joined by a boundary edge; "
-                    "give the electrode's nodes in order along the boundary"
-                )
+        chain = _boundary_chain(nodes, boundary_edges)
+        if chain is None:
+            raise ValueError(
+                f"electrode {index}: nodes {name_indices(np.sort(nodes))} do not form one contiguous "
+                "piece of the boundary"
+            )
         shared = chain[owner[chain] >= 0]
         if len(shared):
             other = owner[shared[0]]
@@ -199,3 +198,20 @@ def _checked_electrodes(electrodes, boundary_edges: np.ndarray, n_nodes: int) ->
         owner[chain] = index
         checked.append(chain)
     return checked
+
+
+def _boundary_chain(nodes: np.ndarray, boundary_edges: np.ndarray) -> np.ndarray | None:
+    """`nodes` ordered along the boundary, in the direction of `boundary_edges` (the sheet on
+    the left), or None when they are not one contiguous run of boundary edges. Accepts the
+    nodes in any order, as EIDORS and other tools list them."""
+    inside = np.isin(boundary_edges, nodes).all(axis=1)
+    following = dict(boundary_edges[inside].tolist())
+    if len(following) != len(nodes) - 1:
+        return None
+    starts = set(nodes.tolist()) - set(following.values())
+    if len(starts) != 1:
+        return None
+    chain = [starts.pop()]
+    while chain[-1] in following and len(chain) < len(nodes):
+        chain.append(following[chain[-1]])
+    return np.array(chain) if len(chain) == len(nodes) else None
