@@ -4,6 +4,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import diffeit as de
+
 
 def _relative(a, b) -> float:
     return float(np.abs(np.asarray(a) - np.asarray(b)).max() / np.abs(np.asarray(b)).max())
@@ -95,3 +97,20 @@ def test_gradient_through_the_model_as_a_pytree(small_model, rough_conductivity)
     gradient = jax.grad(lambda model: jnp.sum(model.measure(rough_conductivity)))(small_model)
     expected = jax.grad(lambda z: jnp.sum(small_model.measure(rough_conductivity, z)))(small_model.contact_impedance)
     np.testing.assert_allclose(gradient.contact_impedance, expected, rtol=1e-12)
+
+
+def test_fast_jacobian_for_a_general_protocol(small_disc, rough_conductivity):
+    """Opposite drives, an arbitrary current pattern, and single-ended readings (weights that do
+    not sum to zero: they read against the mean electrode potential)."""
+    eye = np.eye(16)
+    drive = np.stack([eye[8] - eye[0], eye[12] - eye[4], np.cos(2 * np.pi * np.arange(16) / 16)])
+    measure = [eye[[1, 2, 3]], eye[[5, 9]] - 0.5 * eye[[6, 10]], eye[[0, 7, 15]]]
+    model = de.ForwardModel(small_disc, de.Protocol(drive, measure), contact_impedance=0.02)
+    fast = model.jacobian(rough_conductivity)
+    assert fast.shape == (8, small_disc.n_elements)
+    assert _relative(fast, jax.jacrev(model.measure)(rough_conductivity)) < 1e-9
+    direction = np.random.default_rng(3).normal(size=small_disc.n_elements) * rough_conductivity
+    difference = (
+        model.measure(rough_conductivity + 1e-4 * direction) - model.measure(rough_conductivity - 1e-4 * direction)
+    ) / 2e-4
+    assert _relative(fast @ direction, difference) < 1e-6
