@@ -1,8 +1,11 @@
 """Finite-element assembly of the complete electrode model on P1 triangles.
 
-Unknowns: the N nodal potentials, then the electrode potentials U_0 .. U_(L-2); U_(L-1) is
-grounded (fixed to 0 and dropped), which makes the system symmetric positive definite. With
-z_l the contact impedance of electrode l (ohm m) and e_l its boundary segment:
+Unknowns: the nodal potentials u, then the electrode potentials U_0 .. U_(L-1). One node g
+(on the last electrode) is grounded, u_g = 0, and dropped, which makes the system symmetric
+positive definite. Grounding a node rather than an electrode keeps the nodal potentials at the
+scale of the field even when the contact impedance is large (an electrode ground would float
+every node by the contact voltage drop, which float32 cannot resolve). With z_l the contact
+impedance of electrode l (ohm m) and e_l its boundary segment:
 
     [K(sigma) + B   C] [u]   [0]
     [C^T            D] [U] = [I]
@@ -12,7 +15,8 @@ z_l the contact impedance of electrode l (ohm m) and e_l its boundary segment:
     C_il  = -(1/z_l) int_{e_l} phi_i
     D_ll  = |e_l| / z_l
 
-The geometry is computed once with NumPy; the values are a traced JAX function of sigma and z.
+The currents I must sum to zero. The geometry is computed once with NumPy; the values are a
+traced JAX function of sigma and z.
 """
 
 from __future__ import annotations
@@ -53,21 +57,22 @@ class CompleteElectrodeSystem:
     stiffness_table: np.ndarray  # (nnz, k): flat indices into unit_stiffness summed per slot, E*9 pads
     electrode_weights: np.ndarray  # (C,) geometric integral of each electrode entry, m
     electrode_of_entry: np.ndarray  # (C,) the electrode whose 1/z scales the entry
+    electrode_rows: np.ndarray  # (C,) row and column of each electrode entry in the system
+    electrode_cols: np.ndarray
     electrode_slots: np.ndarray  # (C,)
+    grounded_node: int
 
     @classmethod
     def from_mesh(cls, mesh: Mesh) -> CompleteElectrodeSystem:
         n_nodes, n_electrodes = mesh.n_nodes, mesh.n_electrodes
-        gradients = basis_gradients(mesh)
-        unit = mesh.element_areas[:, None, None] * np.einsum("exi,exj->eij", gradients, gradients)
-        stiffness_rows = np.repeat(mesh.triangles, 3, axis=1)
-        stiffness_cols = np.tile(mesh.triangles, 3)
-
+        grounded = _midpoint_node(mesh, mesh.electrodes[-1])
+        size = n_nodes - 1 + n_electrodes
+        unknown_of_node = _unknown_of_node(n_nodes, grounded, size)
         rows, cols, weights, owner = [], [], [], []
         for l, chain in enumerate(mesh.electrodes):
-            a, b = chain[:-1], chain[1:]
-            length = np.linalg.norm(mesh.nodes[b] - mesh.nodes[a], axis=1)
-            u = n_nodes + l  # row of U_l (dropped below when l is the grounded electrode)
+            a, b = unknown_of_node[chain[:-1]], unknown_of_node[chain[1:]]
+            length = np.linalg.norm(mesh.nodes[chain[1:]] - mesh.nodes[chain[:-1]], axis=1)
+            u = n_nodes - 1 + l  # the unknown U_l
             entries = [
                 (a, a, length / 3),
                 (b, b, length / 3),
@@ -86,54 +91,193 @@ class CompleteElectrodeSystem:
                 weights.append(w)
                 owner.append(np.full(len(w), l))
         rows, cols, weights, owner = map(np.concatenate, (rows, cols, weights, owner))
-        size = n_nodes + n_electrodes - 1
-        kept = (rows < size) & (cols < size)
+        kept = (rows < size) & (cols < size)  # entries of the grounded node are dropped
         rows, cols, weights, owner = rows[kept], cols[kept], weights[kept], owner[kept]
-
-        pattern, slots = SparsityPattern.from_entries(
-            np.concatenate([stiffness_rows.ravel(), rows]),
-            np.concatenate([stiffness_cols.ravel(), cols]),
-            size,
-        )
-        n_stiffness = stiffness_rows.size
+        stiffness = _Stiffness.from_mesh(mesh, unknown_of_node, rows, cols, size)
         return cls(
-            pattern=pattern,
+            pattern=stiffness.pattern,
             n_nodes=n_nodes,
             n_electrodes=n_electrodes,
             triangles=mesh.triangles,
             element_areas=mesh.element_areas,
-            gradients=gradients,
-            unit_stiffness=unit.reshape(-1, 9),
-            stiffness_table=_gather_table(slots[:n_stiffness], pattern.nnz),
+            gradients=stiffness.gradients,
+            unit_stiffness=stiffness.unit,
+            stiffness_table=stiffness.table,
             electrode_weights=weights,
             electrode_of_entry=owner,
-            electrode_slots=slots[n_stiffness:],
+            electrode_rows=rows,
+            electrode_cols=cols,
+            electrode_slots=stiffness.extra_slots,
+            grounded_node=grounded,
         )
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
         """(nnz,) matrix values for element-wise `conductivity` (E,) in S/sq and per-electrode
         `contact_impedance` (L,) in ohm m."""
         dtype = jnp.result_type(conductivity, contact_impedance)
-        stiffness = (conductivity[:, None] * jnp.asarray(self.unit_stiffness, dtype)).ravel()
-        # A gather and a row sum: far faster than a scatter-add of E * 9 entries on CPU.
-        values = jnp.concatenate([stiffness, jnp.zeros(1, dtype)])[self.stiffness_table].sum(axis=1)
+        values = _stiffness_values(conductivity.astype(dtype), self.unit_stiffness, self.stiffness_table)
         electrode = jnp.asarray(self.electrode_weights, dtype) / contact_impedance[self.electrode_of_entry]
         return values.at[self.electrode_slots].add(electrode)
 
     def current_rhs(self, currents: jax.Array) -> jax.Array:
-        """(n, k) right-hand sides for k electrode current patterns `currents` (k, L) in A."""
-        nodal = jnp.zeros((self.n_nodes, currents.shape[0]), currents.dtype)
-        return jnp.concatenate([nodal, currents[:, : self.n_electrodes - 1].T])
+        """(n, k) right-hand sides for k electrode current patterns `currents` (k, L) in A,
+        each summing to zero."""
+        nodal = jnp.zeros((self.n_nodes - 1, currents.shape[0]), currents.dtype)
+        return jnp.concatenate([nodal, currents.T])
 
     def split(self, solution: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Nodal (k, N) and electrode (k, L) potentials from solutions (n, k), shifted so the
         electrode potentials of each solution sum to zero."""
-        electrode = jnp.concatenate([solution[self.n_nodes :], jnp.zeros_like(solution[:1])]).T
+        nodal = _with_ground(solution[: self.n_nodes - 1], self.grounded_node)
+        electrode = solution[self.n_nodes - 1 :].T
         shift = electrode.mean(axis=1, keepdims=True)
-        return solution[: self.n_nodes].T - shift, electrode - shift
+        return nodal - shift, electrode - shift
+
+    def contact_forms(self, first: jax.Array, second: jax.Array) -> jax.Array:
+        """(k, L) the electrode terms of the energy, int_(e_l) (u - U_l)(v - V_l) ds, pairing
+        column j of `first` with column j of `second` (system solutions (n, k), unshifted).
+
+        z_l^-2 times this is the derivative of the bilinear form u^T A v with respect to -z_l.
+        """
+        weights = jnp.asarray(self.electrode_weights, first.dtype)[:, None]
+        products = weights * first[self.electrode_rows] * second[self.electrode_cols]  # (C, k)
+        return jax.ops.segment_sum(products, self.electrode_of_entry, num_segments=self.n_electrodes).T
+
+
+@dataclass(frozen=True, eq=False)
+class PointElectrodeSystem:
+    """The stiffness matrix of one mesh with point electrodes, grounded at one node.
+
+    Electrode l is the single node `electrode_nodes[l]` (the node of its boundary chain
+    nearest the chain's midpoint by arc length); the current of electrode l enters there,
+    and its potential is the nodal potential. The node of the last electrode is grounded and
+    dropped, which makes the matrix symmetric positive definite. There is no contact
+    impedance: `values` ignores it, and derivatives with respect to it are zero. For
+    comparison with point-electrode tools (pyEIT); the potential at a point source is
+    mesh-dependent (it diverges logarithmically under refinement), so prefer the complete
+    model for physics.
+    """
+
+    pattern: SparsityPattern
+    n_nodes: int
+    n_electrodes: int
+    triangles: np.ndarray
+    element_areas: np.ndarray
+    gradients: np.ndarray
+    unit_stiffness: np.ndarray
+    stiffness_table: np.ndarray
+    electrode_nodes: np.ndarray  # (L,) node index of each electrode
+    grounded_node: int
+
+    @classmethod
+    def from_mesh(cls, mesh: Mesh) -> PointElectrodeSystem:
+        electrode_nodes = np.array([_midpoint_node(mesh, chain) for chain in mesh.electrodes])
+        grounded = int(electrode_nodes[-1])
+        size = mesh.n_nodes - 1
+        empty = np.zeros(0, dtype=np.int64)
+        stiffness = _Stiffness.from_mesh(mesh, _unknown_of_node(mesh.n_nodes, grounded, size), empty, empty, size)
+        return cls(
+            pattern=stiffness.pattern,
+            n_nodes=mesh.n_nodes,
+            n_electrodes=mesh.n_electrodes,
+            triangles=mesh.triangles,
+            element_areas=mesh.element_areas,
+            gradients=stiffness.gradients,
+            unit_stiffness=stiffness.unit,
+            stiffness_table=stiffness.table,
+            electrode_nodes=electrode_nodes,
+            grounded_node=grounded,
+        )
+
+    def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
+        """(nnz,) matrix values for element-wise `conductivity` (E,) in S/sq; the contact
+        impedance has no part in the point model."""
+        dtype = jnp.result_type(conductivity, contact_impedance)
+        return _stiffness_values(conductivity.astype(dtype), self.unit_stiffness, self.stiffness_table)
+
+    def current_rhs(self, currents: jax.Array) -> jax.Array:
+        """(n, k) right-hand sides for k electrode current patterns `currents` (k, L) in A,
+        each summing to zero (the grounded node's current is implied)."""
+        rows = _unknown_of_node(self.n_nodes, self.grounded_node, self.pattern.size)[self.electrode_nodes]
+        rhs = jnp.zeros((self.pattern.size + 1, currents.shape[0]), currents.dtype)
+        return rhs.at[rows].add(currents.T)[:-1]
+
+    def split(self, solution: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Nodal (k, N) and electrode (k, L) potentials from solutions (n, k), shifted so the
+        electrode potentials of each solution sum to zero."""
+        nodal = _with_ground(solution, self.grounded_node)
+        electrode = nodal[:, self.electrode_nodes]
+        shift = electrode.mean(axis=1, keepdims=True)
+        return nodal - shift, electrode - shift
+
+    def contact_forms(self, first: jax.Array, second: jax.Array) -> jax.Array:
+        """(k, L) zeros: point electrodes have no contact impedance."""
+        return jnp.zeros((first.shape[1], self.n_electrodes), first.dtype)
+
+
+ElectrodeSystem = CompleteElectrodeSystem | PointElectrodeSystem
+
+
+@dataclass(frozen=True)
+class _Stiffness:
+    """The stiffness part shared by both systems: unit element matrices, the pattern (with
+    any extra entries), and the gather table that sums element entries into its slots."""
+
+    pattern: SparsityPattern
+    gradients: np.ndarray
+    unit: np.ndarray
+    table: np.ndarray
+    extra_slots: np.ndarray
+
+    @classmethod
+    def from_mesh(
+        cls, mesh: Mesh, unknown_of_node: np.ndarray, extra_rows: np.ndarray, extra_cols: np.ndarray, size: int
+    ) -> _Stiffness:
+        gradients = basis_gradients(mesh)
+        unit = mesh.element_areas[:, None, None] * np.einsum("exi,exj->eij", gradients, gradients)
+        unknowns = unknown_of_node[mesh.triangles]
+        rows = np.repeat(unknowns, 3, axis=1).ravel()
+        cols = np.tile(unknowns, 3).ravel()
+        # Entries of a grounded node have an out-of-range index: they stay out of the pattern.
+        kept = (rows < size) & (cols < size)
+        pattern, slots = SparsityPattern.from_entries(
+            np.concatenate([rows[kept], extra_rows]), np.concatenate([cols[kept], extra_cols]), size
+        )
+        n_kept = np.count_nonzero(kept)
+        table = _gather_table(slots[:n_kept], pattern.nnz)  # indices into the kept entries
+        flat_index = np.append(np.flatnonzero(kept), rows.size)  # ... into all E * 9, pad last
+        return cls(pattern, gradients, unit.reshape(-1, 9), flat_index[table], slots[n_kept:])
+
+
+def _stiffness_values(conductivity: jax.Array, unit_stiffness: np.ndarray, table: np.ndarray) -> jax.Array:
+    stiffness = (conductivity[:, None] * jnp.asarray(unit_stiffness, conductivity.dtype)).ravel()
+    # A gather and a row sum: far faster than a scatter-add of E * 9 entries on CPU.
+    return jnp.concatenate([stiffness, jnp.zeros(1, conductivity.dtype)])[table].sum(axis=1)
+
+
+def _unknown_of_node(n_nodes: int, grounded: int, size: int) -> np.ndarray:
+    """The unknown of each node: nodes after the grounded one move up by one; the grounded
+    node maps to `size`, out of range, so its entries are dropped."""
+    index = np.arange(n_nodes)
+    unknown = index - (index > grounded)
+    unknown[grounded] = size
+    return unknown
+
+
+def _with_ground(nodal_unknowns: jax.Array, grounded: int) -> jax.Array:
+    """(k, N) nodal potentials from the (N - 1, k) nodal unknowns, 0 at the grounded node."""
+    zero = jnp.zeros_like(nodal_unknowns[:1])
+    return jnp.concatenate([nodal_unknowns[:grounded], zero, nodal_unknowns[grounded:]]).T
+
+
+def _midpoint_node(mesh: Mesh, chain: np.ndarray) -> int:
+    steps = np.linalg.norm(np.diff(mesh.nodes[chain], axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(steps)])
+    return int(chain[np.argmin(np.abs(arc - arc[-1] / 2))])
 
 
 jax.tree_util.register_static(CompleteElectrodeSystem)
+jax.tree_util.register_static(PointElectrodeSystem)
 
 
 def _gather_table(slots: np.ndarray, n_slots: int) -> np.ndarray:

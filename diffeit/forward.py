@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from functools import partial
+from typing import Literal, NamedTuple
 
 import equinox as eqx
 import jax
@@ -11,8 +13,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._messages import name_indices
-from .assembly import CompleteElectrodeSystem
-from .linear_solve import AbstractLinearSolver, HostSparse, relative_residual, solve_spd
+from .assembly import CompleteElectrodeSystem, ElectrodeSystem, PointElectrodeSystem
+from .linear_solve import (
+    AbstractLinearSolver,
+    HostSparse,
+    backward_error,
+    relative_residual,
+    solve_spd,
+    solver_named,
+)
 from .mesh import Mesh
 from .protocol import Protocol
 
@@ -23,11 +32,25 @@ class Potentials(NamedTuple):
     - `nodal`: (n_drives, N) potentials at the mesh nodes, volts.
     - `electrode`: (n_drives, L) electrode potentials U_l, volts, summing to zero per drive.
     - `relative_residual`: (n_drives,) ||A x - b|| / ||b|| of the linear solve.
+    - `backward_error`: (n_drives,) componentwise backward error of the linear solve (see
+      `diffeit.linear_solve.backward_error`): near machine epsilon for a sound solve even
+      when extreme contact impedance or contrast makes the relative residual large.
     """
 
     nodal: jax.Array
     electrode: jax.Array
     relative_residual: jax.Array
+    backward_error: jax.Array
+
+
+class PrecisionWarning(UserWarning):
+    """A float32 computation whose voltages are estimated to be off by more than 1e-3."""
+
+
+# float32 is an opt-in for throughput; beyond this estimated relative voltage error it is not.
+FLOAT32_TOLERANCE = 1e-3
+
+JacobianVariable = Literal["conductivity", "log_conductivity", "contact_impedance"]
 
 
 def _is_concrete(x) -> bool:
@@ -43,12 +66,24 @@ def _name_elements(mask: np.ndarray) -> str:
 class ForwardModel:
     """Complete electrode model on a P1 triangle mesh of a sheet.
 
-    `ForwardModel(mesh, protocol, contact_impedance=0.01, drive_current=1e-3)`
+    `ForwardModel(mesh, protocol, contact_impedance=0.01, *, drive_current=1e-3, solver=None,
+    electrode_model="complete")`
 
     Conventions: sheet conductivity sigma in S/sq, piecewise constant per element; contact
     impedance z in ohm m (2D), a scalar or one per electrode; drive current in amperes, the
     protocol's drive patterns are multiples of it (voltages and Jacobians are linear in it);
     voltages in volts; electrode potentials sum to zero for every drive.
+
+    `solver` is a backend of `diffeit.linear_solve` or its name: "host_sparse" (SciPy on the
+    host, the CPU default), "dense_cholesky" (small meshes, accelerators) or
+    "conjugate_gradient" (matrix-free, large meshes on accelerators). `electrode_model` is
+    "complete" or "point" (current through one node per electrode, no contact impedance; see
+    `diffeit.assembly.PointElectrodeSystem`).
+
+    Precision follows the conductivity's dtype: float64 by default, float32 on request. The
+    host backend computes in float64 whatever the input; the JAX backends compute in the
+    input's dtype, and a concrete float32 call warns (`PrecisionWarning`) when one step of
+    iterative refinement estimates the relative voltage error above 1e-3.
 
     `measure`, `potentials` and `jacobian` are pure JAX functions of the conductivity (and of
     an optional contact impedance overriding the model's): jit, grad, jvp, vmap and jacrev
@@ -64,7 +99,7 @@ class ForwardModel:
     contact_impedance: jax.Array
     drive_current: float
     solver: AbstractLinearSolver
-    system: CompleteElectrodeSystem = field(repr=False)
+    system: ElectrodeSystem = field(repr=False)
 
     def __init__(
         self,
@@ -73,7 +108,8 @@ class ForwardModel:
         contact_impedance: float | jax.Array = 0.01,
         *,
         drive_current: float = 1e-3,
-        solver: AbstractLinearSolver | None = None,
+        solver: AbstractLinearSolver | str | None = None,
+        electrode_model: Literal["complete", "point"] = "complete",
     ) -> None:
         if protocol.n_electrodes != mesh.n_electrodes:
             raise ValueError(
@@ -85,8 +121,17 @@ class ForwardModel:
         set_field(self, "mesh", mesh)
         set_field(self, "protocol", protocol)
         set_field(self, "drive_current", float(drive_current))
-        set_field(self, "solver", HostSparse() if solver is None else solver)
-        set_field(self, "system", CompleteElectrodeSystem.from_mesh(mesh))
+        if isinstance(solver, str):
+            solver = solver_named(solver)
+        elif solver is None:
+            solver = HostSparse()
+        elif not isinstance(solver, AbstractLinearSolver):
+            raise ValueError(f"solver must be a diffeit.linear_solve backend or its name; got {solver!r}")
+        systems = {"complete": CompleteElectrodeSystem, "point": PointElectrodeSystem}
+        if electrode_model not in systems:
+            raise ValueError(f"electrode_model must be 'complete' or 'point'; got {electrode_model!r}")
+        set_field(self, "solver", solver)
+        set_field(self, "system", systems[electrode_model].from_mesh(mesh))
         set_field(self, "contact_impedance", self._checked_contact_impedance(contact_impedance))
 
     def tree_flatten(self) -> tuple[tuple[jax.Array], tuple]:
@@ -116,21 +161,39 @@ class ForwardModel:
         - `conductivity`: (E,) sheet conductivity per element, S/sq.
         - `contact_impedance`: scalar or (L,) in ohm m; default the model's.
         """
-        return _potentials(self, *self._checked_inputs(conductivity, contact_impedance))
+        sigma, z = self._checked_inputs(conductivity, contact_impedance)
+        self._check_precision(conductivity, sigma, z)
+        return _potentials(self, sigma, z)
 
     def measure(self, conductivity: jax.Array, contact_impedance: jax.Array | None = None) -> jax.Array:
         """(n_measurements,) voltages of the protocol, volts, for conductivity (E,) in S/sq."""
-        return _measure(self, *self._checked_inputs(conductivity, contact_impedance))
+        sigma, z = self._checked_inputs(conductivity, contact_impedance)
+        self._check_precision(conductivity, sigma, z)
+        return _measure(self, sigma, z)
 
-    def jacobian(self, conductivity: jax.Array, contact_impedance: jax.Array | None = None) -> jax.Array:
-        """(n_measurements, E) derivative of `measure` with respect to the conductivity, V/(S/sq).
+    def jacobian(
+        self,
+        conductivity: jax.Array,
+        contact_impedance: jax.Array | None = None,
+        *,
+        wrt: JacobianVariable = "conductivity",
+    ) -> jax.Array:
+        """The derivative of `measure`, by the fast adjoint path.
 
-        The fast path: one factorisation and one solve per electrode (unit current into
-        electrode l, out of the grounded one) give every drive and measurement field; then
-        dV/dsigma_e = -area_e grad u_drive . grad u_measure (reciprocity), an element-wise
-        contraction. Equals `jax.jacrev(model.measure)` to rounding error.
+        - `wrt="conductivity"`: (n_measurements, E) in V/(S/sq).
+        - `wrt="log_conductivity"`: (n_measurements, E) in V, dV/d(ln sigma) = sigma dV/dsigma.
+        - `wrt="contact_impedance"`: (n_measurements, L) in V/(ohm m), one column per
+          electrode (sum the columns for a shared scalar z); zero for point electrodes.
+
+        One factorisation and one solve per electrode (unit current into electrode l, out of
+        the grounded one) give every drive and measurement field; then reciprocity gives
+        dV/dsigma_e = -area_e grad u_drive . grad u_measure, and
+        dV/dz_l = z_l^-2 int_(e_l) (u_drive - U_drive,l)(u_measure - U_measure,l) ds.
+        Equals `jax.jacrev` of `measure` to rounding error.
         """
-        return _jacobian(self, *self._checked_inputs(conductivity, contact_impedance))
+        if wrt not in JacobianVariable.__args__:
+            raise ValueError(f"wrt must be one of {JacobianVariable.__args__}; got {wrt!r}")
+        return _jacobian(self, *self._checked_inputs(conductivity, contact_impedance), wrt)
 
     def _checked_inputs(self, conductivity, contact_impedance) -> tuple[jax.Array, jax.Array]:
         sigma = jnp.asarray(conductivity)
@@ -148,6 +211,19 @@ class ForwardModel:
                 raise ValueError(f"conductivity must be positive (S/sq); it is <= 0 at {_name_elements(values <= 0)}")
         z = self.contact_impedance if contact_impedance is None else self._checked_contact_impedance(contact_impedance)
         return sigma, z.astype(sigma.dtype)
+
+    def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
+        """Warn when a concrete float32 call cannot hold `FLOAT32_TOLERANCE` (see the class)."""
+        if sigma.dtype != jnp.float32 or not _is_concrete(conductivity):
+            return
+        error = float(_float32_voltage_error(self, sigma, z))
+        if not error <= FLOAT32_TOLERANCE:
+            warnings.warn(
+                f"float32 voltages are estimated to be off by {error:.2g} (relative 2-norm), more than "
+                f"{FLOAT32_TOLERANCE:g}: use float64 for this case",
+                PrecisionWarning,
+                stacklevel=3,
+            )
 
     def _checked_contact_impedance(self, contact_impedance) -> jax.Array:
         n = self.mesh.n_electrodes
@@ -187,48 +263,82 @@ def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentia
     solution = eqx.error_if(
         solution,
         ~jnp.all(jnp.isfinite(solution)),
-        "the linear solve failed (non-finite potentials): check the mesh and the conductivity",
+        "the linear solve failed (non-finite potentials): the system is singular or, in float32, too "
+        "ill-conditioned for the precision; check the mesh, the conductivity and the contact impedance",
     )
     nodal, electrode = system.split(solution)
-    residual = relative_residual(system.pattern, values, solution, rhs)
-    return Potentials(nodal, electrode, residual)
+    return Potentials(
+        nodal,
+        electrode,
+        relative_residual(system.pattern, values, solution, rhs),
+        backward_error(system.pattern, values, solution, rhs),
+    )
 
 
 @jax.jit
 def _measure(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
-    electrode = _potentials(model, sigma, z).electrode
+    return _readings(model, _potentials(model, sigma, z).electrode)
+
+
+def _readings(model: ForwardModel, electrode: jax.Array) -> jax.Array:
+    """(n_measurements,) readings of the protocol from electrode potentials (n_drives, L)."""
     weights = jnp.asarray(model.protocol.measure, electrode.dtype)
     return jnp.sum(weights * electrode[model.protocol.drive_index], axis=-1)
 
 
 @jax.jit
-def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
+def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
+    """Estimated relative 2-norm error of float32 voltages: one step of iterative refinement,
+    the residual taken in float64, the correction solved with the float32 system."""
+    system = model.system
+    values = system.values(sigma, z)
+    rhs = system.current_rhs(model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype))
+    solution = solve_spd(system.pattern, values, rhs, model.solver)
+    exact_values = system.values(sigma.astype(jnp.float64), z.astype(jnp.float64))
+    residual = rhs.astype(jnp.float64) - system.pattern.matvec(exact_values, solution.astype(jnp.float64))
+    correction = solve_spd(system.pattern, values, residual.astype(sigma.dtype), model.solver)
+    voltages = _readings(model, system.split(solution)[1])
+    change = _readings(model, system.split(correction)[1])
+    return jnp.linalg.norm(change.astype(jnp.float64)) / jnp.linalg.norm(voltages.astype(jnp.float64))
+
+
+@partial(jax.jit, static_argnums=3)
+def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable) -> jax.Array:
     system, protocol = model.system, model.protocol
     sigma, z = _positive(sigma, z)
     n_free = system.n_electrodes - 1
-    unit_currents = jnp.eye(n_free, system.n_electrodes, dtype=sigma.dtype)
+    # Unit current into electrode l < L-1 and out of electrode L-1: every zero-sum pattern is
+    # a combination of these with its first L-1 entries as weights.
+    unit_currents = jnp.eye(n_free, system.n_electrodes, dtype=sigma.dtype).at[:, -1].set(-1)
     basis = solve_spd(system.pattern, system.values(sigma, z), system.current_rhs(unit_currents), model.solver)
     drives = model.drive_current * jnp.asarray(protocol.drive[:, :n_free], sigma.dtype)
     # A reading m of potentials that sum to zero equals one of m - mean(m), a zero-sum pattern.
     patterns = protocol.measure_patterns - protocol.measure_patterns.mean(axis=1, keepdims=True)
     patterns = jnp.asarray(patterns[:, :n_free], sigma.dtype)
-    nodal = basis[: system.n_nodes]
-    drive_x, drive_y = _element_gradients(system, nodal @ drives.T)  # each (n_drives, E)
-    measure_x, measure_y = _element_gradients(system, nodal @ patterns.T)  # each (n_patterns, E)
+    drive_fields = basis @ drives.T  # (n, n_drives) system solutions of every drive
+    measure_fields = basis @ patterns.T  # (n, n_patterns) ... of every measurement pattern
+    if wrt == "contact_impedance":
+        forms = system.contact_forms(
+            drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index]
+        )  # (n_measurements, L)
+        return forms / z**2
+    drive_x, drive_y = _element_gradients(system, system.split(drive_fields)[0])  # each (n_drives, E)
+    measure_x, measure_y = _element_gradients(system, system.split(measure_fields)[0])  # each (n_patterns, E)
     products = (
         drive_x[protocol.drive_index] * measure_x[protocol.pattern_index]
         + drive_y[protocol.drive_index] * measure_y[protocol.pattern_index]
     )
-    return -jnp.asarray(system.element_areas, sigma.dtype) * products
+    jacobian = -jnp.asarray(system.element_areas, sigma.dtype) * products
+    return jacobian * sigma if wrt == "log_conductivity" else jacobian
 
 
-def _element_gradients(system: CompleteElectrodeSystem, fields: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """x and y components, (k, E) each, of the gradients of k nodal fields (N, k) per element.
+def _element_gradients(system: ElectrodeSystem, nodal: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """x and y components, (k, E) each, of the gradients of k nodal fields (k, N) per element.
 
     Three broadcast products rather than a batched (2 x 3) @ (3 x k) matmul per element, which
     XLA runs slowly on CPU."""
-    gradients = jnp.asarray(system.gradients, fields.dtype)  # (E, 2, 3)
-    corners = [fields[system.triangles[:, i]].T for i in range(3)]  # each (k, E)
+    gradients = jnp.asarray(system.gradients, nodal.dtype)  # (E, 2, 3)
+    corners = [nodal[:, system.triangles[:, i]] for i in range(3)]  # each (k, E)
     x = sum(gradients[:, 0, i] * corners[i] for i in range(3))
     y = sum(gradients[:, 1, i] * corners[i] for i in range(3))
     return x, y
