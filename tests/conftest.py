@@ -4,6 +4,10 @@ import pytest
 
 import diffeit as de
 
+# An L-shaped sheet (metres) whose electrodes sit every 0.5 m from vertex 0: six of them straddle
+# corners (the reflex one included) and electrode 0 wraps around vertex 0.
+L_SHAPE = np.array([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
+
 
 @pytest.fixture(scope="session")
 def small_disc() -> de.Mesh:
@@ -18,5 +22,32 @@ def small_model(small_disc) -> de.ForwardModel:
 @pytest.fixture
 def rough_conductivity(small_disc):
     """A seeded, strongly non-uniform conductivity (S/sq) around 1."""
+    return _rough_conductivity(small_disc)
+
+
+def _rough_conductivity(mesh: de.Mesh) -> jnp.ndarray:
     rng = np.random.default_rng(1234)
-    return jnp.asarray(np.exp(rng.normal(0.0, 0.5, small_disc.n_elements)))
+    return jnp.asarray(np.exp(rng.normal(0.0, 0.5, mesh.n_elements)))
+
+
+@pytest.fixture(scope="session", params=["disc", "rectangle", "l_shape"])
+def sheet(request, small_disc) -> de.Mesh:
+    """Small 16-electrode sheets of each generator, for identities that must hold on any shape."""
+    if request.param == "disc":
+        return small_disc
+    if request.param == "rectangle":
+        return de.mesh.rectangle(2.0, 1.0, 16, electrode_width=0.15, h=0.15)
+    return de.mesh.polygon(L_SHAPE, 16, electrode_width=0.2, h=0.2, electrode_centres=0.5 * np.arange(16))
+
+
+@pytest.fixture(scope="session")
+def sheet_model(sheet, small_disc, small_model) -> de.ForwardModel:
+    if sheet is small_disc:
+        return small_model
+    return de.ForwardModel(sheet, de.protocol.adjacent(16), contact_impedance=0.01)
+
+
+@pytest.fixture
+def sheet_conductivity(sheet):
+    """A seeded, strongly non-uniform conductivity (S/sq) around 1 on `sheet`."""
+    return _rough_conductivity(sheet)

@@ -1,4 +1,5 @@
-"""Identities the complete electrode model satisfies exactly, so its discretisation must too."""
+"""Identities the complete electrode model satisfies exactly, so its discretisation must too: on
+a disc, a rectangle and an L-shaped polygon (the `sheet` fixtures)."""
 
 import jax
 import jax.numpy as jnp
@@ -11,9 +12,9 @@ import diffeit as de
 Z_PER_ELECTRODE = np.linspace(0.005, 0.05, 16)
 
 
-def test_reciprocity_of_adjacent_measurements(small_model, rough_conductivity):
-    voltages = np.asarray(small_model.measure(rough_conductivity, Z_PER_ELECTRODE))
-    protocol = small_model.protocol
+def test_reciprocity_of_adjacent_measurements(sheet_model, sheet_conductivity):
+    voltages = np.asarray(sheet_model.measure(sheet_conductivity, Z_PER_ELECTRODE))
+    protocol = sheet_model.protocol
     pair = {}  # (drive k, measured pair m) -> voltage
     for value, k, weights in zip(voltages, protocol.drive_index, protocol.measure, strict=True):
         pair[k, int(np.flatnonzero(weights == 1)[0])] = value
@@ -23,68 +24,80 @@ def test_reciprocity_of_adjacent_measurements(small_model, rough_conductivity):
     assert max(differences) < 1e-10 * np.abs(voltages).max()
 
 
-def test_scaling_conductivity_and_contact_impedance(small_model, rough_conductivity):
+def test_scaling_conductivity_and_contact_impedance(sheet_model, sheet_conductivity):
     c = 7.3
-    base = small_model.measure(rough_conductivity, Z_PER_ELECTRODE)
-    scaled = small_model.measure(c * rough_conductivity, Z_PER_ELECTRODE / c)
+    base = sheet_model.measure(sheet_conductivity, Z_PER_ELECTRODE)
+    scaled = sheet_model.measure(c * sheet_conductivity, Z_PER_ELECTRODE / c)
     np.testing.assert_allclose(scaled, base / c, rtol=1e-11)
 
 
-def test_voltages_are_linear_in_the_drive_current(small_disc, small_model, rough_conductivity):
-    doubled = de.ForwardModel(small_disc, small_model.protocol, 0.01, drive_current=2e-3)
+def test_voltages_are_linear_in_the_drive_current(sheet, sheet_model, sheet_conductivity):
+    doubled = de.ForwardModel(sheet, sheet_model.protocol, 0.01, drive_current=2e-3)
     np.testing.assert_allclose(
-        doubled.measure(rough_conductivity), 2 * small_model.measure(rough_conductivity), rtol=1e-12
+        doubled.measure(sheet_conductivity), 2 * sheet_model.measure(sheet_conductivity), rtol=1e-12
     )
     np.testing.assert_allclose(
-        small_model.jacobian(rough_conductivity) * 2, doubled.jacobian(rough_conductivity), rtol=1e-12
+        sheet_model.jacobian(sheet_conductivity) * 2, doubled.jacobian(sheet_conductivity), rtol=1e-12
     )
 
 
-def test_power_identity_against_an_independent_assembly(small_disc, small_model, rough_conductivity):
+def test_power_identity_against_an_independent_assembly(sheet, sheet_model, sheet_conductivity):
     """sum_l I_l U_l = int sigma |grad u|^2 + sum_l int_(e_l) (U_l - u)^2 / z_l per drive, with the
     sheet energy assembled by scikit-fem."""
-    potentials = small_model.potentials(rough_conductivity, Z_PER_ELECTRODE)
-    skmesh = skfem.MeshTri(small_disc.nodes.T, small_disc.triangles.T)
+    potentials = sheet_model.potentials(sheet_conductivity, Z_PER_ELECTRODE)
+    skmesh = skfem.MeshTri(sheet.nodes.T, sheet.triangles.T)
     basis = skfem.Basis(skmesh, skfem.ElementTriP1())
-    sigma = basis.with_element(skfem.ElementTriP0()).interpolate(np.asarray(rough_conductivity))
+    sigma = basis.with_element(skfem.ElementTriP0()).interpolate(np.asarray(sheet_conductivity))
 
     @skfem.BilinearForm
     def energy_form(u, v, w):
         return w.sigma * dot(grad(u), grad(v))
 
     stiffness = energy_form.assemble(basis, sigma=sigma)
-    currents = small_model.drive_current * small_model.protocol.drive
+    currents = sheet_model.drive_current * sheet_model.protocol.drive
     for nodal, electrode, current in zip(
         np.asarray(potentials.nodal), np.asarray(potentials.electrode), currents, strict=True
     ):
-        sheet = nodal @ stiffness @ nodal
+        sheet_energy = nodal @ stiffness @ nodal
         contact = 0.0
-        for chain, level, z in zip(small_disc.electrodes, electrode, Z_PER_ELECTRODE, strict=True):
+        for chain, level, z in zip(sheet.electrodes, electrode, Z_PER_ELECTRODE, strict=True):
             a, b = level - nodal[chain[:-1]], level - nodal[chain[1:]]
-            length = np.linalg.norm(np.diff(small_disc.nodes[chain], axis=0), axis=1)
+            length = np.linalg.norm(np.diff(sheet.nodes[chain], axis=0), axis=1)
             contact += np.sum(length * (a * a + a * b + b * b) / 3) / z  # exact for linear u
-        np.testing.assert_allclose(current @ electrode, sheet + contact, rtol=1e-11)
+        np.testing.assert_allclose(current @ electrode, sheet_energy + contact, rtol=1e-11)
     assert np.all(np.asarray(potentials.relative_residual) < 1e-12)
 
 
-def test_electrode_potentials_sum_to_zero_and_currents_balance(small_model, rough_conductivity):
-    potentials = small_model.potentials(rough_conductivity)
+def test_electrode_potentials_sum_to_zero_and_currents_balance(sheet_model, sheet_conductivity):
+    potentials = sheet_model.potentials(sheet_conductivity)
     np.testing.assert_allclose(potentials.electrode.sum(axis=1), 0.0, atol=1e-15)
-    assert potentials.nodal.shape == (16, small_model.mesh.n_nodes)
+    assert potentials.nodal.shape == (16, sheet_model.mesh.n_nodes)
     # Current through electrode l is int (U_l - u)/z_l: it must equal the driven current.
     z = 0.01
     for nodal, electrode, current in zip(
         np.asarray(potentials.nodal),
         np.asarray(potentials.electrode),
-        small_model.drive_current * small_model.protocol.drive,
+        sheet_model.drive_current * sheet_model.protocol.drive,
         strict=True,
     ):
         through = []
-        for chain, level in zip(small_model.mesh.electrodes, electrode, strict=True):
-            length = np.linalg.norm(np.diff(small_model.mesh.nodes[chain], axis=0), axis=1)
+        for chain, level in zip(sheet_model.mesh.electrodes, electrode, strict=True):
+            length = np.linalg.norm(np.diff(sheet_model.mesh.nodes[chain], axis=0), axis=1)
             mean_gap = level - 0.5 * (nodal[chain[:-1]] + nodal[chain[1:]])
             through.append(np.sum(length * mean_gap) / z)
-        np.testing.assert_allclose(through, current, atol=1e-12 * small_model.drive_current)
+        np.testing.assert_allclose(through, current, atol=1e-12 * sheet_model.drive_current)
+
+
+def test_jacobian_matches_central_differences(sheet_model, sheet_conductivity):
+    jacobian = sheet_model.jacobian(sheet_conductivity, Z_PER_ELECTRODE)
+    direction = np.random.default_rng(8).normal(size=sheet_model.n_elements) * sheet_conductivity
+    step = 1e-4
+    difference = (
+        sheet_model.measure(sheet_conductivity + step * direction, Z_PER_ELECTRODE)
+        - sheet_model.measure(sheet_conductivity - step * direction, Z_PER_ELECTRODE)
+    ) / (2 * step)
+    expected = np.asarray(jacobian @ direction)
+    assert np.abs(difference - expected).max() < 1e-6 * np.abs(expected).max()
 
 
 def test_measure_works_under_jit_vmap_and_as_a_pytree(small_model, rough_conductivity):

@@ -1,4 +1,4 @@
-"""The differentiable sparse SPD solve and its host backend."""
+"""The differentiable sparse SPD solve and its backends."""
 
 import jax
 import jax.numpy as jnp
@@ -35,9 +35,12 @@ def test_pattern_round_trip_and_matvec():
     np.testing.assert_allclose(pattern.matvec(values, jnp.asarray(x)), dense @ x, rtol=1e-13)
 
 
-def test_solve_matches_dense_solution_and_its_derivatives():
+BACKENDS = [linear_solve.HostSparse(), linear_solve.DenseCholesky(), linear_solve.ConjugateGradient()]
+
+
+@pytest.mark.parametrize("solver", BACKENDS, ids=lambda solver: type(solver).__name__)
+def test_solve_matches_dense_solution_and_its_derivatives(solver):
     pattern, values, dense = _laplacian_system()
-    solver = linear_solve.HostSparse()
     rhs = jnp.asarray(np.random.default_rng(2).normal(size=(30, 4)))
     x = linear_solve.solve_spd(pattern, values, rhs, solver)
     np.testing.assert_allclose(x, np.linalg.solve(dense, rhs), rtol=1e-11)
@@ -112,9 +115,44 @@ def test_a_factorisation_is_reused_for_the_same_matrix(monkeypatch):
     assert factorisations == ["NATURAL", "NATURAL"]
 
 
-def test_a_singular_matrix_gives_nan_not_an_exception():
+@pytest.mark.parametrize("solver", BACKENDS, ids=lambda solver: type(solver).__name__)
+def test_backends_solve_batches_under_vmap(solver):
+    pattern, values, dense = _laplacian_system(seed=6)
+    rhs = jnp.asarray(np.random.default_rng(8).normal(size=(5, 30, 3)))
+    scales = jnp.linspace(1.0, 3.0, 5)
+    x = jax.jit(jax.vmap(lambda s, b: linear_solve.solve_spd(pattern, s * values, b, solver)))(scales, rhs)
+    for s, b, xi in zip(scales, rhs, x, strict=True):
+        np.testing.assert_allclose(xi, np.linalg.solve(float(s) * dense, np.asarray(b)), rtol=1e-10)
+
+
+def test_conjugate_gradient_stops_each_column_at_its_tolerance():
+    """A loose tolerance is honoured per column, and columns of a batch do not change each
+    other's result (a converged column stops moving)."""
+    pattern, values, _ = _laplacian_system(seed=9)
+    rhs = jnp.asarray(np.random.default_rng(10).normal(size=(30, 2)))
+    loose = linear_solve.ConjugateGradient(relative_tolerance=1e-4)
+    together = linear_solve.solve_spd(pattern, values, rhs, loose)
+    alone = linear_solve.solve_spd(pattern, values, rhs[:, :1], loose)
+    np.testing.assert_allclose(together[:, :1], alone, rtol=1e-14)
+    residual = linear_solve.relative_residual(pattern, values, together, rhs)
+    assert np.all(residual <= 1e-4)
+    assert np.all(residual > 1e-12)  # it did stop early: not solved to rounding error
+    capped = linear_solve.ConjugateGradient(max_iterations=3)
+    assert np.all(linear_solve.relative_residual(pattern, values, capped.solve(pattern, values, rhs), rhs) > 1e-3)
+
+
+def test_backward_error_is_near_epsilon_for_a_direct_solve_and_not_for_a_wrong_one():
+    pattern, values, _ = _laplacian_system(seed=11)
+    rhs = jnp.asarray(np.random.default_rng(12).normal(size=(30, 2)))
+    x = linear_solve.solve_spd(pattern, values, rhs, linear_solve.HostSparse())
+    assert np.all(linear_solve.backward_error(pattern, values, x, rhs) < 1e-15)
+    assert np.all(linear_solve.backward_error(pattern, values, 1.01 * x, rhs) > 1e-3)
+
+
+@pytest.mark.parametrize("solver", BACKENDS[:2], ids=lambda solver: type(solver).__name__)
+def test_a_singular_matrix_gives_nan_not_an_exception(solver):
     pattern, values, _ = _laplacian_system()
-    x = linear_solve.solve_spd(pattern, jnp.zeros_like(values), jnp.ones((30, 1)), linear_solve.HostSparse())
+    x = linear_solve.solve_spd(pattern, jnp.zeros_like(values), jnp.ones((30, 1)), solver)
     assert np.all(np.isnan(x))
 
 

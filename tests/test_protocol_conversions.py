@@ -121,6 +121,7 @@ def test_conversion_inputs_are_checked():
 
 def _pyeit_protocols():
     from pyeit.eit import protocol
+
     cases = [
         (1, 1, "std", adjacent(16)),
         (1, 1, "rotate_meas", adjacent(16, rotate_measurements=True)),
@@ -212,6 +213,7 @@ def test_pyeit_forward_agrees_in_sign_and_order():
     order far less than 1."""
     from pyeit import mesh as pyeit_mesh
     from pyeit.eit import fem as pyeit_fem
+
     mesh = pyeit_mesh.create(16, h0=0.15)
     disc = de.mesh.disc(16, electrode_width=0.2, h=0.15)
     for pyeit_protocol, target in _pyeit_protocols()[:2]:

@@ -1,5 +1,11 @@
-"""Triangle meshes of sheets with boundary electrodes, generators, and geometric fields."""
+"""Triangle meshes of sheets with boundary electrodes, generators, geometric fields, and
+conservative interpolation of element fields between meshes."""
 
 from ._fields import disc_fraction as disc_fraction
 from ._generate import disc as disc
+from ._generate import polygon as polygon
+from ._generate import rectangle as rectangle
+from ._interpolate import interpolate as interpolate
+from ._interpolate import overlap_areas as overlap_areas
+from ._interpolate import remap_matrix as remap_matrix
 from ._mesh import Mesh as Mesh

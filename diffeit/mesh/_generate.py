@@ -1,4 +1,5 @@
-"""Mesh generators: skins whose electrode ends are mesh vertices (Shewchuk's `triangle`)."""
+"""Mesh generators: disc and polygonal skins whose electrode ends are mesh vertices (Shewchuk's
+`triangle`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import triangle
 
+from .._messages import name_indices
 from ._mesh import Mesh, _signed_areas
 
 # triangle's mean element area is about 0.65 of the area bound it is given: this factor makes
@@ -14,6 +16,10 @@ from ._mesh import Mesh, _signed_areas
 _AREA_PER_H_SQUARED = 0.65
 # Element size grows by this much per metre of distance from the nearest electrode.
 _GRADING = 0.5
+# Vertices closer than this fraction of the polygon's extent count as one point.
+_POLYGON_TOLERANCE = 1e-12
+# Electrode ends this close to a corner (as a fraction of the perimeter) move onto it: no slivers.
+_CORNER_SNAP = 1e-9
 
 
 def disc(
@@ -53,9 +59,7 @@ def disc(
         )
     if h <= 0 or radius <= 0:
         raise ValueError(f"h and radius must be positive; got h={h}, radius={radius}")
-    electrode_h = h / 2 if electrode_h is None else electrode_h
-    if not 0 < electrode_h <= h:
-        raise ValueError(f"electrode_h must lie in (0, h]; got {electrode_h} with h={h}")
+    electrode_h, size = _element_size(h, electrode_h)
     for r in interior_circles:
         if not 0 < r < radius:
             raise ValueError(f"interior circle radius {r} must lie strictly inside (0, {radius})")
@@ -63,9 +67,6 @@ def disc(
     half_angle = electrode_width / (2 * radius)
     centres = first_electrode_angle + 2 * np.pi * np.arange(n_electrodes) / n_electrodes
     electrode_ends = np.stack([centres - half_angle, centres + half_angle], axis=1)
-
-    def size(distance: np.ndarray) -> np.ndarray:
-        return np.minimum(h, electrode_h + _GRADING * distance)
 
     # The rim, electrode by electrode then the gap after it, as angles.
     angles, electrode_indices = [], []
@@ -105,6 +106,263 @@ def disc(
 
     nodes, triangles = _triangulate(vertices, np.concatenate(segments), h, target_size)
     return Mesh(nodes, triangles, tuple(electrode_indices))
+
+
+def polygon(
+    vertices: np.ndarray | Sequence[Sequence[float]],
+    n_electrodes: int = 16,
+    electrode_width: float | None = None,
+    h: float | None = None,
+    *,
+    electrode_centres: Sequence[float] | np.ndarray | None = None,
+    electrode_h: float | None = None,
+) -> Mesh:
+    """A polygonal skin with electrodes on its boundary, placed by arc length.
+
+    Positions on the boundary are arc lengths s in metres, measured counter-clockwise from
+    vertex 0, in [0, P) for a perimeter P. By default the electrodes are spread evenly: electrode
+    k is centred at s = (k + 1/2) P / n_electrodes, so the first centre is half a spacing after
+    vertex 0 and a square with 16 electrodes gets 4 per side, placed symmetrically. Electrode 0 is
+    the first electrode counter-clockwise from vertex 0, and the order follows the boundary, as
+    the `Mesh` convention requires.
+
+    Both ends of every electrode are mesh vertices on the boundary, and no boundary segment is
+    split by the mesher, so each electrode covers exactly its arc length. An electrode may pass
+    around a corner (its node chain then includes the corner). An end that lands within 1e-9 P
+    of a corner is moved onto the corner, which avoids slivers.
+
+    **Arguments:**
+
+    - `vertices`: (n, 2) corners in metres, n >= 3, in either orientation (clockwise input is
+      reversed about vertex 0, so vertex 0 stays the origin of the arc length). Do not repeat
+      vertex 0 at the end: the polygon closes itself.
+    - `n_electrodes`: number of electrodes (at least 2).
+    - `electrode_width`: arc length of each electrode in metres; default half the smallest
+      distance between neighbouring centres (half the spacing when evenly placed).
+    - `h`: target element edge length away from the electrodes, metres; default P / 64.
+    - `electrode_centres`: (n_electrodes,) arc lengths in metres of the electrode centres,
+      strictly increasing in [0, P); an electrode centred near vertex 0 may extend past it.
+    - `electrode_h`: element edge length at the electrodes (default `h / 2`); the size grows
+      linearly with the distance from the nearest electrode up to `h`.
+
+    **Raises:** `ValueError` naming the problem: fewer than 3 vertices, repeated vertices, a
+    self-intersecting polygon, non-positive sizes, centres of the wrong count or out of order,
+    electrodes that overlap or do not fit on the boundary.
+    """
+    corners = _counter_clockwise(_checked_polygon(vertices))
+    edges = np.roll(corners, -1, axis=0) - corners
+    edge_lengths = np.linalg.norm(edges, axis=1)
+    corner_arcs = np.concatenate([[0.0], np.cumsum(edge_lengths)[:-1]])
+    perimeter = float(edge_lengths.sum())
+
+    centres = _electrode_centres(n_electrodes, electrode_centres, perimeter)
+    spacing = np.diff(centres, append=centres[0] + perimeter)
+    if electrode_width is None:
+        electrode_width = 0.5 * float(spacing.min())
+    h = perimeter / 64 if h is None else h
+    if electrode_width <= 0 or h <= 0:
+        raise ValueError(f"electrode_width and h must be positive; got electrode_width={electrode_width}, h={h}")
+    electrode_h, size = _element_size(h, electrode_h)
+    if electrode_width * n_electrodes >= perimeter:
+        raise ValueError(
+            f"{n_electrodes} electrodes of width {electrode_width} do not fit on a boundary of "
+            f"length {perimeter:.4g} with gaps between them"
+        )
+    overlapping = np.flatnonzero(spacing <= electrode_width)
+    if len(overlapping):
+        k = int(overlapping[0])
+        raise ValueError(
+            f"electrodes {k} and {(k + 1) % n_electrodes} overlap: their centres are {spacing[k]:.4g} apart "
+            f"along the boundary, not more than the electrode width {electrode_width}"
+        )
+
+    # Electrode k covers the arc lengths [starts[k], starts[k] + lengths[k]] modulo the perimeter.
+    ends = np.mod(centres[:, None] + np.array([-0.5, 0.5]) * electrode_width, perimeter)
+    ends = _snap_to_corners(ends, corner_arcs, perimeter)
+    starts, lengths = ends[:, 0], np.mod(ends[:, 1] - ends[:, 0], perimeter)
+
+    def along(s: np.ndarray) -> np.ndarray:
+        """(M, K) arc length from s forward to the start of each electrode (0 inside it)."""
+        return np.mod(np.asarray(s)[:, None] - starts[None], perimeter)
+
+    def arc_distance(s: np.ndarray) -> np.ndarray:
+        """Distance along the boundary to the nearest electrode (0 on an electrode)."""
+        past = along(s) - lengths[None]
+        return np.min(np.where(past <= 0, 0.0, np.minimum(past, perimeter - past - lengths[None])), axis=1)
+
+    def position(s: np.ndarray) -> np.ndarray:
+        edge = np.searchsorted(corner_arcs, s, side="right") - 1
+        # At a corner (s equal to its arc length) this is the corner itself, exactly.
+        return corners[edge] + ((s - corner_arcs[edge]) / edge_lengths[edge])[:, None] * edges[edge]
+
+    # The boundary, piece by piece between consecutive corners and electrode ends: each piece is
+    # straight and lies on one electrode or in one gap.
+    breaks = np.unique(np.concatenate([corner_arcs, ends.ravel()]))
+    piece_ends = np.append(breaks[1:], perimeter)
+    arcs = [
+        _graded_points(start, stop, lambda s: size(arc_distance(s)))[:-1]
+        for start, stop in zip(breaks, piece_ends, strict=True)
+    ]
+    arc = np.concatenate(arcs)
+    on_electrode = along(arc) <= lengths[None] + 1e-12 * perimeter
+    electrodes = tuple(np.flatnonzero(on_electrode[:, k]) for k in range(n_electrodes))
+
+    middles = 0.5 * (breaks + piece_ends)
+    electrode_pieces = np.any(along(middles) < lengths[None], axis=1)
+    piece_starts = position(breaks[electrode_pieces])
+    piece_stops = position(np.mod(piece_ends[electrode_pieces], perimeter))
+
+    def target_size(points: np.ndarray) -> np.ndarray:
+        return size(_distance_to_segments(points, piece_starts, piece_stops))
+
+    nodes, triangles = _triangulate(position(arc), _closed_loop(0, len(arc)), h, target_size)
+    return Mesh(nodes, triangles, electrodes)
+
+
+def rectangle(
+    width: float = 1.0,
+    height: float = 1.0,
+    n_electrodes: int = 16,
+    electrode_width: float | None = None,
+    h: float | None = None,
+    *,
+    electrode_centres: Sequence[float] | np.ndarray | None = None,
+    electrode_h: float | None = None,
+) -> Mesh:
+    """A `width` x `height` rectangular skin (metres) centred at the origin, with electrodes on
+    its boundary: `polygon` with vertex 0 at the bottom-left corner (-width/2, -height/2) and
+    the arc length running counter-clockwise (along the bottom side first).
+
+    With the default even placement a square gets n_electrodes / 4 electrodes per side,
+    symmetric about the middle of each side. The other arguments are those of `polygon`
+    (defaults: electrode width half the spacing, h = perimeter / 64, electrode_h = h / 2).
+    """
+    if not (width > 0 and height > 0):
+        raise ValueError(f"width and height must be positive; got width={width}, height={height}")
+    corners = 0.5 * np.array([[-width, -height], [width, -height], [width, height], [-width, height]])
+    return polygon(
+        corners,
+        n_electrodes,
+        electrode_width,
+        h,
+        electrode_centres=electrode_centres,
+        electrode_h=electrode_h,
+    )
+
+
+def _element_size(h: float, electrode_h: float | None) -> tuple[float, Callable[[np.ndarray], np.ndarray]]:
+    """The electrode element size (default h / 2) and the size as a function of the distance
+    (metres) from the nearest electrode: electrode_h there, growing linearly up to h."""
+    electrode_h = h / 2 if electrode_h is None else electrode_h
+    if not 0 < electrode_h <= h:
+        raise ValueError(f"electrode_h must lie in (0, h]; got {electrode_h} with h={h}")
+
+    def size(distance: np.ndarray) -> np.ndarray:
+        return np.minimum(h, electrode_h + _GRADING * distance)
+
+    return electrode_h, size
+
+
+def _checked_polygon(vertices) -> np.ndarray:
+    """(n, 2) float vertices of a simple polygon, in the caller's order and numbering."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 2:
+        raise ValueError(f"vertices must have shape (n, 2); got {vertices.shape}")
+    if not np.all(np.isfinite(vertices)):
+        raise ValueError(f"vertices {name_indices(np.flatnonzero(~np.isfinite(vertices).all(axis=1)))} are not finite")
+    n = len(vertices)
+    if n < 3:
+        raise ValueError(f"a polygon needs at least 3 vertices; got {n}")
+    scale = float(np.ptp(vertices, axis=0).max())
+    distance = np.linalg.norm(vertices[:, None] - vertices[None], axis=2)
+    i, j = np.nonzero(np.triu(distance <= _POLYGON_TOLERANCE * scale, k=1))
+    if len(i):
+        hint = "; leave out the closing vertex, the polygon closes itself" if (i[0], j[0]) == (0, n - 1) else ""
+        raise ValueError(f"vertices {i[0]} and {j[0]} repeat the same point {vertices[i[0]].tolist()}{hint}")
+    crossing = _crossing_edges(vertices, _POLYGON_TOLERANCE * scale**2)
+    if crossing is not None:
+        i, j = crossing
+        raise ValueError(
+            f"the polygon intersects itself: edge {i} (vertices {i}-{(i + 1) % n}) and edge {j} "
+            f"(vertices {j}-{(j + 1) % n}) meet"
+        )
+    return vertices
+
+
+def _counter_clockwise(vertices: np.ndarray) -> np.ndarray:
+    """The vertices counter-clockwise, reversed about vertex 0 when they run clockwise."""
+    following = np.roll(vertices, -1, axis=0)
+    twice_area = np.sum(vertices[:, 0] * following[:, 1] - following[:, 0] * vertices[:, 1])
+    return vertices if twice_area > 0 else vertices[np.r_[0, len(vertices) - 1 : 0 : -1]]
+
+
+def _crossing_edges(vertices: np.ndarray, tolerance: float) -> tuple[int, int] | None:
+    """The first pair of edges (i, j), i < j, of a closed polygon that touch or cross other
+    than at the vertex two neighbouring edges share; None for a simple polygon."""
+    n = len(vertices)
+    a, b = vertices, np.roll(vertices, -1, axis=0)  # edge i runs from a[i] to b[i]
+
+    def orientation(p, q, r):
+        value = (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+        return np.where(np.abs(value) <= tolerance, 0, np.sign(value))
+
+    def within_box(p, q, r):  # r inside the bounding box of segment pq (used when collinear)
+        low, high = np.minimum(p, q) - np.sqrt(tolerance), np.maximum(p, q) + np.sqrt(tolerance)
+        return np.all((r >= low) & (r <= high), axis=-1)
+
+    i, j = np.triu_indices(n, k=1)
+    p, q, r, s = a[i], b[i], a[j], b[j]
+    o1, o2, o3, o4 = orientation(p, q, r), orientation(p, q, s), orientation(r, s, p), orientation(r, s, q)
+    meet = (o1 * o2 < 0) & (o3 * o4 < 0)
+    meet |= ((o1 == 0) & within_box(p, q, r)) | ((o2 == 0) & within_box(p, q, s))
+    meet |= ((o3 == 0) & within_box(r, s, p)) | ((o4 == 0) & within_box(r, s, q))
+    # Neighbouring edges always share a vertex; they overlap only when the second folds back
+    # along the first.
+    neighbours = (j == i + 1) | ((i == 0) & (j == n - 1))
+    first = np.where((i == 0) & (j == n - 1), j, i)
+    second = np.where((i == 0) & (j == n - 1), i, j)
+    edge = b - a
+    turn = edge[first, 0] * edge[second, 1] - edge[first, 1] * edge[second, 0]
+    folds_back = (np.abs(turn) <= tolerance) & (np.sum(edge[first] * edge[second], axis=1) < 0)
+    meet = np.where(neighbours, folds_back, meet)
+    hits = np.flatnonzero(meet)
+    return (int(i[hits[0]]), int(j[hits[0]])) if len(hits) else None
+
+
+def _electrode_centres(n_electrodes: int, centres, perimeter: float) -> np.ndarray:
+    if n_electrodes < 2:
+        raise ValueError(f"a skin needs at least 2 electrodes; got {n_electrodes}")
+    if centres is None:
+        return (np.arange(n_electrodes) + 0.5) * perimeter / n_electrodes
+    centres = np.asarray(centres, dtype=np.float64)
+    if centres.shape != (n_electrodes,):
+        raise ValueError(
+            f"electrode_centres must hold one arc length per electrode, shape ({n_electrodes},); got {centres.shape}"
+        )
+    if not np.all(np.isfinite(centres) & (centres >= 0) & (centres < perimeter)):
+        raise ValueError(f"electrode_centres must lie in [0, {perimeter:.6g}), the perimeter; got {centres.tolist()}")
+    if np.any(np.diff(centres) <= 0):
+        raise ValueError(
+            "electrode_centres must increase strictly: electrode k is the k-th counter-clockwise from vertex 0"
+        )
+    return centres
+
+
+def _snap_to_corners(arcs: np.ndarray, corner_arcs: np.ndarray, perimeter: float) -> np.ndarray:
+    """`arcs` with those within `_CORNER_SNAP` of the perimeter of a corner replaced by the corner's."""
+    offset = np.mod(arcs[..., None] - corner_arcs, perimeter)
+    distance = np.minimum(offset, perimeter - offset)
+    nearest = np.argmin(distance, axis=-1)
+    close = np.take_along_axis(distance, nearest[..., None], axis=-1)[..., 0] <= _CORNER_SNAP * perimeter
+    return np.where(close, corner_arcs[nearest], arcs)
+
+
+def _distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """(M,) distance from each point to the nearest of the segments starts[k] -> stops[k]."""
+    direction = stops - starts
+    relative = points[:, None] - starts[None]  # (M, K, 2)
+    t = np.clip(np.sum(relative * direction, axis=2) / np.sum(direction**2, axis=1), 0.0, 1.0)
+    return np.min(np.linalg.norm(relative - t[..., None] * direction, axis=2), axis=1)
 
 
 def _closed_loop(offset: int, n: int) -> np.ndarray:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
@@ -11,6 +13,10 @@ import scipy.sparse.csgraph
 
 from .._arrays import readonly
 from .._messages import name_indices
+
+if TYPE_CHECKING:
+    import skfem
+    from numpy.typing import ArrayLike
 
 # A triangle is degenerate when its area is below this fraction of its longest edge squared.
 _DEGENERACY_TOLERANCE = 1e-12
@@ -25,7 +31,8 @@ def _signed_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 class Mesh:
     """An immutable P1 triangle mesh of a sheet, with electrodes on its boundary.
 
-    Construct with `Mesh.from_arrays` (or a generator such as `diffeit.mesh.disc`). Construction
+    Construct with `Mesh.from_arrays`, `Mesh.from_skfem` or a generator (`diffeit.mesh.disc`,
+    `polygon`, `rectangle`). Construction
     reorients clockwise triangles and refuses meshes a forward model cannot use, with a
     `ValueError` naming the offending triangles, nodes or electrodes.
 
@@ -86,6 +93,55 @@ class Mesh:
         mesh, electrodes off the boundary, overlapping electrodes or electrodes of one node.
         """
         return cls(nodes, triangles, tuple(electrodes))
+
+    @classmethod
+    def from_skfem(cls, mesh: skfem.MeshTri, electrodes: Sequence[ArrayLike] | None = None) -> Mesh:
+        """Build a mesh from a scikit-fem `MeshTri` (node i is `mesh.p[:, i]`, element e is
+        `mesh.t[:, e]`, coordinates in metres).
+
+        **Arguments:**
+
+        - `mesh`: a 2D linear triangle mesh.
+        - `electrodes`: one sequence of boundary node indices per electrode, as in `from_arrays`.
+          Default: the mesh's named boundaries `electrode_0`, `electrode_1`, ... (facet index
+          arrays, as `to_skfem` writes them).
+        """
+        p, t = np.asarray(mesh.p), np.asarray(mesh.t)
+        if p.shape[0] != 2 or t.shape[0] != 3:
+            raise ValueError(
+                f"expected a 2D triangle mesh (p of shape (2, N), t of shape (3, E)); got {p.shape} and {t.shape}"
+            )
+        if electrodes is None:
+            boundaries = mesh.boundaries or {}
+            electrodes = []
+            while f"electrode_{len(electrodes)}" in boundaries:
+                facets = boundaries[f"electrode_{len(electrodes)}"]
+                electrodes.append(np.unique(mesh.facets[:, facets]))
+            if not electrodes:
+                raise ValueError(
+                    "the scikit-fem mesh has no boundaries named electrode_0, electrode_1, ...; pass `electrodes`"
+                )
+        return cls(p.T, t.T, tuple(electrodes))
+
+    def to_skfem(self) -> skfem.MeshTri:
+        """The mesh as a scikit-fem `MeshTri`, for reference assembly and post-processing.
+
+        Node i and element e keep their indices (`p = nodes.T`, `t = triangles.T`, triangles
+        counter-clockwise); electrode l is the named boundary `electrode_l`, an array of facet
+        indices, so `skfem.FacetBasis(m, e, facets="electrode_0")` integrates over it.
+        """
+        import skfem  # imported here: it is only needed for exchange, and costs ~0.5 s to import
+
+        mesh = skfem.MeshTri(np.array(self.nodes.T), np.array(self.triangles.T), sort_t=False)
+        # skfem stores each facet as its sorted node pair; look the electrode edges up by that key.
+        keys = mesh.facets[0].astype(np.int64) * self.n_nodes + mesh.facets[1]
+        order = np.argsort(keys)
+        boundaries = {}
+        for index, chain in enumerate(self.electrodes):
+            pairs = np.sort(np.stack([chain[:-1], chain[1:]]), axis=0)
+            wanted = pairs[0] * self.n_nodes + pairs[1]
+            boundaries[f"electrode_{index}"] = order[np.searchsorted(keys, wanted, sorter=order)]
+        return mesh.with_boundaries(boundaries)
 
     @property
     def n_nodes(self) -> int:
