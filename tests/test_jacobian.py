@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import diffeit as de
 
@@ -114,3 +115,29 @@ def test_fast_jacobian_for_a_general_protocol(small_disc, rough_conductivity):
         model.measure(rough_conductivity + 1e-4 * direction) - model.measure(rough_conductivity - 1e-4 * direction)
     ) / 2e-4
     assert _relative(fast @ direction, difference) < 1e-6
+
+
+def test_jacobian_in_log_conductivity(small_model, rough_conductivity):
+    fast = small_model.jacobian(rough_conductivity, wrt="log_conductivity")
+    reverse = jax.jacrev(lambda log_sigma: small_model.measure(jnp.exp(log_sigma)))(jnp.log(rough_conductivity))
+    assert _relative(fast, reverse) < 1e-9
+    assert _relative(fast, small_model.jacobian(rough_conductivity) * rough_conductivity) < 1e-14
+
+
+def test_jacobian_in_contact_impedance_per_electrode(small_disc, rough_conductivity):
+    z = jnp.asarray(np.exp(np.random.default_rng(11).normal(np.log(0.02), 0.5, 16)))
+    model = de.ForwardModel(small_disc, de.protocol.adjacent(16), contact_impedance=z)
+    fast = model.jacobian(rough_conductivity, wrt="contact_impedance")
+    assert fast.shape == (208, 16)
+    reverse = jax.jacrev(lambda zz: model.measure(rough_conductivity, zz))(z)
+    assert _relative(fast, reverse) < 1e-9
+    for electrode in (0, 7, 15):  # 15 carries the ground node: nothing special about it
+        step = 1e-5 * z[electrode]
+        plus, minus = z.at[electrode].add(step), z.at[electrode].add(-step)
+        difference = (model.measure(rough_conductivity, plus) - model.measure(rough_conductivity, minus)) / (2 * step)
+        assert _relative(fast[:, electrode], difference) < 1e-7
+
+
+def test_wrt_is_checked(small_model, rough_conductivity):
+    with pytest.raises(ValueError, match="wrt must be one of"):
+        small_model.jacobian(rough_conductivity, wrt="sigma")
