@@ -12,11 +12,15 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from . import inverse as inverse
+from . import linear_solve as linear_solve
 from . import mesh as mesh
 from . import metrics as metrics
 from . import protocol as protocol
 from .forward import ForwardModel as ForwardModel
 from .forward import Potentials as Potentials
+from .forward import PrecisionWarning as PrecisionWarning
+from .linear_solve import ConjugateGradient as ConjugateGradient
+from .linear_solve import DenseCholesky as DenseCholesky
 from .linear_solve import HostSparse as HostSparse
 from .mesh import Mesh as Mesh
 from .protocol import Protocol as Protocol
