@@ -1,5 +1,6 @@
-"""Array helpers for the immutable data classes of diffeit."""
+"""Array helpers shared by the modules of diffeit."""
 
+import jax
 import numpy as np
 
 
@@ -8,3 +9,9 @@ def readonly(array: np.ndarray) -> np.ndarray:
     array = np.array(array)
     array.setflags(write=False)
     return array
+
+
+def is_concrete(x) -> bool:
+    """Whether `x` holds values (not a tracer under jit, vmap or grad): values are checked
+    with messages naming the offenders only then."""
+    return not isinstance(x, jax.core.Tracer)

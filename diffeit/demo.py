@@ -13,7 +13,7 @@ from matplotlib.patches import Circle
 from . import mesh as meshes
 from . import metrics, protocol
 from .forward import ForwardModel
-from .inverse import OneStep
+from .inverse import OneStep, select_hyperparameter
 from .plotting import plot_elements
 
 BACKGROUND = 0.01  # S/sq, the main skin of the dissertation
@@ -22,7 +22,6 @@ TOUCH_CENTRE = (0.5, 0.0)  # m, on the unit disc
 TOUCH_RADIUS = 0.1  # m
 TOUCH_CHANGE = -0.3  # dsigma / sigma: a touch strains the skin and lowers its conductivity
 NOISE_PERCENT = 1.0  # of RMS(V_reference), DESIGN.md
-HYPERPARAMETER = 0.5  # the 1% noise is twice the touch's signal (0.5% of RMS(V_ref)): regularise firmly
 DATA_H, RECONSTRUCTION_H = 0.03, 0.06  # element sizes: data on a finer mesh
 
 
@@ -30,6 +29,7 @@ DATA_H, RECONSTRUCTION_H = 0.03, 0.06  # element sizes: data on a finer mesh
 class DemoResult:
     position_error: float  # m
     correlation: float
+    hyperparameter: float  # chosen by generalised cross-validation
     peak: float  # reconstructed dsigma of largest magnitude, S/sq
     n_data_elements: int
     n_reconstruction_elements: int
@@ -51,7 +51,9 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
 
     mesh = meshes.disc(16, electrode_width=0.2, h=RECONSTRUCTION_H)
     model = ForwardModel(mesh, adjacent, CONTACT_IMPEDANCE)
-    image = np.asarray(OneStep(model, "noser", HYPERPARAMETER, BACKGROUND).reconstruct(difference))
+    # The hyperparameter from the data (generalised cross-validation), never tuned to the truth.
+    hyperparameter = select_hyperparameter(model, difference, "gcv", background=BACKGROUND).value
+    image = np.asarray(OneStep(model, "noser", hyperparameter, BACKGROUND).reconstruct(difference))
     truth = BACKGROUND * TOUCH_CHANGE * meshes.disc_fraction(mesh, TOUCH_CENTRE, TOUCH_RADIUS)
     error = metrics.position_error(mesh, image, TOUCH_CENTRE)
 
@@ -70,7 +72,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
         ax.add_patch(Circle(TOUCH_CENTRE, TOUCH_RADIUS, fill=False, linestyle="--", color="k"))
     right.plot(*centroid, "k+", markersize=12)
     right.set_title(
-        f"one-step NOSER, hyperparameter {HYPERPARAMETER}, {mesh.n_elements} triangles\n"
+        f"one-step NOSER, hyperparameter {hyperparameter:.3g} (GCV), {mesh.n_elements} triangles\n"
         f"position error {error:.3f} m (+: half-amplitude centroid)",
         fontsize=9,
     )
@@ -78,6 +80,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
     figure.savefig(output, dpi=120)
     return DemoResult(
         position_error=error,
+        hyperparameter=hyperparameter,
         correlation=metrics.correlation(mesh, truth, image),
         peak=float(image[np.argmax(np.abs(image))]),
         n_data_elements=data_mesh.n_elements,

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arrays import is_concrete
 from ._messages import name_indices
 from .assembly import CompleteElectrodeSystem, ElectrodeSystem, PointElectrodeSystem
 from .linear_solve import (
@@ -51,10 +52,6 @@ class PrecisionWarning(UserWarning):
 FLOAT32_TOLERANCE = 1e-3
 
 JacobianVariable = Literal["conductivity", "log_conductivity", "contact_impedance"]
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def _name_elements(mask: np.ndarray) -> str:
@@ -203,7 +200,7 @@ class ForwardModel:
             raise ValueError(
                 f"conductivity has shape {sigma.shape}; expected ({self.n_elements},), one value per element"
             )
-        if _is_concrete(conductivity):
+        if is_concrete(conductivity):
             values = np.asarray(sigma)
             if not np.all(np.isfinite(values)):
                 raise ValueError(f"conductivity is not finite (NaN or inf) at {_name_elements(~np.isfinite(values))}")
@@ -214,7 +211,7 @@ class ForwardModel:
 
     def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
         """Warn when a concrete float32 call cannot hold `FLOAT32_TOLERANCE` (see the class)."""
-        if sigma.dtype != jnp.float32 or not _is_concrete(conductivity):
+        if sigma.dtype != jnp.float32 or not is_concrete(conductivity):
             return
         error = float(_float32_voltage_error(self, sigma, z))
         if not error <= FLOAT32_TOLERANCE:
@@ -232,7 +229,7 @@ class ForwardModel:
             z = z.astype(float)
         if z.shape not in ((), (n,)):
             raise ValueError(f"contact_impedance has shape {z.shape}; expected a scalar or ({n},), one per electrode")
-        if _is_concrete(contact_impedance):
+        if is_concrete(contact_impedance):
             values = np.asarray(z)
             if not np.all(np.isfinite(values)) or np.any(values <= 0):
                 raise ValueError(f"contact_impedance must be finite and positive (ohm m); got {values}")

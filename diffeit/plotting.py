@@ -1,13 +1,21 @@
-"""Figures of element-wise images on meshes (matplotlib, no display needed)."""
+"""Figures of element-wise images on meshes and of hyperparameter curves (matplotlib, no
+display needed)."""
 
 from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib.tri
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.collections import PolyCollection
+from matplotlib.figure import Figure
 
 from .mesh import Mesh
+
+if TYPE_CHECKING:
+    from .inverse import HyperparameterSelection
 
 
 def plot_elements(
@@ -43,3 +51,38 @@ def plot_elements(
     ax.set_axis_off()
     ax.figure.colorbar(artist, ax=ax, shrink=0.8, label=label)
     return artist
+
+
+def plot_hyperparameter_selection(selection: HyperparameterSelection, path: str | Path | None = None) -> Figure:
+    """The curve a hyperparameter was chosen from (a `HyperparameterSelection`): its criterion
+    against lambda, and the L-curve (residual norm against solution norm), the chosen value
+    marked on both. Saved to `path` (PNG) when given."""
+    figure = Figure(figsize=(10, 4), layout="constrained")
+    left, right = figure.subplots(1, 2)
+    candidates, chosen = selection.candidates, selection.value
+    names = {
+        "gcv": "GCV function",
+        "lcurve": "L-curve curvature",
+        "discrepancy": "residual norm / noise norm",
+        "noise_figure": "noise figure",
+    }
+    left.plot(candidates, selection.criterion, color="C0")
+    left.axvline(chosen, color="C3", linestyle="--", label=f"chosen {chosen:.3g}")
+    if selection.target is not None:
+        left.axhline(selection.target, color="0.5", linestyle=":", label=f"target {selection.target:g}")
+    left.set_xscale("log")
+    if selection.method in ("gcv", "noise_figure", "discrepancy"):
+        left.set_yscale("log")
+    left.set_xlabel("hyperparameter (unit-free)")
+    left.set_ylabel(names.get(selection.method, selection.method))
+    left.legend()
+    right.loglog(selection.residual_norm, selection.solution_norm, color="C0")
+    index = int(np.argmin(np.abs(np.log(candidates / chosen))))
+    right.loglog(selection.residual_norm[index], selection.solution_norm[index], "o", color="C3")
+    right.set_xlabel("residual norm ||J x - y||")
+    right.set_ylabel("solution norm (prior)")
+    right.set_title("L-curve")
+    figure.suptitle(f"hyperparameter by {selection.method}" + (f": {selection.note}" if selection.note else ""))
+    if path is not None:
+        figure.savefig(path, dpi=120)
+    return figure

@@ -1,0 +1,262 @@
+"""Choosing the regularisation hyperparameter of linearised reconstruction, and converting it to
+and from the values EIDORS and pyEIT use.
+
+All methods work on the normalised problem of `LinearisedProblem` (unit-free hyperparameter
+lambda, data y = dV / s, prior covariance scaled to a unit-mean data-space covariance G). One
+eigendecomposition G = U diag(g) U^T serves every candidate lambda: with y_hat = U^T y and the
+filter factors f_i = g_i / (g_i + lambda^2),
+
+    residual norm^2  ||J_n x - y||^2       = sum_i (1 - f_i)^2 y_hat_i^2
+    solution norm^2  x^T (P/c)^-1 x        = sum_i g_i y_hat_i^2 / (g_i + lambda^2)^2
+    GCV(lambda)      = M ||r||^2 / (M - sum_i f_i)^2          (minimised)
+
+- "gcv": generalised cross-validation (Golub, Heath and Wahba 1979), no noise level needed.
+- "lcurve": the corner of the L-curve (log residual norm, log solution norm) (Hansen 1992), the
+  candidate of largest curvature, no noise level needed.
+- "discrepancy": Morozov's principle: the lambda whose residual norm equals `safety` times the
+  expected noise norm; needs `noise` (percent of RMS(V_ref), DESIGN.md's definition).
+- "noise_figure": the lambda whose noise figure NF = SNR_data / SNR_image equals
+  `noise_figure` (Adler and Guardo 1996, as EIDORS's `choose_noise_figure`: SNR_data =
+  ||y_t||^2 / trace(Sigma), SNR_image = ||A x_t||^2 / trace(A R Sigma R^T A), for a small
+  central target x_t, white noise Sigma in volts and A the element areas). EIDORS's GREIT
+  uses NF = 0.5. Larger lambda gives a smaller NF.
+
+With several frames (T, M) the norms add up over frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import jax
+import numpy as np
+import scipy.linalg
+
+from ..forward import ForwardModel
+from ..mesh import disc_fraction
+from .one_step import LinearisedProblem, OneStep, check_frames
+from .priors import AbstractPrior, Noser, Tikhonov
+
+Method = Literal["gcv", "lcurve", "discrepancy", "noise_figure"]
+DEFAULT_CANDIDATES = np.logspace(-6, 2, 161)
+
+
+@dataclass(frozen=True)
+class HyperparameterSelection:
+    """The chosen hyperparameter and the curve it was chosen from.
+
+    - `value`: the chosen lambda (unit-free).
+    - `method`: "gcv", "lcurve", "discrepancy" or "noise_figure".
+    - `candidates` (K,): the lambdas evaluated, increasing.
+    - `criterion` (K,): what the method looks at per candidate: the GCV function, the L-curve
+      curvature, the residual norm over the noise norm, or the noise figure.
+    - `residual_norm`, `solution_norm` (K,): ||J_n x - y|| and the prior seminorm of x.
+    - `target`: the level a discrepancy or noise-figure method aims at (None otherwise).
+    - `note`: why the value sits at the end of the candidates, if it does; else "".
+    """
+
+    value: float
+    method: str
+    candidates: np.ndarray
+    criterion: np.ndarray
+    residual_norm: np.ndarray
+    solution_norm: np.ndarray
+    target: float | None = None
+    note: str = ""
+
+
+def select_hyperparameter(
+    model: ForwardModel,
+    voltage_difference: jax.Array,
+    method: Method = "gcv",
+    *,
+    prior: str | AbstractPrior = "noser",
+    background: float | np.ndarray = 1.0,
+    normalised: bool = False,
+    reference: jax.Array | None = None,
+    candidates: np.ndarray | None = None,
+    noise: float | None = None,
+    safety: float = 1.0,
+    noise_figure: float = 0.5,
+    target_radius: float | None = None,
+) -> HyperparameterSelection:
+    """Choose the `OneStep` hyperparameter for data `voltage_difference` (M,) or (T, M), volts.
+
+    `prior`, `background` and `normalised` (with the measured `reference`) define the problem
+    as in `OneStep`. `candidates` (default 161 values from 1e-6 to 1e2, log-spaced) are the
+    lambdas tried; "discrepancy" and "noise_figure" then refine between the two bracketing
+    candidates. `noise` (percent) is needed by "discrepancy"; `safety` multiplies its noise
+    norm (Morozov's tau, 1 by default). `noise_figure` is the NF aimed at and
+    `target_radius` (metres, default 5% of the mesh's diameter) the central target's radius.
+    See the module docstring for the definitions.
+    """
+    problem = LinearisedProblem.at(model, prior, background, normalised=normalised)
+    dv = np.atleast_2d(np.asarray(check_frames(voltage_difference, model.n_measurements, "voltage differences")))
+    if normalised and reference is None:
+        raise ValueError("normalised differences need the measured reference voltages: pass reference=V_ref")
+    y = np.asarray(problem.normalised_data(dv, None if reference is None else np.asarray(reference)))
+    lambdas = np.sort(np.asarray(DEFAULT_CANDIDATES if candidates is None else candidates, dtype=np.float64))
+    if lambdas.ndim != 1 or len(lambdas) < 3 or not np.all(np.isfinite(lambdas) & (lambdas > 0)):
+        raise ValueError("candidates must be at least 3 finite positive hyperparameters")
+    eigenvalues, vectors = scipy.linalg.eigh(problem.gram)
+    eigenvalues = np.clip(eigenvalues, 0.0, None)  # G is positive semidefinite; rounding is not
+    spectrum = np.sum((y @ vectors) ** 2, axis=0)  # sum over frames of y_hat_i^2
+    residual, solution = _norms(eigenvalues, spectrum, lambdas)
+
+    if method == "gcv":
+        n = len(eigenvalues)
+        dof = n - np.sum(eigenvalues / (eigenvalues + lambdas[:, None] ** 2), axis=1)
+        criterion = n * residual**2 / len(y) / dof**2
+        return _at_index(lambdas, criterion, residual, solution, method, int(np.argmin(criterion)))
+    if method == "lcurve":
+        criterion = _curvature(np.log(residual), np.log(solution), np.log(lambdas))
+        return _at_index(lambdas, criterion, residual, solution, method, int(np.argmax(criterion)))
+    if method == "discrepancy":
+        if noise is None or not noise > 0:
+            raise ValueError("the discrepancy principle needs the noise level: noise=p for p% of RMS(V_ref)")
+        volts = noise / 100 * np.sqrt(np.mean(problem.reference**2))
+        noise_norm = safety * np.sqrt(len(y) * np.sum((volts / problem.data_scale) ** 2))
+
+        def level(lam: np.ndarray) -> np.ndarray:
+            return _norms(eigenvalues, spectrum, lam)[0] / noise_norm
+
+        return _crossing(lambdas, level, 1.0, residual, solution, method, increasing=True)
+    if method == "noise_figure":
+        figure = _noise_figure_function(problem, eigenvalues, vectors, target_radius)
+        return _crossing(lambdas, figure, noise_figure, residual, solution, method, increasing=False)
+    raise ValueError(f"unknown method {method!r}; choose one of {Method.__args__}")
+
+
+def _norms(eigenvalues: np.ndarray, spectrum: np.ndarray, lambdas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    shift = eigenvalues + np.asarray(lambdas)[..., None] ** 2
+    residual = np.sqrt(np.sum((np.asarray(lambdas)[..., None] ** 2 / shift) ** 2 * spectrum, axis=-1))
+    solution = np.sqrt(np.sum(eigenvalues * spectrum / shift**2, axis=-1))
+    return residual, solution
+
+
+def _curvature(rho: np.ndarray, eta: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Signed curvature of the curve (rho(t), eta(t)); the L-curve's corner is its maximum."""
+    d_rho, d_eta = np.gradient(rho, t), np.gradient(eta, t)
+    dd_rho, dd_eta = np.gradient(d_rho, t), np.gradient(d_eta, t)
+    return (d_rho * dd_eta - dd_rho * d_eta) / np.maximum(d_rho**2 + d_eta**2, 1e-300) ** 1.5
+
+
+def _at_index(lambdas, criterion, residual, solution, method, index, target=None, note="") -> HyperparameterSelection:
+    if not note and index in (0, len(lambdas) - 1):
+        note = f"the {method} choice is the {'smallest' if index == 0 else 'largest'} candidate: widen the candidates"
+    return HyperparameterSelection(float(lambdas[index]), method, lambdas, criterion, residual, solution, target, note)
+
+
+def _crossing(lambdas, function, target, residual, solution, method, *, increasing: bool) -> HyperparameterSelection:
+    """The lambda where the monotone `function` crosses `target`, refined by bisection in log
+    lambda between the bracketing candidates."""
+    values = function(lambdas)
+    above = values >= target if increasing else values <= target
+    if above.all() or not above.any():
+        index = 0 if above.all() else len(lambdas) - 1
+        note = f"the {method} level {target:g} is not reached within the candidates: the nearest end is taken"
+        return _at_index(lambdas, values, residual, solution, method, index, target, note)
+    first = int(np.argmax(above))
+    low, high = np.log(lambdas[max(first - 1, 0)]), np.log(lambdas[first])
+    for _ in range(50):
+        middle = 0.5 * (low + high)
+        reached = function(np.array([np.exp(middle)]))[0]
+        if (reached >= target) == increasing:
+            high = middle
+        else:
+            low = middle
+    value = float(np.exp(0.5 * (low + high)))
+    return HyperparameterSelection(value, method, lambdas, values, residual, solution, target, "")
+
+
+def _noise_figure_function(problem: LinearisedProblem, eigenvalues, vectors, target_radius):
+    """NF(lambdas) for a small target at the centre of the mesh's area (see the module)."""
+    mesh = problem.model.mesh
+    areas = mesh.element_areas
+    centre = areas @ mesh.element_centroids / areas.sum()
+    diameter = np.ptp(mesh.nodes, axis=0).max()
+    radius = 0.05 * diameter if target_radius is None else target_radius
+    target = disc_fraction(mesh, centre, radius)
+    if not target.any():
+        raise ValueError(f"the noise-figure target (radius {radius:g} m at {centre}) covers no element")
+    data = problem.jacobian @ target  # y_t
+    # White noise in volts is diag(s_rms / data_scale)^2 in the normalised data.
+    noise_root = np.sqrt(np.mean(problem.reference**2)) / problem.data_scale
+    weights = areas / areas.sum()
+    image_basis = weights[:, None] * (problem.prior_jacobian @ vectors)  # A P J_n^T U / c, (E, M)
+    image_gram = image_basis.T @ image_basis
+    noise_gram = image_gram * ((vectors.T * noise_root) @ (vectors.T * noise_root).T).T
+    data_snr = np.sum(data**2) / np.sum(noise_root**2)
+    target_hat = vectors.T @ data
+
+    def figure(lambdas: np.ndarray) -> np.ndarray:
+        inverse = 1.0 / (eigenvalues + np.asarray(lambdas)[:, None] ** 2)  # (K, M)
+        signal = np.einsum("ki,ij,kj->k", inverse * target_hat, image_gram, inverse * target_hat)
+        noise_power = np.einsum("ki,ij,kj->k", inverse, noise_gram, inverse)
+        return data_snr / (signal / noise_power)
+
+    return figure
+
+
+# ---------------------------------------------------------------------------------------------
+# EIDORS and pyEIT
+
+Tool = Literal["eidors", "pyeit"]
+
+
+def to_external_hyperparameter(reconstruction: OneStep, tool: Tool) -> float:
+    """The value another tool needs for the same one-step reconstruction as `reconstruction`.
+
+    Both tools solve min ||J dsigma - dV||^2 + w dsigma^T R dsigma with J for a 1 A drive:
+    pyEIT's JAC takes w as `lamb` directly (a squared weight), EIDORS takes w = hp^2 and its
+    `hyperparameter.value` is hp. diffeit's objective, multiplied out, is the same with
+    w = lambda^2 c s^2 / (background^2 I^2) x (its P^-1 over their R), with s = RMS(V_0),
+    c the prior scale and I the drive current. The priors must be the same family:
+    `Noser(exponent=p)` is EIDORS's `prior_noser` (p = 0.5) and pyEIT's "kotre" with that p
+    (pyEIT's default p is 0.2); `Tikhonov()` is EIDORS's `prior_tikhonov` and pyEIT's "dgn".
+    Absolute differences and a uniform background only; the same mesh and protocol.
+    """
+    weight = reconstruction.hyperparameter**2 * _weight_factor(reconstruction.problem, tool)
+    return float(np.sqrt(weight) if tool == "eidors" else weight)
+
+
+def from_external_hyperparameter(
+    value: float,
+    model: ForwardModel,
+    tool: Tool,
+    *,
+    prior: str | AbstractPrior = "noser",
+    background: float = 1.0,
+) -> float:
+    """diffeit's unit-free hyperparameter for EIDORS's `hyperparameter.value` or pyEIT's `lamb`
+    (the inverse of `to_external_hyperparameter`, which explains the mapping)."""
+    if not value > 0:
+        raise ValueError(f"the {tool} hyperparameter must be positive; got {value}")
+    weight = value**2 if tool == "eidors" else value
+    problem = LinearisedProblem.at(model, prior, background)
+    return float(np.sqrt(weight / _weight_factor(problem, tool)))
+
+
+def _weight_factor(problem: LinearisedProblem, tool: Tool) -> float:
+    """w / lambda^2 for `tool` (see `to_external_hyperparameter`)."""
+    if tool not in Tool.__args__:
+        raise ValueError(f"unknown tool {tool!r}; choose one of {Tool.__args__}")
+    if problem.normalised:
+        raise ValueError("the conversion covers absolute differences only")
+    background = problem.background
+    if not np.allclose(background, background[0], rtol=1e-12):
+        raise ValueError("the conversion needs a uniform background")
+    if isinstance(problem.prior, Noser):
+        exponent = problem.prior.exponent
+    elif isinstance(problem.prior, Tikhonov):
+        exponent = 0.0
+    else:
+        raise ValueError(f"{tool} has no one-step prior of the family {type(problem.prior).__name__}")
+    if tool == "eidors" and exponent not in (0.0, 0.5):
+        raise ValueError("EIDORS's prior_noser uses the exponent 0.5")
+    s = problem.data_scale[0]
+    current = problem.model.drive_current
+    # P^-1 over R: diag(J_n^T J_n)^p / diag(J_1A^T J_1A)^p = (background I / s)^(2p).
+    ratio = (background[0] * current / s) ** (2 * exponent)
+    return problem.prior_scale * s**2 / (background[0] ** 2 * current**2) * ratio

@@ -1,0 +1,130 @@
+"""Priors for linearised reconstruction, applied through their covariance P = (R^T R)^-1.
+
+A prior here is the covariance of the relative conductivity change x = dsigma / background,
+one value per element. The solvers only ever need P J^T for the (normalised) Jacobian J: the
+measurement-space formulation solves an n_meas x n_meas system, so no dense E x E matrix is
+formed; the smoothness priors apply P by sparse factorisations (SciPy, once per set-up).
+
+| prior | R^T R (the precision P^-1) | reads |
+|---|---|---|
+| `Tikhonov()` | I | small changes |
+| `Noser(exponent)` | diag(J^T J)^exponent | EIDORS's NOSER (0.5), pyEIT's "kotre" (its p) |
+| `Laplace(ridge)` | (L + ridge I)^2, L the element adjacency graph Laplacian | EIDORS's `prior_laplace` |
+| `Matern(correlation_length)` | K C^-1 K, K = kappa^2 C + G | a Gaussian field of that correlation length |
+
+The scale of P is immaterial: `diffeit.inverse.OneStep` normalises it (see there).
+"""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from ..mesh import Mesh
+
+
+class AbstractPrior(abc.ABC):
+    """Applies the prior covariance P (E x E, symmetric positive definite) to the columns of
+    the transposed normalised Jacobian."""
+
+    @abc.abstractmethod
+    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+        """(E, M) P J^T for the (M, E) normalised Jacobian `jacobian`."""
+
+
+@dataclass(frozen=True)
+class Tikhonov(AbstractPrior):
+    """P = I: every element's change independent, equally likely."""
+
+    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+        return jacobian.T.copy()
+
+
+@dataclass(frozen=True)
+class Noser(AbstractPrior):
+    """P = diag(J^T J)^-exponent (Cheney et al. 1990): elements the data see weakly (the
+    centre) may change more, which evens out the sensitivity. EIDORS uses exponent 0.5,
+    pyEIT's "kotre" method the same form with its `p` (default 0.2)."""
+
+    exponent: float = 0.5
+
+    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+        sensitivity = np.sum(jacobian**2, axis=0)
+        if np.any(sensitivity <= 0):
+            raise ValueError(f"{np.count_nonzero(sensitivity <= 0)} element(s) have zero sensitivity: NOSER undefined")
+        return sensitivity[:, None] ** -self.exponent * jacobian.T
+
+
+@dataclass(frozen=True)
+class Laplace(AbstractPrior):
+    """P = (L + ridge I)^-2 with L the graph Laplacian of element adjacency (elements sharing
+    an edge are neighbours, weight 1): penalises differences between neighbours, as EIDORS's
+    `prior_laplace` (whose L^T L is singular on constants; the ridge, relative to the mean
+    degree of 3, makes it invertible and leaves a uniform change a large but finite variance)."""
+
+    ridge: float = 1e-2
+
+    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+        if not self.ridge > 0:
+            raise ValueError(f"ridge must be positive; got {self.ridge}")
+        first, second, _ = element_adjacency(mesh)
+        weights = np.ones(len(first))
+        precision_root = _graph_laplacian(first, second, weights, mesh.n_elements) + self.ridge * scipy.sparse.eye(
+            mesh.n_elements
+        )
+        factor = scipy.sparse.linalg.splu(precision_root.tocsc())
+        return factor.solve(factor.solve(np.ascontiguousarray(jacobian.T)))
+
+
+@dataclass(frozen=True)
+class Matern(AbstractPrior):
+    """A Gaussian field with Matern covariance (smoothness nu = 1) of `correlation_length`
+    (metres), through its sparse precision (Lindgren, Rue and Lindstrom 2011, the SPDE
+    (kappa^2 - Laplacian) x = white noise): P^-1 = K C^-1 K with K = kappa^2 C + G, C the
+    diagonal of element areas, G the finite-volume Laplacian of the element graph (flux
+    |shared edge| / |centroid distance|), kappa = sqrt(8 nu) / correlation_length. At the
+    correlation length the correlation has fallen to about 0.14."""
+
+    correlation_length: float = 0.2
+
+    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+        if not self.correlation_length > 0:
+            raise ValueError(f"correlation_length must be positive (metres); got {self.correlation_length}")
+        kappa = np.sqrt(8.0) / self.correlation_length
+        first, second, edge_lengths = element_adjacency(mesh)
+        distance = np.linalg.norm(mesh.element_centroids[first] - mesh.element_centroids[second], axis=1)
+        laplacian = _graph_laplacian(first, second, edge_lengths / distance, mesh.n_elements)
+        operator = (kappa**2 * scipy.sparse.diags(mesh.element_areas) + laplacian).tocsc()
+        factor = scipy.sparse.linalg.splu(operator)
+        half = factor.solve(np.ascontiguousarray(jacobian.T))
+        return factor.solve(mesh.element_areas[:, None] * half)
+
+
+def prior_named(name: str) -> AbstractPrior:
+    """The prior called `name` with its default parameters: "tikhonov", "noser", "laplace",
+    "matern"."""
+    priors = {"tikhonov": Tikhonov, "noser": Noser, "laplace": Laplace, "matern": Matern}
+    if name not in priors:
+        raise ValueError(f"unknown prior {name!r}; choose one of {sorted(priors)} or pass a prior instance")
+    return priors[name]()
+
+
+def element_adjacency(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pairs of elements that share an edge: (first, second, shared edge length in metres)."""
+    edges = np.sort(mesh.triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(mesh.n_elements), 3)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    edges, owner = edges[order], owner[order]
+    shared = np.flatnonzero(np.all(edges[1:] == edges[:-1], axis=1))  # each interior edge twice
+    lengths = np.linalg.norm(mesh.nodes[edges[shared, 0]] - mesh.nodes[edges[shared, 1]], axis=1)
+    return owner[shared], owner[shared + 1], lengths
+
+
+def _graph_laplacian(first: np.ndarray, second: np.ndarray, weights: np.ndarray, n: int) -> scipy.sparse.csr_matrix:
+    adjacency = scipy.sparse.coo_matrix((weights, (first, second)), shape=(n, n))
+    adjacency = (adjacency + adjacency.T).tocsr()
+    return scipy.sparse.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
