@@ -31,7 +31,6 @@ from typing import Literal
 
 import jax
 import numpy as np
-import scipy.linalg
 
 from ..forward import ForwardModel
 from ..mesh import disc_fraction
@@ -99,8 +98,7 @@ def select_hyperparameter(
     lambdas = np.sort(np.asarray(DEFAULT_CANDIDATES if candidates is None else candidates, dtype=np.float64))
     if lambdas.ndim != 1 or len(lambdas) < 3 or not np.all(np.isfinite(lambdas) & (lambdas > 0)):
         raise ValueError("candidates must be at least 3 finite positive hyperparameters")
-    eigenvalues, vectors = scipy.linalg.eigh(problem.gram)
-    eigenvalues = np.clip(eigenvalues, 0.0, None)  # G is positive semidefinite; rounding is not
+    eigenvalues, vectors = problem.eigenvalues, problem.eigenvectors
     spectrum = np.sum((y @ vectors) ** 2, axis=0)  # sum over frames of y_hat_i^2
     residual, solution = _norms(eigenvalues, spectrum, lambdas)
 

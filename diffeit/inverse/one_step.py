@@ -32,7 +32,11 @@ class LinearisedProblem:
     the prior, the mesh, the drive current or the background level.
 
     Fields: `reference` (M,) V_0 in volts; `data_scale` (M,) s in volts; `jacobian` (M, E)
-    J_n; `prior_jacobian` (E, M) P J_n^T / c; `gram` (M, M); `prior_scale` c.
+    J_n; `prior_jacobian` (E, M) P J_n^T / c; `gram` (M, M); `prior_scale` c; `eigenvalues`
+    (M,) and `eigenvectors` (M, M) of G, ascending. Eigenvalues below M eps max(G) are set to
+    exactly 0: adjacent data are rank-deficient (reciprocity pairs readings), and in the null
+    space of G no change x can explain the data (J^T u = 0 there), so the solvers leave those
+    components out instead of dividing rounding errors by a tiny hyperparameter.
     """
 
     model: ForwardModel
@@ -45,6 +49,8 @@ class LinearisedProblem:
     prior_jacobian: np.ndarray = field(repr=False)
     gram: np.ndarray = field(repr=False)
     prior_scale: float = field(repr=False)
+    eigenvalues: np.ndarray = field(repr=False)
+    eigenvectors: np.ndarray = field(repr=False)
 
     @classmethod
     def at(
@@ -77,6 +83,8 @@ class LinearisedProblem:
         gram = jacobian @ prior_jacobian
         prior_scale = float(np.trace(gram) / len(gram))
         gram = 0.5 * (gram + gram.T) / prior_scale  # symmetric up to rounding; make it exactly so
+        eigenvalues, eigenvectors = scipy.linalg.eigh(gram)
+        eigenvalues[eigenvalues < len(gram) * np.finfo(float).eps * eigenvalues[-1]] = 0.0
         return cls(
             model=model,
             prior=prior,
@@ -88,6 +96,8 @@ class LinearisedProblem:
             prior_jacobian=prior_jacobian / prior_scale,
             gram=gram,
             prior_scale=prior_scale,
+            eigenvalues=eigenvalues,
+            eigenvectors=eigenvectors,
         )
 
     def normalised_data(self, voltage_difference: jax.Array, reference: jax.Array | None = None) -> jax.Array:
@@ -110,7 +120,7 @@ class OneStep:
         x = P J_n^T (G + hyperparameter^2 I)^-1 y
 
     the minimiser of ||J_n x - y||^2 + hyperparameter^2 x^T P^-1 x, computed in measurement
-    space (a Cholesky factorisation of the M x M matrix, never E x E). `matrix` maps volts to
+    space (an eigendecomposition of the M x M matrix G, never anything E x E). `matrix` maps volts to
     S/sq, so a batch of T frames is one (T, M) @ (M, E) product.
 
     **Arguments:**
@@ -173,10 +183,10 @@ class OneStep:
 
 
 def _regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np.ndarray:
-    """(E, M) P J_n^T (G + lambda^2 I)^-1, by a Cholesky factorisation of the M x M matrix."""
-    system = problem.gram + hyperparameter**2 * np.eye(len(problem.gram))
-    factor = scipy.linalg.cho_factor(system)
-    return scipy.linalg.cho_solve(factor, problem.prior_jacobian.T).T
+    """(E, M) P J_n^T (G + lambda^2 I)^-1 / c, through the eigendecomposition of G."""
+    inverse = 1.0 / (problem.eigenvalues + hyperparameter**2)
+    inverse[problem.eigenvalues == 0] = 0.0  # see LinearisedProblem.eigenvalues
+    return (problem.prior_jacobian @ problem.eigenvectors) * inverse @ problem.eigenvectors.T
 
 
 def check_frames(frames: jax.Array, n_measurements: int, what: str) -> jax.Array:

@@ -1,0 +1,176 @@
+"""One-step linearised reconstruction: quality on a known scene, against pyEIT, priors,
+normalised differences, batches and hard cases."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from pyeit.eit import protocol as pyeit_protocol
+from pyeit.eit.jac import JAC
+from pyeit.mesh import PyEITMesh
+
+import diffeit as de
+from diffeit.inverse import Laplace, Matern, Noser, OneStep, Tikhonov, select_hyperparameter
+
+CENTRE, RADIUS, CONTRAST = (0.5, 0.0), 0.2, 10.0  # the issue's scene: a disc 10x the background
+
+
+def _noisy(reference: np.ndarray, clean: np.ndarray, percent: float, seed: int) -> np.ndarray:
+    """DESIGN.md's noise: p% of RMS(V_ref), independent on every reading, seeded."""
+    rng = np.random.default_rng(seed)
+    return clean + percent / 100 * np.sqrt(np.mean(reference**2)) * rng.standard_normal(clean.shape)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Data simulated on a finer mesh (8,864 triangles) than the reconstruction's (about
+    2,800), 1% noise."""
+    protocol = de.protocol.adjacent(16)
+    fine = de.mesh.disc(16, electrode_width=0.2, h=0.03)
+    data_model = de.ForwardModel(fine, protocol)
+    reference = np.asarray(data_model.measure(jnp.ones(fine.n_elements)))
+    inclusion = 1 + (CONTRAST - 1) * de.mesh.disc_fraction(fine, CENTRE, RADIUS)
+    difference = _noisy(reference, np.asarray(data_model.measure(jnp.asarray(inclusion))) - reference, 1.0, 0)
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.054)
+    truth = de.mesh.interpolate(inclusion - 1, fine, mesh)
+    return de.ForwardModel(mesh, protocol), difference, truth, reference
+
+
+def _figures(model, image, truth) -> tuple[float, float]:
+    mesh = model.mesh
+    return de.metrics.position_error(mesh, image, CENTRE), de.metrics.correlation(mesh, truth, image)
+
+
+def _pyeit_jac(model: de.ForwardModel, difference: np.ndarray, lamb: float, exponent: float) -> np.ndarray:
+    """pyEIT 1.2.4's JAC (point electrodes at the electrode centres) on the same mesh and data."""
+    point = de.ForwardModel(model.mesh, model.protocol, electrode_model="point")
+    mesh = PyEITMesh(
+        node=model.mesh.nodes, element=model.mesh.triangles, perm=1.0, el_pos=point.system.electrode_nodes, ref_node=0
+    )
+    solver = JAC(mesh, pyeit_protocol.create(16, dist_exc=1, step_meas=1, parser_meas="std"))
+    solver.setup(p=exponent, lamb=lamb, method="kotre", perm=1.0)
+    volts_per_amp = difference / model.drive_current  # pyEIT drives 1 A
+    return np.real(solver.solve(v1=volts_per_amp, v0=np.zeros_like(volts_per_amp), normalize=False))
+
+
+def test_the_issue_scene_beats_pyeit_with_a_selected_hyperparameter(scene):
+    """NOSER, hyperparameter by GCV (from the data, never from the truth). pyEIT's JAC gave
+    position error 0.023 and correlation 0.80 at about 2,800 triangles in the issue; run here
+    on the same mesh and data with the same prior and the same regularisation (the converted
+    hyperparameter), it gives 0.035 and 0.86 (point electrodes). Measured: 0.004 and 0.87."""
+    model, difference, truth, _ = scene
+    assert 2_700 <= model.n_elements <= 3_000
+    selection = select_hyperparameter(model, difference, "gcv")
+    reconstruction = OneStep(model, "noser", selection.value)
+    image = np.asarray(reconstruction.reconstruct(difference))
+    error, correlation = _figures(model, image, truth)
+    assert error < 0.023 and correlation > 0.80, (error, correlation)
+    lamb = de.inverse.to_external_hyperparameter(reconstruction, "pyeit")
+    pyeit_error, pyeit_correlation = _figures(model, _pyeit_jac(model, difference, lamb, 0.5), truth)
+    assert error <= pyeit_error and correlation >= pyeit_correlation, (pyeit_error, pyeit_correlation)
+    assert image[np.argmax(np.abs(image))] > 0  # a conductive inclusion
+
+
+@pytest.mark.parametrize("prior", [Tikhonov(), Noser(), Laplace(), Matern(0.2)], ids=lambda p: type(p).__name__)
+@pytest.mark.parametrize("method", ["gcv", "lcurve", "discrepancy", "noise_figure"])
+def test_every_prior_with_every_selection_method_finds_the_inclusion(scene, prior, method):
+    """Measured position errors 0.001-0.052, correlations 0.74-0.88 over the 16 pairs."""
+    model, difference, truth, _ = scene
+    selection = select_hyperparameter(model, difference, method, prior=prior, noise=1.0)
+    image = np.asarray(OneStep(model, prior, selection.value).reconstruct(difference))
+    error, correlation = _figures(model, image, truth)
+    assert error < 0.07 and correlation > 0.7, (selection.value, error, correlation)
+
+
+def test_the_hyperparameter_is_unit_free(scene):
+    """Scaling the background conductivity or the drive current leaves the image of the
+    relative change unchanged: the hyperparameter acts on the normalised problem."""
+    model, difference, _, _ = scene
+    base = np.asarray(OneStep(model, "noser", 0.1).reconstruct(difference))
+    # sigma -> 50 sigma with z -> z / 50 and a 7x current: voltages scale by 7 / 50.
+    scaled_model = de.ForwardModel(model.mesh, model.protocol, model.contact_impedance / 50, drive_current=7e-3)
+    scaled = np.asarray(OneStep(scaled_model, "noser", 0.1, background=50.0).reconstruct(difference * 7 / 50))
+    np.testing.assert_allclose(scaled / 50, base, rtol=1e-8, atol=1e-10 * np.abs(base).max())
+
+
+def test_normalised_differences_cancel_channel_gains(scene):
+    """An instrument whose channels have gains 1 +- 5% corrupts absolute differences;
+    normalised differences dV / V_ref divide the gains out."""
+    model, _, truth, _ = scene
+    rng = np.random.default_rng(4)
+    gains = 1 + 0.05 * rng.standard_normal(model.n_measurements)
+    reference = np.asarray(model.measure(jnp.ones(model.n_elements)))
+    touched = np.asarray(model.measure(jnp.asarray(1 + truth)))
+    absolute = OneStep(model, "noser", 0.05).reconstruct(gains * (touched - reference))
+    normalised = OneStep(model, "noser", 0.05, normalised=True).reconstruct(
+        gains * (touched - reference), reference=gains * reference
+    )
+    ideal = OneStep(model, "noser", 0.05, normalised=True).reconstruct(touched - reference, reference=reference)
+    np.testing.assert_allclose(normalised, ideal, rtol=1e-10, atol=1e-12)
+    assert de.metrics.correlation(model.mesh, truth, normalised) > de.metrics.correlation(model.mesh, truth, absolute)
+    with pytest.raises(ValueError, match="pass reference"):
+        OneStep(model, "noser", 0.05, normalised=True).reconstruct(touched - reference)
+
+
+def test_a_batch_is_one_product_and_equals_frame_by_frame(scene):
+    model, difference, _, _ = scene
+    reconstruction = OneStep(model, "laplace", 0.05)
+    frames = difference[None] * np.linspace(-1, 2, 7)[:, None]
+    batch = np.asarray(reconstruction.reconstruct(frames))
+    assert batch.shape == (7, model.n_elements)
+    for frame, image in zip(frames, batch, strict=True):
+        np.testing.assert_allclose(
+            image, reconstruction.reconstruct(frame), rtol=1e-12, atol=1e-12 * np.abs(batch).max()
+        )
+    single = reconstruction.reconstruct(frames.astype(np.float32))
+    assert single.dtype == jnp.float32
+    np.testing.assert_allclose(single, batch, rtol=1e-4, atol=1e-5 * np.abs(batch).max())
+
+
+@pytest.mark.parametrize("hyperparameter", [1e-8, 1e-4, 1.0, 1e3])
+def test_extreme_hyperparameters_give_finite_images(scene, hyperparameter):
+    model, difference, _, _ = scene
+    for prior in ("noser", "laplace"):
+        image = np.asarray(OneStep(model, prior, hyperparameter).reconstruct(difference))
+        assert np.all(np.isfinite(image)) and np.abs(image).max() > 0
+
+
+def test_tiny_and_multiple_touches(scene):
+    """A touch of radius 0.025 (a few elements) and two or three simultaneous touches: finite
+    images, and the multiple touches are found as separate half-amplitude blobs near their
+    centres."""
+    model, _, _, _ = scene
+    mesh = model.mesh
+    reference = np.asarray(model.measure(jnp.ones(model.n_elements)))
+    reconstruction = OneStep(model, "noser", 0.05)
+    tiny = 1 - 0.5 * de.mesh.disc_fraction(mesh, (0.3, 0.3), 0.025)
+    image = np.asarray(reconstruction.reconstruct(np.asarray(model.measure(jnp.asarray(tiny))) - reference))
+    assert np.all(np.isfinite(image)) and image[np.argmax(np.abs(image))] < 0
+    assert de.metrics.position_error(mesh, image, (0.3, 0.3)) < 0.15
+    centres = [(0.5, 0.0), (-0.25, 0.43), (-0.25, -0.43)]
+    for count in (2, 3):
+        touches = 1 - 0.5 * sum(de.mesh.disc_fraction(mesh, c, 0.15) for c in centres[:count])
+        image = np.asarray(reconstruction.reconstruct(np.asarray(model.measure(jnp.asarray(touches))) - reference))
+        assert np.all(np.isfinite(image))
+        chosen = de.metrics.half_amplitude_set(image)
+        for centre in centres[:count]:
+            near = np.linalg.norm(mesh.element_centroids - np.asarray(centre), axis=1) < 0.3
+            assert np.any(chosen & near), f"touch at {centre} missing from the half-amplitude set"
+
+
+def test_bad_frames_and_settings_are_refused(scene):
+    model, difference, _, _ = scene
+    reconstruction = OneStep(model, "noser", 0.1)
+    with pytest.raises(ValueError, match=r"expected \(208,\) or \(T, 208\)"):
+        reconstruction.reconstruct(difference[:200])
+    frames = np.stack([difference, difference, difference])
+    frames[1, 5] = np.nan
+    with pytest.raises(ValueError, match=r"not finite \(NaN or inf\) in frame\(s\) \[1\]"):
+        reconstruction.reconstruct(frames)
+    with pytest.raises(ValueError, match="hyperparameter must be finite and positive"):
+        OneStep(model, "noser", 0.0)
+    with pytest.raises(ValueError, match="unknown prior 'gauss'"):
+        OneStep(model, "gauss", 0.1)
+    with pytest.raises(ValueError, match="background conductivity must be finite and positive"):
+        OneStep(model, "noser", 0.1, background=-1.0)
+    with pytest.raises(ValueError, match="correlation_length must be positive"):
+        OneStep(model, Matern(0.0), 0.1)
