@@ -16,7 +16,7 @@ demo: $(STAMP)
 	$(BIN)/diffeit demo --output demo.png
 
 test: $(STAMP)
-	$(BIN)/ruff check diffeit tests benchmarks
+	$(BIN)/ruff check diffeit tests benchmarks examples
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)

@@ -12,6 +12,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from . import inverse as inverse
+from . import io as io
 from . import linear_solve as linear_solve
 from . import mesh as mesh
 from . import metrics as metrics

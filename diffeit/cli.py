@@ -47,6 +47,7 @@ def _reconstruct(arguments: argparse.Namespace) -> int:
 
 def _reconstruct_file(arguments: argparse.Namespace) -> int:
     from . import io
+    from .plotting import plot_image_strip
 
     source = Path(arguments.frames)
     base = Path(arguments.output)
@@ -107,7 +108,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         image_quantity="conductivity change",
         voltage_unit=recording.voltage_unit,
     )
-    shown = save_image_strip(
+    shown = plot_image_strip(
         outputs[0],
         mesh,
         images,
@@ -152,9 +153,9 @@ def reconstruct_recording(
     - "plain": dV = V - V_ref. Frames not in volts (`voltage_unit` other than "V", such as
       EIDORS files in device units) are scaled by RMS(V_model) / RMS(V_ref), V_model the
       model's voltages at `background`: one gain that puts them on the model's scale.
-    - "relative": the relative (normalised) difference (V - V_ref) / V_ref times V_model,
-      reading by reading: it cancels per-channel gains and the sign lost by devices that
-      report magnitudes (the Montreal data).
+    - "relative": normalised differences (V - V_ref) / V_ref, reading by reading
+      (`OneStep(..., normalised=True)`): they cancel per-channel gains and restore the sign
+      lost by devices that report magnitudes (the Montreal data).
 
     `hyperparameter` is unit-free (see `diffeit.inverse.OneStep`); `background` in S/sq and
     `contact_impedance` in ohm m define the model.
@@ -167,62 +168,18 @@ def reconstruct_recording(
     if difference not in ("plain", "relative"):
         raise ValueError(f'difference must be "plain" or "relative"; got {difference!r}')
     model = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
-    model_reference = np.asarray(model.measure(np.full(mesh.n_elements, float(background))))
-    if difference == "relative":
-        dv = recording.difference(reference_frame=reference_frame, relative=True) * model_reference
-    else:
-        dv = recording.difference(reference_frame=reference_frame)
-        if recording.voltage_unit != "V":
-            reference = recording.reference_values(reference_frame)
-            dv = dv * _rms(model_reference) / _rms(reference)
-    solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=background)
+    reference = recording.reference_values(reference_frame)
+    dv = recording.difference(reference_frame=reference_frame)
+    relative = difference == "relative"
+    if not relative and recording.voltage_unit != "V":
+        model_reference = np.asarray(model.measure(np.full(mesh.n_elements, float(background))))
+        dv = dv * _rms(model_reference) / _rms(reference)
+    solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=background, normalised=relative)
+    options = {"reference": reference} if relative else {}
     batches = range(0, len(dv), _BATCH)
     # tqdm's disable=None: a bar on a terminal only, and only when there are several batches.
     progress = tqdm(batches, desc="reconstructing", unit="batch", disable=True if len(batches) < 2 else None)
-    return np.concatenate([np.asarray(solver.reconstruct(dv[start : start + _BATCH])) for start in progress])
-
-
-def save_image_strip(
-    path: str | Path,
-    mesh: Mesh,
-    images: np.ndarray,
-    *,
-    times: np.ndarray | None = None,
-    max_panels: int = 12,
-    title: str | None = None,
-    label: str = "dsigma (S/sq)",
-) -> np.ndarray:
-    """Save a strip of element-wise images (T, E) on `mesh` as a PNG: every k-th frame, at most
-    `max_panels` panels, six to a row, one colour scale centred on 0 for all; returns the frame
-    indices shown. Panel titles give the frame index and, with `times` (s), its time."""
-    from matplotlib.figure import Figure
-
-    from .plotting import plot_elements
-
-    images = np.asarray(images, dtype=float)
-    if images.ndim != 2 or images.shape[1] != mesh.n_elements:
-        raise ValueError(f"images have shape {images.shape}; expected (T, {mesh.n_elements})")
-    if max_panels < 1 or len(images) == 0:
-        raise ValueError("an image strip needs at least one panel and one frame")
-    shown = np.arange(0, len(images), math.ceil(len(images) / max_panels))
-    limit = float(np.max(np.abs(images[shown]))) or 1.0
-    columns = min(len(shown), 6)
-    rows = math.ceil(len(shown) / columns)
-    figure = Figure(figsize=(1.7 * columns + 0.9, 1.8 * rows + (0.4 if title else 0)), layout="constrained")
-    axes = np.atleast_1d(figure.subplots(rows, columns, squeeze=False)).ravel()
-    for ax, frame in zip(axes, shown, strict=False):
-        artist = plot_elements(ax, mesh, images[frame], label=None)
-        artist.set_clim(-limit, limit)
-        artist.colorbar.remove()  # one shared colour bar for the strip instead of one per panel
-        when = f", {times[frame]:.2f} s" if times is not None else ""
-        ax.set_title(f"frame {frame}{when}", fontsize=7)
-    for ax in axes[len(shown) :]:
-        ax.set_axis_off()
-    figure.colorbar(artist, ax=list(axes), shrink=0.8, label=label)
-    if title:
-        figure.suptitle(title, fontsize=9)
-    figure.savefig(path, dpi=110)
-    return shown
+    return np.concatenate([np.asarray(solver.reconstruct(dv[start : start + _BATCH], **options)) for start in progress])
 
 
 def _rms(values: np.ndarray) -> float:

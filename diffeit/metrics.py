@@ -18,12 +18,16 @@ def half_amplitude_set(image: np.ndarray) -> np.ndarray:
     return image * np.sign(peak) >= 0.5 * np.abs(peak)
 
 
-def position_error(mesh: Mesh, image: np.ndarray, centre: tuple[float, float]) -> float:
-    """Distance (m) from `centre` to the area-weighted centroid of the half-amplitude set."""
+def half_amplitude_centroid(mesh: Mesh, image: np.ndarray) -> np.ndarray:
+    """(2,) the area-weighted centroid (m) of the half-amplitude set of `image` (E,)."""
     chosen = half_amplitude_set(image)
     areas = mesh.element_areas[chosen]
-    centroid = (mesh.element_centroids[chosen] * areas[:, None]).sum(axis=0) / areas.sum()
-    return float(np.linalg.norm(centroid - np.asarray(centre, dtype=float)))
+    return areas @ mesh.element_centroids[chosen] / areas.sum()
+
+
+def position_error(mesh: Mesh, image: np.ndarray, centre: tuple[float, float]) -> float:
+    """Distance (m) from `centre` to the area-weighted centroid of the half-amplitude set."""
+    return float(np.linalg.norm(half_amplitude_centroid(mesh, image) - np.asarray(centre, dtype=float)))
 
 
 def correlation(mesh: Mesh, truth: np.ndarray, image: np.ndarray) -> float:

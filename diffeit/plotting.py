@@ -3,6 +3,7 @@ display needed)."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -51,6 +52,45 @@ def plot_elements(
     ax.set_axis_off()
     ax.figure.colorbar(artist, ax=ax, shrink=0.8, label=label)
     return artist
+
+
+def plot_image_strip(
+    path: str | Path,
+    mesh: Mesh,
+    images: np.ndarray,
+    *,
+    times: np.ndarray | None = None,
+    max_panels: int = 12,
+    title: str | None = None,
+    label: str = "dsigma (S/sq)",
+) -> np.ndarray:
+    """Save a strip of element-wise images (T, E) on `mesh` as a PNG: every k-th frame, at most
+    `max_panels` panels, six to a row, one colour scale centred on 0 for all; returns the frame
+    indices shown. Panel titles give the frame index and, with `times` (s), its time."""
+    images = np.asarray(images, dtype=float)
+    if images.ndim != 2 or images.shape[1] != mesh.n_elements:
+        raise ValueError(f"images have shape {images.shape}; expected (T, {mesh.n_elements})")
+    if max_panels < 1 or len(images) == 0:
+        raise ValueError("an image strip needs at least one panel and one frame")
+    shown = np.arange(0, len(images), math.ceil(len(images) / max_panels))
+    limit = float(np.max(np.abs(images[shown]))) or 1.0
+    columns = min(len(shown), 6)
+    rows = math.ceil(len(shown) / columns)
+    figure = Figure(figsize=(1.7 * columns + 0.9, 1.8 * rows + (0.4 if title else 0)), layout="constrained")
+    axes = np.atleast_1d(figure.subplots(rows, columns, squeeze=False)).ravel()
+    for ax, frame in zip(axes, shown, strict=False):
+        artist = plot_elements(ax, mesh, images[frame], label=None)
+        artist.set_clim(-limit, limit)
+        artist.colorbar.remove()  # one shared colour bar for the strip instead of one per panel
+        when = f", {times[frame]:.2f} s" if times is not None else ""
+        ax.set_title(f"frame {frame}{when}", fontsize=7)
+    for ax in axes[len(shown) :]:
+        ax.set_axis_off()
+    figure.colorbar(artist, ax=list(axes), shrink=0.8, label=label)
+    if title:
+        figure.suptitle(title, fontsize=9)
+    figure.savefig(path, dpi=110)
+    return shown
 
 
 def plot_hyperparameter_selection(selection: HyperparameterSelection, path: str | Path | None = None) -> Figure:

@@ -1,5 +1,6 @@
 """Reconstruction: conductivity images from boundary voltages."""
 
+from .greit import GREIT as GREIT
 from .hyperparameter import HyperparameterSelection as HyperparameterSelection
 from .hyperparameter import from_external_hyperparameter as from_external_hyperparameter
 from .hyperparameter import select_hyperparameter as select_hyperparameter

@@ -23,15 +23,19 @@ class LinearisedProblem:
     `LinearisedProblem.at(model, prior, background, normalised=False)`
 
     Unknowns: the relative change x = dsigma / background per element. Data: y = dV / s with
-    s = RMS(V_0) on every reading (absolute differences), or y = dV / V_0 reading by reading
-    (normalised differences, `normalised=True`), V_0 = V(background) the model's voltages.
+    s = RMS(V_0) on every reading (absolute differences), or y = dV / V_ref reading by reading
+    (normalised differences, `normalised=True`, s = V_0, signed), V_0 = V(background) the
+    model's voltages and V_ref the measured reference. The ratio dV / V_ref is the same for
+    signed voltages and for the magnitudes some instruments report, so normalised differences
+    also restore the sign such data lost.
     The normalised Jacobian is J_n = diag(1/s) J diag(background). The prior covariance P is
     scaled by c = trace(J_n P J_n^T) / n_meas, so that the data-space prior covariance
     `gram` = J_n P J_n^T / c has unit mean diagonal: the hyperparameter lambda then weighs the
     noise variance against the average signal a change drawn from the prior gives, whatever
     the prior, the mesh, the drive current or the background level.
 
-    Fields: `reference` (M,) V_0 in volts; `data_scale` (M,) s in volts; `jacobian` (M, E)
+    Fields: `reference` (M,) V_0 in volts; `data_scale` (M,) s in volts (signed for
+    normalised differences); `jacobian` (M, E)
     J_n; `prior_jacobian` (E, M) P J_n^T / c; `gram` (M, M); `prior_scale` c; `eigenvalues`
     (M,) and `eigenvectors` (M, M) of G, ascending. Eigenvalues below M eps max(G) are set to
     exactly 0: adjacent data are rank-deficient (reciprocity pairs readings), and in the null
@@ -75,7 +79,7 @@ class LinearisedProblem:
                     f"normalised differences divide by the reference voltages, and readings "
                     f"{name_indices(np.flatnonzero(small))} are near zero at this background: use absolute differences"
                 )
-            data_scale = np.abs(reference)
+            data_scale = reference  # signed: see the class docstring
         else:
             data_scale = np.full(len(reference), np.sqrt(np.mean(reference**2)))
         jacobian = np.asarray(model.jacobian(jnp.asarray(background))) * background / data_scale[:, None]

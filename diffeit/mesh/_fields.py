@@ -7,7 +7,7 @@ import numpy as np
 from ._mesh import Mesh
 
 
-def _barycentric_samples(level: int) -> np.ndarray:
+def barycentric_samples(level: int) -> np.ndarray:
     """(S, 3) barycentric coordinates of the centroids of the level^2 congruent sub-triangles."""
     points = []
     for i in range(level):
@@ -27,7 +27,7 @@ def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level:
     """
     if radius <= 0:
         raise ValueError(f"radius must be positive; got {radius}")
-    weights = _barycentric_samples(level)  # (S, 3)
+    weights = barycentric_samples(level)  # (S, 3)
     points = np.einsum("sk,ekx->esx", weights, mesh.nodes[mesh.triangles])
     inside = np.linalg.norm(points - np.asarray(centre, dtype=float), axis=2) < radius
     return inside.mean(axis=1)

@@ -47,7 +47,7 @@ def overlap_areas(source: Mesh, target: Mesh) -> scipy.sparse.csr_array:
     areas = np.empty(len(target_index))
     for start in range(0, len(target_index), _PAIRS_PER_BATCH):
         batch = slice(start, start + _PAIRS_PER_BATCH)
-        areas[batch] = _intersection_areas(corners_t[target_index[batch]], corners_s[source_index[batch]])
+        areas[batch] = triangle_intersection_areas(corners_t[target_index[batch]], corners_s[source_index[batch]])
     smaller = np.minimum(target.element_areas[target_index], source.element_areas[source_index])
     kept = areas > _NEGLIGIBLE_OVERLAP * smaller
     return scipy.sparse.csr_array(
@@ -154,7 +154,7 @@ def _candidate_pairs(source: Mesh, target: Mesh) -> tuple[np.ndarray, np.ndarray
     return target_index[boxes_meet], source_index[boxes_meet]
 
 
-def _intersection_areas(clip: np.ndarray, subject: np.ndarray) -> np.ndarray:
+def triangle_intersection_areas(clip: np.ndarray, subject: np.ndarray) -> np.ndarray:
     """(M,) areas of the intersections of counter-clockwise triangles clip[m] and subject[m],
     both (M, 3, 2): Sutherland-Hodgman clipping of subject by the three edges of clip, all pairs
     at once, on polygons padded to a common vertex count."""

@@ -1,0 +1,446 @@
+"""GREIT: a linear difference reconstructor on a fixed pixel grid, trained on simulated targets.
+
+After Adler et al. (2009), "GREIT: a unified approach to 2D linear EIT reconstruction of lung
+images", Physiol. Meas. 30 S35, and EIDORS's `mk_GREIT_model`. Instead of inverting a forward
+model on the mesh, the reconstruction matrix R is fitted so that it maps the simulated
+voltages of many small targets, spread uniformly over the domain, onto chosen "desired" images
+of those targets on a pixel grid: blurred copies of the targets, so that every position gets
+the same point spread function (the same resolution and position error), and a noise term keeps
+the noise amplification in check.
+"""
+
+from __future__ import annotations
+
+from dataclasses import KW_ONLY, dataclass, field
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import matplotlib.tri
+import numpy as np
+import scipy.optimize
+import scipy.sparse
+import scipy.special
+from scipy.spatial import cKDTree
+
+from .. import metrics
+from .._arrays import readonly
+from ..forward import ForwardModel
+from ..mesh import Mesh
+from ..mesh._fields import barycentric_samples
+from ..mesh._interpolate import triangle_intersection_areas
+
+DEFAULT_HYPERPARAMETER = 0.3
+_TRAININGS = ("linearised", "nonlinear")
+# A pixel belongs to the image when at least this fraction of its area lies in the domain.
+_INSIDE_FRACTION = 0.5
+# Midpoint rule on 8^2 sub-triangles for the targets' element fractions (as disc_fraction).
+_TARGET_SAMPLING_LEVEL = 8
+# Pixel-triangle pairs clipped per batch: bounds the temporaries to a few tens of MB.
+_PAIRS_PER_BATCH = 1 << 16
+# The noise-figure search scans the hyperparameter over these decades, then refines a crossing.
+_NOISE_FIGURE_SCAN = np.logspace(-8, 4, 121)
+
+
+@dataclass(frozen=True, eq=False)
+class GREIT:
+    """GREIT-style linear difference reconstruction onto a fixed pixel grid.
+
+    `GREIT(model, *, grid=32, hyperparameter=None, noise_figure=None, target_radius=0.05,
+    n_targets=500, blur=0.15, background=1.0, training="linearised", contrast=0.1, seed=0)`
+
+    **The grid.** `grid` x `grid` pixels (or `(n_rows, n_columns)`) tile the bounding box of the
+    mesh; `image[i, j]` is the pixel at x = `pixel_centres[i, j, 0]`, y = `pixel_centres[i, j, 1]`,
+    row 0 at the bottom (smallest y): `plt.imshow(image, origin="lower", extent=rec.extent)`.
+    A pixel is in the image (`mask`) when at least half of its area lies in the domain (exact
+    triangle-square overlap areas). Pixels outside are exactly 0 in every image: EIDORS makes
+    them NaN, but diffeit returns no NaN; use `mask` (e.g. `np.where(rec.mask, image, np.nan)`
+    for a figure).
+
+    **Training.** `n_targets` discs of radius r = `target_radius` * R, where R is half the
+    larger side of the bounding box (R = 1 m on the unit disc), at positions drawn uniformly
+    (seeded by `seed`) among those whose disc lies wholly in the domain. Each target k is a
+    relative conductivity change x_k = dsigma / background on the mesh (element fractions
+    inside the disc), scaled to unit strength: the integral of x_k over the sheet equals the
+    sheet's area A. Its measurement is, in the normalised units of `OneStep`,
+
+        y_k = J_n x_k,  J_n = J diag(background) / s,  s = RMS(V(background))   ("linearised")
+
+    (one Jacobian for all targets), or, with `training="nonlinear"`, the simulated difference
+    (V(background (1 + contrast chi_k)) - V(background)) / s scaled by the same unit-strength
+    factor, all targets in one batched (`jax.vmap`) solve; `contrast` only matters there.
+    Its desired image d_k is the target convolved with a Gaussian of standard deviation
+    w = `blur` * R (the desired point spread function), averaged over each pixel exactly (the
+    disc enters as the Gaussian of equal second moments, variance w^2 + r^2 / 4, which is
+    accurate for r << w), so each desired image also integrates to A.
+
+    **The matrix.** R_n minimises the mean training error plus the expected effect of noise,
+
+        (1/K) sum_k ||d_k - R_n y_k||^2 + lambda^2 ||R_n||_F^2
+            = E_k E_n ||d_k - R_n (y_k + n)||^2,  n ~ N(0, lambda^2 I),
+
+    summed over the pixels in `mask`, so that
+
+        R_n = D Y^T (Y Y^T + K lambda^2 I)^-1 = D Y^T U diag(1 / (m_i + K lambda^2)) U^T,
+
+    with Y (n_meas, K) the training measurements, D (n_pixels, K) the desired images and
+    Y Y^T = U diag(m_i) U^T: a measurement-space computation (an n_meas x n_meas
+    eigenproblem), and no n_pixels x n_pixels or n_elem x n_elem matrix. Directions with m_i
+    at rounding level (reciprocal readings repeat each other) are dropped. Each
+    pixel's row is an independent ridge regression, so the number of pixels does not change
+    R_n, and dividing by K makes lambda independent of the number of targets.
+
+    **The hyperparameter** lambda is unit-free: it is the standard deviation of independent
+    measurement noise, as a fraction of RMS(V_reference) (DESIGN.md's "p%" is lambda = p/100),
+    per unit target strength. An object whose relative change integrates to S times the sheet's
+    area (S = 9 * 0.04 = 0.36 for a disc of radius 0.2 and 10x conductivity on the unit disc,
+    linearised; its true response is weaker, about 1.6 / 9 of that) seen with p% noise is
+    matched by lambda = p / (100 S) (a touch of radius 0.1 and -30% on the unit disc, S = 0.003,
+    with 1% noise: lambda about 3). It does not move with the drive current, the background,
+    the number of targets or pixels, or (linearised) the target contrast. EIDORS's `weight` w
+    enters as (Y Y^T + (w mean|Y|)^2 I) with EIDORS's own normalisation (Y = V/V_ref - 1, no
+    1/K), so lambda ~ w mean|Y| / sqrt(K) only roughly; to carry a setting over, match the
+    noise figure instead.
+
+    **Noise figure.** Give `noise_figure` instead of `hyperparameter` (EIDORS's usual way,
+    e.g. 0.5) and lambda is chosen so that the reconstructor has that noise figure: the
+    training target nearest the domain's centroid is the signal y_0, and (Adler and Guardo 1996,
+    EIDORS `calc_noise_figure`, amplitude form, independent equal noise in normalised units)
+
+        NF = SNR_in / SNR_out = mean_m |y_0m| sqrt(mean_p sum_m R_pm^2) / mean_p |(R_n y_0)_p|
+
+    over the measurements m and the pixels p in `mask`. Larger lambda, smaller NF. Either way,
+    both fields hold the values in effect after construction.
+
+    **Units.** `reconstruct` gives dsigma in S/sq per pixel: the relative change times the
+    pixel's background (the area-weighted mean of `background` over the pixel); `matrix` is in
+    S/sq per volt.
+
+    **Arguments:**
+
+    - `model`: the forward model on which the targets are simulated (its mesh sets the domain).
+    - `grid`: pixels per side, or (n_rows, n_columns); at least 2 each.
+    - `hyperparameter`: lambda > 0, unit-free (above); default 0.3 (noise figure 0.87 on the
+      16-electrode unit disc) unless `noise_figure` is given.
+    - `noise_figure`: NF > 0 to choose lambda by; not together with `hyperparameter`.
+    - `target_radius`: training target radius, a fraction of R (default 0.05).
+    - `n_targets`: number of training targets K (default 500).
+    - `blur`: standard deviation of the desired Gaussian point spread function, a fraction of
+      R (default 0.15: half-amplitude diameter 2.35 * 0.15 = 0.35 R).
+    - `background`: reference conductivity, scalar or (E,), S/sq.
+    - `training`: "linearised" (default) or "nonlinear" (above).
+    - `contrast`: relative conductivity change of the nonlinear training targets, > -1, not 0.
+    - `seed`: seed of the target positions.
+    """
+
+    model: ForwardModel
+    _: KW_ONLY
+    grid: int | tuple[int, int] = 32
+    hyperparameter: float | None = None
+    noise_figure: float | None = None
+    target_radius: float = 0.05
+    n_targets: int = 500
+    blur: float = 0.15
+    background: float | np.ndarray = 1.0
+    training: Literal["linearised", "nonlinear"] = "linearised"
+    contrast: float = 0.1
+    seed: int = 0
+    matrix: jax.Array = field(init=False, repr=False)
+    """(n_rows * n_columns, n_meas) reconstruction matrix, S/sq per volt; rows of pixels
+    outside `mask` are zero. Pixels are in row-major (C) order of the image."""
+    pixel_centres: np.ndarray = field(init=False, repr=False)
+    """(n_rows, n_columns, 2) pixel centres, metres."""
+    mask: np.ndarray = field(init=False, repr=False)
+    """(n_rows, n_columns) boolean: the pixels of the image (at least half inside the domain)."""
+    pixel_areas: np.ndarray = field(init=False, repr=False)
+    """(n_rows, n_columns) area of each pixel in the domain, m^2; 0 outside `mask`."""
+    element_to_pixel: scipy.sparse.csr_array = field(init=False, repr=False)
+    """(n_rows * n_columns, E) sparse: `element_to_pixel @ values` is the area-weighted mean of
+    an element field over each pixel's part of the domain (rows outside `mask` are zero)."""
+    target_centres: np.ndarray = field(init=False, repr=False)
+    """(K, 2) centres of the training targets, metres."""
+
+    def __post_init__(self) -> None:
+        mesh = self.model.mesh
+        shape = self._checked_parameters()
+        background = np.broadcast_to(np.asarray(self.background, dtype=float), (mesh.n_elements,))
+        set_field = object.__setattr__  # frozen: the derived fields are set once, here
+
+        low, high = mesh.nodes.min(axis=0), mesh.nodes.max(axis=0)
+        size = 0.5 * float(np.max(high - low))  # R: the lengths below are fractions of it
+        x_edges = np.linspace(low[0], high[0], shape[1] + 1)
+        y_edges = np.linspace(low[1], high[1], shape[0] + 1)
+        centres = np.stack(np.meshgrid(0.5 * (x_edges[1:] + x_edges[:-1]), 0.5 * (y_edges[1:] + y_edges[:-1])), -1)
+        overlap = _pixel_overlaps(mesh, x_edges, y_edges)
+        covered = overlap.sum(axis=1)
+        pixel_area = (x_edges[1] - x_edges[0]) * (y_edges[1] - y_edges[0])
+        inside = covered >= _INSIDE_FRACTION * pixel_area
+        if not np.any(inside):
+            raise ValueError(f"no pixel of the {shape[0]} x {shape[1]} grid lies at least half in the domain")
+        weights = scipy.sparse.csr_array(
+            scipy.sparse.diags_array(np.divide(1.0, covered, out=np.zeros_like(covered), where=inside)) @ overlap
+        )
+
+        radius, width = self.target_radius * size, self.blur * size
+        rng = np.random.default_rng(self.seed)
+        target_centres = _target_positions(mesh, self.n_targets, radius, rng)
+        fractions, target_areas = _disc_fractions(mesh, target_centres, radius)  # (E, K) sparse, (K,)
+        domain_area = float(mesh.element_areas.sum())
+        strength = domain_area / target_areas  # unit strength: each x_k integrates to the sheet's area
+
+        reference = np.asarray(self.model.measure(jnp.asarray(background)))
+        scale = float(np.sqrt(np.mean(reference**2)))
+        if self.training == "linearised":
+            jacobian = np.asarray(self.model.jacobian(jnp.asarray(background))) * background / scale
+            training = np.asarray((fractions.T @ jacobian.T).T) * strength
+        else:
+            perturbed = background * (1 + self.contrast * fractions.T.toarray())  # (K, E)
+            voltages = np.asarray(jax.vmap(self.model.measure)(jnp.asarray(perturbed)))
+            training = (voltages - reference).T / scale * (strength / self.contrast)
+
+        desired = _desired_images(target_centres, np.sqrt(width**2 + radius**2 / 4), x_edges, y_edges)
+        desired = desired[inside] * domain_area  # (n_inside, K)
+        # M = Y Y^T = U diag(m_i) U^T: an n_meas x n_meas eigenproblem (an SVD of Y costs more and
+        # is slow under thread contention). Directions below rounding (reciprocal pairs of
+        # readings duplicate each other: M has rank 104 of 208 for the adjacent protocol) carry
+        # no information about the targets and are dropped, so lambda -> 0 is the pseudo-inverse.
+        eigenvalues, left = np.linalg.eigh(training @ training.T)
+        kept = eigenvalues > len(eigenvalues) * np.finfo(float).eps * eigenvalues.max()
+        eigenvalues, left = eigenvalues[kept], left[:, kept]
+        projected = (desired @ training.T) @ left  # D Y^T U, (n_inside, rank)
+
+        centroid = (mesh.element_centroids * mesh.element_areas[:, None]).sum(axis=0) / domain_area
+        signal = training[:, np.argmin(np.linalg.norm(target_centres - centroid, axis=1))]
+        figure = _NoiseFigure(projected, eigenvalues, left, signal, self.n_targets)
+        hyperparameter = self.hyperparameter
+        if hyperparameter is None:
+            hyperparameter = DEFAULT_HYPERPARAMETER if self.noise_figure is None else figure.solve(self.noise_figure)
+        normalised = (projected * figure.filter(hyperparameter)) @ left.T  # R_n, (n_inside, n_meas)
+
+        matrix = np.zeros((len(inside), len(reference)))
+        matrix[inside] = normalised * ((weights @ background)[inside] / scale)[:, None]
+        set_field(self, "hyperparameter", float(hyperparameter))
+        set_field(self, "noise_figure", figure(hyperparameter))
+        set_field(self, "matrix", jnp.asarray(matrix))
+        set_field(self, "pixel_centres", readonly(centres))
+        set_field(self, "mask", readonly(inside.reshape(shape)))
+        set_field(self, "pixel_areas", readonly(np.where(inside, covered, 0.0).reshape(shape)))
+        set_field(self, "element_to_pixel", weights)
+        set_field(self, "target_centres", readonly(target_centres))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(n_rows, n_columns) of an image."""
+        return self.mask.shape
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(x_min, x_max, y_min, y_max) of the grid, metres: matplotlib's `imshow(extent=...)`."""
+        nodes = self.model.mesh.nodes
+        return (float(nodes[:, 0].min()), float(nodes[:, 0].max()), float(nodes[:, 1].min()), float(nodes[:, 1].max()))
+
+    def reconstruct(self, voltage_difference: jax.Array) -> jax.Array:
+        """Conductivity change dsigma (S/sq) per pixel for dV = V - V_reference (volts).
+
+        `voltage_difference` is (n_meas,) or a batch (T, n_meas); the result is one image
+        (n_rows, n_columns) or (T, n_rows, n_columns), exactly 0 outside `mask`.
+        """
+        dv = np.asarray(voltage_difference, dtype=float)
+        n_meas = self.model.n_measurements
+        if dv.ndim not in (1, 2) or dv.shape[-1] != n_meas:
+            raise ValueError(f"voltage differences have shape {dv.shape}; expected ({n_meas},) or (T, {n_meas})")
+        if not np.all(np.isfinite(dv)):
+            frames = np.flatnonzero(~np.all(np.isfinite(np.atleast_2d(dv)), axis=1))
+            raise ValueError(f"voltage differences are not finite (NaN or inf) in frame(s) {frames.tolist()}")
+        return (dv @ self.matrix.T).reshape(*dv.shape[:-1], *self.shape)
+
+    def to_pixels(self, values: np.ndarray) -> np.ndarray:
+        """An element field (E,) or batch (T, E) on the model's mesh as images (area-weighted
+        means over each pixel's part of the domain; 0 outside `mask`), e.g. to compare a true
+        dsigma with `reconstruct`'s image."""
+        values = np.asarray(values, dtype=float)
+        n = self.model.n_elements
+        if values.ndim not in (1, 2) or values.shape[-1] != n:
+            raise ValueError(f"element values have shape {values.shape}; expected ({n},) or (T, {n})")
+        return (self.element_to_pixel @ values.T).T.reshape(*values.shape[:-1], *self.shape)
+
+    def position_error(self, image: np.ndarray, centre: tuple[float, float]) -> float:
+        """Distance (m) from `centre` to the centroid of the half-amplitude set of one image
+        (pixels in `mask` at or beyond half the peak, on the peak's side; DESIGN.md's definition
+        with pixels for elements, each weighted by its area in the domain)."""
+        image = np.asarray(image, dtype=float)
+        if image.shape != self.shape:
+            raise ValueError(f"image has shape {image.shape}; expected {self.shape}")
+        values = image[self.mask]
+        if not np.all(np.isfinite(values)) or not np.any(values):
+            raise ValueError("the image must be finite and not all zero inside the mask")
+        chosen = metrics.half_amplitude_set(values)
+        areas = self.pixel_areas[self.mask][chosen]
+        centroid = (self.pixel_centres[self.mask][chosen] * areas[:, None]).sum(axis=0) / areas.sum()
+        return float(np.linalg.norm(centroid - np.asarray(centre, dtype=float)))
+
+    def _checked_parameters(self) -> tuple[int, int]:
+        grid = self.grid
+        shape = (grid, grid) if np.ndim(grid) == 0 else tuple(grid)
+        if len(shape) != 2 or not all(isinstance(n, int | np.integer) and n >= 2 for n in shape):
+            raise ValueError(f"grid must be an integer >= 2 or a pair of them (n_rows, n_columns); got {grid!r}")
+        if self.hyperparameter is not None and self.noise_figure is not None:
+            raise ValueError(
+                "give hyperparameter or noise_figure, not both: the noise figure chooses the hyperparameter"
+            )
+        for name in ("hyperparameter", "noise_figure"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be finite and positive; got {value}")
+        for name in ("target_radius", "blur"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0 < value < 1):
+                raise ValueError(f"{name} is a fraction of half the domain's size, in (0, 1); got {value}")
+        if not (isinstance(self.n_targets, int | np.integer) and self.n_targets >= 1):
+            raise ValueError(f"n_targets must be a positive integer; got {self.n_targets!r}")
+        if self.training not in _TRAININGS:
+            raise ValueError(f"training must be one of {_TRAININGS}; got {self.training!r}")
+        if not (np.isfinite(self.contrast) and self.contrast > -1 and self.contrast != 0):
+            raise ValueError(f"contrast (relative conductivity change) must be > -1 and not 0; got {self.contrast}")
+        background = np.asarray(self.background, dtype=float)
+        if background.shape not in ((), (self.model.n_elements,)):
+            raise ValueError(
+                f"background has shape {background.shape}; expected a scalar or ({self.model.n_elements},)"
+            )
+        if not np.all(np.isfinite(background) & (background > 0)):
+            raise ValueError("background conductivity must be finite and positive (S/sq)")
+        return shape
+
+
+class _NoiseFigure:
+    """The filter factors of R_n and its noise figure as functions of the hyperparameter, all
+    in the eigenbasis of Y Y^T (cheap: a scan costs no matrix products)."""
+
+    def __init__(
+        self, projected: np.ndarray, eigenvalues: np.ndarray, left: np.ndarray, signal: np.ndarray, n_targets: int
+    ) -> None:
+        self.eigenvalues, self.n_targets = eigenvalues, n_targets
+        self.column_norms = np.sum(projected**2, axis=0)  # ||R_n||_F^2 = sum_i f_i^2 ||(D Y^T U)_i||^2
+        self.projected_signal = projected * (left.T @ signal)  # R_n y_0 = this @ f
+        self.signal_amplitude = float(np.mean(np.abs(signal)))
+        self.n_pixels = len(projected)
+
+    def filter(self, hyperparameter: float) -> np.ndarray:
+        """f_i = 1 / (m_i + K lambda^2), so that R_n = D Y^T U diag(f) U^T; m_i > 0, so never inf."""
+        return 1 / (self.eigenvalues + self.n_targets * hyperparameter**2)
+
+    def __call__(self, hyperparameter: float) -> float:
+        factors = self.filter(hyperparameter)
+        noise = np.sqrt(self.column_norms @ factors**2 / self.n_pixels)
+        image = np.mean(np.abs(self.projected_signal @ factors))
+        return float(self.signal_amplitude * noise / image)
+
+    def solve(self, target: float) -> float:
+        """The hyperparameter of noise figure `target`: the first crossing on a log scan, refined."""
+        figures = np.array([self(h) for h in _NOISE_FIGURE_SCAN])
+        excess = figures - target
+        crossing = np.flatnonzero(np.sign(excess[:-1]) != np.sign(excess[1:]))
+        if len(crossing) == 0:
+            raise ValueError(
+                f"noise figure {target} is out of reach: for hyperparameters from {_NOISE_FIGURE_SCAN[0]:g} to "
+                f"{_NOISE_FIGURE_SCAN[-1]:g} it lies between {figures.min():.3g} and {figures.max():.3g}"
+            )
+        i = crossing[0]
+        log_root = scipy.optimize.brentq(
+            lambda t: self(10.0**t) - target, np.log10(_NOISE_FIGURE_SCAN[i]), np.log10(_NOISE_FIGURE_SCAN[i + 1])
+        )
+        return float(10.0**log_root)
+
+
+def _pixel_overlaps(mesh: Mesh, x_edges: np.ndarray, y_edges: np.ndarray) -> scipy.sparse.csr_array:
+    """(n_rows * n_columns, E) sparse: the area (m^2) of pixel p (row-major) inside triangle e,
+    exact up to rounding (each pixel as two triangles, clipped against each element)."""
+    corners = mesh.nodes[mesh.triangles]  # (E, 3, 2), counter-clockwise
+    n_columns, n_rows = len(x_edges) - 1, len(y_edges) - 1
+    dx, dy = x_edges[1] - x_edges[0], y_edges[1] - y_edges[0]
+    low, high = corners.min(axis=1), corners.max(axis=1)
+    first_column = np.clip(np.floor((low[:, 0] - x_edges[0]) / dx).astype(int), 0, n_columns - 1)
+    last_column = np.clip(np.floor((high[:, 0] - x_edges[0]) / dx).astype(int), 0, n_columns - 1)
+    first_row = np.clip(np.floor((low[:, 1] - y_edges[0]) / dy).astype(int), 0, n_rows - 1)
+    last_row = np.clip(np.floor((high[:, 1] - y_edges[0]) / dy).astype(int), 0, n_rows - 1)
+    # Every (element, pixel) pair whose bounding boxes meet: a superset of the overlapping pairs.
+    widths = last_column - first_column + 1
+    counts = widths * (last_row - first_row + 1)
+    element = np.repeat(np.arange(mesh.n_elements), counts)
+    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    column = first_column[element] + local % widths[element]
+    row = first_row[element] + local // widths[element]
+    areas = np.empty(len(element))
+    for start in range(0, len(element), _PAIRS_PER_BATCH):
+        batch = slice(start, start + _PAIRS_PER_BATCH)
+        x0, x1 = x_edges[column[batch]], x_edges[column[batch] + 1]
+        y0, y1 = y_edges[row[batch]], y_edges[row[batch] + 1]
+        lower = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1)], 1)
+        upper = np.stack([np.stack([x0, y0], -1), np.stack([x1, y1], -1), np.stack([x0, y1], -1)], 1)
+        subject = corners[element[batch]]
+        areas[batch] = triangle_intersection_areas(lower, subject) + triangle_intersection_areas(upper, subject)
+    kept = areas > 0
+    pixel = row * n_columns + column
+    return scipy.sparse.csr_array(
+        (areas[kept], (pixel[kept], element[kept])), shape=(n_rows * n_columns, mesh.n_elements)
+    )
+
+
+def _target_positions(mesh: Mesh, n_targets: int, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """(n_targets, 2) centres drawn uniformly over the points of the domain at least `radius`
+    from its boundary (rejection sampling in the bounding box)."""
+    finder = matplotlib.tri.Triangulation(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles).get_trifinder()
+    start, end = mesh.nodes[mesh.boundary_edges[:, 0]], mesh.nodes[mesh.boundary_edges[:, 1]]
+    low, high = mesh.nodes.min(axis=0), mesh.nodes.max(axis=0)
+    found = np.empty((0, 2))
+    for _ in range(10):  # enough wherever at least 1 in 50 points of the box is a valid centre
+        points = rng.uniform(low, high, size=(5 * n_targets, 2))
+        points = points[finder(points[:, 0], points[:, 1]) >= 0]
+        found = np.concatenate([found, points[_distance_to_segments(points, start, end) >= radius]])
+        if len(found) >= n_targets:
+            return found[:n_targets]
+    raise ValueError(
+        f"could not place {n_targets} training targets of radius {radius:g} m wholly inside the domain "
+        f"(found {len(found)}): lower target_radius"
+    )
+
+
+def _distance_to_segments(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """(P,) distance from each point to the nearest of the segments start[b] -> end[b]."""
+    edge = end - start  # (B, 2)
+    offset = points[:, None, :] - start[None]  # (P, B, 2)
+    t = np.clip(np.sum(offset * edge, axis=2) / np.sum(edge**2, axis=1), 0, 1)
+    return np.min(np.linalg.norm(offset - t[..., None] * edge, axis=2), axis=1, initial=np.inf)
+
+
+def _disc_fractions(mesh: Mesh, centres: np.ndarray, radius: float) -> tuple[scipy.sparse.csc_array, np.ndarray]:
+    """(E, K) sparse fraction of each element inside each disc (midpoint rule on 64
+    sub-triangles, as `diffeit.mesh.disc_fraction`), and (K,) the discs' areas on the mesh."""
+    samples = np.einsum("sk,ekx->esx", barycentric_samples(_TARGET_SAMPLING_LEVEL), mesh.nodes[mesh.triangles])
+    centroids = mesh.element_centroids
+    reach = np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - centroids[:, None], axis=2))
+    near = cKDTree(centroids).query_ball_point(centres, radius + reach)
+    target = np.repeat(np.arange(len(centres)), [len(n) for n in near])
+    element = np.concatenate([np.asarray(n, dtype=int) for n in near])
+    inside = np.linalg.norm(samples[element] - centres[target][:, None], axis=2) < radius
+    fraction = inside.mean(axis=1)
+    kept = fraction > 0
+    fractions = scipy.sparse.csc_array(
+        (fraction[kept], (element[kept], target[kept])), shape=(mesh.n_elements, len(centres))
+    )
+    areas = fractions.T @ mesh.element_areas
+    if np.any(areas <= 0):
+        raise ValueError("a training target covers no element: raise target_radius or refine the mesh")
+    return fractions, areas
+
+
+def _desired_images(centres: np.ndarray, width: float, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
+    """(n_rows * n_columns, K): the mean over each pixel of the unit-mass Gaussian of standard
+    deviation `width` about each centre, 1/m^2 (exact: the Gaussian separates in x and y)."""
+
+    def along(edges: np.ndarray, positions: np.ndarray) -> np.ndarray:  # (n_cells, K)
+        cumulative = scipy.special.ndtr((edges[:, None] - positions[None]) / width)
+        return np.diff(cumulative, axis=0) / np.diff(edges)[:, None]
+
+    x_part, y_part = along(x_edges, centres[:, 0]), along(y_edges, centres[:, 1])
+    return (y_part[:, None, :] * x_part[None, :, :]).reshape(-1, len(centres))

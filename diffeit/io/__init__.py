@@ -1,0 +1,52 @@
+"""Frames on disk: one HDF5 schema for simulated, recorded and reconstructed data, and readers
+of other formats (EIDORS .mat files).
+
+`diffeit.io` is a leaf: it uses the data modules `diffeit.protocol` and `diffeit.mesh` only
+(never the forward model, the solvers or the command line), so the hardware module can depend
+on it alone.
+
+In memory a data set is a `Recording` (frames, times, protocol, reference, mesh or geometry,
+provenance, images). `write_frames(path, recording)` writes one file (refusing to replace an
+existing file unless `overwrite=True`), `append_frames(path, frames, times)` grows it (a
+recorder), `read_frames(path)` reads and validates it. `read_eidors_mat(path, variable)` reads
+EIDORS-style MATLAB frames.
+
+The frames file (HDF5, schema "diffeit.frames", version 1):
+
+```
+/                    attributes:
+                       schema = "diffeit.frames", schema_version = 1 (int)
+                       diffeit_version (str), created_utc (ISO 8601, UTC), source (str)
+                       metadata (str): free-form user metadata as JSON
+/frames              (T, n_meas) float64, attribute units: "V" (or "arbitrary": device units);
+                     resizable along T (maxshape (None, n_meas)), chunked by 64 frames
+/times               (T,) float64, attribute units = "s"; resizable like frames
+/reference           (n_meas,) float64, units as frames                      [optional]
+/protocol/drive      (n_drives, L) float64: current into each electrode per drive, in multiples
+                     of the model's drive current (positive into the sheet)
+/protocol/measure    (n_meas, L) float64: the weights of each reading, sum_l w_l U_l
+/protocol/drive_index  (n_meas,) int64: the drive of each reading, drive by drive
+/mesh/nodes          (N, 2) float64, attribute units = "m"                     [optional]
+/mesh/triangles      (E, 3) int64, counter-clockwise
+/mesh/electrode_nodes   (K,) int64: every electrode's boundary node chain, concatenated
+/mesh/electrode_offsets (L + 1,) int64: electrode l is electrode_nodes[offsets[l]:offsets[l+1]]
+/geometry            group whose attributes describe the sheet for a generator     [optional]
+                     (kind = "disc" | "rectangle" | "polygon", and that generator's keyword
+                     arguments, lengths in metres, e.g. n_electrodes, electrode_width, h, radius)
+/images              (T, E) float64 on /mesh, attributes units = "S/sq" and     [optional]
+                     quantity = "conductivity change" | "conductivity"
+```
+
+n_meas is the protocol's number of readings and L its number of electrodes. Frames are in the
+protocol's order and sign (for `adjacent(16)`, EIDORS's). Files are written in the HDF5 1.10
+format, which single-writer/multiple-reader (SWMR) access needs.
+"""
+
+from ._eidors import read_eidors_mat as read_eidors_mat
+from ._hdf5 import SCHEMA as SCHEMA
+from ._hdf5 import SCHEMA_VERSION as SCHEMA_VERSION
+from ._hdf5 import append_frames as append_frames
+from ._hdf5 import read_frames as read_frames
+from ._hdf5 import write_frames as write_frames
+from ._recording import Recording as Recording
+from ._recording import mesh_from_geometry as mesh_from_geometry

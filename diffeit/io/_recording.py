@@ -1,0 +1,201 @@
+"""`Recording`: frames with their protocol, sheet, times and provenance, in memory."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .. import mesh as meshes
+from .._arrays import readonly
+from .._messages import name_indices
+from ..mesh import Mesh
+from ..protocol import Protocol
+
+PROVENANCE_KEYS = ("source", "created_utc", "diffeit_version", "metadata")
+# Generators a geometry description may name; their keyword arguments are its other entries.
+GEOMETRY_KINDS = ("disc", "rectangle", "polygon")
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class Recording:
+    """Frames of boundary voltages, simulated, recorded or reconstructed, with what they need.
+
+    `Recording(frames=..., times=..., protocol=..., reference=None, mesh=None, geometry=None,
+    provenance={}, images=None, image_quantity=None, voltage_unit="V")`, keywords only. Arrays
+    are stored as read-only float64 copies; construction checks shapes and finiteness and raises
+    `ValueError` naming the problem.
+
+    **Fields:**
+
+    - `frames`: (T, n_meas) voltages, one row per frame, in `protocol`'s order and sign; T may
+      be 0 (a recording that frames will be appended to).
+    - `times`: (T,) seconds, the acquisition (or simulation) time of each frame.
+    - `protocol`: the `diffeit.protocol.Protocol` the frames were taken under.
+    - `reference`: (n_meas,) the reference frame of difference imaging (a homogeneous tank,
+      the untouched skin), or None.
+    - `mesh`: the sheet's `Mesh`, or None.
+    - `geometry`: a description of the sheet for a mesh generator, or None: `{"kind": "disc",
+      ...}` with the keyword arguments of `diffeit.mesh.disc` (likewise "rectangle",
+      "polygon"), for example `{"kind": "disc", "n_electrodes": 16, "electrode_width": 0.2,
+      "h": 0.05, "radius": 1.0}` (lengths in metres). See `resolve_mesh`.
+    - `provenance`: `source` (str, what made the frames), `created_utc` (ISO 8601 UTC, when),
+      `diffeit_version` (str), `metadata` (a JSON-serialisable dict, free-form); all optional,
+      `write_frames` fills in `created_utc` and `diffeit_version` when absent.
+    - `images`: (T, E) element-wise images of the frames on `mesh` (E = mesh.n_elements), S/sq,
+      or None. A recording with images needs its mesh.
+    - `image_quantity`: what `images` hold: "conductivity change" (difference imaging, against
+      the reference) or "conductivity"; None without images.
+    - `voltage_unit`: unit of `frames` and `reference`: "V" (volts) for diffeit's simulations
+      and calibrated hardware, "arbitrary" for data in device units (EIDORS files, ADC counts).
+    """
+
+    frames: np.ndarray
+    times: np.ndarray
+    protocol: Protocol
+    reference: np.ndarray | None = None
+    mesh: Mesh | None = None
+    geometry: Mapping[str, Any] | None = None
+    provenance: Mapping[str, Any] = field(default_factory=dict)
+    images: np.ndarray | None = None
+    image_quantity: str | None = None
+    voltage_unit: str = "V"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.protocol, Protocol):
+            raise ValueError(f"protocol must be a diffeit.protocol.Protocol; got {type(self.protocol).__name__}")
+        n_meas = self.protocol.n_measurements
+        frames = _finite_array("frames", self.frames, (None, n_meas), f"(T, {n_meas}): one value per reading")
+        n_frames = len(frames)
+        times = _finite_array("times", self.times, (n_frames,), f"({n_frames},): one time per frame, seconds")
+        reference = None
+        if self.reference is not None:
+            reference = _finite_array("reference", self.reference, (n_meas,), f"({n_meas},): one frame")
+        if self.mesh is not None:
+            if not isinstance(self.mesh, Mesh):
+                raise ValueError(f"mesh must be a diffeit Mesh; got {type(self.mesh).__name__}")
+            if self.mesh.n_electrodes != self.protocol.n_electrodes:
+                raise ValueError(
+                    f"the mesh has {self.mesh.n_electrodes} electrodes; the protocol addresses "
+                    f"{self.protocol.n_electrodes}"
+                )
+        geometry = None if self.geometry is None else _checked_geometry(self.geometry)
+        provenance = _checked_provenance(self.provenance)
+        images = None
+        if self.images is not None:
+            if self.mesh is None:
+                raise ValueError("images need the mesh they live on: pass mesh=")
+            n_elements = self.mesh.n_elements
+            images = _finite_array("images", self.images, (n_frames, n_elements), f"({n_frames}, {n_elements})")
+            if not isinstance(self.image_quantity, str) or not self.image_quantity:
+                raise ValueError('images need image_quantity, e.g. "conductivity change" or "conductivity"')
+        elif self.image_quantity is not None:
+            raise ValueError("image_quantity is given without images")
+        if not isinstance(self.voltage_unit, str) or not self.voltage_unit:
+            raise ValueError(f'voltage_unit must be a non-empty string such as "V"; got {self.voltage_unit!r}')
+        object.__setattr__(self, "frames", frames)
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "reference", reference)
+        object.__setattr__(self, "geometry", geometry)
+        object.__setattr__(self, "provenance", provenance)
+        object.__setattr__(self, "images", images)
+
+    @property
+    def n_frames(self) -> int:
+        return self.frames.shape[0]
+
+    @property
+    def n_measurements(self) -> int:
+        return self.frames.shape[1]
+
+    def difference(self, *, reference_frame: int | None = None, relative: bool = False) -> np.ndarray:
+        """(T, n_meas) frame minus reference, in `voltage_unit`; relative: over the reference
+        (unit-free), the "relative (normalised) difference" (V - V_ref) / V_ref.
+
+        The reference is `reference`, or frame `reference_frame` when given. Raises
+        `ValueError` when there is no reference, or (relative) when it has zero entries.
+        """
+        reference = self.reference_values(reference_frame)
+        difference = self.frames - reference
+        if not relative:
+            return difference
+        zero = np.flatnonzero(reference == 0)
+        if len(zero):
+            raise ValueError(f"the reference is zero at readings {name_indices(zero)}: no relative difference")
+        return difference / reference
+
+    def reference_values(self, reference_frame: int | None = None) -> np.ndarray:
+        """(n_meas,) the reference: frame `reference_frame` when given, else `reference`."""
+        if reference_frame is None:
+            if self.reference is None:
+                raise ValueError("the recording has no reference frame; name one of its frames as the reference")
+            return self.reference
+        if not -self.n_frames <= reference_frame < self.n_frames:
+            raise ValueError(f"reference frame {reference_frame} is out of range: the recording has {self.n_frames}")
+        return self.frames[reference_frame]
+
+    def resolve_mesh(self) -> Mesh:
+        """The sheet's mesh: `mesh` when present, else generated from `geometry`.
+
+        Raises `ValueError` when the recording has neither.
+        """
+        if self.mesh is not None:
+            return self.mesh
+        if self.geometry is None:
+            raise ValueError("the recording has neither a mesh nor a geometry description of its sheet")
+        return mesh_from_geometry(self.geometry)
+
+
+def mesh_from_geometry(geometry: Mapping[str, Any]) -> Mesh:
+    """The mesh a geometry description names: `{"kind": "disc", **keywords}` calls
+    `diffeit.mesh.disc(**keywords)`; likewise "rectangle" and "polygon" (lengths in metres)."""
+    geometry = _checked_geometry(geometry)
+    keywords = {k: v for k, v in geometry.items() if k != "kind"}
+    generator = getattr(meshes, geometry["kind"])
+    try:
+        return generator(**keywords)
+    except TypeError as error:  # an unknown keyword: say which generator refused what
+        raise ValueError(f"geometry {dict(geometry)} does not fit diffeit.mesh.{geometry['kind']}: {error}") from None
+
+
+def _finite_array(name: str, values: Any, shape: tuple[int | None, ...], expected: str) -> np.ndarray:
+    """A read-only float64 copy of `values`, checked for shape (None: any length) and finiteness."""
+    try:
+        array = np.array(values, dtype=np.float64)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{name} must be an array of numbers: {error}") from None
+    if array.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, array.shape, strict=True)):
+        raise ValueError(f"{name} has shape {array.shape}; expected {expected}")
+    if not np.all(np.isfinite(array)):
+        rows = np.flatnonzero(~np.isfinite(array).reshape(len(array), -1).all(axis=1))
+        where = f"frame(s) {name_indices(rows)}" if array.ndim == 2 else f"entries {name_indices(rows)}"
+        raise ValueError(f"{name} hold non-finite values (NaN or inf) in {where}")
+    return readonly(array)
+
+
+def _checked_geometry(geometry: Mapping[str, Any]) -> dict[str, Any]:
+    if not isinstance(geometry, Mapping):
+        raise ValueError(f"geometry must be a dict such as {{'kind': 'disc', 'h': 0.05}}; got {geometry!r}")
+    kind = geometry.get("kind")
+    if kind not in GEOMETRY_KINDS:
+        raise ValueError(f"geometry kind must be one of {GEOMETRY_KINDS}; got {kind!r}")
+    return dict(geometry)
+
+
+def _checked_provenance(provenance: Mapping[str, Any]) -> dict[str, Any]:
+    if not isinstance(provenance, Mapping):
+        raise ValueError(f"provenance must be a dict with keys among {PROVENANCE_KEYS}; got {provenance!r}")
+    unknown = sorted(set(provenance) - set(PROVENANCE_KEYS))
+    if unknown:
+        raise ValueError(
+            f"provenance keys {unknown} are not part of the schema (keys: {PROVENANCE_KEYS}); "
+            "put free-form entries under 'metadata'"
+        )
+    for key in ("source", "created_utc", "diffeit_version"):
+        if key in provenance and not isinstance(provenance[key], str):
+            raise ValueError(f"provenance {key!r} must be a string; got {provenance[key]!r}")
+    if "metadata" in provenance and not isinstance(provenance["metadata"], Mapping):
+        raise ValueError(f"provenance 'metadata' must be a dict; got {provenance['metadata']!r}")
+    return dict(provenance)
