@@ -19,8 +19,13 @@ test: $(STAMP)
 	$(BIN)/ruff check diffeit tests benchmarks examples
 	$(BIN)/python -m pytest
 
+# One BLAS thread: on a small shared machine multithreaded BLAS is erratic; override for a
+# dedicated one, e.g. `make bench BENCH_FLAGS=`.
+BENCH_FLAGS ?= --blas-threads 1
+
 bench: $(STAMP)
-	$(BIN)/python benchmarks/forward_jacobian.py
+	$(BIN)/python benchmarks/forward_jacobian.py $(BENCH_FLAGS)
+	$(BIN)/python benchmarks/inverse.py $(BENCH_FLAGS)
 
 clean:
 	rm -rf $(VENV) demo.png .pytest_cache

@@ -194,8 +194,8 @@ class ForwardModel:
 
     def _checked_inputs(self, conductivity, contact_impedance) -> tuple[jax.Array, jax.Array]:
         sigma = jnp.asarray(conductivity)
-        if not jnp.issubdtype(sigma.dtype, jnp.floating):
-            sigma = sigma.astype(float)
+        # An explicit dtype also drops JAX's weak type (jnp.full(n, 1.0)), which would compile again.
+        sigma = jnp.asarray(sigma, dtype=sigma.dtype if jnp.issubdtype(sigma.dtype, jnp.floating) else float)
         if sigma.shape != (self.n_elements,):
             raise ValueError(
                 f"conductivity has shape {sigma.shape}; expected ({self.n_elements},), one value per element"

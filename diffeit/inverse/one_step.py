@@ -183,7 +183,7 @@ class OneStep:
             dv = dv / reference
         elif reference is not None:
             raise ValueError("a reference is only used for normalised differences (normalised=True)")
-        return dv @ self.matrix.T.astype(dv.dtype)
+        return _apply(self.matrix, dv)
 
 
 def _regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np.ndarray:
@@ -194,15 +194,28 @@ def _regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> n
 
 
 def check_frames(frames: jax.Array, n_measurements: int, what: str) -> jax.Array:
-    """`frames` as a float array of shape (M,) or (T, M), refusing other shapes and, for
-    concrete input, non-finite values (naming the frames)."""
-    array = jnp.asarray(frames)
-    if not jnp.issubdtype(array.dtype, jnp.floating):
-        array = array.astype(float)
+    """`frames` as a float JAX array of shape (M,) or (T, M), refusing other shapes and, for
+    concrete input, non-finite values (naming the frames). NumPy input is checked before it is
+    moved, a JAX array where it lives: only one flag per frame travels."""
+    if isinstance(frames, jax.Array):
+        array = frames
+    else:
+        array = np.asarray(frames)
+        if not np.issubdtype(array.dtype, np.floating):
+            array = array.astype(float)
     if array.ndim not in (1, 2) or array.shape[-1] != n_measurements:
         raise ValueError(f"{what} have shape {array.shape}; expected ({n_measurements},) or (T, {n_measurements})")
-    if is_concrete(frames):
-        finite = np.all(np.isfinite(np.atleast_2d(np.asarray(array))), axis=1)
+    if is_concrete(array):
+        xp = jnp if isinstance(array, jax.Array) else np
+        finite = np.asarray(xp.all(xp.isfinite(array.reshape(-1, n_measurements)), axis=1))
         if not np.all(finite):
             raise ValueError(f"{what} are not finite (NaN or inf) in frame(s) {name_indices(np.flatnonzero(~finite))}")
-    return array
+    array = jnp.asarray(array)
+    return array if jnp.issubdtype(array.dtype, jnp.floating) else array.astype(float)
+
+
+@jax.jit
+def _apply(matrix: jax.Array, frames: jax.Array) -> jax.Array:
+    """frames @ matrix.T in the frames' dtype: under jit the transpose and the conversion fold
+    into the product instead of copying the E x M matrix on every call."""
+    return frames @ matrix.T.astype(frames.dtype)

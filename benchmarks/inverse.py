@@ -1,0 +1,679 @@
+"""One-step reconstruction: set-up, per-frame and batch throughput, against pyEIT 1.2.4's JAC and
+against the machine's matrix-multiply rate.
+
+    python benchmarks/inverse.py [--sizes 700 2800 8000] [--repeats 5] [--frames 1000]
+        [--skip-pyeit] [--blas-threads N] [--json PATH]
+
+The problem: unit disc, 16 electrodes of width 0.2, adjacent protocol (M = 208 voltages), contact
+impedance 0.01, background 1 S/sq. The data: a touch (conductivity -50% in a disc of radius 0.2
+at (0.5, 0)) simulated with diffeit's complete electrode model on the reconstruction mesh itself,
+plus 1% noise (DESIGN.md: standard deviation 1% of RMS(V_ref), seeded); a batch is `--frames`
+frames of that touch, each with noise of its own. diffeit reconstructs with
+`OneStep(model, "noser", HYPERPARAMETER)`; pyEIT with `JAC` and `setup(p=0.5, lamb, method="kotre",
+perm=1.0)`, the same NOSER prior, `lamb` converted from diffeit's hyperparameter by
+`diffeit.inverse.to_external_hyperparameter` (the same regularisation), point electrodes at
+diffeit's point-electrode nodes (the closest pyEIT offers), on the very same nodes and triangles
+and the same data (volts per ampere: pyEIT drives 1 A). The position errors of both images (the
+"position error" column, metres) show that both solve the same problem.
+
+Table 1, set-up, the time until the reconstruction matrix is ready:
+
+- diffeit: `OneStep(model, ...)` and `.matrix.block_until_ready()`: the model's voltages and
+  Jacobian at the background (one sparse factorisation), the prior, the 208 x 208
+  measurement-space eigendecomposition and the (E, M) matrix. The model is built beforehand
+  (its construction is the "model" column). Each timed call has a background of its own
+  (1 + k 1e-6), so no host factorisation cached by an earlier call is reused. "first set-up" is
+  the first `OneStep` on a new `ForwardModel` in the process: it includes the JIT compilation of
+  the forward solve and the Jacobian, which happens once per model.
+- pyEIT: `JAC(mesh, protocol)` and `setup(...)`: its Jacobian (a dense N x N inverse), J^T J,
+  and the inverse of the E x E matrix J^T J + lamb R. No warm-up call (pure NumPy, nothing to
+  compile); the series stops after MIN_RUNS calls once they took SLOW_CASE_SECONDS (the runs
+  column).
+
+The ratio column is diffeit's set-up time over pyEIT's ("1/30": diffeit 30 times faster).
+
+Table 2, one frame (M,) in float64, medians over PER_FRAME_CALLS calls:
+
+- `reconstruct`: `rec.reconstruct(dv)` with dv a NumPy array, what users call: the input checks
+  (conversion to a JAX array, shape, finiteness), and the product;
+- `dv @ matrix.T`: the bare JAX expression `reconstruct` evaluates, on arrays already on the
+  device, eagerly (it materialises the transposed matrix on every call);
+- `jit product`: `jax.jit(lambda dv, m: dv @ m.T)` on arrays on the device (the transpose is
+  folded into the product);
+- `NumPy`: `dv @ matrix.T` in NumPy (OpenBLAS), the machine's matrix-vector rate;
+- `pyEIT solve`: `solver.solve(v1, v0)`, one frame.
+
+Table 3, a batch of T = `--frames` frames (T, M), medians over `--repeats` calls after a warm-up:
+
+- `reconstruct`: `rec.reconstruct(frames)`, frames a NumPy float64 array; frames per second;
+- `NumPy matmul`: `frames @ matrix.T` in NumPy with the same shapes and dtype, in the same
+  process with the same BLAS threads: the machine's matrix-multiply rate for these shapes, in
+  GFLOP/s = 2 T M E / time; `ours / NumPy` is reconstruct's time over it (the target: at most 2x);
+- `jit product`: the product under `jax.jit` on the default device with the operands already
+  there (XLA's own matrix multiply; on an accelerator, the device's rate);
+- float32: the same three with float32 frames (float32 in, float32 out; `reconstruct` casts the
+  float64 matrix to float32 on every call); `f32 error`: the relative 2-norm difference of the
+  float32 images from the float64 ones;
+- `pyEIT loop`: pyEIT has no batch call: `solve` in a Python loop over the T frames (all of them,
+  no extrapolation); `ours / pyEIT` is reconstruct's time over it.
+
+`CPU/wall` is the process's CPU time over the wall time in the timed calls of that column: about
+the number of cores it kept busy.
+
+Table 4, where reconstruct's time goes (same sizes, float64 and float32): the input checks alone
+(`diffeit.inverse.one_step.check_frames`), the eager `matrix.T.astype(dtype)` that reconstruct
+evaluates on every call, and the product with the transposed matrix made beforehand.
+
+How: each mesh size runs in its own process. Calls of the columns of a table are interleaved
+(one call of each in turn, per repeat), so that a change of load on a shared machine hits them
+alike; times are medians after one warm-up call of each. `--blas-threads N` sets
+OPENBLAS_NUM_THREADS, OMP_NUM_THREADS and MKL_NUM_THREADS for the measuring processes: it
+governs NumPy's matmul and pyEIT (and SciPy's LAPACK in the set-ups), not XLA, which runs
+diffeit's products on its own thread pool (the CPU/wall columns show how many cores each used).
+
+Caveats:
+
+- The matrix-multiply rate is NumPy's OpenBLAS at the BLAS thread setting; XLA's product (the
+  jit column) can be faster or slower than OpenBLAS for the same shapes.
+- The touch data are simulated on the reconstruction mesh (an inverse crime): the position errors
+  are a sanity check that both tools reconstruct the same touch, not a quality figure (see
+  tests/test_one_step.py for that).
+- diffeit's model is the complete electrode model, pyEIT's point electrodes: their Jacobians
+  differ a little, their costs hardly.
+- The script runs unchanged on a GPU machine (with `--skip-pyeit`, pyEIT is CPU only). There,
+  `reconstruct` includes the host-to-device transfer of the frames and the device-to-host copy of
+  its finiteness check, and leaves the images on the device; NumPy's matmul is the host CPU's.
+- On a shared machine the times depend on the load (its load average is in the header line);
+  `--blas-threads 1` steadies NumPy's and pyEIT's times on few cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+HYPERPARAMETER = 0.2  # diffeit's unit-free lambda (about what GCV picks for these data); pyEIT's lamb converted
+TOUCH_CENTRE, TOUCH_RADIUS, TOUCH_CHANGE = (0.5, 0.0), 0.2, -0.5
+NOISE_PERCENT = 1.0
+SEED = 0
+PER_FRAME_CALLS = 100  # calls per median in table 2
+SLOW_CASE_SECONDS = 30.0  # a pyEIT series stops once its timed calls take this long ...
+MIN_RUNS = 2  # ... but not before this many calls
+TARGET_SETUP_SPEEDUP, TARGET_SETUP_SIZE = 30.0, 2800  # issue targets: set-up >= 30x faster at about 2,800
+TARGET_MATMUL_RATIO = 2.0  # batch reconstruct within 2x of the matmul time
+
+
+def _disc_with_about(n_triangles: int):
+    import diffeit as de
+
+    h = 2.7 / n_triangles**0.5
+    for _ in range(4):
+        mesh = de.mesh.disc(16, electrode_width=0.2, h=h)
+        if abs(mesh.n_elements / n_triangles - 1) < 0.08:
+            break
+        h *= (mesh.n_elements / n_triangles) ** 0.5
+    return mesh
+
+
+class Series:
+    """Wall and CPU times of the timed calls of one function."""
+
+    def __init__(self) -> None:
+        self.first: float | None = None
+        self.wall: list[float] = []
+        self.cpu: list[float] = []
+
+    def call(self, function: Callable[[], object]) -> object:
+        wall, cpu = time.perf_counter(), time.process_time()
+        result = function()
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        if self.first is None:
+            self.first = wall
+        else:
+            self.wall.append(wall)
+            self.cpu.append(cpu)
+        return result
+
+    def summary(self) -> dict:
+        if not self.wall:
+            return {"median": self.first, "first": self.first, "runs": 1, "cores": None}
+        return {
+            "median": statistics.median(self.wall),
+            "first": self.first,
+            "runs": len(self.wall),
+            "cores": sum(self.cpu) / sum(self.wall) if sum(self.wall) > 0 else None,
+        }
+
+
+def _interleaved(functions: dict[str, Callable[[], object]], repeats: int) -> dict[str, dict]:
+    """Each function once (warm-up), then `repeats` rounds of one timed call of each in turn."""
+    series = {name: Series() for name in functions}
+    for _ in range(repeats + 1):
+        for name, function in functions.items():
+            series[name].call(function)
+    return {name: s.summary() for name, s in series.items()}
+
+
+def _budgeted(function: Callable[[], object], repeats: int, warm_up: bool = True) -> tuple[dict, object]:
+    """(summary, last result) of up to `repeats` timed calls, fewer once they took
+    SLOW_CASE_SECONDS (at least MIN_RUNS); without `warm_up` the first call is timed too."""
+    series = Series()
+    if not warm_up:
+        series.first = 0.0  # nothing to warm up: every call counts
+    result = series.call(function)
+    while len(series.wall) < repeats and not (len(series.wall) >= MIN_RUNS and sum(series.wall) > SLOW_CASE_SECONDS):
+        result = series.call(function)
+    summary = series.summary()
+    if not warm_up:
+        summary["first"] = None
+    return summary, result
+
+
+def describe() -> dict:
+    """The machine and the software, as the header line shows them (run in a child process, so
+    that the parent never initialises an accelerator that the children need)."""
+    import importlib.metadata
+
+    import jax
+    import numpy as np
+
+    try:
+        pyeit_version = importlib.metadata.version("pyeit")
+    except importlib.metadata.PackageNotFoundError:
+        pyeit_version = None
+    try:
+        blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+        blas = f"{blas['name']} {blas['version']}"
+    except Exception:  # the layout of NumPy's build information is not an API
+        blas = "unknown BLAS"
+    device = jax.devices()[0]
+    return {
+        "processor": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": f"{platform.python_implementation()} {platform.python_version()}",
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "blas": blas,
+        "device": device.device_kind,
+        "platform": device.platform,
+        "pyeit": pyeit_version,
+    }
+
+
+def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import diffeit as de
+    from diffeit.inverse import OneStep
+
+    jnp.zeros(1).block_until_ready()  # start the backend outside the timings
+    mesh = _disc_with_about(n_triangles)
+    protocol = de.protocol.adjacent(16)
+
+    def new_model():
+        return de.ForwardModel(mesh, protocol, contact_impedance=0.01)
+
+    row: dict = {"triangles": mesh.n_elements, "nodes": mesh.n_nodes, "frames": options.frames}
+
+    # Table 1: set-up. The first OneStep on a fresh model compiles; later ones at new backgrounds don't reuse
+    # a cached factorisation.
+    model = new_model()
+    fresh = itertools.count(1)
+
+    def set_up():
+        reconstruction = OneStep(model, "noser", HYPERPARAMETER, background=1.0 + 1e-6 * next(fresh))
+        reconstruction.matrix.block_until_ready()
+        return reconstruction
+
+    setup, _ = _budgeted(set_up, options.repeats)
+    model_time, _ = _budgeted(new_model, options.repeats)
+    row.update(setup=setup, model=model_time)
+
+    # The data: a touch simulated on this mesh, 1% noise, seeded.
+    reconstruction = OneStep(model, "noser", HYPERPARAMETER)
+    matrix = reconstruction.matrix
+    n_meas, n_elem = model.n_measurements, model.n_elements
+    reference = np.asarray(model.measure(np.ones(n_elem)))
+    touch = 1.0 + TOUCH_CHANGE * de.mesh.disc_fraction(mesh, TOUCH_CENTRE, TOUCH_RADIUS)
+    clean = np.asarray(model.measure(touch)) - reference
+    rng = np.random.default_rng(SEED)
+    noise = NOISE_PERCENT / 100 * np.sqrt(np.mean(reference**2))
+    difference = clean + noise * rng.standard_normal(n_meas)
+    frames = clean + noise * rng.standard_normal((options.frames, n_meas))
+    image = np.asarray(reconstruction.reconstruct(difference))
+    row["position_error"] = de.metrics.position_error(mesh, image, TOUCH_CENTRE)
+
+    pyeit = None
+    if options.skip_pyeit:
+        row["pyeit_note"] = "pyEIT skipped (--skip-pyeit)"
+    else:
+        pyeit = _pyeit_solver(model, reconstruction)
+        if isinstance(pyeit, str):
+            row["pyeit_note"], pyeit = pyeit, None
+    if pyeit is not None:
+        row["pyeit_setup"], solver = _budgeted(pyeit, options.repeats, warm_up=False)
+        volts_per_amp = difference / model.drive_current  # pyEIT drives 1 A
+        zeros = np.zeros(n_meas)
+        pyeit_image = np.real(solver.solve(v1=volts_per_amp, v0=zeros, normalize=False))
+        row["pyeit_position_error"] = de.metrics.position_error(mesh, pyeit_image, TOUCH_CENTRE)
+
+    # Table 2: one frame.
+    product = jax.jit(lambda dv, m: dv @ m.T)
+    matrix_host = np.asarray(matrix)
+    difference_device = jax.device_put(difference)
+    per_frame = {
+        "reconstruct": lambda: reconstruction.reconstruct(difference).block_until_ready(),
+        "eager": lambda: (difference_device @ matrix.T).block_until_ready(),
+        "jit": lambda: product(difference_device, matrix).block_until_ready(),
+        "numpy": lambda: difference @ matrix_host.T,
+    }
+    if pyeit is not None:
+        per_frame["pyeit"] = lambda: solver.solve(v1=volts_per_amp, v0=zeros, normalize=False)
+    row["per_frame"] = _interleaved(per_frame, PER_FRAME_CALLS)
+
+    # Table 3: a batch, float64 and float32.
+    frames32, matrix32_host = frames.astype(np.float32), matrix_host.astype(np.float32)
+    frames_device, frames32_device = jax.device_put(frames), jax.device_put(frames32)
+    matrix32 = jax.device_put(matrix32_host)
+    batch = {
+        "reconstruct": lambda: reconstruction.reconstruct(frames).block_until_ready(),
+        "numpy": lambda: frames @ matrix_host.T,
+        "jit": lambda: product(frames_device, matrix).block_until_ready(),
+        "reconstruct32": lambda: reconstruction.reconstruct(frames32).block_until_ready(),
+        "numpy32": lambda: frames32 @ matrix32_host.T,
+        "jit32": lambda: product(frames32_device, matrix32).block_until_ready(),
+    }
+    row["batch"] = _interleaved(batch, options.repeats)
+    row["flop"] = 2.0 * options.frames * n_meas * n_elem
+    images = np.asarray(reconstruction.reconstruct(frames))
+    images32 = np.asarray(reconstruction.reconstruct(frames32))
+    row["batch_dtype"] = str(reconstruction.reconstruct(frames).dtype)
+    row["batch32_dtype"] = str(images32.dtype)
+    row["batch_error"] = float(np.linalg.norm(images - frames @ matrix_host.T) / np.linalg.norm(images))
+    row["float32_error"] = float(np.linalg.norm(images32 - images) / np.linalg.norm(images))
+    if pyeit is not None:
+
+        def pyeit_loop():
+            for frame in frames / model.drive_current:
+                solver.solve(v1=frame, v0=zeros, normalize=False)
+
+        row["pyeit_batch"], _ = _budgeted(pyeit_loop, options.repeats)
+
+    row["breakdown"] = _breakdown(reconstruction, difference, frames, options.repeats)
+    return row
+
+
+def _pyeit_solver(model, reconstruction) -> Callable[[], object] | str:
+    """A function building and setting up pyEIT's JAC for the same problem, or why there is none."""
+    import numpy as np
+
+    import diffeit as de
+
+    try:
+        from pyeit.eit import protocol as pyeit_protocol
+        from pyeit.eit.jac import JAC
+        from pyeit.mesh import PyEITMesh
+    except ImportError:
+        return "pyEIT not installed"
+    point = de.ForwardModel(model.mesh, model.protocol, electrode_model="point")
+    mesh = PyEITMesh(
+        node=model.mesh.nodes,
+        element=model.mesh.triangles,
+        perm=1.0,
+        el_pos=np.asarray(point.system.electrode_nodes),
+        ref_node=0,
+    )
+    protocol = pyeit_protocol.create(16, dist_exc=1, step_meas=1, parser_meas="std")
+    lamb = de.inverse.to_external_hyperparameter(reconstruction, "pyeit")
+
+    def set_up():
+        solver = JAC(mesh, protocol)
+        solver.setup(p=0.5, lamb=lamb, method="kotre", perm=1.0)
+        return solver
+
+    return set_up
+
+
+def _breakdown(reconstruction, difference, frames, repeats: int) -> dict:
+    """Table 4: the parts of `reconstruct` timed one by one (diffeit internals: never fatal)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    try:
+        from diffeit.inverse.one_step import check_frames
+    except ImportError as error:
+        return {"error": str(error)}
+    matrix, n_meas = reconstruction.matrix, reconstruction.model.n_measurements
+    result = {}
+    for label, data, calls in (
+        ("frame", difference, PER_FRAME_CALLS),
+        ("batch", frames, repeats),
+        ("batch32", frames.astype(np.float32), repeats),
+    ):
+        dtype = jnp.dtype(data.dtype)
+        data_device = jnp.asarray(data)
+        transposed = matrix.T.astype(dtype).block_until_ready()
+        result[label] = _interleaved(
+            {
+                "reconstruct": lambda data=data: reconstruction.reconstruct(data).block_until_ready(),
+                "checks": lambda data=data: check_frames(data, n_meas, "frames").block_until_ready(),
+                "transpose": lambda dtype=dtype: matrix.T.astype(dtype).block_until_ready(),
+                "product": lambda d=data_device, t=transposed: (d @ t).block_until_ready(),
+            },
+            calls,
+        )
+    return result
+
+
+# ---------------------------------------------------------------------------------------------
+# Tables
+
+
+def _format(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    if seconds < 1e-3:
+        return f"{seconds * 1e6:.0f} us"
+    return f"{seconds * 1e3:.1f} ms" if seconds < 1 else f"{seconds:.2f} s"
+
+
+def _median(entry: dict | None) -> float | None:
+    return None if entry is None else entry["median"]
+
+
+def _fraction(ours: float | None, theirs: float | None) -> str:
+    """ours / theirs as "1/N" (ours N times faster), or "Nx" when ours is slower."""
+    if ours is None or theirs is None:
+        return "-"
+    return f"1/{theirs / ours:.0f}" if theirs >= ours else f"{ours / theirs:.1f}x"
+
+
+def _relative(seconds: float | None, reference: float | None) -> str:
+    if seconds is None or reference is None:
+        return "-"
+    return f"{seconds / reference:.2f}x"
+
+
+def _cores(entry: dict | None) -> str:
+    return "-" if entry is None or entry.get("cores") is None else f"{entry['cores']:.1f}"
+
+
+def _rate(flop: float, entry: dict) -> str:
+    return f"{flop / entry['median'] / 1e9:.1f}"
+
+
+class MarkdownTable:
+    """A Markdown table printed a row at a time."""
+
+    def __init__(self, columns: list[str]) -> None:
+        self.columns = columns
+        print(self._line(columns))
+        print(self._line(["---"] * len(columns)))
+
+    def row(self, cells: list[str]) -> None:
+        if len(cells) != len(self.columns):
+            raise ValueError(f"{len(cells)} cells for {len(self.columns)} columns")
+        print(self._line(cells), flush=True)
+
+    @staticmethod
+    def _line(cells: list[str]) -> str:
+        return "| " + " | ".join(cells) + " |"
+
+
+def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) -> None:
+    print("set-up (diffeit OneStep NOSER against pyEIT JAC kotre p=0.5, the same lamb):")
+    print()
+    table = MarkdownTable(
+        [
+            "triangles",
+            "nodes",
+            "set-up",
+            "first set-up (compile)",
+            "model",
+            "pyEIT set-up",
+            "set-up ratio",
+            "pyEIT runs",
+            "position error ours / pyEIT",
+        ]
+    )
+    for row in rows:
+        pyeit = row.get("pyeit_setup")
+        errors = f"{row['position_error']:.3f}"
+        if row.get("pyeit_position_error") is not None:
+            errors += f" / {row['pyeit_position_error']:.3f}"
+        table.row(
+            [
+                str(row["triangles"]),
+                str(row["nodes"]),
+                _format(row["setup"]["median"]),
+                _format(row["setup"]["first"]),
+                _format(row["model"]["median"]),
+                _format(_median(pyeit)),
+                _fraction(row["setup"]["median"], _median(pyeit)),
+                str(pyeit["runs"]) if pyeit else "-",
+                errors + " m",
+            ]
+        )
+
+    print()
+    print(f"one frame (float64, medians of {PER_FRAME_CALLS} calls):")
+    print()
+    table = MarkdownTable(
+        [
+            "triangles",
+            "reconstruct",
+            "dv @ matrix.T (eager)",
+            "jit product",
+            "NumPy",
+            "pyEIT solve",
+            "reconstruct / NumPy",
+            "reconstruct / pyEIT",
+        ]
+    )
+    for row in rows:
+        frame = row["per_frame"]
+        ours = frame["reconstruct"]["median"]
+        table.row(
+            [
+                str(row["triangles"]),
+                _format(ours),
+                _format(frame["eager"]["median"]),
+                _format(frame["jit"]["median"]),
+                _format(frame["numpy"]["median"]),
+                _format(_median(frame.get("pyeit"))),
+                _relative(ours, frame["numpy"]["median"]),
+                _fraction(ours, _median(frame.get("pyeit"))),
+            ]
+        )
+
+    print()
+    print(
+        f"batch of {options.frames} frames (T, 208) -> (T, E) (NumPy matmul: {machine['blas']}, "
+        f"{options.blas_threads or 'default'} BLAS threads; jit product: XLA on {machine['device']}):"
+    )
+    print()
+    table = MarkdownTable(
+        [
+            "triangles",
+            "reconstruct",
+            "frames/s",
+            "NumPy matmul",
+            "NumPy GFLOP/s",
+            "ours / NumPy",
+            "jit product",
+            "jit GFLOP/s",
+            "ours / jit",
+            "CPU/wall ours / NumPy / jit",
+            "f32 reconstruct",
+            "f32 NumPy",
+            "f32 NumPy GFLOP/s",
+            "f32 ours / NumPy",
+            "f32 jit",
+            "f32 error",
+            "pyEIT loop",
+            "ours / pyEIT",
+        ]
+    )
+    for row in rows:
+        batch, flop = row["batch"], row["flop"]
+        ours, ours32 = batch["reconstruct"]["median"], batch["reconstruct32"]["median"]
+        table.row(
+            [
+                str(row["triangles"]),
+                _format(ours),
+                f"{row['frames'] / ours:,.0f}",
+                _format(batch["numpy"]["median"]),
+                _rate(flop, batch["numpy"]),
+                _relative(ours, batch["numpy"]["median"]),
+                _format(batch["jit"]["median"]),
+                _rate(flop, batch["jit"]),
+                _relative(ours, batch["jit"]["median"]),
+                f"{_cores(batch['reconstruct'])} / {_cores(batch['numpy'])} / {_cores(batch['jit'])}",
+                _format(ours32),
+                _format(batch["numpy32"]["median"]),
+                _rate(flop, batch["numpy32"]),
+                _relative(ours32, batch["numpy32"]["median"]),
+                _format(batch["jit32"]["median"]),
+                f"{row['float32_error']:.1e}",
+                _format(_median(row.get("pyeit_batch"))),
+                _fraction(ours, _median(row.get("pyeit_batch"))),
+            ]
+        )
+
+    print()
+    print("where reconstruct's time goes (input checks; the eager matrix.T.astype(dtype) it evaluates every call;")
+    print("the product with a transposed matrix made beforehand):")
+    print()
+    table = MarkdownTable(["triangles", "input", "reconstruct", "checks", "matrix.T.astype", "product alone"])
+    for row in rows:
+        breakdown = row["breakdown"]
+        if "error" in breakdown:
+            continue
+        for label, name in (("frame", "1 frame f64"), ("batch", f"{row['frames']} f64"), ("batch32", "... f32")):
+            parts = breakdown[label]
+            table.row(
+                [
+                    str(row["triangles"]),
+                    name,
+                    *(_format(parts[part]["median"]) for part in ("reconstruct", "checks", "transpose", "product")),
+                ]
+            )
+
+
+def _targets(rows: list[dict]) -> list[str]:
+    lines = []
+    timed = [row for row in rows if row.get("pyeit_setup")]
+    if timed:
+        row = min(timed, key=lambda row: abs(row["triangles"] - TARGET_SETUP_SIZE))
+        speedup = row["pyeit_setup"]["median"] / row["setup"]["median"]
+        first = row["pyeit_setup"]["median"] / row["setup"]["first"]
+        verdict = "met" if speedup >= TARGET_SETUP_SPEEDUP else "NOT met"
+        lines.append(
+            f"set-up at {row['triangles']} triangles: {speedup:.0f}x faster than pyEIT "
+            f"(target {TARGET_SETUP_SPEEDUP:.0f}x: {verdict}); {first:.1f}x including the first call's compilation"
+        )
+    for row in rows:
+        ratio = row["batch"]["reconstruct"]["median"] / row["batch"]["numpy"]["median"]
+        verdict = "met" if ratio <= TARGET_MATMUL_RATIO else "NOT met"
+        lines.append(
+            f"batch at {row['triangles']} triangles: reconstruct takes {ratio:.2f}x the NumPy matmul's time "
+            f"(target <= {TARGET_MATMUL_RATIO:.0f}x: {verdict})"
+        )
+    return lines
+
+
+def _child_command(options: argparse.Namespace, size: int) -> list[str]:
+    command = [sys.executable, __file__, "--one", str(size), "--repeats", str(options.repeats)]
+    command += ["--frames", str(options.frames)]
+    return command + (["--skip-pyeit"] if options.skip_pyeit else [])
+
+
+def _last_json(output: str) -> dict:
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[700, 2800, 8000], help="about how many triangles")
+    parser.add_argument("--repeats", type=int, default=5, help="timed calls per median (after a warm-up call)")
+    parser.add_argument("--frames", type=int, default=1000, help="frames in a batch (default 1000)")
+    parser.add_argument("--skip-pyeit", action="store_true", help="leave pyEIT out")
+    parser.add_argument(
+        "--blas-threads",
+        type=int,
+        metavar="N",
+        help="run the measurements with N BLAS/OpenMP threads (default: the environment's setting)",
+    )
+    parser.add_argument("--json", metavar="PATH", help="also save the machine and the raw rows as JSON")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one size, print JSON
+    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
+    options = parser.parse_args()
+    if options.repeats < 1:
+        parser.error("--repeats must be at least 1")
+    if options.frames < 1:
+        parser.error("--frames must be at least 1")
+    if options.describe:
+        print(json.dumps(describe()))
+        return
+    if options.one:
+        print(json.dumps(run_one(options.one, options)))
+        return
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    environment = dict(os.environ)
+    if options.blas_threads:
+        for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            environment[variable] = str(options.blas_threads)
+    command = [sys.executable, __file__, "--describe"]
+    describing = subprocess.run(command, check=True, capture_output=True, text=True, env=environment)
+    machine = _last_json(describing.stdout)
+    machine.update(load_average=load, blas_threads=options.blas_threads)
+    print(
+        f"machine: {machine['processor']}, {machine['cpus']} CPUs"
+        + (f" (load average {load:.1f} at the start)" if load is not None else "")
+        + f", {machine['python']}, jax {machine['jax']}, device {machine['device']} ({machine['platform']})"
+        + f", NumPy {machine['numpy']} ({machine['blas']})"
+        + (f", pyEIT {machine['pyeit']}" if machine["pyeit"] and not options.skip_pyeit else "")
+        + (f", {options.blas_threads} BLAS threads" if options.blas_threads else "")
+        + f", {options.repeats} repeats, {options.frames} frames"
+    )
+    print()
+    rows, notes = [], []
+    for size in options.sizes:
+        child = subprocess.run(_child_command(options, size), capture_output=True, text=True, env=environment)
+        if child.returncode != 0:
+            tail = child.stderr.strip().splitlines()[-1:] or ["no output"]
+            notes.append(f"size {size} failed (exit status {child.returncode}): {tail[0]}")
+            continue
+        row = _last_json(child.stdout)
+        rows.append(row)
+        if row.get("pyeit_note"):
+            notes.append(row["pyeit_note"])
+        if "error" in row["breakdown"]:
+            notes.append(f"no breakdown: {row['breakdown']['error']}")
+    if rows:
+        _print_tables(rows, machine, options)
+    print()
+    for line in _targets(rows):
+        print(f"target: {line}")
+    for note in dict.fromkeys(notes):
+        print(f"note: {note}")
+
+    if options.json:
+        with open(options.json, "w") as file:
+            settings = {key: value for key, value in vars(options).items() if key not in ("one", "describe", "json")}
+            json.dump({"machine": machine, "options": settings, "rows": rows}, file, indent=1)
+
+
+if __name__ == "__main__":
+    main()
