@@ -35,9 +35,9 @@ The ratio column is diffeit's set-up time over pyEIT's ("1/30": diffeit 30 times
 Table 2, one frame (M,) in float64, medians over PER_FRAME_CALLS calls:
 
 - `reconstruct`: `rec.reconstruct(dv)` with dv a NumPy array, what users call: the input checks
-  (conversion to a JAX array, shape, finiteness), and the product;
-- `dv @ matrix.T`: the bare JAX expression `reconstruct` evaluates, on arrays already on the
-  device, eagerly (it materialises the transposed matrix on every call);
+  (shape, finiteness, in NumPy), and the product under `jax.jit`;
+- `dv @ matrix.T`: the same product evaluated eagerly, for comparison (eager JAX materialises
+  the transposed matrix on every call, which is why reconstruct jits it);
 - `jit product`: `jax.jit(lambda dv, m: dv @ m.T)` on arrays on the device (the transpose is
   folded into the product);
 - `NumPy`: `dv @ matrix.T` in NumPy (OpenBLAS), the machine's matrix-vector rate;
@@ -51,18 +51,20 @@ Table 3, a batch of T = `--frames` frames (T, M), medians over `--repeats` calls
   GFLOP/s = 2 T M E / time; `ours / NumPy` is reconstruct's time over it (the target: at most 2x);
 - `jit product`: the product under `jax.jit` on the default device with the operands already
   there (XLA's own matrix multiply; on an accelerator, the device's rate);
-- float32: the same three with float32 frames (float32 in, float32 out; `reconstruct` casts the
-  float64 matrix to float32 on every call); `f32 error`: the relative 2-norm difference of the
+- float32: the same three with float32 frames (float32 in, float32 out; `reconstruct` converts
+  the float64 matrix inside its jitted product); `f32 error`: the relative 2-norm difference of the
   float32 images from the float64 ones;
 - `pyEIT loop`: pyEIT has no batch call: `solve` in a Python loop over the T frames (all of them,
   no extrapolation); `ours / pyEIT` is reconstruct's time over it.
 
 `CPU/wall` is the process's CPU time over the wall time in the timed calls of that column: about
-the number of cores it kept busy.
+the number of cores it kept busy (XLA's CPU matmul uses its own threads, not BLAS's, so it may
+use more cores than `--blas-threads` gives NumPy).
 
 Table 4, where reconstruct's time goes (same sizes, float64 and float32): the input checks alone
-(`diffeit.inverse.one_step.check_frames`), the eager `matrix.T.astype(dtype)` that reconstruct
-evaluates on every call, and the product with the transposed matrix made beforehand.
+(`diffeit.inverse.one_step.check_frames`), what an eager `matrix.T.astype(dtype)` would cost on
+every call (reconstruct's jitted product avoids it), and the product with the transposed matrix
+made beforehand.
 
 How: each mesh size runs in its own process. Calls of the columns of a table are interleaved
 (one call of each in turn, per repeat), so that a change of load on a shared machine hits them
@@ -551,8 +553,8 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
         )
 
     print()
-    print("where reconstruct's time goes (input checks; the eager matrix.T.astype(dtype) it evaluates every call;")
-    print("the product with a transposed matrix made beforehand):")
+    print("where reconstruct's time goes (input checks; an eager matrix.T.astype(dtype), which its jitted product")
+    print("avoids; the product with a transposed matrix made beforehand):")
     print()
     table = MarkdownTable(["triangles", "input", "reconstruct", "checks", "matrix.T.astype", "product alone"])
     for row in rows:
