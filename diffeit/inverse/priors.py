@@ -18,6 +18,7 @@ The scale of P is immaterial: `diffeit.inverse.OneStep` normalises it (see there
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,21 +28,34 @@ import scipy.sparse.linalg
 from ..mesh import Mesh
 
 
+@dataclass(frozen=True)
+class PriorOperator:
+    """A prior bound to a mesh (and, for NOSER, to a Jacobian): `covariance(X)` is P X and
+    `precision(X)` is P^-1 X, for X of shape (E,) or (E, k). Sparse factorisations are made
+    once, when the operator is built."""
+
+    covariance: Callable[[np.ndarray], np.ndarray]
+    precision: Callable[[np.ndarray], np.ndarray]
+
+
 class AbstractPrior(abc.ABC):
-    """Applies the prior covariance P (E x E, symmetric positive definite) to the columns of
-    the transposed normalised Jacobian."""
+    """A prior covariance P (E x E, symmetric positive definite) on the relative change."""
 
     @abc.abstractmethod
+    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
+        """P bound to `mesh`; `jacobian` (M, E) is the normalised Jacobian (only NOSER reads it)."""
+
     def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
         """(E, M) P J^T for the (M, E) normalised Jacobian `jacobian`."""
+        return self.operator(mesh, jacobian).covariance(np.ascontiguousarray(jacobian.T))
 
 
 @dataclass(frozen=True)
 class Tikhonov(AbstractPrior):
     """P = I: every element's change independent, equally likely."""
 
-    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
-        return jacobian.T.copy()
+    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
+        return PriorOperator(np.array, np.array)
 
 
 @dataclass(frozen=True)
@@ -52,11 +66,16 @@ class Noser(AbstractPrior):
 
     exponent: float = 0.5
 
-    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
         sensitivity = np.sum(jacobian**2, axis=0)
         if np.any(sensitivity <= 0):
             raise ValueError(f"{np.count_nonzero(sensitivity <= 0)} element(s) have zero sensitivity: NOSER undefined")
-        return sensitivity[:, None] ** -self.exponent * jacobian.T
+        weights = sensitivity**self.exponent
+
+        def shaped(x: np.ndarray) -> np.ndarray:
+            return weights.reshape((-1,) + (1,) * (np.ndim(x) - 1))
+
+        return PriorOperator(lambda x: x / shaped(x), lambda x: x * shaped(x))
 
 
 @dataclass(frozen=True)
@@ -68,16 +87,14 @@ class Laplace(AbstractPrior):
 
     ridge: float = 1e-2
 
-    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
         if not self.ridge > 0:
             raise ValueError(f"ridge must be positive; got {self.ridge}")
         first, second, _ = element_adjacency(mesh)
-        weights = np.ones(len(first))
-        precision_root = _graph_laplacian(first, second, weights, mesh.n_elements) + self.ridge * scipy.sparse.eye(
-            mesh.n_elements
-        )
-        factor = scipy.sparse.linalg.splu(precision_root.tocsc())
-        return factor.solve(factor.solve(np.ascontiguousarray(jacobian.T)))
+        root = _graph_laplacian(first, second, np.ones(len(first)), mesh.n_elements)
+        root = (root + self.ridge * scipy.sparse.eye(mesh.n_elements)).tocsc()
+        factor = scipy.sparse.linalg.splu(root)
+        return PriorOperator(lambda x: factor.solve(factor.solve(x)), lambda x: root @ (root @ x))
 
 
 @dataclass(frozen=True)
@@ -91,17 +108,24 @@ class Matern(AbstractPrior):
 
     correlation_length: float = 0.2
 
-    def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
+    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
         if not self.correlation_length > 0:
             raise ValueError(f"correlation_length must be positive (metres); got {self.correlation_length}")
         kappa = np.sqrt(8.0) / self.correlation_length
         first, second, edge_lengths = element_adjacency(mesh)
         distance = np.linalg.norm(mesh.element_centroids[first] - mesh.element_centroids[second], axis=1)
         laplacian = _graph_laplacian(first, second, edge_lengths / distance, mesh.n_elements)
-        operator = (kappa**2 * scipy.sparse.diags(mesh.element_areas) + laplacian).tocsc()
+        areas = mesh.element_areas
+        operator = (kappa**2 * scipy.sparse.diags(areas) + laplacian).tocsc()
         factor = scipy.sparse.linalg.splu(operator)
-        half = factor.solve(np.ascontiguousarray(jacobian.T))
-        return factor.solve(mesh.element_areas[:, None] * half)
+
+        def per_element(x: np.ndarray) -> np.ndarray:
+            return areas.reshape((-1,) + (1,) * (np.ndim(x) - 1))
+
+        return PriorOperator(
+            lambda x: factor.solve(per_element(x) * factor.solve(x)),
+            lambda x: operator @ ((operator @ x) / per_element(x)),
+        )
 
 
 def prior_named(name: str) -> AbstractPrior:
