@@ -1,5 +1,7 @@
 """Reconstruction: conductivity images from boundary voltages."""
 
+from .gauss_newton import GaussNewton as GaussNewton
+from .gauss_newton import GaussNewtonResult as GaussNewtonResult
 from .greit import GREIT as GREIT
 from .hyperparameter import HyperparameterSelection as HyperparameterSelection
 from .hyperparameter import from_external_hyperparameter as from_external_hyperparameter
