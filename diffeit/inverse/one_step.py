@@ -155,7 +155,7 @@ class OneStep:
         if not (np.isfinite(self.hyperparameter) and self.hyperparameter > 0):
             raise ValueError(f"hyperparameter must be finite and positive; got {self.hyperparameter}")
         problem = LinearisedProblem.at(self.model, self.prior, self.background, normalised=self.normalised)
-        matrix = problem.background[:, None] * _regularised_inverse(problem, self.hyperparameter)
+        matrix = problem.background[:, None] * regularised_inverse(problem, self.hyperparameter)
         if not self.normalised:
             matrix = matrix / problem.data_scale  # volts in
         object.__setattr__(self, "problem", problem)
@@ -186,7 +186,7 @@ class OneStep:
         return _apply(self.matrix, dv)
 
 
-def _regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np.ndarray:
+def regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np.ndarray:
     """(E, M) P J_n^T (G + lambda^2 I)^-1 / c, through the eigendecomposition of G."""
     inverse = 1.0 / (problem.eigenvalues + hyperparameter**2)
     inverse[problem.eigenvalues == 0] = 0.0  # see LinearisedProblem.eigenvalues
