@@ -1,5 +1,6 @@
 """Total-variation difference reconstruction: sharp-edged changes (touches) on the linearised
-problem, solved with L-BFGS (optimistix), one jitted solve vmapped over frames.
+problem, solved with L-BFGS (optimistix): one jitted solve for every frame of a batch, in groups of
+`batch_size` frames vmapped together (on CPU one at a time is fastest).
 
 On the normalised linearised problem of `LinearisedProblem` (x = dsigma / background per
 element, unit-free; y = dV / s with s = RMS(V_0) volts; J_n = diag(1/s) J diag(background)),
