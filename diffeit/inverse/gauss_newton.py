@@ -186,8 +186,7 @@ class GaussNewton:
             normalised = jacobian[k] / scale[k]
             operator = self.prior.operator(mesh, normalised)
             operators.append(operator)
-            prior_scale[k] = np.einsum("me,em->", normalised, operator.covariance(np.ascontiguousarray(normalised.T)))
-            prior_scale[k] /= len(normalised)
+            prior_scale[k] = np.sum(operator.root_transpose(np.ascontiguousarray(normalised.T)) ** 2) / len(normalised)
         noise_norm = None
         if self.noise is not None:
             rms_data = np.sqrt(np.mean(frames**2, axis=1))
@@ -280,11 +279,13 @@ class GaussNewton:
         weight = self.hyperparameter**2
         alpha = weight + damping
         shift = -weight * deviation / alpha
-        covariance_jt = operator.covariance(np.ascontiguousarray(jacobian.T)) / prior_scale  # (P/c) J^T
-        # alpha times the system matrix, G + alpha I with G = J (P/c) J^T (+ the w block): solved
-        # by eigendecomposition, leaving out G's numerical null space (see LinearisedProblem), so
-        # that a tiny hyperparameter does not divide rounding errors.
-        gram = jacobian @ covariance_jt
+        # With P = S S^T, B = S^T J^T / sqrt(c): G = J (P/c) J^T = B^T B and (P/c) J^T xi = S B xi /
+        # sqrt(c), one sparse solve with M right-hand sides per step.
+        root_jt = operator.root_transpose(np.ascontiguousarray(jacobian.T)) / np.sqrt(prior_scale)
+        # alpha times the system matrix, G + alpha I (+ the w block): solved by eigendecomposition,
+        # leaving out G's numerical null space (see LinearisedProblem), so that a tiny
+        # hyperparameter does not divide rounding errors.
+        gram = root_jt.T @ root_jt
         right = -residual - jacobian @ shift
         if z_jacobian is not None:
             beta = z_weight * (1 + damping / weight)
@@ -296,7 +297,7 @@ class GaussNewton:
             eigenvalues > len(gram) * np.finfo(float).eps * eigenvalues[-1], 1 / (eigenvalues + alpha), 0
         )
         solution = alpha * (vectors @ (inverse * (vectors.T @ right)))  # (G / alpha + I)^-1 right
-        delta_s = shift + covariance_jt @ solution / alpha
+        delta_s = shift + operator.root(root_jt @ solution) / (np.sqrt(prior_scale) * alpha)
         delta_w = np.zeros_like(z_deviation)
         change = jacobian @ delta_s
         if z_jacobian is not None:
