@@ -292,11 +292,7 @@ class GaussNewton:
             z_shift = -z_weight * z_deviation / beta
             gram = gram + (alpha / beta) * z_jacobian @ z_jacobian.T
             right = right - z_jacobian @ z_shift
-        eigenvalues, vectors = scipy.linalg.eigh(0.5 * (gram + gram.T))
-        inverse = np.where(
-            eigenvalues > len(gram) * np.finfo(float).eps * eigenvalues[-1], 1 / (eigenvalues + alpha), 0
-        )
-        solution = alpha * (vectors @ (inverse * (vectors.T @ right)))  # (G / alpha + I)^-1 right
+        solution = alpha * _regularised_solve(gram, alpha, right)  # (G / alpha + I)^-1 right
         delta_s = shift + operator.root(root_jt @ solution) / (np.sqrt(prior_scale) * alpha)
         delta_w = np.zeros_like(z_deviation)
         change = jacobian @ delta_s
@@ -339,6 +335,18 @@ class GaussNewton:
                     still.append(k)
             pending = still
         return accepted
+
+
+def _regularised_solve(gram: np.ndarray, alpha: float, right: np.ndarray) -> np.ndarray:
+    """(G + alpha I)^-1 right for a positive semidefinite G. A Cholesky factorisation while
+    alpha dominates rounding; for a tiny alpha an eigendecomposition that leaves G's numerical
+    null space out (see LinearisedProblem), so that rounding errors are not divided by alpha."""
+    gram = 0.5 * (gram + gram.T)
+    if alpha > 1e-8 * np.trace(gram) / len(gram):
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(gram + alpha * np.eye(len(gram))), right)
+    eigenvalues, vectors = scipy.linalg.eigh(gram)
+    kept = eigenvalues > len(gram) * np.finfo(float).eps * eigenvalues[-1]
+    return vectors @ (np.where(kept, 1 / (eigenvalues + alpha), 0) * (vectors.T @ right))
 
 
 def _positive_map(value, n_elements: int) -> np.ndarray:
