@@ -1,0 +1,1 @@
+"""Scenes and effects: simulated experiments with ground truth."""
