@@ -71,6 +71,8 @@ import sys
 import time
 from collections.abc import Callable
 
+from _common import MarkdownTable, blas_environment, disc_with_about, format_seconds, fraction, last_json, relative
+
 PYEIT_JACOBIAN_LIMIT = 10_000  # pyEIT inverts the dense N x N matrix: beyond this it takes minutes
 DENSE_CHOLESKY_LIMIT = 10_000  # triangles; dense Cholesky forms an n x n matrix (n about triangles / 2)
 SLOW_CASE_SECONDS = 20.0  # a table 2 series stops early once its timed calls take this long ...
@@ -82,18 +84,6 @@ REFERENCE = ("host_sparse", "float64")
 
 def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-
-
-def _disc_with_about(n_triangles: int):
-    import diffeit as de
-
-    h = 2.7 / n_triangles**0.5
-    for _ in range(4):
-        mesh = de.mesh.disc(16, electrode_width=0.2, h=h)
-        if abs(mesh.n_elements / n_triangles - 1) < 0.08:
-            break
-        h *= (mesh.n_elements / n_triangles) ** 0.5
-    return mesh
 
 
 def _timed(function: Callable[[], object], repeats: int, budget: float | None = None) -> tuple[float, float, int]:
@@ -143,7 +133,7 @@ def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
 
     import diffeit as de
 
-    mesh = _disc_with_about(n_triangles)
+    mesh = disc_with_about(n_triangles)
     model = de.ForwardModel(mesh, de.protocol.adjacent(16), contact_impedance=0.01)
     base = np.exp(np.random.default_rng(0).normal(0.0, 0.2, mesh.n_elements))
     fresh = itertools.count(1)
@@ -291,59 +281,24 @@ def _pyeit(mesh, base, repeats: int) -> dict:
     return result
 
 
-def _format(seconds: float | None) -> str:
-    if seconds is None:
-        return "-"
-    return f"{seconds * 1e3:.1f} ms" if seconds < 1 else f"{seconds:.2f} s"
-
-
-def _fraction(ours: float, theirs: float | None) -> str:
-    """ours / theirs as "1/N" (ours N times faster)."""
-    return "-" if theirs is None else f"1/{theirs / ours:.0f}"
-
-
-def _relative(seconds: float | None, reference: float | None) -> str:
-    """time / reference as "0.50x" (twice as fast)."""
-    if seconds is None or reference is None:
-        return "-"
-    ratio = seconds / reference
-    return f"{ratio:.2f}x" if ratio < 10 else f"{ratio:.0f}x"
-
-
 def _error(value: float | None) -> str:
     return "-" if value is None else f"{value:.1e}"
 
 
-class MarkdownTable:
-    """A Markdown table printed a row at a time (rows appear while a long benchmark runs)."""
-
-    def __init__(self, columns: list[str]) -> None:
-        self.columns = columns
-        print(self._line(columns))
-        print(self._line(["---"] * len(columns)))
-
-    def row(self, cells: list[str]) -> None:
-        if len(cells) != len(self.columns):
-            raise ValueError(f"{len(cells)} cells for {len(self.columns)} columns")
-        print(self._line(cells), flush=True)
-
-    @staticmethod
-    def _line(cells: list[str]) -> str:
-        return "| " + " | ".join(cells) + " |"
-
-
 def _backend_cells(row: dict, result: dict, reference: dict) -> list[str]:
     is_reference = (result["backend"], result["precision"]) == REFERENCE
-    compile_times = f"{_format(result.get('forward_compile'))} / {_format(result.get('jacobian_compile'))}"
+    compile_times = (
+        f"{format_seconds(result.get('forward_compile'))} / {format_seconds(result.get('jacobian_compile'))}"
+    )
     runs = f"{result['forward_runs']} / {result['jacobian_runs']}" if "forward_runs" in result else "-"
     return [
         str(row["triangles"]),
         result["backend"],
         result["precision"],
-        _format(result.get("forward")),
-        _format(result.get("jacobian")),
-        "1 (ref)" if is_reference else _relative(result.get("forward"), reference.get("forward")),
-        "1 (ref)" if is_reference else _relative(result.get("jacobian"), reference.get("jacobian")),
+        format_seconds(result.get("forward")),
+        format_seconds(result.get("jacobian")),
+        "1 (ref)" if is_reference else relative(result.get("forward"), reference.get("forward")),
+        "1 (ref)" if is_reference else relative(result.get("jacobian"), reference.get("jacobian")),
         compile_times,
         "ref" if is_reference else _error(result.get("voltage_error")),
         "ref" if is_reference else _error(result.get("jacobian_error")),
@@ -358,10 +313,6 @@ def _child_command(options: argparse.Namespace, size: int) -> list[str]:
     command += ["--backends", *options.backends, "--precisions", *options.precisions]
     command += ["--dense-limit", str(options.dense_limit)]
     return command + (["--skip-pyeit"] if options.skip_pyeit else [])
-
-
-def _last_json(output: str) -> dict:
-    return json.loads(output.strip().splitlines()[-1])
 
 
 def main() -> None:
@@ -403,13 +354,10 @@ def main() -> None:
         return
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    environment = dict(os.environ)
-    if options.blas_threads:
-        for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            environment[variable] = str(options.blas_threads)
+    environment = blas_environment(os.environ, options.blas_threads)
     command = [sys.executable, __file__, "--describe"]
     describing = subprocess.run(command, check=True, capture_output=True, text=True, env=environment)
-    machine = _last_json(describing.stdout)
+    machine = last_json(describing.stdout)
     machine.update(load_average=load, blas_threads=options.blas_threads)
     print(
         f"machine: {machine['processor']}, {machine['cpus']} CPUs"
@@ -444,21 +392,21 @@ def main() -> None:
             tail = child.stderr.strip().splitlines()[-1:] or ["no output"]
             failures.append(f"size {size} failed (exit status {child.returncode}): {tail[0]}")
             continue
-        row = _last_json(child.stdout)
+        row = last_json(child.stdout)
         rows.append(row)
         table.row(
             [
                 str(row["triangles"]),
                 str(row["nodes"]),
-                _format(row["forward"]),
-                _format(row["jacobian"]),
-                _format(row["forward_and_jacobian"]),
-                f"{_format(row['forward_compile'])} / {_format(row['jacobian_compile'])}",
+                format_seconds(row["forward"]),
+                format_seconds(row["jacobian"]),
+                format_seconds(row["forward_and_jacobian"]),
+                f"{format_seconds(row['forward_compile'])} / {format_seconds(row['jacobian_compile'])}",
                 f"{row['peak_mb']:.0f} MB",
-                _format(row["pyeit_forward"]),
-                _format(row["pyeit_jacobian"]),
-                _fraction(row["forward"], row["pyeit_forward"]),
-                _fraction(row["jacobian"], row["pyeit_jacobian"]),
+                format_seconds(row["pyeit_forward"]),
+                format_seconds(row["pyeit_jacobian"]),
+                fraction(row["forward"], row["pyeit_forward"]),
+                fraction(row["jacobian"], row["pyeit_jacobian"]),
             ]
         )
         if row.get("pyeit_note"):

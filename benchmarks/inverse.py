@@ -155,6 +155,8 @@ import sys
 import time
 from collections.abc import Callable
 
+from _common import MarkdownTable, blas_environment, disc_with_about, format_seconds, fraction, last_json, relative
+
 HYPERPARAMETER = 0.2  # diffeit's unit-free lambda (about what GCV picks for these data); pyEIT's lamb converted
 TOUCH_CENTRE, TOUCH_RADIUS, TOUCH_CHANGE = (0.5, 0.0), 0.2, -0.5
 NOISE_PERCENT = 1.0
@@ -179,18 +181,6 @@ PYEIT_GN_METHOD, PYEIT_GN_P, PYEIT_GN_LAMB = "kotre", 0.5, 1e-3
 PYEIT_GN_LIMIT = 4000  # no pyEIT gn() above this many triangles (an E x E inverse per iteration: ~30 s at 8,000)
 TARGET_GN_SPEEDUP, TARGET_GN_SIZE = 30.0, 2800  # issue target: Gauss-Newton >= 30x faster than pyEIT at ~2,800
 TV_HYPERPARAMETER = 0.05  # TotalVariation's default, its docstring's advice for 1% noise
-
-
-def _disc_with_about(n_triangles: int):
-    import diffeit as de
-
-    h = 2.7 / n_triangles**0.5
-    for _ in range(4):
-        mesh = de.mesh.disc(16, electrode_width=0.2, h=h)
-        if abs(mesh.n_elements / n_triangles - 1) < 0.08:
-            break
-        h *= (mesh.n_elements / n_triangles) ** 0.5
-    return mesh
 
 
 class Series:
@@ -289,7 +279,7 @@ def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
     from diffeit.inverse import OneStep
 
     jnp.zeros(1).block_until_ready()  # start the backend outside the timings
-    mesh = _disc_with_about(n_triangles)
+    mesh = disc_with_about(n_triangles)
     protocol = de.protocol.adjacent(16)
 
     def new_model():
@@ -624,29 +614,8 @@ def _total_variation(model, data_model, options: argparse.Namespace) -> dict:
 # Tables
 
 
-def _format(seconds: float | None) -> str:
-    if seconds is None:
-        return "-"
-    if seconds < 1e-3:
-        return f"{seconds * 1e6:.0f} us"
-    return f"{seconds * 1e3:.1f} ms" if seconds < 1 else f"{seconds:.2f} s"
-
-
 def _median(entry: dict | None) -> float | None:
     return None if entry is None else entry["median"]
-
-
-def _fraction(ours: float | None, theirs: float | None) -> str:
-    """ours / theirs as "1/N" (ours N times faster), or "Nx" when ours is slower."""
-    if ours is None or theirs is None:
-        return "-"
-    return f"1/{theirs / ours:.0f}" if theirs >= ours else f"{ours / theirs:.1f}x"
-
-
-def _relative(seconds: float | None, reference: float | None) -> str:
-    if seconds is None or reference is None:
-        return "-"
-    return f"{seconds / reference:.2f}x"
 
 
 def _cores(entry: dict | None) -> str:
@@ -655,24 +624,6 @@ def _cores(entry: dict | None) -> str:
 
 def _rate(flop: float, entry: dict) -> str:
     return f"{flop / entry['median'] / 1e9:.1f}"
-
-
-class MarkdownTable:
-    """A Markdown table printed a row at a time."""
-
-    def __init__(self, columns: list[str]) -> None:
-        self.columns = columns
-        print(self._line(columns))
-        print(self._line(["---"] * len(columns)))
-
-    def row(self, cells: list[str]) -> None:
-        if len(cells) != len(self.columns):
-            raise ValueError(f"{len(cells)} cells for {len(self.columns)} columns")
-        print(self._line(cells), flush=True)
-
-    @staticmethod
-    def _line(cells: list[str]) -> str:
-        return "| " + " | ".join(cells) + " |"
 
 
 def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) -> None:
@@ -700,11 +651,11 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
             [
                 str(row["triangles"]),
                 str(row["nodes"]),
-                _format(row["setup"]["median"]),
-                _format(row["setup"]["first"]),
-                _format(row["model"]["median"]),
-                _format(_median(pyeit)),
-                _fraction(row["setup"]["median"], _median(pyeit)),
+                format_seconds(row["setup"]["median"]),
+                format_seconds(row["setup"]["first"]),
+                format_seconds(row["model"]["median"]),
+                format_seconds(_median(pyeit)),
+                fraction(row["setup"]["median"], _median(pyeit)),
                 str(pyeit["runs"]) if pyeit else "-",
                 errors + " m",
             ]
@@ -731,13 +682,13 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
         table.row(
             [
                 str(row["triangles"]),
-                _format(ours),
-                _format(frame["eager"]["median"]),
-                _format(frame["jit"]["median"]),
-                _format(frame["numpy"]["median"]),
-                _format(_median(frame.get("pyeit"))),
-                _relative(ours, frame["numpy"]["median"]),
-                _fraction(ours, _median(frame.get("pyeit"))),
+                format_seconds(ours),
+                format_seconds(frame["eager"]["median"]),
+                format_seconds(frame["jit"]["median"]),
+                format_seconds(frame["numpy"]["median"]),
+                format_seconds(_median(frame.get("pyeit"))),
+                relative(ours, frame["numpy"]["median"]),
+                fraction(ours, _median(frame.get("pyeit"))),
             ]
         )
 
@@ -775,23 +726,23 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
         table.row(
             [
                 str(row["triangles"]),
-                _format(ours),
+                format_seconds(ours),
                 f"{row['frames'] / ours:,.0f}",
-                _format(batch["numpy"]["median"]),
+                format_seconds(batch["numpy"]["median"]),
                 _rate(flop, batch["numpy"]),
-                _relative(ours, batch["numpy"]["median"]),
-                _format(batch["jit"]["median"]),
+                relative(ours, batch["numpy"]["median"]),
+                format_seconds(batch["jit"]["median"]),
                 _rate(flop, batch["jit"]),
-                _relative(ours, batch["jit"]["median"]),
+                relative(ours, batch["jit"]["median"]),
                 f"{_cores(batch['reconstruct'])} / {_cores(batch['numpy'])} / {_cores(batch['jit'])}",
-                _format(ours32),
-                _format(batch["numpy32"]["median"]),
+                format_seconds(ours32),
+                format_seconds(batch["numpy32"]["median"]),
                 _rate(flop, batch["numpy32"]),
-                _relative(ours32, batch["numpy32"]["median"]),
-                _format(batch["jit32"]["median"]),
+                relative(ours32, batch["numpy32"]["median"]),
+                format_seconds(batch["jit32"]["median"]),
                 f"{row['float32_error']:.1e}",
-                _format(_median(row.get("pyeit_batch"))),
-                _fraction(ours, _median(row.get("pyeit_batch"))),
+                format_seconds(_median(row.get("pyeit_batch"))),
+                fraction(ours, _median(row.get("pyeit_batch"))),
             ]
         )
 
@@ -810,7 +761,10 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
                 [
                     str(row["triangles"]),
                     name,
-                    *(_format(parts[part]["median"]) for part in ("reconstruct", "checks", "transpose", "product")),
+                    *(
+                        format_seconds(parts[part]["median"])
+                        for part in ("reconstruct", "checks", "transpose", "product")
+                    ),
                 ]
             )
 
@@ -864,16 +818,16 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
                     str(row["triangles"]),
                     str(row["data_triangles"]),
                     iterations,
-                    _format(gn["ours"]["median"]),
-                    _format(gn["ours"]["first"]),
-                    _format(gn["start"]["median"]),
-                    _format(figures["ours_per_iteration"]),
-                    _format(_median(pyeit)),
-                    _format(figures.get("pyeit_per_iteration")),
+                    format_seconds(gn["ours"]["median"]),
+                    format_seconds(gn["ours"]["first"]),
+                    format_seconds(gn["start"]["median"]),
+                    format_seconds(figures["ours_per_iteration"]),
+                    format_seconds(_median(pyeit)),
+                    format_seconds(figures.get("pyeit_per_iteration")),
                     str(pyeit["runs"]) if pyeit else "-",
-                    _fraction(gn["ours"]["median"], _median(pyeit)),
-                    _fraction(figures["ours_per_iteration"], figures.get("pyeit_per_iteration")),
-                    _fraction(figures["ours_projected"], _median(pyeit)),
+                    fraction(gn["ours"]["median"], _median(pyeit)),
+                    fraction(figures["ours_per_iteration"], figures.get("pyeit_per_iteration")),
+                    fraction(figures["ours_projected"], _median(pyeit)),
                     pair("position_error", 3) + " m",
                     pair("correlation", 2),
                     pair("peak", 2),
@@ -910,10 +864,10 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
             table.row(
                 [
                     str(row["triangles"]),
-                    _format(tv["setup"]["median"]),
-                    _format(tv["setup"]["first"]),
-                    _format(tv["frame"]["median"]),
-                    _format(tv["frame"]["first"]),
+                    format_seconds(tv["setup"]["median"]),
+                    format_seconds(tv["setup"]["first"]),
+                    format_seconds(tv["frame"]["median"]),
+                    format_seconds(tv["frame"]["first"]),
                     str(tv["frame"]["runs"]),
                     str(tv["steps"]),
                     tv["stop_reason"],
@@ -986,10 +940,6 @@ def _child_command(options: argparse.Namespace, size: int) -> list[str]:
     return command + [flag for flag, given in flags.items() if given]
 
 
-def _last_json(output: str) -> dict:
-    return json.loads(output.strip().splitlines()[-1])
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[700, 2800, 8000], help="about how many triangles")
@@ -1027,13 +977,10 @@ def main() -> None:
         return
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    environment = dict(os.environ)
-    if options.blas_threads:
-        for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            environment[variable] = str(options.blas_threads)
+    environment = blas_environment(os.environ, options.blas_threads)
     command = [sys.executable, __file__, "--describe"]
     describing = subprocess.run(command, check=True, capture_output=True, text=True, env=environment)
-    machine = _last_json(describing.stdout)
+    machine = last_json(describing.stdout)
     machine.update(load_average=load, blas_threads=options.blas_threads)
     print(
         f"machine: {machine['processor']}, {machine['cpus']} CPUs"
@@ -1052,7 +999,7 @@ def main() -> None:
             tail = child.stderr.strip().splitlines()[-1:] or ["no output"]
             notes.append(f"size {size} failed (exit status {child.returncode}): {tail[0]}")
             continue
-        row = _last_json(child.stdout)
+        row = last_json(child.stdout)
         rows.append(row)
         if row.get("pyeit_note"):
             notes.append(row["pyeit_note"])
