@@ -1,0 +1,332 @@
+"""The instrument's effects: measurement noise, common-mode drift, contact impedance drift, open electrodes.
+
+Each effect is a small pure JAX function of its own parameters; every continuous parameter (noise
+scale, drift offsets and rates, contact impedances and their rates) is a pytree leaf, so
+`jax.grad` differentiates through it. Units: voltages in volts, times in seconds, contact
+impedance in ohm m (as `diffeit.ForwardModel`), rates per second.
+
+## Measurement noise (../shared/DESIGN.md)
+"p%" noise is independent Gaussian noise of standard deviation sigma = p/100 x RMS(V_ref) on
+every reading, RMS(V_ref) = sqrt(mean(V_ref^2)) over the reference frame's readings. A `Noise`
+is given as a percentage, an SNR in dB (SNR = 20 log10(RMS(V_ref) / sigma), so
+sigma = RMS(V_ref) 10^(-SNR/20)), a standard deviation in volts, or a named level. The named
+levels, defined once in `NOISE_LEVELS` as percentages of RMS(V_ref):
+
+| level | percent | SNR |
+|---|---|---|
+| "low" | 0.1% | 60 dB |
+| "medium" | 0.5% | 46 dB |
+| "high" | 2% | 34 dB |
+
+Why: the dissertation leaves the levels undefined. The one figure of the hardware
+(../shared/SCIENCE.md) is the strip readout's rms noise at rest, dR/R0 = 0.0055, about 0.5% of
+the signal: "medium" is that instrument. "low" is a well-averaged EIT front end (0.1%, 60 dB, the
+order of commercial systems); "high" (2%, 34 dB) is a noisy, unshielded skin, where small touches
+drown in the noise.
+
+## Common-mode drift
+All readings of a frame at time t move together: V'(t) = gain(t) V(t) + offset(t), with
+offset(t) = offset + rate t + amplitude sin(2 pi t / period + phase) (volts) and
+gain(t) = 1 + gain_rate t (gain_rate: relative change per second). With every parameter 0 the
+frames come back bit for bit.
+
+## Contact impedance drift
+Per electrode l: z_l(t) = z0_l exp(rate_l t) ("exponential", the default: stays positive) or
+z0_l (1 + rate_l t) ("linear"), rate in 1/s. `contact_impedance` returns (T, L), one row per
+frame, to pass frame by frame to `ForwardModel.measure(conductivity, z)` (for example under
+`jax.vmap`).
+
+## Open (broken) electrode
+An open electrode carries no current: it is modelled by multiplying its contact impedance by
+`OPEN_FACTOR` = 1e6 (`open_contact_impedance`), so it no longer shunts current past the sheet
+under it and the other readings change as they physically would. Its readings are lost: every
+reading that weights the open electrode, and every reading of a drive that sends current through
+it (a current source into an open circuit rails, its voltages are garbage), is replaced by
+`fill` (0 V by default; never NaN, so frames stay finite for any downstream code), and
+`open_electrodes` returns the boolean mask (M,) of these lost readings, True where lost, so
+reconstructions can drop them. The fault is discrete: the mask has no gradient.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._arrays import is_concrete
+from ..protocol import Protocol
+
+ArrayLike = float | jax.Array | np.ndarray
+
+NOISE_LEVELS: dict[str, float] = {"low": 0.1, "medium": 0.5, "high": 2.0}
+"""The named noise levels, percent of RMS(V_ref) (see the module docstring)."""
+
+OPEN_FACTOR: float = 1e6
+"""An open electrode's contact impedance, relative to its intact value."""
+
+NoiseKind = Literal["percent", "snr_db", "volts"]
+ContactDriftKind = Literal["exponential", "linear"]
+
+
+def _concrete_array(owner: str, name: str, value: ArrayLike) -> np.ndarray | None:
+    """The values of a concrete field as floats (None for a tracer); ValueError naming the field."""
+    if not is_concrete(value):
+        return None
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{owner}.{name} must be a number or an array of numbers; got {value!r}") from None
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{owner}.{name} must be finite; got {array}")
+    return array
+
+
+def _register(cls: type) -> type:
+    """Register a frozen dataclass as a pytree: the fields in `cls._static` are static, the rest leaves."""
+    static_names = cls._static  # type: ignore[attr-defined]
+    leaf_names = tuple(f.name for f in fields(cls) if f.name not in static_names)
+
+    def flatten(obj):
+        return tuple(getattr(obj, n) for n in leaf_names), tuple(getattr(obj, n) for n in static_names)
+
+    def unflatten(static, leaves):
+        # Transformations rebuild from tracers or placeholders: no checks then.
+        obj = object.__new__(cls)
+        for n, v in zip(static_names + leaf_names, static + tuple(leaves), strict=True):
+            object.__setattr__(obj, n, v)
+        return obj
+
+    jax.tree_util.register_pytree_node(cls, flatten, unflatten)
+    return cls
+
+
+# --- Measurement noise ---------------------------------------------------------------------------
+
+
+@_register
+@dataclass(frozen=True, eq=False)
+class Noise:
+    """Measurement noise: independent Gaussian noise of one standard deviation on every reading.
+
+    `Noise(value, kind)` with `kind` "percent" (value in percent of RMS(V_ref), >= 0), "snr_db"
+    (value in dB, any finite number) or "volts" (value the standard deviation in volts, >= 0).
+    Build with `Noise.percent(p)`, `Noise.snr_db(s)`, `Noise.volts(v)` or `Noise.level(name)`
+    (a name of `NOISE_LEVELS`). `value` is a pytree leaf (differentiable); `kind` is static.
+    """
+
+    value: ArrayLike
+    kind: NoiseKind = "percent"
+    _static = ("kind",)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("percent", "snr_db", "volts"):
+            raise ValueError(f"Noise.kind must be 'percent', 'snr_db' or 'volts'; got {self.kind!r}")
+        value = _concrete_array("Noise", "value", self.value)
+        if value is not None and value.shape != ():
+            raise ValueError(f"Noise.value must be a scalar; got shape {value.shape}")
+        if value is not None and self.kind != "snr_db" and value < 0:
+            unit = "percent of RMS(V_ref)" if self.kind == "percent" else "volts"
+            raise ValueError(f"Noise.value ({self.kind}) must be >= 0 ({unit}); got {float(value)}")
+
+    @classmethod
+    def percent(cls, percent: ArrayLike) -> Noise:
+        """Noise of standard deviation percent/100 x RMS(V_ref)."""
+        return cls(percent, "percent")
+
+    @classmethod
+    def snr_db(cls, snr_db: ArrayLike) -> Noise:
+        """Noise of signal-to-noise ratio 20 log10(RMS(V_ref) / sigma) = snr_db (dB)."""
+        return cls(snr_db, "snr_db")
+
+    @classmethod
+    def volts(cls, volts: ArrayLike) -> Noise:
+        """Noise of standard deviation `volts` (V)."""
+        return cls(volts, "volts")
+
+    @classmethod
+    def level(cls, name: str) -> Noise:
+        """A named level of `NOISE_LEVELS` ("low", "medium", "high"), as a percentage."""
+        if name not in NOISE_LEVELS:
+            raise ValueError(f"Noise.level must be one of {sorted(NOISE_LEVELS)}; got {name!r}")
+        return cls(NOISE_LEVELS[name], "percent")
+
+    def std(self, reference: ArrayLike) -> jax.Array:
+        """The standard deviation in volts, given the reference frame `reference` (M,) in volts."""
+        if self.kind == "volts":
+            return jnp.asarray(self.value, dtype=float)
+        scale = rms(reference)
+        if self.kind == "percent":
+            return self.value / 100.0 * scale
+        return scale * 10.0 ** (-jnp.asarray(self.value, dtype=float) / 20.0)
+
+
+def rms(reference: ArrayLike) -> jax.Array:
+    """RMS(V_ref) = sqrt(mean(V_ref^2)) of a reference frame (M,), volts."""
+    reference = jnp.asarray(reference)
+    return jnp.sqrt(jnp.mean(reference**2))
+
+
+def add_noise(frames: ArrayLike, reference: ArrayLike, noise: Noise, key: jax.Array) -> jax.Array:
+    """`frames` (T, M) plus independent Gaussian noise of `noise.std(reference)` volts per reading.
+
+    `reference` (M,) is the reference frame in volts (it sets the scale of percent and dB noise);
+    `key` a `jax.random` key: the same key gives the same noise. Differentiable in `noise.value`.
+    """
+    frames = jnp.asarray(frames)
+    if not jnp.issubdtype(frames.dtype, jnp.floating):
+        frames = frames.astype(float)
+    std = noise.std(reference).astype(frames.dtype)
+    return frames + std * jax.random.normal(key, frames.shape, frames.dtype)
+
+
+# --- Common-mode drift ---------------------------------------------------------------------------
+
+
+@_register
+@dataclass(frozen=True, eq=False)
+class CommonModeDrift:
+    """Drift common to all readings: V'(t) = (1 + gain_rate t) V(t) + offset(t).
+
+    - `offset`: constant offset (volts).
+    - `rate`: linear offset drift (volts per second).
+    - `amplitude`, `period`, `phase`: a sinusoid amplitude sin(2 pi t / period + phase) (volts,
+      seconds > 0, radians).
+    - `gain_rate`: relative gain drift (1/s): the gain is 1 + gain_rate t.
+
+    Every field is a scalar pytree leaf (differentiable). All zero (the defaults): no change.
+    """
+
+    offset: ArrayLike = 0.0
+    rate: ArrayLike = 0.0
+    amplitude: ArrayLike = 0.0
+    period: ArrayLike = 1.0
+    phase: ArrayLike = 0.0
+    gain_rate: ArrayLike = 0.0
+    _static = ()
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            _concrete_array("CommonModeDrift", f.name, getattr(self, f.name))
+        period = _concrete_array("CommonModeDrift", "period", self.period)
+        if period is not None and not np.all(period > 0):
+            raise ValueError(f"CommonModeDrift.period must be positive (seconds); got {period}")
+
+    def offset_at(self, times: ArrayLike) -> jax.Array:
+        """(T,) common offset in volts at `times` (T,) in seconds."""
+        t = jnp.asarray(times, dtype=float)
+        return self.offset + self.rate * t + self.amplitude * jnp.sin(2 * jnp.pi * t / self.period + self.phase)
+
+    def gain_at(self, times: ArrayLike) -> jax.Array:
+        """(T,) common gain (dimensionless) at `times` (T,) in seconds."""
+        return 1.0 + self.gain_rate * jnp.asarray(times, dtype=float)
+
+
+def add_drift(frames: ArrayLike, times: ArrayLike, drift: CommonModeDrift) -> jax.Array:
+    """`frames` (T, M) in volts at `times` (T,) seconds, with the common-mode drift applied."""
+    frames = jnp.asarray(frames)
+    if not jnp.issubdtype(frames.dtype, jnp.floating):
+        frames = frames.astype(float)
+    times = jnp.asarray(times, dtype=frames.dtype)
+    if times.shape != frames.shape[:1]:
+        raise ValueError(f"times has shape {times.shape}; expected ({frames.shape[0]},), one per frame")
+    gain = drift.gain_at(times).astype(frames.dtype)
+    offset = drift.offset_at(times).astype(frames.dtype)
+    return gain[:, None] * frames + offset[:, None]
+
+
+# --- Contact impedance drift ---------------------------------------------------------------------
+
+
+@_register
+@dataclass(frozen=True, eq=False)
+class ContactDrift:
+    """Contact impedance per electrode drifting in time.
+
+    - `z0`: contact impedance at t = 0, ohm m, > 0: a scalar or (L,) one per electrode.
+    - `rate`: 1/s, a scalar or (L,): z0 exp(rate t) ("exponential") or z0 (1 + rate t)
+      ("linear"; keep 1 + rate t > 0 over the scene).
+    - `kind`: "exponential" (default) or "linear" (static).
+
+    `z0` and `rate` are pytree leaves (differentiable).
+    """
+
+    z0: ArrayLike = 0.01
+    rate: ArrayLike = 0.0
+    kind: ContactDriftKind = "exponential"
+    _static = ("kind",)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("exponential", "linear"):
+            raise ValueError(f"ContactDrift.kind must be 'exponential' or 'linear'; got {self.kind!r}")
+        z0 = _concrete_array("ContactDrift", "z0", self.z0)
+        if z0 is not None and not np.all(z0 > 0):
+            raise ValueError(f"ContactDrift.z0 must be positive (ohm m); got {z0}")
+        _concrete_array("ContactDrift", "rate", self.rate)
+
+
+def contact_impedance(times: ArrayLike, drift: ContactDrift, n_electrodes: int) -> jax.Array:
+    """(T, L) contact impedances (ohm m) at `times` (T,) seconds, one row per frame.
+
+    Feed row k to `ForwardModel.measure(conductivity_k, z[k])`.
+    """
+    t = jnp.asarray(times, dtype=float)[:, None]
+    z0 = jnp.broadcast_to(jnp.asarray(drift.z0, dtype=float), (n_electrodes,))
+    rate = jnp.broadcast_to(jnp.asarray(drift.rate, dtype=float), (n_electrodes,))
+    if drift.kind == "exponential":
+        return z0 * jnp.exp(rate * t)
+    return z0 * (1.0 + rate * t)
+
+
+# --- Open electrodes -----------------------------------------------------------------------------
+
+
+def _checked_electrodes(electrodes: int | Sequence[int], n_electrodes: int) -> np.ndarray:
+    index = np.atleast_1d(np.asarray(electrodes))
+    if index.ndim != 1 or not (index.size == 0 or np.issubdtype(index.dtype, np.integer)):
+        raise ValueError(f"electrodes must be an electrode index or a sequence of them; got {electrodes!r}")
+    bad = index[(index < 0) | (index >= n_electrodes)]
+    if bad.size:
+        raise ValueError(f"electrodes {bad.tolist()} out of range: the skin has electrodes 0..{n_electrodes - 1}")
+    return index.astype(int)
+
+
+def open_contact_impedance(
+    contact_impedance: ArrayLike, electrodes: int | Sequence[int], factor: float = OPEN_FACTOR
+) -> jax.Array:
+    """Contact impedances (..., L) (ohm m) with those of the open `electrodes` multiplied by `factor`."""
+    z = jnp.asarray(contact_impedance, dtype=float)
+    if z.ndim == 0:
+        raise ValueError("contact_impedance must have one value per electrode, shape (..., L); got a scalar")
+    if not (np.isfinite(factor) and factor > 0):
+        raise ValueError(f"factor must be finite and positive; got {factor}")
+    index = _checked_electrodes(electrodes, z.shape[-1])
+    scale = np.ones(z.shape[-1])
+    scale[index] = factor
+    return z * jnp.asarray(scale)
+
+
+def lost_readings(protocol: Protocol, electrodes: int | Sequence[int]) -> np.ndarray:
+    """(M,) boolean, True for the readings an open electrode loses: those weighting it and those
+    of drives sending current through it."""
+    index = _checked_electrodes(electrodes, protocol.n_electrodes)
+    reads = np.any(protocol.measure[:, index] != 0, axis=1)
+    drives = np.any(protocol.drive[:, index] != 0, axis=1)[protocol.drive_index]
+    return reads | drives
+
+
+def open_electrodes(
+    frames: ArrayLike, protocol: Protocol, electrodes: int | Sequence[int], fill: float = 0.0
+) -> tuple[jax.Array, np.ndarray]:
+    """`frames` (T, M) with the readings lost to the open `electrodes` set to `fill` (volts,
+    finite; default 0), and the mask (M,) of lost readings (True where lost)."""
+    if not np.isfinite(fill):
+        raise ValueError(f"fill must be a finite voltage (NaN is not allowed); got {fill}")
+    frames = jnp.asarray(frames)
+    if frames.shape[-1:] != (protocol.n_measurements,):
+        raise ValueError(f"frames has shape {frames.shape}; expected (T, {protocol.n_measurements})")
+    mask = lost_readings(protocol, electrodes)
+    return jnp.where(jnp.asarray(mask), jnp.asarray(fill, frames.dtype), frames), mask
