@@ -72,11 +72,11 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         raise ValueError(f"{source} has no reference frame; choose one with --reference-frame K")
 
     mesh = _mesh_of(recording, arguments.h)
-    images = reconstruct_recording(
+    images, hyperparameter = reconstruct_recording(
         recording,
         mesh,
         prior=arguments.prior,
-        hyperparameter=arguments.hyperparameter,
+        hyperparameter=_hyperparameter_argument(arguments.hyperparameter),
         background=arguments.background,
         contact_impedance=arguments.contact_impedance,
         reference_frame=arguments.reference_frame,
@@ -98,7 +98,8 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
                 "reference_frame": arguments.reference_frame,
                 "reference_variable": arguments.reference_variable,
                 "prior": arguments.prior,
-                "hyperparameter": arguments.hyperparameter,
+                "hyperparameter": hyperparameter,
+                "hyperparameter_choice": arguments.hyperparameter,
                 "background": arguments.background,
                 "contact_impedance": arguments.contact_impedance,
                 "difference": arguments.difference,
@@ -114,12 +115,13 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         images,
         times=recording.times,
         max_panels=arguments.panels,
-        title=f"{source.name}: one-step {arguments.prior}, hyperparameter {arguments.hyperparameter:g}",
+        title=f"{source.name}: one-step {arguments.prior}, hyperparameter {hyperparameter:.3g}",
     )
     io.write_frames(outputs[1], reconstructed, overwrite=arguments.overwrite)
     peak = images.flat[np.argmax(np.abs(images))]
     print(
-        f"{recording.n_frames} frames, {mesh.n_elements} triangles; peak dsigma {peak:.3e} S/sq\n"
+        f"{recording.n_frames} frames, {mesh.n_elements} triangles; hyperparameter {hyperparameter:.3g}; "
+        f"peak dsigma {peak:.3e} S/sq\n"
         f"wrote {outputs[0]} ({len(shown)} panels) and {outputs[1]} (images {images.shape})"
     )
     return 0
@@ -140,13 +142,14 @@ def reconstruct_recording(
     mesh: Mesh,
     *,
     prior: str = "noser",
-    hyperparameter: float = 0.1,
+    hyperparameter: float | str = 0.1,
     background: float = 1.0,
     contact_impedance: float = 0.01,
     reference_frame: int | None = None,
     difference: str = "plain",
-) -> np.ndarray:
-    """(T, E) conductivity changes (S/sq) of every frame of `recording` on `mesh`, one-step.
+) -> tuple[np.ndarray, float]:
+    """(T, E) conductivity changes (S/sq) of every frame of `recording` on `mesh`, one-step, and
+    the hyperparameter used.
 
     The reference is the recording's, or its frame `reference_frame`. `difference`:
 
@@ -157,13 +160,14 @@ def reconstruct_recording(
       (`OneStep(..., normalised=True)`): they cancel per-channel gains and restore the sign
       lost by devices that report magnitudes (the Montreal data).
 
-    `hyperparameter` is unit-free (see `diffeit.inverse.OneStep`); `background` in S/sq and
-    `contact_impedance` in ohm m define the model.
+    `hyperparameter` is unit-free (see `diffeit.inverse.OneStep`), or a selection method of
+    `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve") applied to all the frames at once;
+    `background` in S/sq and `contact_impedance` in ohm m define the model.
     """
     from tqdm import tqdm
 
     from .forward import ForwardModel
-    from .inverse import OneStep
+    from .inverse import OneStep, select_hyperparameter
 
     if difference not in ("plain", "relative"):
         raise ValueError(f'difference must be "plain" or "relative"; got {difference!r}')
@@ -174,12 +178,29 @@ def reconstruct_recording(
     if not relative and recording.voltage_unit != "V":
         model_reference = np.asarray(model.measure(np.full(mesh.n_elements, float(background))))
         dv = dv * _rms(model_reference) / _rms(reference)
-    solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=background, normalised=relative)
     options = {"reference": reference} if relative else {}
+    if isinstance(hyperparameter, str):
+        hyperparameter = select_hyperparameter(
+            model, dv, hyperparameter, prior=prior, background=background, normalised=relative, **options
+        ).value
+    solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=background, normalised=relative)
     batches = range(0, len(dv), _BATCH)
     # tqdm's disable=None: a bar on a terminal only, and only when there are several batches.
     progress = tqdm(batches, desc="reconstructing", unit="batch", disable=True if len(batches) < 2 else None)
-    return np.concatenate([np.asarray(solver.reconstruct(dv[start : start + _BATCH], **options)) for start in progress])
+    images = np.concatenate(
+        [np.asarray(solver.reconstruct(dv[start : start + _BATCH], **options)) for start in progress]
+    )
+    return images, float(hyperparameter)
+
+
+def _hyperparameter_argument(value: str) -> float | str:
+    """--hyperparameter: a positive number, or the name of a selection method."""
+    if value in ("gcv", "lcurve"):
+        return value
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"--hyperparameter must be a number or gcv or lcurve; got {value!r}") from None
 
 
 def _rms(values: np.ndarray) -> float:
@@ -207,7 +228,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct.add_argument("--reference-frame", type=int, help="use frame K as the reference (default: the file's)")
     reconstruct.add_argument("--prior", default="noser", help="prior of diffeit.inverse.OneStep (default noser)")
     reconstruct.add_argument(
-        "--hyperparameter", type=float, default=0.1, help="unit-free regularisation weight (default 0.1)"
+        "--hyperparameter",
+        default="0.1",
+        help="unit-free regularisation weight (default 0.1), or a method choosing it from the data: gcv, lcurve",
     )
     reconstruct.add_argument("--background", type=float, default=1.0, help="background conductivity, S/sq")
     reconstruct.add_argument("--contact-impedance", type=float, default=0.01, help="ohm m (default 0.01)")

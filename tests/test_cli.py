@@ -90,15 +90,19 @@ def test_bad_inputs_exit_with_a_clear_message(tmp_path, simulated, capsys):
     assert (tmp_path / "taken.png").read_bytes() == b"a figure someone made"
     assert main(["reconstruct", str(frames), "-o", str(tmp_path / "y"), "--prior", "magic"]) == 2
     assert "unknown prior 'magic'" in capsys.readouterr().err
+    assert main(["reconstruct", str(frames), "-o", str(tmp_path / "z"), "--hyperparameter", "large"]) == 2
+    assert "--hyperparameter must be a number or gcv or lcurve; got 'large'" in capsys.readouterr().err
 
 
 def test_reconstruct_an_eidors_mat_file(tmp_path):
     arguments = ["reconstruct", str(MONTREAL), "-o", str(tmp_path / "rod.png"), "--variable", "zc_demo3"]
     arguments += ["--reference-variable", "zc_h_demo3", "--difference", "relative", "--h", "0.15", "--frame-rate", "7"]
-    arguments += ["--hyperparameter", "1"]  # normalised differences weigh the small readings: regularise more
+    arguments += ["--hyperparameter", "lcurve"]  # chosen from the data (about 1 here; 0.1 breaks the rod up)
     assert main(arguments) == 0
     out = read_frames(tmp_path / "rod.h5")
     assert out.images.shape == (99, out.mesh.n_elements) and out.voltage_unit == "arbitrary"
     assert out.times[-1] == pytest.approx(98 / 7)
     # The rod is non-conductive: every frame's strongest change is a decrease.
     assert np.all(out.images.min(axis=1) < -out.images.max(axis=1))
+    metadata = out.provenance["metadata"]
+    assert metadata["hyperparameter_choice"] == "lcurve" and 0.3 < metadata["hyperparameter"] < 3
