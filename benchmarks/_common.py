@@ -4,6 +4,10 @@ the child processes that measure one mesh each."""
 from __future__ import annotations
 
 import json
+import os
+import platform
+import subprocess
+import sys
 
 
 def disc_with_about(n_triangles: int):
@@ -72,3 +76,58 @@ class MarkdownTable:
     @staticmethod
     def _line(cells: list[str]) -> str:
         return "| " + " | ".join(cells) + " |"
+
+
+def describe() -> dict:
+    """The machine and the software, as the header line shows them (run in a child process, so
+    that the parent never initialises an accelerator that the children need)."""
+    import importlib.metadata
+
+    import jax
+    import numpy as np
+
+    try:
+        pyeit_version = importlib.metadata.version("pyeit")
+    except importlib.metadata.PackageNotFoundError:
+        pyeit_version = None
+    try:
+        blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
+        blas = f"{blas['name']} {blas['version']}"
+    except Exception:  # the layout of NumPy's build information is not an API
+        blas = "unknown BLAS"
+    device = jax.devices()[0]
+    return {
+        "processor": platform.processor() or platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": f"{platform.python_implementation()} {platform.python_version()}",
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "blas": blas,
+        "device": device.device_kind,
+        "platform": device.platform,
+        "pyeit": pyeit_version,
+    }
+
+
+def describe_machine(script: str, blas_threads: int | None) -> dict:
+    """`describe()` run in a child process of `script` (with `--describe`) under the measuring
+    processes' BLAS setting, plus the load average at the start and the BLAS thread count."""
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    command = [sys.executable, script, "--describe"]
+    environment = blas_environment(os.environ, blas_threads)
+    machine = last_json(subprocess.run(command, check=True, capture_output=True, text=True, env=environment).stdout)
+    machine.update(load_average=load, blas_threads=blas_threads)
+    return machine
+
+
+def machine_line(machine: dict, *, with_pyeit: bool) -> str:
+    """The header line naming the machine, the device and the software of a run."""
+    load = machine["load_average"]
+    return (
+        f"machine: {machine['processor']}, {machine['cpus']} CPUs"
+        + (f" (load average {load:.1f} at the start)" if load is not None else "")
+        + f", {machine['python']}, jax {machine['jax']}, device {machine['device']} ({machine['platform']})"
+        + f", NumPy {machine['numpy']} ({machine['blas']})"
+        + (f", pyEIT {machine['pyeit']}" if machine["pyeit"] and with_pyeit else "")
+        + (f", {machine['blas_threads']} BLAS threads" if machine["blas_threads"] else "")
+    )

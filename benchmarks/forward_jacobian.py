@@ -63,7 +63,6 @@ import argparse
 import itertools
 import json
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -71,7 +70,18 @@ import sys
 import time
 from collections.abc import Callable
 
-from _common import MarkdownTable, blas_environment, disc_with_about, format_seconds, fraction, last_json, relative
+from _common import (
+    MarkdownTable,
+    blas_environment,
+    describe,
+    describe_machine,
+    disc_with_about,
+    format_seconds,
+    fraction,
+    last_json,
+    machine_line,
+    relative,
+)
 
 PYEIT_JACOBIAN_LIMIT = 10_000  # pyEIT inverts the dense N x N matrix: beyond this it takes minutes
 DENSE_CHOLESKY_LIMIT = 10_000  # triangles; dense Cholesky forms an n x n matrix (n about triangles / 2)
@@ -102,29 +112,6 @@ def _timed(function: Callable[[], object], repeats: int, budget: float | None = 
         if budget is not None and len(times) >= MIN_RUNS and sum(times) > budget:
             break
     return statistics.median(times), first, len(times)
-
-
-def describe() -> dict:
-    """The machine and the software, as the header line shows them (run in a child process, so
-    that the parent never initialises an accelerator that the children need)."""
-    import importlib.metadata
-
-    import jax
-
-    try:
-        pyeit_version = importlib.metadata.version("pyeit")
-    except importlib.metadata.PackageNotFoundError:
-        pyeit_version = None
-    device = jax.devices()[0]
-    return {
-        "processor": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(),
-        "python": f"{platform.python_implementation()} {platform.python_version()}",
-        "jax": jax.__version__,
-        "device": device.device_kind,
-        "platform": device.platform,
-        "pyeit": pyeit_version,
-    }
 
 
 def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
@@ -353,20 +340,9 @@ def main() -> None:
         print(json.dumps(run_one(options.one, options)))
         return
 
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     environment = blas_environment(os.environ, options.blas_threads)
-    command = [sys.executable, __file__, "--describe"]
-    describing = subprocess.run(command, check=True, capture_output=True, text=True, env=environment)
-    machine = last_json(describing.stdout)
-    machine.update(load_average=load, blas_threads=options.blas_threads)
-    print(
-        f"machine: {machine['processor']}, {machine['cpus']} CPUs"
-        + (f" (load average {load:.1f} at the start)" if load is not None else "")
-        + f", {machine['python']}, jax {machine['jax']}, device {machine['device']} ({machine['platform']})"
-        + (f", pyEIT {machine['pyeit']}" if machine["pyeit"] and not options.skip_pyeit else "")
-        + (f", {options.blas_threads} BLAS threads" if options.blas_threads else "")
-        + f", {options.repeats} repeats"
-    )
+    machine = describe_machine(__file__, options.blas_threads)
+    print(machine_line(machine, with_pyeit=not options.skip_pyeit) + f", {options.repeats} repeats")
     print()
     print("diffeit (host_sparse, float64) against pyEIT:")
     print()

@@ -148,14 +148,24 @@ import argparse
 import itertools
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 
-from _common import MarkdownTable, blas_environment, disc_with_about, format_seconds, fraction, last_json, relative
+from _common import (
+    MarkdownTable,
+    blas_environment,
+    describe,
+    describe_machine,
+    disc_with_about,
+    format_seconds,
+    fraction,
+    last_json,
+    machine_line,
+    relative,
+)
 
 HYPERPARAMETER = 0.2  # diffeit's unit-free lambda (about what GCV picks for these data); pyEIT's lamb converted
 TOUCH_CENTRE, TOUCH_RADIUS, TOUCH_CHANGE = (0.5, 0.0), 0.2, -0.5
@@ -237,37 +247,6 @@ def _budgeted(
     if not warm_up:
         summary["first"] = None
     return summary, result
-
-
-def describe() -> dict:
-    """The machine and the software, as the header line shows them (run in a child process, so
-    that the parent never initialises an accelerator that the children need)."""
-    import importlib.metadata
-
-    import jax
-    import numpy as np
-
-    try:
-        pyeit_version = importlib.metadata.version("pyeit")
-    except importlib.metadata.PackageNotFoundError:
-        pyeit_version = None
-    try:
-        blas = np.show_config(mode="dicts")["Build Dependencies"]["blas"]
-        blas = f"{blas['name']} {blas['version']}"
-    except Exception:  # the layout of NumPy's build information is not an API
-        blas = "unknown BLAS"
-    device = jax.devices()[0]
-    return {
-        "processor": platform.processor() or platform.machine(),
-        "cpus": os.cpu_count(),
-        "python": f"{platform.python_implementation()} {platform.python_version()}",
-        "jax": jax.__version__,
-        "numpy": np.__version__,
-        "blas": blas,
-        "device": device.device_kind,
-        "platform": device.platform,
-        "pyeit": pyeit_version,
-    }
 
 
 def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
@@ -976,19 +955,10 @@ def main() -> None:
         print(json.dumps(run_one(options.one, options)))
         return
 
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     environment = blas_environment(os.environ, options.blas_threads)
-    command = [sys.executable, __file__, "--describe"]
-    describing = subprocess.run(command, check=True, capture_output=True, text=True, env=environment)
-    machine = last_json(describing.stdout)
-    machine.update(load_average=load, blas_threads=options.blas_threads)
+    machine = describe_machine(__file__, options.blas_threads)
     print(
-        f"machine: {machine['processor']}, {machine['cpus']} CPUs"
-        + (f" (load average {load:.1f} at the start)" if load is not None else "")
-        + f", {machine['python']}, jax {machine['jax']}, device {machine['device']} ({machine['platform']})"
-        + f", NumPy {machine['numpy']} ({machine['blas']})"
-        + (f", pyEIT {machine['pyeit']}" if machine["pyeit"] and not options.skip_pyeit else "")
-        + (f", {options.blas_threads} BLAS threads" if options.blas_threads else "")
+        machine_line(machine, with_pyeit=not options.skip_pyeit)
         + f", {options.repeats} repeats, {options.frames} frames"
     )
     print()
