@@ -15,3 +15,17 @@ def is_concrete(x) -> bool:
     """Whether `x` holds values (not a tracer under jit, vmap or grad): values are checked
     with messages naming the offenders only then."""
     return not isinstance(x, jax.core.Tracer)
+
+
+def concrete_floats(value, name: str) -> np.ndarray | None:
+    """`value` as a float array, or None when any part of it is traced (checked at run time
+    instead); a ValueError naming `name` when it is not numbers or not finite."""
+    if not all(is_concrete(leaf) for leaf in jax.tree_util.tree_leaves(value)):
+        return None
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number or an array of numbers; got {value!r}") from None
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be finite; got {array}")
+    return array

@@ -57,7 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import is_concrete
+from .._arrays import concrete_floats
 from ..protocol import Protocol
 
 ArrayLike = float | jax.Array | np.ndarray
@@ -70,19 +70,6 @@ OPEN_FACTOR: float = 1e6
 
 NoiseKind = Literal["percent", "snr_db", "volts"]
 ContactDriftKind = Literal["exponential", "linear"]
-
-
-def _concrete_array(owner: str, name: str, value: ArrayLike) -> np.ndarray | None:
-    """The values of a concrete field as floats (None for a tracer); ValueError naming the field."""
-    if not is_concrete(value):
-        return None
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{owner}.{name} must be a number or an array of numbers; got {value!r}") from None
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{owner}.{name} must be finite; got {array}")
-    return array
 
 
 def _register(cls: type) -> type:
@@ -125,7 +112,7 @@ class Noise:
     def __post_init__(self) -> None:
         if self.kind not in ("percent", "snr_db", "volts"):
             raise ValueError(f"Noise.kind must be 'percent', 'snr_db' or 'volts'; got {self.kind!r}")
-        value = _concrete_array("Noise", "value", self.value)
+        value = concrete_floats(self.value, "Noise.value")
         if value is not None and value.shape != ():
             raise ValueError(f"Noise.value must be a scalar; got shape {value.shape}")
         if value is not None and self.kind != "snr_db" and value < 0:
@@ -210,8 +197,8 @@ class CommonModeDrift:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            _concrete_array("CommonModeDrift", f.name, getattr(self, f.name))
-        period = _concrete_array("CommonModeDrift", "period", self.period)
+            concrete_floats(getattr(self, f.name), f"CommonModeDrift.{f.name}")
+        period = concrete_floats(self.period, "CommonModeDrift.period")
         if period is not None and not np.all(period > 0):
             raise ValueError(f"CommonModeDrift.period must be positive (seconds); got {period}")
 
@@ -262,10 +249,10 @@ class ContactDrift:
     def __post_init__(self) -> None:
         if self.kind not in ("exponential", "linear"):
             raise ValueError(f"ContactDrift.kind must be 'exponential' or 'linear'; got {self.kind!r}")
-        z0 = _concrete_array("ContactDrift", "z0", self.z0)
+        z0 = concrete_floats(self.z0, "ContactDrift.z0")
         if z0 is not None and not np.all(z0 > 0):
             raise ValueError(f"ContactDrift.z0 must be positive (ohm m); got {z0}")
-        _concrete_array("ContactDrift", "rate", self.rate)
+        concrete_floats(self.rate, "ContactDrift.rate")
 
 
 def contact_impedance(times: ArrayLike, drift: ContactDrift, n_electrodes: int) -> jax.Array:

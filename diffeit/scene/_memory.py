@@ -85,7 +85,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import is_concrete
+from .._arrays import concrete_floats, is_concrete
 
 ArrayLike = float | jax.Array | np.ndarray
 
@@ -150,18 +150,9 @@ def _check_parameters(parameters: MemoryParameters) -> None:
     """ValueError naming the field for concrete values out of range; traced values pass."""
     values = {}
     for f in fields(parameters):
-        value = getattr(parameters, f.name)
-        if not is_concrete(value):
-            continue
-        try:
-            value = np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"MemoryParameters.{f.name} must be a number or an array of numbers; got {value!r}"
-            ) from None
-        if not np.all(np.isfinite(value)):
-            raise ValueError(f"MemoryParameters.{f.name} must be finite; got {value}")
-        values[f.name] = value
+        value = concrete_floats(getattr(parameters, f.name), f"MemoryParameters.{f.name}")
+        if value is not None:
+            values[f.name] = value
     for name, value in values.items():
         if name in _TIMES and not np.all(value > 0):
             raise ValueError(f"MemoryParameters.{name} is a time constant: it must be positive (seconds); got {value}")

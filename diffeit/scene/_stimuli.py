@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import erfc
 
-from .._arrays import is_concrete
+from .._arrays import concrete_floats, is_concrete
 from ..mesh._fields import barycentric_samples
 from ..mesh._mesh import Mesh
 
@@ -124,20 +124,6 @@ def _sequences_to_arrays(obj, names: tuple[str, ...]) -> None:
                 raise ValueError(
                     f"{type(obj).__name__}.{name} must be a number or an array of numbers; got {value!r}"
                 ) from None
-
-
-def _concrete(value, name: str) -> np.ndarray | None:
-    """`value` as a float array, or None when it is traced; ValueError naming `name` when it is
-    not numbers or not finite."""
-    if not all(is_concrete(leaf) for leaf in jax.tree_util.tree_leaves(value)):
-        return None
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a number or an array of numbers; got {value!r}") from None
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"{name} must be finite; got {array}")
-    return array
 
 
 def _shape_of(value, name: str, shape: tuple[int, ...], what: str) -> None:
@@ -211,7 +197,7 @@ class Press(AbstractTimeCourse):
     def __post_init__(self) -> None:
         _sequences_to_arrays(self, ("start", "ramp_in", "hold", "ramp_out"))
         for name in ("start", "ramp_in", "hold", "ramp_out"):
-            value = _concrete(getattr(self, name), f"Press.{name}")
+            value = concrete_floats(getattr(self, name), f"Press.{name}")
             if value is None:
                 continue
             _shape_of(value, f"Press.{name}", (), "a number")
@@ -249,14 +235,14 @@ class Ramp(AbstractTimeCourse):
 
     def __post_init__(self) -> None:
         _sequences_to_arrays(self, ("initial", "final", "start", "duration"))
-        initial = _concrete(self.initial, "Ramp.initial")
-        final = _concrete(self.final, "Ramp.final")
+        initial = concrete_floats(self.initial, "Ramp.initial")
+        final = concrete_floats(self.final, "Ramp.final")
         if initial is not None and final is not None and initial.shape != final.shape:
             raise ValueError(f"Ramp.initial and Ramp.final must have one shape; got {initial.shape} and {final.shape}")
-        start = _concrete(self.start, "Ramp.start")
+        start = concrete_floats(self.start, "Ramp.start")
         if start is not None:
             _shape_of(start, "Ramp.start", (), "a number")
-        duration = _concrete(self.duration, "Ramp.duration")
+        duration = concrete_floats(self.duration, "Ramp.duration")
         if duration is not None:
             _shape_of(duration, "Ramp.duration", (), "a number")
             if duration < 0:
@@ -287,8 +273,8 @@ class Path(AbstractTimeCourse):
 
     def __post_init__(self) -> None:
         _sequences_to_arrays(self, ("times", "values"))
-        times = _concrete(self.times, "Path.times")
-        values = _concrete(self.values, "Path.values")
+        times = concrete_floats(self.times, "Path.times")
+        values = concrete_floats(self.values, "Path.values")
         if times is not None:
             if times.ndim != 1 or len(times) < 2:
                 raise ValueError(
@@ -333,7 +319,7 @@ def _reach(value, name: str) -> np.ndarray | None:
     """(K, ...) the values a parameter takes at its breakpoints (one row for a plain value),
     None when traced; ValueError naming `name` when not finite."""
     values = value.breakpoint_values() if isinstance(value, AbstractTimeCourse) else value
-    array = _concrete(values, name) if values is not None else None
+    array = concrete_floats(values, name) if values is not None else None
     if array is None:
         return None
     return array if isinstance(value, AbstractTimeCourse) else array[None]
@@ -461,7 +447,7 @@ class Touch:
         _sequences_to_arrays(self, ("amplitude", "edge_width"))
         if not isinstance(self.shape, AbstractShape):
             raise ValueError(f"Touch.shape must be a Disc or an Ellipse; got {self.shape!r}")
-        amplitude = _concrete(self.amplitude, "Touch.amplitude")
+        amplitude = concrete_floats(self.amplitude, "Touch.amplitude")
         if amplitude is not None:
             _shape_of(amplitude, "Touch.amplitude", (), "a number")
             if amplitude <= -1:
@@ -477,7 +463,7 @@ class Touch:
             if reach is not None and (reach.shape[1:] != () or np.any((reach < 0) | (reach > 1))):
                 raise ValueError(f"Touch.envelope must take numbers in [0, 1]; got breakpoint values {reach}")
         if self.edge_width is not None:
-            width = _concrete(self.edge_width, "Touch.edge_width")
+            width = concrete_floats(self.edge_width, "Touch.edge_width")
             if width is not None and (width.shape != () or width <= 0):
                 raise ValueError(f"Touch.edge_width must be a positive number (metres) or None; got {width}")
 
