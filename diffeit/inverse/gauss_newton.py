@@ -162,10 +162,9 @@ class GaussNewton:
             np.log(np.asarray(self.model.contact_impedance)), (len(frames), self.model.mesh.n_electrodes)
         )
         for _ in range(3):  # the contact impedance makes V(sigma) not exactly V(1) / sigma
-            log_sigma = level[:, None] * np.ones(self.model.n_elements)
-            voltages, jacobian, _ = _evaluate(self.model, jnp.asarray(log_sigma), jnp.asarray(z), True, False)
-            slope = np.asarray(jacobian).sum(axis=2)  # dV / d ln(sigma_h), (T, M)
-            level = level - np.sum(slope * (np.asarray(voltages) - frames), axis=1) / np.sum(slope**2, axis=1)
+            voltages, slope = _uniform_slope(self.model, jnp.asarray(level), jnp.asarray(z))
+            voltages, slope = np.asarray(voltages), np.asarray(slope)  # V and dV / d ln(sigma_h), (T, M)
+            level = level - np.sum(slope * (voltages - frames), axis=1) / np.sum(slope**2, axis=1)
         return np.exp(level)
 
     def _solve(
@@ -369,3 +368,17 @@ def _evaluate(model: ForwardModel, log_sigma: jax.Array, log_z: jax.Array, with_
         return voltages, jacobian, z_jacobian
 
     return jax.vmap(one)(log_sigma, log_z)
+
+
+@jax.jit
+def _uniform_slope(model: ForwardModel, log_level: jax.Array, log_z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Voltages (T, M) of homogeneous sheets of conductivity e^log_level (T,) and their
+    derivative in log_level: one directional derivative (a forward-mode solve), not a Jacobian."""
+
+    def voltages(level, log_z):
+        sigma = jnp.exp(level) * jnp.ones(model.n_elements, level.dtype)
+        return model.measure(sigma, jnp.exp(log_z))
+
+    return jax.vmap(lambda level, z: jax.jvp(lambda x: voltages(x, z), (level,), (jnp.ones_like(level),)))(
+        log_level, log_z
+    )
