@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .io import Recording
-    from .mesh import Mesh
+    from ..io import Recording
+    from ..mesh import Mesh
 
 # Frames reconstructed per batch: one matrix product each, and one step of the progress bar.
 _BATCH = 256
@@ -22,7 +22,7 @@ _DEFAULT_H = 0.08
 
 
 def _demo(arguments: argparse.Namespace) -> int:
-    from .demo import run_demo
+    from ..demo import run_demo
 
     result = run_demo(arguments.output, seed=arguments.seed)
     print(
@@ -46,8 +46,8 @@ def _reconstruct(arguments: argparse.Namespace) -> int:
 
 
 def _reconstruct_file(arguments: argparse.Namespace) -> int:
-    from . import io
-    from .plotting import plot_image_strip
+    from .. import io
+    from ..plotting import plot_image_strip
 
     source = Path(arguments.frames)
     base = Path(arguments.output)
@@ -129,7 +129,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
 
 def _mesh_of(recording: Recording, h: float) -> Mesh:
     """The file's mesh or geometry; without either, a unit disc with the protocol's electrodes."""
-    from . import mesh as meshes
+    from .. import mesh as meshes
 
     if recording.mesh is not None or recording.geometry is not None:
         return recording.resolve_mesh()
@@ -166,8 +166,8 @@ def reconstruct_recording(
     """
     from tqdm import tqdm
 
-    from .forward import ForwardModel
-    from .inverse import OneStep, select_hyperparameter
+    from ..forward import ForwardModel
+    from ..inverse import OneStep, select_hyperparameter
 
     if difference not in ("plain", "relative"):
         raise ValueError(f'difference must be "plain" or "relative"; got {difference!r}')
