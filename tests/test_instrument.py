@@ -92,17 +92,17 @@ def test_drift_formulas():
 def test_contact_drift_formulas():
     z0 = jnp.linspace(0.01, 0.02, 16)
     rate = jnp.linspace(-0.1, 0.1, 16)
-    z = np.asarray(contact_impedance(TIMES, ContactDrift(z0, rate), 16))
+    z = np.asarray(contact_impedance(z0, TIMES, ContactDrift(rate)))
     assert z.shape == (5, 16)
     np.testing.assert_allclose(z, np.asarray(z0) * np.exp(np.asarray(rate) * np.asarray(TIMES)[:, None]), rtol=1e-14)
     np.testing.assert_array_equal(z[0], np.asarray(z0))
-    linear = np.asarray(contact_impedance(TIMES, ContactDrift(0.01, 0.05, "linear"), 16))
+    linear = np.asarray(contact_impedance(jnp.full(16, 0.01), TIMES, ContactDrift(0.05, "linear")))
     np.testing.assert_allclose(linear[:, 3], 0.01 * (1 + 0.05 * np.asarray(TIMES)), rtol=1e-14)
 
 
 def test_contact_drift_feeds_forward_model(model):
     sigma = jnp.ones(model.n_elements)
-    z = contact_impedance(TIMES[:3], ContactDrift(0.01, jnp.linspace(0.0, 0.5, 16)), 16)
+    z = contact_impedance(jnp.full(16, 0.01), TIMES[:3], ContactDrift(jnp.linspace(0.0, 0.5, 16)))
     frames = jax.vmap(lambda zk: model.measure(sigma, zk))(z)
     assert frames.shape == (3, model.n_measurements)
     np.testing.assert_allclose(np.asarray(frames[0]), np.asarray(model.measure(sigma)), rtol=1e-10)
@@ -111,7 +111,7 @@ def test_contact_drift_feeds_forward_model(model):
 
     # Differentiable in the drift rate through the solve.
     def total(rate):
-        zk = contact_impedance(jnp.array([2.0]), ContactDrift(0.01, rate), 16)[0]
+        zk = contact_impedance(jnp.full(16, 0.01), jnp.array([2.0]), ContactDrift(rate))[0]
         return jnp.sum(model.measure(sigma, zk) ** 2)
 
     g = float(jax.grad(total)(0.1))
@@ -182,7 +182,7 @@ def test_gradients_match_finite_differences():
         (lambda: Noise.percent(float("nan")), "Noise.value"),
         (lambda: CommonModeDrift(period=0.0), "CommonModeDrift.period"),
         (lambda: CommonModeDrift(rate="fast"), "CommonModeDrift.rate"),
-        (lambda: ContactDrift(z0=-0.01), "ContactDrift.z0"),
+        (lambda: ContactDrift(rate=[[0.1]]), "ContactDrift.rate"),
         (lambda: ContactDrift(kind="quadratic"), "ContactDrift.kind"),
         (lambda: open_contact_impedance(jnp.full(16, 0.01), 16), "electrodes"),
         (lambda: lost_readings(de.protocol.adjacent(16), [-1]), "electrodes"),

@@ -30,6 +30,7 @@ def disc(
     radius: float = 1.0,
     electrode_h: float | None = None,
     first_electrode_angle: float = 0.0,
+    electrode_angles: Sequence[float] | np.ndarray | None = None,
     interior_circles: Sequence[float] = (),
 ) -> Mesh:
     """A disc skin with `n_electrodes` equally spaced electrodes on its rim.
@@ -47,6 +48,8 @@ def disc(
     - `electrode_h`: element edge length at the electrodes (default `h / 2`); the size grows
       linearly with the distance from the nearest electrode up to `h`.
     - `first_electrode_angle`: centre angle of electrode 0, radians.
+    - `electrode_angles`: the centre angle of every electrode (radians, increasing, within one
+      turn, electrodes not overlapping), in place of the equal spacing: displaced electrodes.
     - `interior_circles`: radii of concentric circles that element edges follow (for
       inclusions whose boundary the mesh must resolve).
     """
@@ -65,7 +68,10 @@ def disc(
             raise ValueError(f"interior circle radius {r} must lie strictly inside (0, {radius})")
 
     half_angle = electrode_width / (2 * radius)
-    centres = first_electrode_angle + 2 * np.pi * np.arange(n_electrodes) / n_electrodes
+    if electrode_angles is None:
+        centres = first_electrode_angle + 2 * np.pi * np.arange(n_electrodes) / n_electrodes
+    else:
+        centres = _checked_angles(electrode_angles, n_electrodes, 2 * half_angle)
     electrode_ends = np.stack([centres - half_angle, centres + half_angle], axis=1)
 
     # The rim, electrode by electrode then the gap after it, as angles.
@@ -106,6 +112,23 @@ def disc(
 
     nodes, triangles = _triangulate(vertices, np.concatenate(segments), h, target_size)
     return Mesh(nodes, triangles, tuple(electrode_indices))
+
+
+def _checked_angles(angles, n_electrodes: int, width_angle: float) -> np.ndarray:
+    angles = np.asarray(angles, dtype=np.float64)
+    if angles.shape != (n_electrodes,) or not np.all(np.isfinite(angles)):
+        raise ValueError(
+            f"electrode_angles must hold one finite angle (radians) per electrode, shape ({n_electrodes},); "
+            f"got {angles.tolist()}"
+        )
+    gaps = np.diff(np.append(angles, angles[0] + 2 * np.pi))
+    if np.any(gaps <= width_angle):
+        k = int(np.argmax(gaps <= width_angle))
+        raise ValueError(
+            f"electrode_angles: electrodes {k} and {(k + 1) % n_electrodes} overlap or are out of order "
+            f"(centres {gaps[k]:.4g} rad apart; each electrode spans {width_angle:.4g} rad)"
+        )
+    return angles
 
 
 def polygon(

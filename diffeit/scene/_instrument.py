@@ -32,9 +32,9 @@ frames come back bit for bit.
 
 ## Contact impedance drift
 Per electrode l: z_l(t) = z0_l exp(rate_l t) ("exponential", the default: stays positive) or
-z0_l (1 + rate_l t) ("linear"), rate in 1/s. `contact_impedance` returns (T, L), one row per
-frame, to pass frame by frame to `ForwardModel.measure(conductivity, z)` (for example under
-`jax.vmap`).
+z0_l (1 + rate_l t) ("linear"), rate in 1/s, z0_l the skin's contact impedance.
+`contact_impedance` returns (T, L), one row per frame, to pass frame by frame to
+`ForwardModel.measure(conductivity, z)` (for example under `jax.vmap`).
 
 ## Open (broken) electrode
 An open electrode carries no current: it is modelled by multiplying its contact impedance by
@@ -51,6 +51,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from functools import partial
 from typing import Literal
 
 import jax
@@ -58,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._arrays import concrete_floats
+from .._pytree import register_dataclass
 from ..protocol import Protocol
 
 ArrayLike = float | jax.Array | np.ndarray
@@ -72,29 +74,10 @@ NoiseKind = Literal["percent", "snr_db", "volts"]
 ContactDriftKind = Literal["exponential", "linear"]
 
 
-def _register(cls: type) -> type:
-    """Register a frozen dataclass as a pytree: the fields in `cls._static` are static, the rest leaves."""
-    static_names = cls._static  # type: ignore[attr-defined]
-    leaf_names = tuple(f.name for f in fields(cls) if f.name not in static_names)
-
-    def flatten(obj):
-        return tuple(getattr(obj, n) for n in leaf_names), tuple(getattr(obj, n) for n in static_names)
-
-    def unflatten(static, leaves):
-        # Transformations rebuild from tracers or placeholders: no checks then.
-        obj = object.__new__(cls)
-        for n, v in zip(static_names + leaf_names, static + tuple(leaves), strict=True):
-            object.__setattr__(obj, n, v)
-        return obj
-
-    jax.tree_util.register_pytree_node(cls, flatten, unflatten)
-    return cls
-
-
 # --- Measurement noise ---------------------------------------------------------------------------
 
 
-@_register
+@partial(register_dataclass, static=("kind",))
 @dataclass(frozen=True, eq=False)
 class Noise:
     """Measurement noise: independent Gaussian noise of one standard deviation on every reading.
@@ -107,7 +90,6 @@ class Noise:
 
     value: ArrayLike
     kind: NoiseKind = "percent"
-    _static = ("kind",)
 
     def __post_init__(self) -> None:
         if self.kind not in ("percent", "snr_db", "volts"):
@@ -173,7 +155,7 @@ def add_noise(frames: ArrayLike, reference: ArrayLike, noise: Noise, key: jax.Ar
 # --- Common-mode drift ---------------------------------------------------------------------------
 
 
-@_register
+@register_dataclass
 @dataclass(frozen=True, eq=False)
 class CommonModeDrift:
     """Drift common to all readings: V'(t) = (1 + gain_rate t) V(t) + offset(t).
@@ -193,7 +175,6 @@ class CommonModeDrift:
     period: ArrayLike = 1.0
     phase: ArrayLike = 0.0
     gain_rate: ArrayLike = 0.0
-    _static = ()
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -228,44 +209,43 @@ def add_drift(frames: ArrayLike, times: ArrayLike, drift: CommonModeDrift) -> ja
 # --- Contact impedance drift ---------------------------------------------------------------------
 
 
-@_register
+@partial(register_dataclass, static=("kind",))
 @dataclass(frozen=True, eq=False)
 class ContactDrift:
-    """Contact impedance per electrode drifting in time.
+    """How the contact impedance of every electrode drifts in time (the skin holds its value
+    at t = 0).
 
-    - `z0`: contact impedance at t = 0, ohm m, > 0: a scalar or (L,) one per electrode.
-    - `rate`: 1/s, a scalar or (L,): z0 exp(rate t) ("exponential") or z0 (1 + rate t)
-      ("linear"; keep 1 + rate t > 0 over the scene).
+    - `rate`: 1/s, a scalar or (L,) one per electrode: z0 exp(rate t) ("exponential") or
+      z0 (1 + rate t) ("linear"; keep 1 + rate t > 0 over the scene).
     - `kind`: "exponential" (default) or "linear" (static).
 
-    `z0` and `rate` are pytree leaves (differentiable).
+    `rate` is a pytree leaf (differentiable). A rate of 0: no change.
     """
 
-    z0: ArrayLike = 0.01
     rate: ArrayLike = 0.0
     kind: ContactDriftKind = "exponential"
-    _static = ("kind",)
+
 
     def __post_init__(self) -> None:
         if self.kind not in ("exponential", "linear"):
             raise ValueError(f"ContactDrift.kind must be 'exponential' or 'linear'; got {self.kind!r}")
-        z0 = concrete_floats(self.z0, "ContactDrift.z0")
-        if z0 is not None and not np.all(z0 > 0):
-            raise ValueError(f"ContactDrift.z0 must be positive (ohm m); got {z0}")
-        concrete_floats(self.rate, "ContactDrift.rate")
+        rate = concrete_floats(self.rate, "ContactDrift.rate")
+        if rate is not None and rate.ndim > 1:
+            raise ValueError(f"ContactDrift.rate must be a scalar or one rate per electrode (L,); got {rate.shape}")
 
 
-def contact_impedance(times: ArrayLike, drift: ContactDrift, n_electrodes: int) -> jax.Array:
-    """(T, L) contact impedances (ohm m) at `times` (T,) seconds, one row per frame.
-
-    Feed row k to `ForwardModel.measure(conductivity_k, z[k])`.
-    """
+def contact_impedance(initial: ArrayLike, times: ArrayLike, drift: ContactDrift) -> jax.Array:
+    """(T, L) contact impedances (ohm m) at `times` (T,) seconds, one row per frame, from their
+    values `initial` (L,) at t = 0 (ohm m). Feed row k to
+    `ForwardModel.measure(conductivity_k, z[k])`."""
+    initial = jnp.asarray(initial, dtype=float)
+    if initial.ndim != 1:
+        raise ValueError(f"initial contact impedance must have one value per electrode, (L,); got {initial.shape}")
     t = jnp.asarray(times, dtype=float)[:, None]
-    z0 = jnp.broadcast_to(jnp.asarray(drift.z0, dtype=float), (n_electrodes,))
-    rate = jnp.broadcast_to(jnp.asarray(drift.rate, dtype=float), (n_electrodes,))
+    rate = jnp.broadcast_to(jnp.asarray(drift.rate, dtype=float), initial.shape)
     if drift.kind == "exponential":
-        return z0 * jnp.exp(rate * t)
-    return z0 * (1.0 + rate * t)
+        return initial * jnp.exp(rate * t)
+    return initial * (1.0 + rate * t)
 
 
 # --- Open electrodes -----------------------------------------------------------------------------

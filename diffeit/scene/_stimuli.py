@@ -65,7 +65,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from functools import partial
 
 import jax
@@ -74,6 +74,7 @@ import numpy as np
 from jax.scipy.special import erfc
 
 from .._arrays import concrete_floats, is_concrete
+from .._pytree import register_dataclass
 from ..mesh._fields import barycentric_samples
 from ..mesh._mesh import Mesh
 
@@ -86,30 +87,6 @@ _SAMPLES_PER_BATCH = 1 << 22
 _CHECKS_PER_SEGMENT = 16
 # A point is on the skin when its barycentric coordinates in some triangle are all above this.
 _INSIDE_TOLERANCE = -1e-9
-
-
-def _register(cls: type, static: tuple[str, ...] = ()) -> type:
-    """Register the frozen dataclass `cls` as a JAX pytree: the fields named in `static` are
-    auxiliary data (hashable settings), the others leaves. Unflattening skips `__post_init__`:
-    transformations rebuild objects from tracers or placeholders, which cannot be checked."""
-    names = tuple(f.name for f in fields(cls))
-    leaves = tuple(name for name in names if name not in static)
-
-    def flatten_with_keys(obj):
-        children = tuple((jax.tree_util.GetAttrKey(name), getattr(obj, name)) for name in leaves)
-        return children, tuple(getattr(obj, name) for name in static)
-
-    def flatten(obj):
-        return tuple(getattr(obj, name) for name in leaves), tuple(getattr(obj, name) for name in static)
-
-    def unflatten(aux, children):
-        obj = object.__new__(cls)
-        for name, value in zip(leaves + static, tuple(children) + tuple(aux), strict=True):
-            object.__setattr__(obj, name, value)
-        return obj
-
-    jax.tree_util.register_pytree_with_keys(cls, flatten_with_keys, unflatten, flatten)
-    return cls
 
 
 def _sequences_to_arrays(obj, names: tuple[str, ...]) -> None:
@@ -417,6 +394,46 @@ class Ellipse(AbstractShape):
         return jnp.where(positive, k0 * (k0 - 1) / jnp.where(positive, k1, 1.0), -jnp.min(axes))
 
 
+@dataclass(frozen=True, eq=False)
+class Polygon(AbstractShape):
+    """A polygonal footprint or region: `vertices` (K, 2) in metres, K >= 3, a simple polygon in
+    either orientation (the region of a non-uniform background, a half of the skin). The signed
+    distance is exact: the distance to the nearest edge, negative inside (even-odd rule). Its
+    `centre` is the mean of the vertices."""
+
+    vertices: ArrayLike
+
+    def __post_init__(self) -> None:
+        _sequences_to_arrays(self, ("vertices",))
+        vertices = concrete_floats(self.vertices, "Polygon.vertices")
+        if vertices is not None:
+            if vertices.ndim != 2 or vertices.shape[1] != 2 or len(vertices) < 3:
+                raise ValueError(
+                    f"Polygon.vertices must be (K, 2) points in metres, K >= 3; got shape {vertices.shape}"
+                )
+            edges = np.roll(vertices, -1, axis=0) - vertices
+            if np.any(np.hypot(edges[:, 0], edges[:, 1]) == 0):
+                raise ValueError("Polygon.vertices must not repeat a vertex: an edge has zero length")
+
+    @property
+    def centre(self) -> jax.Array:
+        return jnp.mean(_float(self.vertices), axis=0)
+
+    def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        start = _float(self.vertices)
+        stop = jnp.roll(start, -1, axis=0)
+        edge = stop - start
+        offset = points[..., None, :] - start  # (..., K, 2)
+        along = jnp.clip(jnp.sum(offset * edge, -1) / jnp.sum(edge * edge, -1), 0.0, 1.0)
+        distance = jnp.min(_safe_norm(offset - along[..., None] * edge), axis=-1)
+        x, y = points[..., 0:1], points[..., 1:2]
+        straddles = (start[:, 1] > y) != (stop[:, 1] > y)
+        rise = jnp.where(straddles, edge[:, 1], 1.0)
+        crossing = start[:, 0] + (y - start[:, 1]) * edge[:, 0] / rise
+        inside = jnp.sum(straddles & (x < crossing), axis=-1) % 2 == 1
+        return jnp.where(inside, -distance, distance)
+
+
 # --- Touches --------------------------------------------------------------------------------
 
 
@@ -473,12 +490,10 @@ class Touch:
         return amplitude if self.envelope is None else amplitude * self.envelope(t)
 
 
-for _cls in (Ramp, Path):
-    _register(_cls, static=("smooth",))
-_register(Press, static=("smooth",))
-_register(Disc)
-_register(Ellipse)
-_register(Touch)
+for _cls in (Press, Ramp, Path):
+    register_dataclass(_cls, static=("smooth",))
+for _cls in (Disc, Ellipse, Polygon, Touch):
+    register_dataclass(_cls)
 
 
 # --- Fields on a mesh -----------------------------------------------------------------------
