@@ -17,6 +17,7 @@ from . import linear_solve as linear_solve
 from . import mesh as mesh
 from . import metrics as metrics
 from . import protocol as protocol
+from . import render as render
 from .forward import ForwardModel as ForwardModel
 from .forward import Potentials as Potentials
 from .forward import PrecisionWarning as PrecisionWarning

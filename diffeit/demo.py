@@ -66,8 +66,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
         fontsize=9,
     )
     plot_elements(right, mesh, image, label="dsigma (S/sq)")
-    chosen = metrics.half_amplitude_set(image)
-    centroid = np.average(mesh.element_centroids[chosen], axis=0, weights=mesh.element_areas[chosen])
+    centroid = metrics.half_amplitude_centroid(mesh, image)
     for ax in (left, right):
         ax.add_patch(Circle(TOUCH_CENTRE, TOUCH_RADIUS, fill=False, linestyle="--", color="k"))
     right.plot(*centroid, "k+", markersize=12)
@@ -82,7 +81,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
         position_error=error,
         hyperparameter=hyperparameter,
         correlation=metrics.correlation(mesh, truth, image),
-        peak=float(image[np.argmax(np.abs(image))]),
+        peak=metrics.peak(image),
         n_data_elements=data_mesh.n_elements,
         n_reconstruction_elements=mesh.n_elements,
         figure=output,

@@ -1,38 +1,528 @@
-"""Figures of merit of element-wise images (conventions of DESIGN.md)."""
+"""Figures of merit of images: peak, half-amplitude set, size, position error, shape
+deformation, artifacts, cross-sections, correlation, and GREIT's figures of merit.
+
+An image is a conductivity change dsigma (S/sq, or any unit: values come back in the image's
+unit) on a geometry of cells:
+
+- a `diffeit.Mesh`: one value per element, shape (E,); or
+- a `diffeit.render.PixelGrid`: one value per pixel, shape (n_rows, n_columns); only pixels in
+  `grid.mask` count (values off the mask are ignored, so NaN there is fine).
+  `pixel_grid(mesh, 32)` is the grid of `GREIT(model, grid=32)`.
+
+Notation: cell k has area a_k (m^2; for a pixel its area inside the domain), centre c_k (m;
+element centroid or pixel centre) and value x_k.
+
+- Peak: p = x_k* with k* = argmax_k |x_k|, signed (a touch's conductivity drop gives p < 0).
+- Amplitude set at fraction f, "on the peak's side": S_f = {k : sign(p) x_k >= f |p|}; the
+  half-amplitude set is S = S_(1/2) (DESIGN.md).
+- Reconstructed size: area A = sum_(k in S) a_k (m^2) and equivalent radius r = sqrt(A / pi) (m).
+- Centroid c = sum_(k in S) a_k c_k / A; position error |c - c_true| (m) (DESIGN.md).
+- Shape deformation SD = sum_(k in S) a_k (1 - phi_k) / A, phi_k the fraction of cell k inside
+  the disc of radius r about c: the part of S outside the circle of equal area centred on it
+  (0 for a disc, 1 - 1/sqrt(2) ... for elongated sets; in [0, 1)).
+- Components: the connected components of S, cells joined when they share an edge (a corner
+  is not enough). Each has its own area, centroid and peak.
+- Targets and artifacts: with K true centres, the components are matched to the targets by the
+  assignment that minimises the sum of distances target centre - component centroid (Hungarian,
+  `scipy.optimize.linear_sum_assignment`), pairs further apart than `max_distance` left
+  unmatched; every unmatched component is an artifact.
+- Correlation: Pearson, area-weighted (DESIGN.md).
+
+GREIT's figures (Adler et al. 2009, "GREIT: a unified approach to 2D linear EIT reconstruction
+of lung images", Physiol. Meas. 30 S35) use the quarter-amplitude set by default: see
+`greit_figures`.
+
+Validation: a wrong shape, a non-finite value (in the mask) or an all-zero image (no peak, hence
+no half-amplitude set) raises ValueError naming the problem.
+"""
 
 from __future__ import annotations
 
-import numpy as np
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from .mesh import Mesh
+import matplotlib.tri
+import numpy as np
+import scipy.optimize
+import scipy.sparse
+import scipy.sparse.csgraph
+
+from .inverse.priors import element_adjacency
+from .mesh import Mesh, disc_fraction
+
+if TYPE_CHECKING:
+    from .render import PixelGrid
+
+    Geometry = Mesh | PixelGrid
+
+# Sub-samples per pixel side for the fraction of a pixel inside a disc (midpoint rule, as
+# disc_fraction's 8^2 sub-triangles for elements).
+_PIXEL_SAMPLES = 8
+
+
+# --- Cells: the one view of meshes and pixel grids the metrics need ----------------------------
+
+
+@dataclass(frozen=True)
+class _Cells:
+    """The cells of a geometry that carry values: areas (n,) m^2, centres (n, 2) m, the pairs of
+    cells sharing an edge (first, second), and the values (n,) of one image."""
+
+    areas: np.ndarray
+    centres: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+    values: np.ndarray
+
+
+def _is_mesh(geometry) -> bool:
+    if isinstance(geometry, Mesh):
+        return True
+    if all(hasattr(geometry, name) for name in ("mask", "pixel_areas", "pixel_centres", "x_edges", "y_edges")):
+        return False
+    raise ValueError(f"geometry must be a diffeit.Mesh or a diffeit.render.PixelGrid; got {type(geometry).__name__}")
+
+
+def _cells(geometry: Geometry, image: np.ndarray, name: str = "image") -> _Cells:
+    image = np.asarray(image, dtype=float)
+    if _is_mesh(geometry):
+        if image.shape != (geometry.n_elements,):
+            raise ValueError(f"{name} has shape {image.shape}; expected ({geometry.n_elements},), one value an element")
+        first, second, _ = element_adjacency(geometry)
+        cells = _Cells(geometry.element_areas, geometry.element_centroids, first, second, image)
+    else:
+        if image.shape != geometry.mask.shape:
+            raise ValueError(f"{name} has shape {image.shape}; expected {geometry.mask.shape}, one value a pixel")
+        cells = _Cells(
+            geometry.pixel_areas[geometry.mask],
+            geometry.pixel_centres[geometry.mask],
+            *_pixel_adjacency(geometry.mask),
+            image[geometry.mask],
+        )
+    if not np.all(np.isfinite(cells.values)):
+        raise ValueError(f"{name} is not finite (NaN or inf) at {np.count_nonzero(~np.isfinite(cells.values))} cells")
+    return cells
+
+
+def _pixel_adjacency(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs of `mask` pixels sharing an edge, as indices into the pixels of `mask` (row-major)."""
+    index = np.full(mask.shape, -1)
+    index[mask] = np.arange(np.count_nonzero(mask))
+    right = mask[:, :-1] & mask[:, 1:]
+    up = mask[:-1, :] & mask[1:, :]
+    first = np.concatenate([index[:, :-1][right], index[:-1, :][up]])
+    second = np.concatenate([index[:, 1:][right], index[1:, :][up]])
+    return first, second
+
+
+def _disc_fraction(geometry: Geometry, centre: np.ndarray, radius: float) -> np.ndarray:
+    """(n,) fraction of each cell inside the disc |x - centre| < radius (midpoint rule)."""
+    if _is_mesh(geometry):
+        return disc_fraction(geometry, tuple(centre), radius)
+    offsets = (np.arange(_PIXEL_SAMPLES) + 0.5) / _PIXEL_SAMPLES - 0.5
+    dx, dy = np.diff(geometry.x_edges[:2])[0], np.diff(geometry.y_edges[:2])[0]
+    sub = np.stack(np.meshgrid(offsets * dx, offsets * dy), axis=-1).reshape(-1, 2)
+    points = geometry.pixel_centres[geometry.mask][:, None, :] + sub[None]
+    return np.mean(np.linalg.norm(points - centre, axis=2) < radius, axis=1)
+
+
+def _checked_centres(centres, name: str = "centres") -> np.ndarray:
+    array = np.asarray(centres, dtype=float)
+    if array.ndim == 1:
+        array = array[None]
+    if array.ndim != 2 or array.shape[1] != 2 or len(array) == 0:
+        raise ValueError(
+            f"{name} must be one point (x, y) or a list of them (K, 2) in metres; got shape {np.shape(centres)}"
+        )
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} must be finite; got {array.tolist()}")
+    return array
+
+
+# --- Peak and amplitude sets (no geometry needed) ----------------------------------------------
+
+
+def peak(image: np.ndarray) -> float:
+    """The signed value of largest magnitude, p = x_k*, k* = argmax |x_k| (the image's unit).
+
+    `image` is any array of values (an element image (E,), a GREIT image); pass
+    `image[grid.mask]` for a rendered image (NaN off the mask)."""
+    values = _checked_values(image)
+    return float(values.flat[np.argmax(np.abs(values))])
+
+
+def _checked_values(image: np.ndarray) -> np.ndarray:
+    values = np.asarray(image, dtype=float)
+    if values.size == 0:
+        raise ValueError("image is empty")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"image is not finite (NaN or inf) at {np.count_nonzero(~np.isfinite(values))} values")
+    if not np.any(values):
+        raise ValueError("image is all zero: it has no peak, hence no half-amplitude set")
+    return values
+
+
+def amplitude_set(image: np.ndarray, fraction: float) -> np.ndarray:
+    """Boolean array of `image`'s shape: values at or beyond `fraction` of the peak on the
+    peak's side, S_f = {k : sign(p) x_k >= f |p|}, f in (0, 1]. Never empty (it holds the peak)."""
+    if not (np.isfinite(fraction) and 0 < fraction <= 1):
+        raise ValueError(f"fraction of the peak must be in (0, 1]; got {fraction}")
+    values = _checked_values(image)
+    top = values.flat[np.argmax(np.abs(values))]
+    return values * np.sign(top) >= fraction * np.abs(top)
 
 
 def half_amplitude_set(image: np.ndarray) -> np.ndarray:
-    """(E,) boolean: elements at or beyond half the peak, on the peak's side.
+    """Boolean array of `image`'s shape: values at or beyond half the peak, on the peak's side
+    (`amplitude_set(image, 0.5)`). For a negative peak p: the values <= p / 2."""
+    return amplitude_set(image, 0.5)
 
-    The peak is the value of largest magnitude; for a negative peak the set is the elements
-    with image <= peak / 2.
+
+def _cell_set(cells: _Cells, fraction: float) -> np.ndarray:
+    return amplitude_set(cells.values, fraction)
+
+
+# --- Size, position, shape of the whole set ----------------------------------------------------
+
+
+def integral(geometry: Geometry, image: np.ndarray) -> float:
+    """sum_k a_k x_k: the image integrated over the domain (image unit x m^2)."""
+    cells = _cells(geometry, image)
+    return float(cells.areas @ cells.values)
+
+
+def reconstructed_area(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
+    """A = sum_(k in S_f) a_k, m^2: the area of the (half-)amplitude set."""
+    cells = _cells(geometry, image)
+    return float(cells.areas[_cell_set(cells, fraction)].sum())
+
+
+def equivalent_radius(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
+    """r = sqrt(A / pi), m: the radius of the disc with the (half-)amplitude set's area."""
+    return float(np.sqrt(reconstructed_area(geometry, image, fraction) / np.pi))
+
+
+def half_amplitude_centroid(geometry: Geometry, image: np.ndarray) -> np.ndarray:
+    """(2,) c = sum_(k in S) a_k c_k / A, m: the area-weighted centroid of the half-amplitude set."""
+    cells = _cells(geometry, image)
+    chosen = _cell_set(cells, 0.5)
+    areas = cells.areas[chosen]
+    return areas @ cells.centres[chosen] / areas.sum()
+
+
+def position_error(geometry: Geometry, image: np.ndarray, centre: Sequence[float]) -> float:
+    """|c - centre|, m: distance from the true `centre` (x, y) to the half-amplitude centroid."""
+    (true_centre,) = _checked_centres(centre, "centre")
+    return float(np.linalg.norm(half_amplitude_centroid(geometry, image) - true_centre))
+
+
+def shape_deformation(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
+    """SD = sum_(k in S_f) a_k (1 - phi_k) / A: the fraction of the amplitude set's area outside
+    the disc of equal area centred on its centroid (phi_k: part of cell k inside that disc,
+    midpoint rule; 0 for a disc up to the cells' resolution, in [0, 1))."""
+    cells = _cells(geometry, image)
+    chosen = _cell_set(cells, fraction)
+    return _deformation(geometry, cells, chosen)
+
+
+def _deformation(geometry: Geometry, cells: _Cells, chosen: np.ndarray) -> float:
+    areas = cells.areas[chosen]
+    area = areas.sum()
+    centroid = areas @ cells.centres[chosen] / area
+    inside = _disc_fraction(geometry, centroid, np.sqrt(area / np.pi))[chosen]
+    return float(areas @ (1 - inside) / area)
+
+
+# --- Components, targets, artifacts ------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Components:
+    """The connected components of an amplitude set (cells joined through shared edges).
+
+    - `labels`: the image's shape; the component of each cell, -1 outside the set (and off a
+      pixel grid's mask).
+    - `areas` (K,) m^2, `centroids` (K, 2) m (area-weighted), `peaks` (K,) the signed value of
+      largest magnitude in each component; ordered by decreasing area.
     """
-    image = np.asarray(image, dtype=float)
-    peak = image[np.argmax(np.abs(image))]
-    return image * np.sign(peak) >= 0.5 * np.abs(peak)
+
+    labels: np.ndarray
+    areas: np.ndarray
+    centroids: np.ndarray
+    peaks: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return len(self.areas)
 
 
-def half_amplitude_centroid(mesh: Mesh, image: np.ndarray) -> np.ndarray:
-    """(2,) the area-weighted centroid (m) of the half-amplitude set of `image` (E,)."""
-    chosen = half_amplitude_set(image)
-    areas = mesh.element_areas[chosen]
-    return areas @ mesh.element_centroids[chosen] / areas.sum()
+def amplitude_components(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> Components:
+    """The connected components of the amplitude set S_f (half-amplitude by default)."""
+    cells = _cells(geometry, image)
+    labels, _ = _components(cells, _cell_set(cells, fraction))
+    return _summarise(geometry, cells, labels)
 
 
-def position_error(mesh: Mesh, image: np.ndarray, centre: tuple[float, float]) -> float:
-    """Distance (m) from `centre` to the area-weighted centroid of the half-amplitude set."""
-    return float(np.linalg.norm(half_amplitude_centroid(mesh, image) - np.asarray(centre, dtype=float)))
+def _components(cells: _Cells, chosen: np.ndarray) -> tuple[np.ndarray, int]:
+    """(n,) component of each chosen cell (-1 elsewhere), ordered by decreasing area."""
+    both = chosen[cells.first] & chosen[cells.second]
+    n = len(cells.values)
+    graph = scipy.sparse.coo_array((np.ones(both.sum()), (cells.first[both], cells.second[both])), shape=(n, n))
+    _, raw = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    # Unchosen cells are components of their own: keep only the labels of chosen cells.
+    unique, relabelled = np.unique(raw[chosen], return_inverse=True)
+    areas = np.bincount(relabelled, weights=cells.areas[chosen], minlength=len(unique))
+    order = np.argsort(-areas, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    labels = np.full(n, -1)
+    labels[chosen] = rank[relabelled]
+    return labels, len(unique)
 
 
-def correlation(mesh: Mesh, truth: np.ndarray, image: np.ndarray) -> float:
-    """Area-weighted Pearson correlation of two element-wise images on `mesh`."""
-    weights = mesh.element_areas / mesh.element_areas.sum()
-    a = np.asarray(truth, float) - weights @ truth
-    b = np.asarray(image, float) - weights @ image
+def _summarise(geometry: Geometry, cells: _Cells, labels: np.ndarray) -> Components:
+    members = [labels == j for j in range(labels.max() + 1)]
+    areas = np.array([cells.areas[m].sum() for m in members])
+    centroids = np.array([cells.areas[m] @ cells.centres[m] for m in members]).reshape(-1, 2) / areas[:, None]
+    peaks = np.array([cells.values[m][np.argmax(np.abs(cells.values[m]))] for m in members])
+    return Components(labels=_to_image_shape(geometry, labels, -1), areas=areas, centroids=centroids, peaks=peaks)
+
+
+def _to_image_shape(geometry: Geometry, values: np.ndarray, fill) -> np.ndarray:
+    if _is_mesh(geometry):
+        return values
+    out = np.full(geometry.mask.shape, fill, dtype=values.dtype)
+    out[geometry.mask] = values
+    return out
+
+
+@dataclass(frozen=True)
+class TargetFigures:
+    """Figures of merit per target of a multi-target image (`target_figures`).
+
+    Arrays over the K targets, in the order of the centres given; a target that no component
+    matched has `component` -1 and NaN in every other per-target figure (by definition, not by
+    accident: test `matched`).
+
+    - `component` (K,): index into `components` of the matched component.
+    - `peak` (K,): the component's signed value of largest magnitude (image unit).
+    - `area` (K,) m^2 and `equivalent_radius` (K,) m = sqrt(area / pi).
+    - `centroid` (K, 2) m; `position_error` (K,) m = |centroid - centre|.
+    - `shape_deformation` (K,): SD of the component alone (module docstring).
+    - `n_artifacts`: components matched to no target.
+    - `components`: all components of the amplitude set.
+    """
+
+    component: np.ndarray
+    peak: np.ndarray
+    area: np.ndarray
+    equivalent_radius: np.ndarray
+    centroid: np.ndarray
+    position_error: np.ndarray
+    shape_deformation: np.ndarray
+    n_artifacts: int
+    components: Components
+
+    @property
+    def matched(self) -> np.ndarray:
+        """(K,) whether each target was matched to a component."""
+        return self.component >= 0
+
+
+def target_figures(
+    geometry: Geometry,
+    image: np.ndarray,
+    centres: Sequence[Sequence[float]],
+    *,
+    max_distance: float = np.inf,
+    fraction: float = 0.5,
+) -> TargetFigures:
+    """Match the components of the amplitude set S_f (half-amplitude by default) to the targets
+    at `centres` (K, 2) m (or one (x, y)) and measure each matched component (module
+    docstring): the assignment minimises the summed distance centre - component centroid; a
+    pair further apart than `max_distance` (m) is not a match. The threshold is a fraction of
+    the image's overall peak, so a much weaker target may have no component of its own."""
+    centres = _checked_centres(centres)
+    if not max_distance > 0:
+        raise ValueError(f"max_distance must be positive (metres); got {max_distance}")
+    cells = _cells(geometry, image)
+    chosen = _cell_set(cells, fraction)
+    labels, _ = _components(cells, chosen)
+    components = _summarise(geometry, cells, labels)
+    distances = np.linalg.norm(centres[:, None, :] - components.centroids[None, :, :], axis=2)
+    targets, matched = scipy.optimize.linear_sum_assignment(distances)
+    close = distances[targets, matched] <= max_distance
+    component = np.full(len(centres), -1)
+    component[targets[close]] = matched[close]
+
+    k = len(centres)
+    figures = {name: np.full(k, np.nan) for name in ("peak", "area", "position_error", "shape_deformation")}
+    centroid = np.full((k, 2), np.nan)
+    for target in np.flatnonzero(component >= 0):
+        j = component[target]
+        figures["peak"][target] = components.peaks[j]
+        figures["area"][target] = components.areas[j]
+        centroid[target] = components.centroids[j]
+        figures["position_error"][target] = distances[target, j]
+        figures["shape_deformation"][target] = _deformation(geometry, cells, labels == j)
+    return TargetFigures(
+        component=component,
+        centroid=centroid,
+        equivalent_radius=np.sqrt(figures["area"] / np.pi),
+        n_artifacts=int(components.count - np.count_nonzero(component >= 0)),
+        components=components,
+        **figures,
+    )
+
+
+def count_artifacts(
+    geometry: Geometry, image: np.ndarray, centres: Sequence[Sequence[float]], *, max_distance: float = np.inf
+) -> int:
+    """The number of half-amplitude components matched to none of the targets at `centres`
+    (K, 2) m: extra blobs (`target_figures(...).n_artifacts`)."""
+    return target_figures(geometry, image, centres, max_distance=max_distance).n_artifacts
+
+
+# --- Cross-section -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CrossSection:
+    """Values along a straight line through the domain (`cross_section`).
+
+    - `distance` (n,) m: signed position along the line from its anchor point (increasing).
+    - `points` (n, 2) m; `values` (n,): the value of the cell containing each point.
+    """
+
+    distance: np.ndarray
+    points: np.ndarray
+    values: np.ndarray
+
+
+def cross_section(
+    geometry: Geometry,
+    image: np.ndarray,
+    *,
+    through: Sequence[float] | None = None,
+    direction: Sequence[float] = (1.0, 0.0),
+    n_points: int = 201,
+) -> CrossSection:
+    """The profile of `image` along the line through `through` (x, y) m (default: the centre of
+    the peak's cell) in `direction` (any non-zero (dx, dy)), by point sampling: `n_points` points
+    evenly spaced over the line's span across the bounding box, kept where they lie in the domain
+    (a mesh triangle, or a pixel of the mask); each takes the value of the cell containing it.
+    Dissertation Fig. 5.1: the cross-section through the peak."""
+    cells = _cells(geometry, image)
+    if not (isinstance(n_points, int | np.integer) and n_points >= 2):
+        raise ValueError(f"n_points must be an integer >= 2; got {n_points!r}")
+    direction = np.asarray(direction, dtype=float)
+    if direction.shape != (2,) or not np.all(np.isfinite(direction)) or not np.any(direction):
+        raise ValueError(f"direction must be a finite non-zero (dx, dy); got {direction.tolist()}")
+    direction = direction / np.linalg.norm(direction)
+    if through is None:
+        anchor = cells.centres[np.argmax(np.abs(cells.values))]
+    else:
+        (anchor,) = _checked_centres(through, "through")
+    low, high = _bounding_box(geometry)
+    half_span = np.linalg.norm(high - low) + np.linalg.norm(anchor - 0.5 * (low + high))
+    distance = np.linspace(-half_span, half_span, n_points)
+    points = anchor + distance[:, None] * direction
+    index = _locate(geometry, points)
+    kept = index >= 0
+    if not np.any(kept):
+        raise ValueError(f"the line through {anchor.tolist()} along {direction.tolist()} misses the domain")
+    return CrossSection(distance=distance[kept], points=points[kept], values=cells.values[index[kept]])
+
+
+def _bounding_box(geometry: Geometry) -> tuple[np.ndarray, np.ndarray]:
+    if _is_mesh(geometry):
+        return geometry.nodes.min(axis=0), geometry.nodes.max(axis=0)
+    return np.array([geometry.x_edges[0], geometry.y_edges[0]]), np.array([geometry.x_edges[-1], geometry.y_edges[-1]])
+
+
+def _locate(geometry: Geometry, points: np.ndarray) -> np.ndarray:
+    """(P,) the index of the cell containing each point (among the value-carrying cells), -1 off
+    the domain."""
+    if _is_mesh(geometry):
+        finder = matplotlib.tri.Triangulation(geometry.nodes[:, 0], geometry.nodes[:, 1], geometry.triangles)
+        return np.asarray(finder.get_trifinder()(points[:, 0], points[:, 1]), dtype=int)
+    n_rows, n_columns = geometry.mask.shape
+    column = np.floor((points[:, 0] - geometry.x_edges[0]) / np.diff(geometry.x_edges[:2])[0]).astype(int)
+    row = np.floor((points[:, 1] - geometry.y_edges[0]) / np.diff(geometry.y_edges[:2])[0]).astype(int)
+    on_grid = (column >= 0) & (column < n_columns) & (row >= 0) & (row < n_rows)
+    index = np.full(geometry.mask.shape, -1)
+    index[geometry.mask] = np.arange(np.count_nonzero(geometry.mask))
+    return np.where(on_grid, index[np.clip(row, 0, n_rows - 1), np.clip(column, 0, n_columns - 1)], -1)
+
+
+# --- Correlation -------------------------------------------------------------------------------
+
+
+def correlation(geometry: Geometry, truth: np.ndarray, image: np.ndarray) -> float:
+    """Area-weighted Pearson correlation of two images on `geometry` (DESIGN.md):
+    cov_w(truth, image) / sqrt(var_w(truth) var_w(image)), weights a_k / sum a_k."""
+    truth_cells = _cells(geometry, truth, "truth")
+    cells = _cells(geometry, image)
+    for name, values in (("truth", truth_cells.values), ("image", cells.values)):
+        if np.ptp(values) == 0:
+            raise ValueError(f"correlation is undefined for a constant {name} (zero variance)")
+    weights = cells.areas / cells.areas.sum()
+    a = truth_cells.values - weights @ truth_cells.values
+    b = cells.values - weights @ cells.values
     return float((weights @ (a * b)) / np.sqrt((weights @ a**2) * (weights @ b**2)))
+
+
+# --- GREIT figures of merit --------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class GreitFigures:
+    """GREIT's figures of merit of one single-target image (`greit_figures`), dimensionless
+    except `radial_position_error` (m)."""
+
+    amplitude_response: float
+    radial_position_error: float
+    resolution: float
+    shape_deformation: float
+    ringing: float
+
+
+def greit_figures(
+    geometry: Geometry, image: np.ndarray, centre: Sequence[float], truth: np.ndarray, *, fraction: float = 0.25
+) -> GreitFigures:
+    """Adler et al. (2009)'s figures of merit of an image of one target at `centre` (x, y) m whose
+    true image on the same geometry is `truth`. With x_hat the image, S_q the amplitude set at
+    `fraction` (GREIT: a quarter of the peak), A_q its area, q its centroid, A_0 the domain's area,
+    o the domain's centroid and C the disc of area A_q centred on q (phi_k: part of cell k in C):
+
+    - amplitude response AR = sum_k a_k x_hat_k / sum_k a_k truth_k (1 for a perfect amplitude);
+    - position error PE = |centre - o| - |q - o| (m; radial: > 0 when the image is pulled towards
+      the middle, the sign Adler et al. use; DESIGN.md's position error is the distance instead);
+    - resolution RES = sqrt(A_q / A_0);
+    - shape deformation SD = sum_(k in S_q) a_k (1 - phi_k) / A_q;
+    - ringing RNG = sum_k a_k (1 - phi_k) max(0, -s x_hat_k) / sum_k a_k phi_k s x_hat_k with
+      s = sign(peak): the opposite-sign amplitude outside C over the amplitude inside C (>= 0).
+    """
+    (true_centre,) = _checked_centres(centre, "centre")
+    cells = _cells(geometry, image)
+    truth_cells = _cells(geometry, truth, "truth")
+    truth_integral = truth_cells.areas @ truth_cells.values
+    if truth_integral == 0:
+        raise ValueError("truth integrates to 0: the amplitude response is undefined")
+    chosen = _cell_set(cells, fraction)
+    area = cells.areas[chosen].sum()
+    centroid = cells.areas[chosen] @ cells.centres[chosen] / area
+    domain_centroid = cells.areas @ cells.centres / cells.areas.sum()
+    inside = _disc_fraction(geometry, centroid, np.sqrt(area / np.pi))
+    sign = np.sign(peak(cells.values))
+    signed = sign * cells.values
+    return GreitFigures(
+        amplitude_response=float(cells.areas @ cells.values / truth_integral),
+        radial_position_error=float(
+            np.linalg.norm(true_centre - domain_centroid) - np.linalg.norm(centroid - domain_centroid)
+        ),
+        resolution=float(np.sqrt(area / cells.areas.sum())),
+        shape_deformation=float(cells.areas[chosen] @ (1 - inside[chosen]) / area),
+        ringing=float((cells.areas * (1 - inside)) @ np.maximum(0.0, -signed) / ((cells.areas * inside) @ signed)),
+    )
