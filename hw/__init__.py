@@ -1,0 +1,29 @@
+"""diffeit's hardware module: measured frames from a serial port into a frames file.
+
+- `hw.frame`: the binary frame format (sync marker, version, counter, timestamp, layout,
+  values, CRCs) and the text lines of simple boards; `encode_frame`, `encode_text_line`.
+- `hw.parser`: `BinaryParser`, `TextParser`: streaming, resynchronising, counting every drop
+  (`DropStatistics`); the resynchronisation rule is in its docstring.
+- `hw.serial_port`: `SerialSource`, acquisition with pyserial (port names and URLs,
+  reconnection, host timestamps, an iterator and a callback API).
+- `hw.emulator`: `Emulator`, a device on a pseudo-terminal with fault injection and a
+  ground-truth log.
+- `hw.recorder`: `Recorder`, frames appended to a diffeit frames file as they arrive (HDF5,
+  SWMR), so that a kill loses at most the frame in flight; `read_recorded_frames`.
+
+`hw` depends on `diffeit.io` (and the protocols it stores) only.
+"""
+
+from .emulator import Emulator as Emulator
+from .emulator import Fault as Fault
+from .emulator import FaultRates as FaultRates
+from .emulator import plan_faults as plan_faults
+from .frame import Frame as Frame
+from .frame import encode_frame as encode_frame
+from .frame import encode_text_line as encode_text_line
+from .frame import layout_protocol as layout_protocol
+from .parser import BinaryParser as BinaryParser
+from .parser import DropStatistics as DropStatistics
+from .parser import TextParser as TextParser
+from .serial_port import DeviceLost as DeviceLost
+from .serial_port import SerialSource as SerialSource
