@@ -17,6 +17,7 @@ from . import linear_solve as linear_solve
 from . import mesh as mesh
 from . import metrics as metrics
 from . import protocol as protocol
+from . import scene as scene
 from . import render as render
 from .forward import ForwardModel as ForwardModel
 from .forward import Potentials as Potentials
@@ -26,5 +27,7 @@ from .linear_solve import DenseCholesky as DenseCholesky
 from .linear_solve import HostSparse as HostSparse
 from .mesh import Mesh as Mesh
 from .protocol import Protocol as Protocol
+from .scene import Scene as Scene
+from .scene import simulate as simulate
 
 __version__ = "0.1.0"

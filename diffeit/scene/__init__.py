@@ -1,1 +1,64 @@
-"""Scenes and effects: simulated experiments with ground truth."""
+"""Scenes and effects: describe an experiment on a skin and simulate exactly what it calls for.
+
+A `Scene` holds a `Skin` (sheet, electrodes, contact impedance, protocol), a `Background`
+(uniform, per region or a function; S/sq), `Touch`es (footprints `Disc`, `Ellipse`, `Polygon`
+with smooth edges; time courses `Press`, `Ramp`, `Path`), a frame rate and duration, and the
+effects to simulate (`EFFECTS`): the skin's memory (`MemoryParameters`), measurement noise
+(`MeasurementNoise` of a `Noise`), common-mode drift (`CommonModeDrift`), contact impedance
+drift (`ContactDrift`), open electrodes (`OpenElectrodes`) and electrode position error
+(`ElectrodePositionError`). Scenes load from and save to TOML (`Scene.from_toml`,
+`Scene.to_toml`); `example(name)` gives the shipped scenes of `EXAMPLES`.
+
+`simulate(scene)` runs the `pipeline` of the stages the scene declares and returns a
+`Simulation` (frames, times, reference, ground truth), saved to and read from the frames file
+of `diffeit.io` (`Simulation.save`, `read_simulation`). Each effect is also a pure function of
+its own (`stimulus`, `memory_response`, `add_noise`, `add_drift`, `contact_impedance`,
+`open_electrodes`, `pressure_to_change`) for use in fitting code.
+"""
+
+from ._instrument import NOISE_LEVELS as NOISE_LEVELS
+from ._instrument import OPEN_FACTOR as OPEN_FACTOR
+from ._instrument import CommonModeDrift as CommonModeDrift
+from ._instrument import ContactDrift as ContactDrift
+from ._instrument import Noise as Noise
+from ._instrument import add_drift as add_drift
+from ._instrument import add_noise as add_noise
+from ._instrument import contact_impedance as contact_impedance
+from ._instrument import lost_readings as lost_readings
+from ._instrument import open_contact_impedance as open_contact_impedance
+from ._instrument import open_electrodes as open_electrodes
+from ._memory import MemoryParameters as MemoryParameters
+from ._memory import MemoryState as MemoryState
+from ._memory import bare_skin as bare_skin
+from ._memory import integrate_memory as integrate_memory
+from ._memory import memory_response as memory_response
+from ._memory import over_foam as over_foam
+from ._scene import EFFECT_NAMES as EFFECT_NAMES
+from ._scene import EFFECTS as EFFECTS
+from ._scene import EXAMPLES as EXAMPLES
+from ._scene import Background as Background
+from ._scene import ElectrodePositionError as ElectrodePositionError
+from ._scene import FoamStack as FoamStack
+from ._scene import MeasurementNoise as MeasurementNoise
+from ._scene import OpenElectrodes as OpenElectrodes
+from ._scene import Region as Region
+from ._scene import Scene as Scene
+from ._scene import Skin as Skin
+from ._scene import example as example
+from ._scene import example_path as example_path
+from ._scene import pressure_to_change as pressure_to_change
+from ._simulate import Simulation as Simulation
+from ._simulate import Stage as Stage
+from ._simulate import pipeline as pipeline
+from ._simulate import read_simulation as read_simulation
+from ._simulate import simulate as simulate
+from ._stimuli import Disc as Disc
+from ._stimuli import Ellipse as Ellipse
+from ._stimuli import Path as Path
+from ._stimuli import Polygon as Polygon
+from ._stimuli import Press as Press
+from ._stimuli import Ramp as Ramp
+from ._stimuli import Touch as Touch
+from ._stimuli import shape_fraction as shape_fraction
+from ._stimuli import stimulus as stimulus
+from ._stimuli import touch_field as touch_field

@@ -1,0 +1,381 @@
+"""Scene files: reading TOML data into a `Scene` (checking every field, converting units) and
+writing a `Scene` back as SI numbers. The format is described in `diffeit.scene._scene`."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+import jax.numpy as jnp
+
+from .._arrays import concrete_floats
+from ._instrument import CommonModeDrift, ContactDrift, Noise
+from ._memory import MemoryParameters, bare_skin, over_foam
+from ._scene import (
+    EFFECT_NAMES,
+    EFFECTS,
+    GEOMETRY_KEYS,
+    SKIN_KINDS,
+    Background,
+    ElectrodePositionError,
+    FoamStack,
+    MeasurementNoise,
+    OpenElectrodes,
+    Region,
+    Scene,
+    Skin,
+    effect_name,
+    pressure_to_change,
+    thawed,
+)
+from ._stimuli import AbstractShape, AbstractTimeCourse, Disc, Ellipse, Path, Polygon, Press, Ramp, Touch
+from ._units import quantities
+
+# --- Reading --------------------------------------------------------------------------------
+
+
+class _Table:
+    """A TOML table being read: values by key, each converted once, unknown keys refused."""
+
+    def __init__(self, data: Any, path: str) -> None:
+        if not isinstance(data, Mapping):
+            raise ValueError(f"{path} must be a table; got {data!r}")
+        self.data, self.path, self.used = dict(data), path, set()
+
+    def field(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def raw(self, key: str, default: Any = None) -> Any:
+        self.used.add(key)
+        return self.data.get(key, default)
+
+    def get(self, key: str, kind: str, default: Any = None) -> Any:
+        """A quantity (or nested list of them) in SI units, or a time course table."""
+        self.used.add(key)
+        if key not in self.data:
+            return default
+        value = self.data[key]
+        if isinstance(value, Mapping):
+            return _course(_Table(value, self.field(key)), kind)
+        return quantities(value, kind, self.field(key))
+
+    def done(self) -> None:
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            known = ", ".join(sorted(self.used))
+            raise ValueError(f"{self.path or 'scene'}: unknown keys {unknown} (known here: {known})")
+
+
+def _course(table: _Table, kind: str) -> AbstractTimeCourse:
+    course = table.raw("kind")
+    smooth = table.raw("smooth", False)
+    if not isinstance(smooth, bool):
+        raise ValueError(f"{table.field('smooth')} must be true or false; got {smooth!r}")
+    if course == "press":
+        made = Press(
+            start=table.get("start", "time", 0.0),
+            ramp_in=table.get("ramp_in", "time", 0.0),
+            hold=table.get("hold", "time", 1.0),
+            ramp_out=table.get("ramp_out", "time", 0.0),
+            smooth=smooth,
+        )
+    elif course == "ramp":
+        made = Ramp(
+            initial=_required(table, "initial", kind),
+            final=_required(table, "final", kind),
+            start=table.get("start", "time", 0.0),
+            duration=table.get("duration", "time", 1.0),
+            smooth=smooth,
+        )
+    elif course == "path":
+        made = Path(times=_required(table, "times", "time"), values=_required(table, "values", kind), smooth=smooth)
+    else:
+        raise ValueError(f'{table.field("kind")} must be "press", "ramp" or "path"; got {course!r}')
+    table.done()
+    return made
+
+
+def _required(table: _Table, key: str, kind: str) -> Any:
+    if not table.has(key):
+        raise ValueError(f"{table.field(key)} is missing")
+    return table.get(key, kind)
+
+
+def _shape(table: _Table) -> AbstractShape:
+    kind = table.raw("shape", "disc")
+    with _naming(table.path):
+        if kind == "disc":
+            return Disc(centre=_required(table, "centre", "length"), radius=_required(table, "radius", "length"))
+        if kind == "ellipse":
+            return Ellipse(
+                centre=_required(table, "centre", "length"),
+                semi_axes=_required(table, "semi_axes", "length"),
+                angle=table.get("angle", "angle", 0.0),
+            )
+        if kind == "polygon":
+            return Polygon(vertices=_required(table, "vertices", "length"))
+    raise ValueError(f'{table.field("shape")} must be "disc", "ellipse" or "polygon"; got {kind!r}')
+
+
+@contextlib.contextmanager
+def _naming(path: str) -> Iterator[None]:
+    """Re-raise a constructor's ValueError ("Disc.radius must ...") prefixed by the field's path."""
+    try:
+        yield
+    except ValueError as error:
+        if str(error).startswith(path):
+            raise
+        raise ValueError(f"{path}: {error}") from None
+
+
+def _skin(table: _Table) -> Skin:
+    kind = table.raw("kind", "disc")
+    if kind not in SKIN_KINDS:
+        raise ValueError(f"skin.kind must be one of {SKIN_KINDS}; got {kind!r}")
+    geometry: dict[str, Any] = {"kind": kind}
+    for key, unit in GEOMETRY_KEYS[kind].items():
+        if table.has(key):
+            geometry[key] = table.raw(key) if unit is None else table.get(key, unit)
+    n = geometry.get("n_electrodes", 16)
+    if not isinstance(n, int) or isinstance(n, bool) or n < 2:
+        raise ValueError(f"skin.n_electrodes must be an integer >= 2; got {n!r}")
+    contact = table.get("contact_impedance", "contact impedance", 0.01)
+    skin = Skin(
+        geometry=geometry,
+        h=table.get("h", "length", 0.1),
+        simulation_h=table.get("simulation_h", "length"),
+        contact_impedance=jnp.asarray(contact, dtype=float) if isinstance(contact, list) else contact,
+        drive_current=table.get("drive_current", "current", 1e-3),
+        protocol=table.raw("protocol", "adjacent"),
+    )
+    table.done()
+    return skin
+
+
+def _background(table: _Table) -> Background:
+    regions = table.raw("regions", [])
+    if not isinstance(regions, list):
+        raise ValueError(f"background.regions must be an array of tables; got {regions!r}")
+    made = []
+    for index, data in enumerate(regions):
+        region = _Table(data, f"background.regions[{index}]")
+        shape = _shape(region)
+        with _naming(region.path):
+            made.append(
+                Region(
+                    shape,
+                    _required(region, "conductivity", "sheet conductivity"),
+                    region.get("edge_width", "length"),
+                )
+            )
+        region.done()
+    background = Background(table.get("conductivity", "sheet conductivity", 0.01), tuple(made))
+    table.done()
+    return background
+
+
+def _touch(table: _Table) -> Touch:
+    shape = _shape(table)
+    if table.has("amplitude") == table.has("pressure"):
+        raise ValueError(f"{table.path}: give either amplitude (dsigma/sigma) or pressure (kPa)")
+    if table.has("amplitude"):
+        amplitude = table.get("amplitude", "ratio")
+    else:
+        foam = table.raw("foam", {})
+        stack = _Table(foam, table.field("foam"))
+        with _naming(stack.path):
+            made = FoamStack(
+                **{
+                    key: stack.get(key, kind)
+                    for key, kind in (("sensitivity", "ratio"), ("knee", "pressure"), ("sensitivity_above", "ratio"))
+                    if stack.has(key)
+                }
+            )
+        stack.done()
+        with _naming(table.field("pressure")):
+            amplitude = float(pressure_to_change(table.get("pressure", "pressure"), made))
+    envelope = table.get("envelope", "ratio")
+    if envelope is not None and not isinstance(envelope, AbstractTimeCourse):
+        raise ValueError(f'{table.field("envelope")} must be a time course table such as {{kind = "press", ...}}')
+    with _naming(table.path):
+        touch = Touch(shape, amplitude, envelope, table.get("edge_width", "length"))
+    table.done()
+    return touch
+
+
+def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
+    with _naming(table.path):
+        if name == "memory":
+            preset = table.raw("preset", "over_foam")
+            presets = {"over_foam": over_foam, "bare_skin": bare_skin}
+            if preset not in presets:
+                raise ValueError(f"preset must be one of {sorted(presets)}; got {preset!r}")
+            base = presets[preset]()
+            units = {"fast_time": "time", "slow_time": "time", "fatigue_recovery_time": "time", "fatigue_rate": "rate"}
+            values = {f: table.get(f, units.get(f, "ratio")) for f in base.__dataclass_fields__ if table.has(f)}
+            made = MemoryParameters(**{**{f: getattr(base, f) for f in base.__dataclass_fields__}, **values})
+        elif name == "noise":
+            given = [key for key in ("level", "percent", "snr_db", "volts") if table.has(key)]
+            if len(given) != 1:
+                raise ValueError(f"give exactly one of level, percent, snr_db, volts; got {given or 'none'}")
+            key = given[0]
+            if key == "level":
+                noise = Noise.level(table.raw("level"))
+            else:
+                unit = {"percent": "ratio", "snr_db": "decibel", "volts": "voltage"}[key]
+                noise = Noise(table.get(key, unit), key)
+            made = MeasurementNoise(noise, table.raw("seed", 0))
+        elif name == "common_mode_drift":
+            units = {"offset": "voltage", "rate": "voltage", "amplitude": "voltage", "period": "time"}
+            units |= {"phase": "angle", "gain_rate": "rate"}
+            made = CommonModeDrift(**{key: table.get(key, unit) for key, unit in units.items() if table.has(key)})
+        elif name == "contact_drift":
+            made = ContactDrift(table.get("rate", "rate", 0.0), table.raw("kind", "exponential"))
+        elif name == "open_electrode":
+            made = OpenElectrodes(table.raw("electrodes"), table.get("fill", "voltage", 0.0))
+        else:
+            if table.has("offsets") == table.has("std"):
+                raise ValueError("give either offsets (one per electrode, metres) or std (metres) and seed")
+            if table.has("offsets"):
+                made = ElectrodePositionError(tuple(table.get("offsets", "length")))
+            else:
+                made = ElectrodePositionError.random(n_electrodes, table.get("std", "length"), table.raw("seed", 0))
+    table.done()
+    return made
+
+
+def scene_from_dict(data: Mapping[str, Any]) -> Scene:
+    top = _Table(data, "")
+    skin = _skin(_Table(top.raw("skin", {}), "skin"))
+    background = _background(_Table(top.raw("background", {}), "background"))
+    touches = top.raw("touches", [])
+    if not isinstance(touches, list):
+        raise ValueError(f"touches must be an array of tables ([[touches]]); got {touches!r}")
+    effects_table = top.raw("effects", {})
+    if not isinstance(effects_table, Mapping):
+        raise ValueError(f"effects must be a table of effect tables ([effects.noise], ...); got {effects_table!r}")
+    effects = []
+    for name, value in effects_table.items():
+        if name not in EFFECTS:
+            raise ValueError(f"effects.{name}: unknown effect; effects are {EFFECT_NAMES}")
+        effects.append(_effect(name, _Table(value, f"effects.{name}"), skin.n_electrodes))
+    for key in ("name", "description"):
+        if not isinstance(top.raw(key, ""), str):
+            raise ValueError(f"{key} must be a string")
+    scene = Scene(
+        skin=skin,
+        background=background,
+        touches=tuple(_touch(_Table(t, f"touches[{i}]")) for i, t in enumerate(touches)),
+        frame_rate=top.get("frame_rate", "frequency", 10.0),
+        duration=top.get("duration", "time", 1.0),
+        effects=tuple(effects),
+        name=top.raw("name", ""),
+        description=top.raw("description", ""),
+    )
+    top.done()
+    return scene
+
+
+# --- Writing --------------------------------------------------------------------------------
+
+
+def _plain(value: Any, name: str) -> Any:
+    """A concrete number or array as TOML data (floats, nested lists)."""
+    if isinstance(value, AbstractTimeCourse):
+        return _course_dict(value, name)
+    array = concrete_floats(value, name)
+    if array is None:
+        raise ValueError(f"{name} is traced: only a scene of values can be saved")
+    return array.tolist() if array.ndim else float(array)
+
+
+def _course_dict(course: AbstractTimeCourse, name: str) -> dict[str, Any]:
+    if isinstance(course, Press):
+        data = {
+            "kind": "press",
+            **{k: _plain(getattr(course, k), name) for k in ("start", "ramp_in", "hold", "ramp_out")},
+        }
+    elif isinstance(course, Ramp):
+        data = {
+            "kind": "ramp",
+            **{k: _plain(getattr(course, k), name) for k in ("initial", "final", "start", "duration")},
+        }
+    elif isinstance(course, Path):
+        data = {"kind": "path", "times": _plain(course.times, name), "values": _plain(course.values, name)}
+    else:
+        raise ValueError(f"{name}: a {type(course).__name__} cannot be saved in a scene file")
+    if course.smooth:
+        data["smooth"] = True
+    return data
+
+
+def _shape_dict(shape: AbstractShape, name: str) -> dict[str, Any]:
+    if isinstance(shape, Disc):
+        return {"shape": "disc", "centre": _plain(shape.centre, name), "radius": _plain(shape.radius, name)}
+    if isinstance(shape, Ellipse):
+        return {
+            "shape": "ellipse",
+            "centre": _plain(shape.centre, name),
+            "semi_axes": _plain(shape.semi_axes, name),
+            "angle": _plain(shape.angle, name),
+        }
+    if isinstance(shape, Polygon):
+        return {"shape": "polygon", "vertices": _plain(shape.vertices, name)}
+    raise ValueError(f"{name}: a {type(shape).__name__} cannot be saved in a scene file")
+
+
+def _effect_dict(effect: Any) -> dict[str, Any]:
+    name = effect_name(effect)
+    where = f"effects.{name}"
+    if isinstance(effect, MeasurementNoise):
+        return {effect.noise.kind: _plain(effect.noise.value, where), "seed": effect.seed}
+    if isinstance(effect, ContactDrift):
+        return {"rate": _plain(effect.rate, where), "kind": effect.kind}
+    if isinstance(effect, OpenElectrodes):
+        return {"electrodes": list(effect.electrodes), "fill": effect.fill}
+    if isinstance(effect, ElectrodePositionError):
+        return {"offsets": list(effect.offsets)}
+    return {f: _plain(getattr(effect, f), f"{where}.{f}") for f in effect.__dataclass_fields__}
+
+
+def scene_to_dict(scene: Scene) -> dict[str, Any]:
+    skin = scene.skin
+    skin_data = {**thawed(skin.geometry), "h": skin.h, "simulation_h": skin.simulation_h}
+    skin_data |= {
+        "contact_impedance": _plain(skin.contact_impedance, "skin.contact_impedance"),
+        "drive_current": skin.drive_current,
+        "protocol": skin.protocol,
+    }
+    background = scene.background
+    if background.function is not None:
+        raise ValueError("background.function is a Python function: a scene file holds numbers and regions only")
+    regions = []
+    for index, region in enumerate(background.regions):
+        where = f"background.regions[{index}]"
+        data = {**_shape_dict(region.shape, where), "conductivity": _plain(region.conductivity, where)}
+        if region.edge_width is not None:
+            data["edge_width"] = _plain(region.edge_width, where)
+        regions.append(data)
+    touches = []
+    for index, touch in enumerate(scene.touches):
+        where = f"touches[{index}]"
+        data = {**_shape_dict(touch.shape, where), "amplitude": _plain(touch.amplitude, where)}
+        if touch.envelope is not None:
+            data["envelope"] = _course_dict(touch.envelope, where)
+        if touch.edge_width is not None:
+            data["edge_width"] = _plain(touch.edge_width, where)
+        touches.append(data)
+    data: dict[str, Any] = {"name": scene.name, "description": scene.description}
+    data |= {"frame_rate": float(scene.frame_rate), "duration": float(scene.duration), "skin": skin_data}
+    data["background"] = {"conductivity": _plain(background.conductivity, "background.conductivity")}
+    if regions:
+        data["background"]["regions"] = regions
+    if touches:
+        data["touches"] = touches
+    if scene.effects:
+        data["effects"] = {effect_name(e): _effect_dict(e) for e in scene.effects}
+    return data

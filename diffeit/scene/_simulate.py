@@ -1,0 +1,381 @@
+"""The simulator: a pipeline of the stages a scene declares, and its result.
+
+`pipeline(scene)` builds the stages from the scene alone: touches, then the memory effect, the
+conductivity per frame, the contact impedance per frame (drift, open electrodes), one forward
+solve per distinct state, then the instrument (common-mode drift, noise, lost readings). A stage
+exists only when the scene calls for it: a scene without memory never runs the integrator, one
+without noise returns exact voltages, and a static scene costs one forward solve. Each stage is
+a small frozen dataclass, a pure function of the `Frames` flowing through (`stage(frames) ->
+frames`), so `simulate` is differentiable in every continuous parameter of the scene (a
+`Scene` is a pytree): `jax.grad(lambda s: loss(simulate(s).frames))(scene)`.
+
+Conventions: conductivity in S/sq, times in seconds, voltages in volts, contact impedance in
+ohm m. The reference frame is the untouched skin (its background) at the first frame time,
+measured like a frame (drift, noise and lost readings apply to it too).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path as FilePath
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from .. import io
+from .._arrays import is_concrete
+from ..forward import ForwardModel
+from ..mesh import Mesh, interpolate
+from ..protocol import Protocol
+from ._instrument import (
+    CommonModeDrift,
+    ContactDrift,
+    add_drift,
+    add_noise,
+    contact_impedance,
+    lost_readings,
+    open_contact_impedance,
+)
+from ._memory import MemoryParameters, memory_response
+from ._scene import MeasurementNoise, OpenElectrodes, Scene
+from ._stimuli import Touch, stimulus
+
+# Forward solves per batch: one host call each, and one step of the progress bar.
+_SOLVES_PER_BATCH = 16
+# Sample points per element for touch and background fields (level^2).
+_LEVEL = 8
+
+
+@dataclass(frozen=True)
+class State:
+    """What flows through the pipeline; a stage fills or transforms some fields.
+
+    - `times` (T,) s; `background` (E,) S/sq on the simulation mesh.
+    - `stimulus` (T, E): dsigma/sigma of the touches (None without touches).
+    - `response` (T, E): the skin's dsigma/sigma after its memory (the stimulus without memory).
+    - `conductivity` (T, E) S/sq; `contact_impedance` (T, L) ohm m (None: the skin's, constant).
+    - `frames` (T, M) and `reference` (M,) volts; `lost` (M,) readings lost to open electrodes.
+    - `solves`: forward solves run (distinct states, reference included).
+    """
+
+    times: jax.Array
+    background: jax.Array
+    stimulus: jax.Array | None = None
+    response: jax.Array | None = None
+    conductivity: jax.Array | None = None
+    contact_impedance: jax.Array | None = None
+    reference_contact_impedance: jax.Array | None = None
+    frames: jax.Array | None = None
+    reference: jax.Array | None = None
+    lost: np.ndarray | None = None
+    solves: int = 0
+
+    def replace(self, **changes: Any) -> State:
+        return dataclasses.replace(self, **changes)
+
+
+# --- Stages ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Touches:
+    """The touches' stimulus dsigma/sigma per frame and element (`diffeit.scene.stimulus`)."""
+
+    name: ClassVar[str] = "touches"
+    mesh: Mesh
+    touches: tuple[Touch, ...]
+
+    def __call__(self, state: State) -> State:
+        change = stimulus(self.mesh, self.touches, state.times, level=_LEVEL)
+        return state.replace(stimulus=change, response=change)
+
+
+@dataclass(frozen=True, eq=False)
+class Memory:
+    """The skin's viscoelastic memory of the stimulus (`diffeit.scene.memory_response`)."""
+
+    name: ClassVar[str] = "memory"
+    parameters: MemoryParameters
+
+    def __call__(self, state: State) -> State:
+        return state.replace(response=memory_response(state.stimulus, state.times, self.parameters))
+
+
+@dataclass(frozen=True, eq=False)
+class Conductivity:
+    """sigma = background (1 + response), per frame (S/sq); the background alone without touches."""
+
+    name: ClassVar[str] = "conductivity"
+
+    def __call__(self, state: State) -> State:
+        if state.response is None:
+            conductivity = jnp.broadcast_to(state.background, (len(state.times), len(state.background)))
+        else:
+            conductivity = state.background * (1 + state.response)
+        return state.replace(conductivity=conductivity)
+
+
+@dataclass(frozen=True, eq=False)
+class ContactImpedance:
+    """Contact impedance per frame and electrode (ohm m): the skin's, drifting when declared, and
+    open electrodes' multiplied by `OPEN_FACTOR`."""
+
+    name: ClassVar[str] = "contact impedance"
+    initial: jax.Array
+    drift: ContactDrift | None
+    open_electrodes: tuple[int, ...]
+
+    def __call__(self, state: State) -> State:
+        times = jnp.concatenate([state.times[:1], state.times])
+        if self.drift is None:
+            z = jnp.broadcast_to(self.initial, (len(times), len(self.initial)))
+        else:
+            z = contact_impedance(self.initial, times, self.drift)
+        if self.open_electrodes:
+            z = open_contact_impedance(z, self.open_electrodes)
+        return state.replace(reference_contact_impedance=z[0], contact_impedance=z[1:])
+
+
+@dataclass(frozen=True, eq=False)
+class Forward:
+    """Voltages of every frame and of the reference, one forward solve per distinct state.
+
+    On concrete inputs, frames whose conductivity and contact impedance are equal bit for bit
+    share one solve (a static scene costs one); traced inputs (under jax.grad or jit) solve every
+    frame. Solves run in batches of `_SOLVES_PER_BATCH` with a progress bar when there are many."""
+
+    name: ClassVar[str] = "forward"
+    model: ForwardModel
+    progress: bool = True
+
+    def __call__(self, state: State) -> State:
+        conductivity = jnp.concatenate([state.background[None], state.conductivity])
+        z = jnp.concatenate([state.reference_contact_impedance[None], state.contact_impedance])
+        if is_concrete(conductivity) and is_concrete(z):
+            rows = np.concatenate([np.asarray(conductivity), np.asarray(z)], axis=1)
+            _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+            distinct = np.sort(first)
+            where = np.argsort(np.argsort(first))[inverse.ravel()]
+            voltages = self._solve(conductivity[distinct], z[distinct])[where]
+            solves = len(distinct)
+        else:
+            voltages = self._solve(conductivity, z)
+            solves = len(conductivity)
+        return state.replace(reference=voltages[0], frames=voltages[1:], solves=solves)
+
+    def _solve(self, conductivity: jax.Array, z: jax.Array) -> jax.Array:
+        measure = jax.vmap(self.model.measure)
+        starts = range(0, len(conductivity), _SOLVES_PER_BATCH)
+        bar = tqdm(
+            starts, desc="forward solves", unit="batch", disable=True if len(starts) < 8 or not self.progress else None
+        )
+        return jnp.concatenate(
+            [measure(conductivity[k : k + _SOLVES_PER_BATCH], z[k : k + _SOLVES_PER_BATCH]) for k in bar]
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class AddDrift:
+    """Common-mode drift of all readings (`diffeit.scene.add_drift`); the reference at the
+    first frame time."""
+
+    name: ClassVar[str] = "common-mode drift"
+    drift: CommonModeDrift
+
+    def __call__(self, state: State) -> State:
+        frames = add_drift(state.frames, state.times, self.drift)
+        reference = add_drift(state.reference[None], state.times[:1], self.drift)[0]
+        return state.replace(frames=frames, reference=reference)
+
+
+@dataclass(frozen=True, eq=False)
+class AddNoise:
+    """Measurement noise on every reading of the frames and of the reference (independent
+    draws, `jax.random.key(seed)`), its scale set by the noise-free reference."""
+
+    name: ClassVar[str] = "noise"
+    noise: MeasurementNoise
+
+    def __call__(self, state: State) -> State:
+        frame_key, reference_key = jax.random.split(jax.random.key(self.noise.seed))
+        frames = add_noise(state.frames, state.reference, self.noise.noise, frame_key)
+        reference = add_noise(state.reference[None], state.reference, self.noise.noise, reference_key)[0]
+        return state.replace(frames=frames, reference=reference)
+
+
+@dataclass(frozen=True, eq=False)
+class LostReadings:
+    """Readings lost to open electrodes set to `fill` volts, and their mask."""
+
+    name: ClassVar[str] = "lost readings"
+    protocol: Protocol
+    open_electrodes: OpenElectrodes
+
+    def __call__(self, state: State) -> State:
+        lost = lost_readings(self.protocol, self.open_electrodes.electrodes)
+        fill = jnp.asarray(self.open_electrodes.fill, dtype=state.frames.dtype)
+        return state.replace(
+            frames=jnp.where(lost, fill, state.frames), reference=jnp.where(lost, fill, state.reference), lost=lost
+        )
+
+
+Stage = Touches | Memory | Conductivity | ContactImpedance | Forward | AddDrift | AddNoise | LostReadings
+
+
+def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
+    """The stages that simulate `scene`, in order: only those its touches and effects call for."""
+    mesh = scene.simulation_mesh()
+    skin = scene.skin
+    stages: list[Stage] = []
+    if scene.touches:
+        stages.append(Touches(mesh, scene.touches))
+        memory = scene.effect("memory")
+        if memory is not None:
+            stages.append(Memory(memory))
+    stages.append(Conductivity())
+    opened = scene.effect("open_electrode")
+    stages.append(
+        ContactImpedance(
+            skin.contact_impedances(), scene.effect("contact_drift"), () if opened is None else opened.electrodes
+        )
+    )
+    model = ForwardModel(mesh, skin.make_protocol(), skin.contact_impedances(), drive_current=skin.drive_current)
+    stages.append(Forward(model, progress))
+    drift = scene.effect("common_mode_drift")
+    if drift is not None:
+        stages.append(AddDrift(drift))
+    noise = scene.effect("noise")
+    if noise is not None:
+        stages.append(AddNoise(noise))
+    if opened is not None:
+        stages.append(LostReadings(model.protocol, opened))
+    return tuple(stages)
+
+
+# --- Simulation -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """A simulated scene: what a recording would hold, with the ground truth.
+
+    - `frames` (T, M) volts, in the protocol's order and sign; `times` (T,) seconds;
+      `reference` (M,) volts, the untouched skin.
+    - `truth` (T, E) the true sheet conductivity per frame on `mesh`, the simulation mesh, S/sq;
+      `truth_on(mesh)` interpolates it onto a reconstruction mesh.
+    - `lost` (M,) boolean, readings lost to open electrodes (None without them).
+    - `scene`, `protocol`, `stages` (the names of the stages run) and `solves` (forward solves).
+
+    Arrays stay JAX arrays, so gradients flow through `simulate`; `save` writes a frames file
+    of `diffeit.io` and `read_simulation` reads it back.
+    """
+
+    scene: Scene
+    mesh: Mesh
+    protocol: Protocol
+    times: jax.Array
+    frames: jax.Array
+    reference: jax.Array
+    truth: jax.Array
+    lost: np.ndarray | None
+    stages: tuple[str, ...]
+    solves: int
+
+    def truth_on(self, mesh: Mesh) -> np.ndarray:
+        """(T, E') the true conductivity (S/sq) on `mesh` (same skin), conservatively interpolated
+        (`diffeit.mesh.interpolate`: element means of the overlaps)."""
+        return np.asarray(interpolate(self.mesh, mesh, np.asarray(self.truth).T).T)
+
+    def truth_change_on(self, mesh: Mesh) -> np.ndarray:
+        """(T, E') the true conductivity change from the untouched skin (S/sq) on `mesh`."""
+        background = np.asarray(self.scene.background.values_on(self.mesh, level=_LEVEL))
+        return np.asarray(interpolate(self.mesh, mesh, (np.asarray(self.truth) - background).T).T)
+
+    def to_recording(self) -> io.Recording:
+        """The simulation as a `diffeit.io.Recording`: frames, times, reference, the simulation
+        mesh with the truth as its images ("conductivity"), the reconstruction mesh's geometry,
+        and the scene in the provenance metadata."""
+        skin = self.scene.skin
+        metadata = {
+            "scene": self.scene.to_dict(),
+            "images": "ground truth: the true sheet conductivity on the simulation mesh",
+            "stages": list(self.stages),
+            "solves": self.solves,
+            "lost_readings": [] if self.lost is None else np.flatnonzero(self.lost).tolist(),
+        }
+        return io.Recording(
+            frames=np.asarray(self.frames),
+            times=np.asarray(self.times),
+            protocol=self.protocol,
+            reference=np.asarray(self.reference),
+            mesh=self.mesh,
+            geometry=skin.geometry_with_h(skin.h),
+            provenance={"source": f"diffeit simulate {self.scene.name}".rstrip(), "metadata": metadata},
+            images=np.asarray(self.truth),
+            image_quantity="conductivity",
+        )
+
+    def save(self, path: str | FilePath, *, overwrite: bool = False) -> FilePath:
+        """Write the frames file (`diffeit.io.write_frames`)."""
+        return io.write_frames(path, self.to_recording(), overwrite=overwrite)
+
+
+def read_simulation(path: str | FilePath) -> Simulation:
+    """A `Simulation` saved by `Simulation.save`, read back identically."""
+    recording = io.read_frames(path)
+    metadata = recording.provenance.get("metadata", {})
+    if "scene" not in metadata or recording.images is None or recording.mesh is None:
+        raise ValueError(f"{path} is a frames file but not a simulation (no scene, truth or mesh)")
+    lost = None
+    if metadata["scene"].get("effects", {}).get("open_electrode") is not None:
+        lost = np.zeros(recording.n_measurements, dtype=bool)
+        lost[metadata["lost_readings"]] = True
+    return Simulation(
+        scene=Scene.from_dict(metadata["scene"]),
+        mesh=recording.mesh,
+        protocol=recording.protocol,
+        times=jnp.asarray(recording.times),
+        frames=jnp.asarray(recording.frames),
+        reference=jnp.asarray(recording.reference),
+        truth=jnp.asarray(recording.images),
+        lost=lost,
+        stages=tuple(metadata["stages"]),
+        solves=int(metadata["solves"]),
+    )
+
+
+def simulate(scene: Scene, *, progress: bool = True) -> Simulation:
+    """Simulate `scene`: build its `pipeline` and run the stages in order.
+
+    Returns a `Simulation`. Differentiable in the scene's continuous parameters (module
+    docstring); `progress` shows a bar over the forward solves of long scenes.
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"simulate needs a diffeit.Scene; got {type(scene).__name__}")
+    stages = pipeline(scene, progress=progress)
+    forward = _forward(stages)
+    mesh = forward.model.mesh
+    state = State(times=jnp.asarray(scene.times), background=scene.background.values_on(mesh, level=_LEVEL))
+    for stage in stages:
+        state = stage(state)
+    return Simulation(
+        scene=scene,
+        mesh=mesh,
+        protocol=forward.model.protocol,
+        times=state.times,
+        frames=state.frames,
+        reference=state.reference,
+        truth=state.conductivity,
+        lost=state.lost,
+        stages=tuple(stage.name for stage in stages),
+        solves=state.solves,
+    )
+
+
+def _forward(stages: Sequence[Stage]) -> Forward:
+    return next(stage for stage in stages if isinstance(stage, Forward))
