@@ -25,5 +25,8 @@ from .frame import layout_protocol as layout_protocol
 from .parser import BinaryParser as BinaryParser
 from .parser import DropStatistics as DropStatistics
 from .parser import TextParser as TextParser
+from .recorder import Recorder as Recorder
+from .recorder import read_recorded_frames as read_recorded_frames
+from .recorder import recorded_statistics as recorded_statistics
 from .serial_port import DeviceLost as DeviceLost
 from .serial_port import SerialSource as SerialSource

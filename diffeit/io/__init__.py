@@ -35,11 +35,15 @@ The frames file (HDF5, schema "diffeit.frames", version 1):
                      arguments, lengths in metres, e.g. n_electrodes, electrode_width, h, radius)
 /images              (T, E) float64 on /mesh, attributes units = "S/sq" and     [optional]
                      quantity = "conductivity change" | "conductivity"
+/committed_frames    () int64: the frames (and times) a recorder committed; rows  [optional]
+                     beyond it are the frame in flight when it was stopped, and are not read
+/acquisition/        written by hw.Recorder (counters, device times, drop statistics) [optional]
 ```
 
 n_meas is the protocol's number of readings and L its number of electrodes. Frames are in the
 protocol's order and sign (for `adjacent(16)`, EIDORS's). Files are written in the HDF5 1.10
-format, which single-writer/multiple-reader (SWMR) access needs.
+format, which single-writer/multiple-reader (SWMR) access needs; `read_frames` reads a file a
+recorder is still writing, or was writing when it was killed, through SWMR access.
 """
 
 from ._eidors import read_eidors_mat as read_eidors_mat

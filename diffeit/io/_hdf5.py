@@ -103,11 +103,19 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
             raise ValueError("frames or times to append hold non-finite values (NaN or inf)")
         if stored_times.shape != (n_old,):
             raise ValueError(f"{path}: times have shape {stored_times.shape}; frames {stored.shape}")
+        committed = _committed_frames(file)
+        if committed is not None and committed != n_old:
+            raise ValueError(
+                f"{path} holds {n_old} frame rows of which {committed} are committed (a recorder was interrupted); "
+                "read it with read_frames and write a new file"
+            )
         n_new = n_old + len(frames)
         stored.resize(n_new, axis=0)
         stored_times.resize(n_new, axis=0)
         stored[n_old:] = frames
         stored_times[n_old:] = times
+        if committed is not None:
+            file["committed_frames"][()] = n_new
     return n_new
 
 
@@ -175,7 +183,14 @@ def _read(file: h5py.File) -> Recording:
     drive_index = _dataset(file, "protocol/drive_index")[()]
     protocol = _protocol(drive, measure, drive_index)
     frames_dataset = _dataset(file, "frames")
-    frames = frames_dataset[()]
+    times_dataset = _dataset(file, "times")
+    committed = _committed_frames(file)
+    frames = frames_dataset[()] if committed is None else frames_dataset[:committed]
+    times = times_dataset[()] if committed is None else times_dataset[:committed]
+    if committed is not None and not (committed <= len(frames_dataset) and committed <= len(times_dataset)):
+        raise ValueError(
+            f"committed_frames is {committed} but frames hold {len(frames_dataset)} rows and times {len(times_dataset)}"
+        )
     if frames.ndim != 2 or frames.shape[1] != protocol.n_measurements:
         raise ValueError(
             f"frames have shape {frames.shape}; the protocol has {protocol.n_measurements} readings, "
@@ -210,7 +225,7 @@ def _read(file: h5py.File) -> Recording:
         quantity = str(file["images"].attrs.get("quantity", "conductivity change"))
     return Recording(
         frames=frames,
-        times=_dataset(file, "times")[()],
+        times=times,
         protocol=protocol,
         reference=_dataset(file, "reference")[()] if "reference" in file else None,
         mesh=mesh,
@@ -244,6 +259,16 @@ def _check_schema(file: h5py.File) -> None:
         )
 
 
+def _committed_frames(file: h5py.File) -> int | None:
+    """The committed frame count of a recorder's file, None when the file has none."""
+    if "committed_frames" not in file:
+        return None
+    value = _dataset(file, "committed_frames")[()]
+    if np.ndim(value) != 0 or not np.issubdtype(np.asarray(value).dtype, np.integer) or value < 0:
+        raise ValueError(f"committed_frames must be a non-negative integer; got {value!r}")
+    return int(value)
+
+
 def _dataset(file: h5py.File, name: str) -> h5py.Dataset:
     if name not in file:
         raise ValueError(f"the dataset {name!r} is missing")
@@ -260,7 +285,14 @@ def _open(path: Path, mode: str):
     try:
         file = h5py.File(path, mode)
     except OSError as error:
-        raise ValueError(f"{path} is not a readable HDF5 file ({error})") from None
+        if mode != "r":
+            raise ValueError(f"{path} is not a readable HDF5 file ({error})") from None
+        try:
+            # A file a recorder is writing, or was writing when it was killed, is marked open
+            # for writing; single-writer/multiple-reader access reads it all the same.
+            file = h5py.File(path, "r", swmr=True)
+        except OSError:
+            raise ValueError(f"{path} is not a readable HDF5 file ({error})") from None
     with file:
         yield file
 

@@ -1,0 +1,214 @@
+"""The recorder: frames appended to a diffeit frames file as they arrive, safe against kills.
+
+`Recorder(path, protocol, ...)` creates a frames file (`diffeit.io.write_frames`, no frames
+yet), adds the `/acquisition` group and switches the file to single-writer/multiple-reader
+(SWMR) mode. `append(frames, statistics)` writes each batch in this order: the rows of
+`/frames`, `/times`, `/acquisition/counter` and `/acquisition/device_time`; a flush and an
+fsync; then `/committed_frames` and `/acquisition/drops`; a flush and an fsync. Readers take the
+first `/committed_frames` rows only, so a kill or a power cut at any instant loses at most the
+batch being written (the recorder of `diffeit acquire` writes one frame a batch), and never
+yields a half-written row. The file stays readable meanwhile and afterwards:
+`diffeit.io.read_frames` (a `Recording`) and `read_recorded_frames` (`hw.Frame`s with counters
+and timestamps). `close()` leaves SWMR mode and stores the final drop statistics in the
+provenance metadata as well.
+
+Additions to the frames file (all under `/acquisition`, written by the recorder only):
+
+```
+counter        (T,) int64: each frame's device counter, -1 for text lines (no counter)
+device_time    (T,) float64: seconds on the device's clock, NaN for text lines (none)
+drops          (K,) int64: the latest DropStatistics, attribute kinds (K,) names its entries
+```
+`/times` holds host times in seconds since `host_time_origin` (seconds since the Unix epoch,
+in the provenance metadata): the recorder's start.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from diffeit.io import Recording, read_frames, write_frames
+from diffeit.protocol import Protocol
+
+from .frame import Frame
+from .parser import DropStatistics
+
+_KINDS = tuple(field.name for field in dataclasses.fields(DropStatistics))
+_CHUNK_ROWS = 64
+
+
+class Recorder:
+    """Appends frames under `protocol` to a new frames file at `path` (see the module docstring).
+
+    - `metadata`: JSON-serialisable facts about the device and the run (port, baud rate,
+      firmware, operator); stored in the provenance metadata with `host_time_origin`.
+    - `source`: the provenance source line.
+    - `reference`: (n_meas,) a reference frame, volts, or None.
+    - `geometry`: the sheet, as `diffeit.io.Recording` takes it, or None.
+    - `voltage_unit`: "V" (default) or "arbitrary" for devices reporting raw units.
+    - `overwrite`: replace an existing file (default: refuse, `FileExistsError`).
+    - `durable`: fsync after every batch (default), so a power cut loses at most that batch;
+      False only flushes to the operating system (a killed process still loses nothing more).
+
+    Use as a context manager (closes on exit, also after an exception).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        protocol: Protocol,
+        *,
+        metadata: Mapping[str, Any] | None = None,
+        source: str = "hw.Recorder",
+        reference: np.ndarray | None = None,
+        geometry: Mapping[str, Any] | None = None,
+        voltage_unit: str = "V",
+        overwrite: bool = False,
+        durable: bool = True,
+    ) -> None:
+        self.path = Path(path)
+        self.protocol = protocol
+        self.durable = durable
+        self.host_time_origin = time.time()
+        self._metadata = {**(metadata or {}), "host_time_origin": self.host_time_origin, "recorder": "hw.Recorder"}
+        n_meas = protocol.n_measurements
+        write_frames(
+            self.path,
+            Recording(
+                frames=np.empty((0, n_meas)),
+                times=np.empty(0),
+                protocol=protocol,
+                reference=reference,
+                geometry=geometry,
+                provenance={"source": source, "metadata": self._metadata},
+                voltage_unit=voltage_unit,
+            ),
+            overwrite=overwrite,
+        )
+        self._file = h5py.File(self.path, "r+", libver="v110")
+        acquisition = self._file.create_group("acquisition")
+        for name, dtype in (("counter", np.int64), ("device_time", np.float64)):
+            acquisition.create_dataset(name, shape=(0,), dtype=dtype, maxshape=(None,), chunks=(_CHUNK_ROWS,))
+        acquisition["device_time"].attrs["units"] = "s"
+        drops = acquisition.create_dataset("drops", data=np.zeros(len(_KINDS), dtype=np.int64))
+        drops.attrs["kinds"] = list(_KINDS)
+        self._file.create_dataset("committed_frames", data=np.int64(0))
+        self._file.swmr_mode = True  # from here on: appends only, readable at every instant
+        self._statistics = DropStatistics()
+        self.n_frames = 0
+
+    def append(self, frames: Frame | Sequence[Frame], statistics: DropStatistics | None = None) -> int:
+        """Append a frame or a batch of frames (values in the recorder's protocol, volts) and,
+        optionally, the source's latest statistics; returns the frames the file now holds.
+
+        Raises `ValueError` for frames of another length or with non-finite values (the file
+        is unchanged then), and for a closed recorder.
+        """
+        if self._file is None:
+            raise ValueError(f"the recorder of {self.path} is closed")
+        batch = [frames] if isinstance(frames, Frame) else list(frames)
+        n_meas = self.protocol.n_measurements
+        for frame in batch:
+            if frame.n_values != n_meas:
+                raise ValueError(f"a frame of {frame.n_values} values; {self.path} records {n_meas}-value frames")
+            if not np.all(np.isfinite(frame.values)):
+                raise ValueError("a frame holds non-finite values (NaN or inf); nothing was written")
+        if statistics is not None:
+            self._statistics = statistics
+        if batch:
+            now = time.time()
+            host_times = [now if f.host_time is None else f.host_time for f in batch]
+            device_times = [np.nan if f.device_time is None else f.device_time for f in batch]
+            rows = {
+                "frames": np.array([frame.values for frame in batch]),
+                "times": np.array(host_times) - self.host_time_origin,
+                "acquisition/counter": np.array([-1 if f.counter is None else f.counter for f in batch]),
+                "acquisition/device_time": np.array(device_times),
+            }
+            start, end = self.n_frames, self.n_frames + len(batch)
+            for name, values in rows.items():
+                dataset = self._file[name]
+                dataset.resize(end, axis=0)
+                dataset[start:end] = values
+            self._sync()
+            self.n_frames = end
+        self._file["committed_frames"][()] = self.n_frames
+        self._file["acquisition/drops"][:] = [getattr(self._statistics, kind) for kind in _KINDS]
+        self._sync()
+        return self.n_frames
+
+    def close(self) -> None:
+        """Leave SWMR mode and store the final statistics in the provenance metadata."""
+        if self._file is None:
+            return
+        self._file.close()
+        self._file = None
+        with h5py.File(self.path, "r+") as file:
+            metadata = {**json.loads(file.attrs["metadata"]), "drop_statistics": self._statistics.as_dict()}
+            file.attrs["metadata"] = json.dumps(metadata)
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def _sync(self) -> None:
+        self._file.flush()
+        if self.durable:
+            os.fsync(self._file.id.get_vfd_handle())
+
+
+def read_recorded_frames(path: str | os.PathLike) -> Iterator[Frame]:
+    """The frames of a recorder's file as `hw.Frame`s (values, counter, device_time,
+    host_time in seconds since the Unix epoch), in the order they arrived; also from a file
+    whose recorder is still running or was killed (its committed frames)."""
+    recording = read_frames(path)
+    counters, device_times = _acquisition(path, recording.n_frames)
+    origin = float(recording.provenance.get("metadata", {}).get("host_time_origin", 0.0))
+    for values, time_, counter, device_time in zip(
+        recording.frames, recording.times, counters, device_times, strict=True
+    ):
+        yield Frame(
+            values,
+            counter=None if counter < 0 else int(counter),
+            device_time=None if np.isnan(device_time) else float(device_time),
+            host_time=origin + float(time_),
+        )
+
+
+def recorded_statistics(path: str | os.PathLike) -> DropStatistics:
+    """The drop statistics a recorder's file holds (the latest it committed)."""
+    with _open_acquisition(path) as file:
+        drops = file["acquisition/drops"]
+        kinds = [str(kind) for kind in drops.attrs["kinds"]]
+        return DropStatistics(**{kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)})
+
+
+def _acquisition(path: str | os.PathLike, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    with _open_acquisition(path) as file:
+        counters = file["acquisition/counter"][:n_frames]
+        device_times = file["acquisition/device_time"][:n_frames]
+    if len(counters) != n_frames or len(device_times) != n_frames:
+        raise ValueError(f"{path}: /acquisition holds fewer rows than the {n_frames} committed frames")
+    return counters, device_times
+
+
+def _open_acquisition(path: str | os.PathLike) -> h5py.File:
+    try:
+        file = h5py.File(path, "r")
+    except OSError:
+        file = h5py.File(path, "r", swmr=True)  # still being written, or its writer was killed
+    if "acquisition" not in file:
+        file.close()
+        raise ValueError(f"{path} was not written by hw.Recorder (it has no /acquisition group)")
+    return file
