@@ -31,7 +31,7 @@ protocol = "adjacent"             # "adjacent" | "opposite" | "skip K"
 conductivity = 0.01               # S/sq
 [[background.regions]]            # optional: regions of another conductivity, in order
 shape = "polygon"                 # "disc" | "ellipse" | "polygon", as touches
-vertices = [[0, -1.1], [1.1, -1.1], [1.1, 1.1], [0, 1.1]]
+vertices = [[0, -2], [2, -2], [2, 2], [0, 2]]   # the right half; edges well beyond the rim
 conductivity = 0.002
 
 [[touches]]
