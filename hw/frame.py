@@ -159,7 +159,8 @@ def encode_frame(
         stored = np.round(stored)
         limits = np.iinfo(dtype)
         if stored.min() < limits.min or stored.max() > limits.max:
-            raise ValueError(f"values / scale span {stored.min()}..{stored.max()}; {value_type} holds {limits}")
+            span = f"{stored.min():.0f}..{stored.max():.0f}"
+            raise ValueError(f"values / scale span {span}; {value_type} holds {limits.min}..{limits.max}")
     header = SYNC + _HEADER.pack(
         VERSION, code, layout, 0 if protocol is None else n_electrodes, len(values), counter,
         round(device_time * 1e6), scale,
