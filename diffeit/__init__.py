@@ -11,6 +11,7 @@ import jax
 # float64 is the default; float32 is an explicit opt-in by dtype.
 jax.config.update("jax_enable_x64", True)
 
+from . import correction as correction
 from . import inverse as inverse
 from . import io as io
 from . import linear_solve as linear_solve

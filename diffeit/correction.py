@@ -1,0 +1,329 @@
+"""The spatial correction ("scaling matrix"): position-dependent factors for the intensity and
+the size of reconstructed targets, calibrated on simulated touches (dissertation Figs. 5.4, 5.5,
+5.9 in ../shared/SCIENCE.md).
+
+A linear reconstruction does not image a touch the same everywhere: at the working point (one-step
+NOSER, hyperparameter 0.05, medium noise) a touch near the rim comes out with a larger peak and a
+smaller half-amplitude set than the same touch at the centre. The correction measures this once,
+on simulated data, and undoes it.
+
+## Calibration (`calibrate`)
+For every setting s = (background b, intensity a = dsigma/sigma, radius r) and every calibration
+position p_j (j = 0 is the reference, the domain's centroid by default), a touch (a smooth-edged
+disc, `diffeit.scene`) is simulated on the data model's (finer) mesh, noise is added
+(`noise_draws` seeded draws), and the frames are reconstructed by one-step difference imaging
+(`OneStep(model, prior, hyperparameter, background=b)`). With P_sj and R_sj the peak and the
+half-amplitude equivalent radius (`diffeit.metrics`) averaged over the draws,
+
+    intensity factor  g_I(p_j) = geometric mean over s of P_s0 / P_sj,
+    size factor       g_S(p_j) = geometric mean over s of R_s0 / R_sj,
+
+so g_I = g_S = 1 at the reference position. The per-setting ratios are kept (`intensity_table`,
+`size_table`): their spread shows how far one factor fits all intensities, sizes and backgrounds.
+Between calibration positions the factors are interpolated linearly (Delaunay triangles of the
+positions); outside their convex hull the nearest position's factor holds.
+
+The batch: each setting's touch fields are one vmapped, jitted function of the centres, its
+voltages one vmapped, jitted forward solve, and all frames one reconstruction product; a progress
+bar (tqdm) counts the settings.
+
+## Correction (`correct`)
+On an element image x: the half-amplitude components (`diffeit.metrics.amplitude_components`)
+are the targets; every element belongs to the target whose centroid c_j is nearest its own
+centroid. Within target j, with (g_I, g_S) the factors at c_j (the reconstructed centroid, an
+estimate of the true centre; at the working point they are 0.01-0.03 m apart),
+
+    x'(y) = g_I x(c_j + (y - c_j) / g_S),
+
+evaluated at the element centroids y by point sampling (the value of the element containing the
+point; 0, no change, off the domain): the target is scaled in amplitude by g_I and in extent by
+g_S about its centroid. The peak scales by g_I and the half-amplitude area by g_S^2, to within the
+elements' resolution.
+
+## Files (`Calibration.save`, `load`)
+An `.npz` archive (NumPy, no pickles): `schema` = "diffeit.calibration", `version` = 1, the
+arrays of `Calibration`, and `settings` as JSON (the `CalibrationSettings` it was made with).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import matplotlib.tri
+import numpy as np
+import scipy.interpolate
+from tqdm.auto import tqdm
+
+from . import metrics
+from .forward import ForwardModel
+from .inverse import OneStep
+from .mesh import Mesh
+from .scene._instrument import Noise, add_noise
+from .scene._stimuli import Disc, Touch, touch_field
+
+SCHEMA = "diffeit.calibration"
+VERSION = 1
+# Default calibration positions: the centre and rings at these fractions of the domain's
+# half-size; the outer ring stays a touch's radius inside a unit disc's rim.
+_DEFAULT_RING_FRACTIONS = (0.0, 0.25, 0.45, 0.6, 0.72)
+
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """What a calibration was made with (stored in its file).
+
+    - `prior`, `hyperparameter`: the one-step reconstruction (hyperparameter unit-free).
+    - `backgrounds` (S/sq), `intensities` (dsigma/sigma under the touch, > -1), `radii` (m): the
+      simulated settings, every combination.
+    - `noise_percent`: Gaussian noise, percent of RMS(V_ref) (DESIGN.md); `noise_draws` per
+      touch; `seed` of the draws.
+    - `n_elements`, `n_data_elements`: the reconstruction and simulation meshes' sizes.
+    """
+
+    prior: str
+    hyperparameter: float
+    backgrounds: tuple[float, ...]
+    intensities: tuple[float, ...]
+    radii: tuple[float, ...]
+    noise_percent: float
+    noise_draws: int
+    seed: int
+    n_elements: int
+    n_data_elements: int
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Position-dependent correction factors (module docstring).
+
+    - `positions` (P, 2) m: the calibration positions; row 0 the reference.
+    - `intensity_factor`, `size_factor` (P,): g_I and g_S there (1 at the reference).
+    - `intensity_table`, `size_table` (B, I, R, P): the ratios of each setting (backgrounds x
+      intensities x radii of `settings`) whose geometric means the factors are.
+    - `settings`: `CalibrationSettings`.
+    """
+
+    positions: np.ndarray
+    intensity_factor: np.ndarray
+    size_factor: np.ndarray
+    intensity_table: np.ndarray
+    size_table: np.ndarray
+    settings: CalibrationSettings
+
+    def __post_init__(self) -> None:
+        positions = np.asarray(self.positions, dtype=float)
+        if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 3:
+            raise ValueError(f"positions must be (P, 2) with P >= 3 (metres); got shape {positions.shape}")
+        n = len(positions)
+        shape = (len(self.settings.backgrounds), len(self.settings.intensities), len(self.settings.radii), n)
+        for name, expected in (
+            ("intensity_factor", (n,)),
+            ("size_factor", (n,)),
+            ("intensity_table", shape),
+            ("size_table", shape),
+        ):
+            value = np.asarray(getattr(self, name), dtype=float)
+            if value.shape != expected:
+                raise ValueError(f"{name} has shape {value.shape}; expected {expected}")
+            if not np.all(np.isfinite(value) & (value > 0)):
+                raise ValueError(f"{name} must be finite and positive")
+
+    def factors(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(intensity g_I (N,), size g_S (N,)) at `points` (N, 2) or one (x, y), metres: linear
+        between calibration positions, the nearest position's outside their hull."""
+        points = np.atleast_2d(np.asarray(points, dtype=float))
+        if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
+            raise ValueError(f"points must be finite (x, y) pairs, shape (N, 2); got shape {np.shape(points)}")
+        values = np.column_stack([self.intensity_factor, self.size_factor])
+        linear = scipy.interpolate.LinearNDInterpolator(self.positions, values)(points)
+        nearest = scipy.interpolate.NearestNDInterpolator(self.positions, values)(points)
+        result = np.where(np.isnan(linear), nearest, linear)
+        return result[:, 0], result[:, 1]
+
+    def save(self, path: str | Path) -> Path:
+        """Write the calibration to `path` (.npz; module docstring); returns the path written."""
+        path = Path(path)
+        with path.open("wb") as file:
+            np.savez(
+                file,
+                schema=np.array(SCHEMA),
+                version=np.array(VERSION),
+                settings=np.array(json.dumps(dataclasses.asdict(self.settings))),
+                **{name: np.asarray(getattr(self, name)) for name in _ARRAYS},
+            )
+        return path
+
+
+_ARRAYS = ("positions", "intensity_factor", "size_factor", "intensity_table", "size_table")
+
+
+def load(path: str | Path) -> Calibration:
+    """A calibration saved by `Calibration.save`; ValueError if the file is not one (schema) or
+    from another version of the format."""
+    with np.load(Path(path), allow_pickle=False) as archive:
+        schema = str(archive["schema"]) if "schema" in archive else None
+        if schema != SCHEMA:
+            raise ValueError(f"{path} is not a diffeit calibration (schema {schema!r}, expected {SCHEMA!r})")
+        version = int(archive["version"])
+        if version != VERSION:
+            raise ValueError(f"{path} is a calibration of format version {version}; this diffeit reads {VERSION}")
+        missing = [name for name in (*_ARRAYS, "settings") if name not in archive]
+        if missing:
+            raise ValueError(f"{path} lacks {missing}")
+        raw = json.loads(str(archive["settings"]))
+        arrays = {name: np.array(archive[name]) for name in _ARRAYS}
+    for name in ("backgrounds", "intensities", "radii"):
+        raw[name] = tuple(raw[name])
+    return Calibration(settings=CalibrationSettings(**raw), **arrays)
+
+
+def default_positions(mesh: Mesh) -> np.ndarray:
+    """(P, 2) calibration positions: the domain's centroid, then rings about it at 0.25, 0.45,
+    0.6 and 0.72 of the half-size R (half the largest side of the bounding box), with about one
+    position per 0.45 R of circumference (at least 6 a ring), each ring turned half a step
+    against the previous. Metres."""
+    centre = mesh.element_areas @ mesh.element_centroids / mesh.element_areas.sum()
+    size = 0.5 * float(np.max(mesh.nodes.max(axis=0) - mesh.nodes.min(axis=0)))
+    points = [centre]
+    for ring, fraction in enumerate(_DEFAULT_RING_FRACTIONS[1:]):
+        count = max(6, math.ceil(2 * np.pi * fraction / 0.45))
+        angles = 2 * np.pi * (np.arange(count) + 0.5 * (ring % 2)) / count
+        points.extend(centre + fraction * size * np.column_stack([np.cos(angles), np.sin(angles)]))
+    return np.array(points)
+
+
+def calibrate(
+    model: ForwardModel,
+    data_model: ForwardModel,
+    *,
+    prior: str = "noser",
+    hyperparameter: float = 0.05,
+    backgrounds: Sequence[float] = (0.01,),
+    intensities: Sequence[float] = (-0.5,),
+    radii: Sequence[float] = (0.15, 0.25),
+    positions: np.ndarray | None = None,
+    noise_percent: float = 0.5,
+    noise_draws: int = 8,
+    seed: int = 0,
+    progress: bool = True,
+) -> Calibration:
+    """Calibrate the correction factors (module docstring) for one-step reconstructions with
+    `model` (its mesh is the reconstruction mesh), from touches simulated with `data_model` (the
+    same domain, meshed finer: data from the reconstruction mesh itself would be an inverse
+    crime).
+
+    - `prior`, `hyperparameter`: the reconstruction to calibrate (`OneStep`), one per background.
+    - `backgrounds` (S/sq, > 0), `intensities` (dsigma/sigma, in (-1, 0) or > 0), `radii` (m,
+      > 0): every combination is simulated at every position.
+    - `positions` (P, 2) m, row 0 the reference: default `default_positions(model.mesh)`.
+    - `noise_percent` (>= 0; 0.5 is "medium"), `noise_draws` (>= 1) per touch, `seed`. The
+      reference (centre) is the noisiest position (its touch changes the voltages least), and its
+      error enters every factor: 8 draws keep it to a few percent at medium noise.
+    - `progress`: a tqdm bar over the settings.
+
+    ValueError names a setting whose targets are lost (a peak of the wrong sign on average, so no
+    positive factor): raise the intensity or the hyperparameter, or lower the noise.
+    """
+    backgrounds, intensities, radii = (tuple(float(v) for v in values) for values in (backgrounds, intensities, radii))
+    for name, values, valid in (
+        ("backgrounds", backgrounds, lambda v: v > 0),
+        ("intensities", intensities, lambda v: v > -1 and v != 0),
+        ("radii", radii, lambda v: v > 0),
+    ):
+        if not values or not all(np.isfinite(v) and valid(v) for v in values):
+            raise ValueError(f"{name} must be a non-empty list of valid finite values; got {values}")
+    if not (np.isfinite(noise_percent) and noise_percent >= 0):
+        raise ValueError(f"noise_percent must be finite and >= 0; got {noise_percent}")
+    if not (isinstance(noise_draws, int) and noise_draws >= 1):
+        raise ValueError(f"noise_draws must be a positive integer; got {noise_draws!r}")
+    if model.protocol.n_measurements != data_model.protocol.n_measurements:
+        raise ValueError("model and data_model must share the protocol (the same number of measurements)")
+    positions = default_positions(model.mesh) if positions is None else np.asarray(positions, dtype=float)
+    if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 3 or not np.all(np.isfinite(positions)):
+        raise ValueError(f"positions must be finite, shape (P, 2) with P >= 3; got shape {positions.shape}")
+
+    mesh, data_mesh = model.mesh, data_model.mesh
+    measure = jax.jit(jax.vmap(data_model.measure))
+    shape = (len(backgrounds), len(intensities), len(radii), len(positions))
+    intensity_table, size_table = np.empty(shape), np.empty(shape)
+    settings = [(b, a, r) for b in range(len(backgrounds)) for a in range(len(intensities)) for r in range(len(radii))]
+    key = jax.random.key(seed)
+    reconstructions = {}
+    for index, (b, a, r) in enumerate(tqdm(settings, desc="calibration settings", disable=not progress)):
+        background = backgrounds[b]
+        if b not in reconstructions:
+            reconstructions[b] = OneStep(model, prior, hyperparameter, background=background)
+        fields = _touch_fields(data_mesh, jnp.asarray(positions), radii[r], intensities[a])  # (P, E_data)
+        reference = data_model.measure(jnp.full(data_mesh.n_elements, background))
+        clean = measure(background * (1 + fields)) - reference  # (P, M)
+        frames = jnp.broadcast_to(clean, (noise_draws, *clean.shape)).reshape(-1, clean.shape[-1])
+        if noise_percent > 0:
+            frames = add_noise(frames, reference, Noise.percent(noise_percent), jax.random.fold_in(key, index))
+        images = np.asarray(reconstructions[b].reconstruct(frames)).reshape(noise_draws, len(positions), -1)
+        peaks = np.array([[metrics.peak(image) for image in draw] for draw in images]).mean(axis=0)
+        sizes = np.array([[metrics.equivalent_radius(mesh, image) for image in draw] for draw in images]).mean(axis=0)
+        intensity_table[b, a, r] = peaks[0] / peaks
+        size_table[b, a, r] = sizes[0] / sizes
+        lost = np.flatnonzero(~(intensity_table[b, a, r] > 0))
+        if len(lost):
+            raise ValueError(
+                f"targets lost in the noise (mean peak of the wrong sign) at positions {positions[lost].tolist()} "
+                f"for background {background}, intensity {intensities[a]}, radius {radii[r]}: raise the intensity "
+                "or the hyperparameter, or lower the noise"
+            )
+    return Calibration(
+        positions=positions,
+        intensity_factor=np.exp(np.log(intensity_table).mean(axis=(0, 1, 2))),
+        size_factor=np.exp(np.log(size_table).mean(axis=(0, 1, 2))),
+        intensity_table=intensity_table,
+        size_table=size_table,
+        settings=CalibrationSettings(
+            prior=prior if isinstance(prior, str) else repr(prior),
+            hyperparameter=float(hyperparameter),
+            backgrounds=backgrounds,
+            intensities=intensities,
+            radii=radii,
+            noise_percent=float(noise_percent),
+            noise_draws=noise_draws,
+            seed=seed,
+            n_elements=mesh.n_elements,
+            n_data_elements=data_mesh.n_elements,
+        ),
+    )
+
+
+def _touch_fields(mesh: Mesh, centres: jax.Array, radius: float, intensity: float) -> jax.Array:
+    """(P, E) dsigma/sigma of smooth-edged disc touches at `centres` (P, 2), one vmapped field."""
+    return jax.vmap(lambda centre: touch_field(mesh, Touch(Disc(centre, radius), intensity), 0.0))(centres)
+
+
+def correct(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarray:
+    """The corrected image (module docstring) of an element image (E,) or a batch (T, E) on
+    `mesh`, in the image's unit: each half-amplitude target scaled by g_I in amplitude and g_S in
+    extent about its centroid, with the factors at that centroid."""
+    images = np.asarray(image, dtype=float)
+    if images.ndim not in (1, 2) or images.shape[-1] != mesh.n_elements:
+        raise ValueError(f"image has shape {images.shape}; expected ({mesh.n_elements},) or (T, {mesh.n_elements})")
+    finder = matplotlib.tri.Triangulation(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles).get_trifinder()
+    corrected = np.stack([_correct_one(calibration, mesh, finder, frame) for frame in np.atleast_2d(images)])
+    return corrected.reshape(images.shape)
+
+
+def _correct_one(calibration: Calibration, mesh: Mesh, finder, image: np.ndarray) -> np.ndarray:
+    components = metrics.amplitude_components(mesh, image)
+    centroids = components.centroids
+    intensity, size = calibration.factors(centroids)
+    points = mesh.element_centroids
+    owner = np.argmin(np.linalg.norm(points[:, None, :] - centroids[None], axis=2), axis=1)
+    # Pull each element's centroid back to where its value comes from in the uncorrected image.
+    sources = centroids[owner] + (points - centroids[owner]) / size[owner, None]
+    element = np.asarray(finder(sources[:, 0], sources[:, 1]), dtype=int)
+    values = np.where(element >= 0, image[np.maximum(element, 0)], 0.0)
+    return intensity[owner] * values

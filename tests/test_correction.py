@@ -1,0 +1,178 @@
+"""The spatial correction: off-centre targets match the centre's peak and size after correction
+(positions, sizes, intensities and noise draws the calibration did not use), exact behaviour on
+hand-made calibrations, the unit-free background, files."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffeit as de
+from diffeit import correction, metrics
+from diffeit.scene._instrument import Noise, add_noise
+
+BACKGROUND = 0.01  # S/sq, the working point of SCIENCE.md: medium noise, hyperparameter 0.05
+MEDIUM_NOISE = 0.5  # percent of RMS(V_ref)
+# Positions between and beyond the calibration rings (0.25, 0.45, 0.6, 0.72 of the radius).
+TEST_POSITIONS = [(0.0, 0.0), (0.5, 0.15), (-0.2, 0.55), (-0.4, -0.4), (0.1, -0.62)]
+
+
+@pytest.fixture(scope="module")
+def models():
+    """Reconstruction on h = 0.1 (914 triangles); data simulated on h = 0.05 (3,272)."""
+    protocol = de.protocol.adjacent(16)
+    model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.1), protocol, 0.01)
+    data_model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.05), protocol, 0.01)
+    return model, data_model
+
+
+@pytest.fixture(scope="module")
+def calibration(models):
+    model, data_model = models
+    return correction.calibrate(
+        model,
+        data_model,
+        hyperparameter=0.05,
+        backgrounds=(BACKGROUND,),
+        intensities=(-0.4, -0.6),
+        radii=(0.15, 0.25),
+        noise_percent=MEDIUM_NOISE,
+        seed=0,
+        progress=False,
+    )
+
+
+def _touch_images(model, data_model, radius: float, intensity: float, draws: int, seed: int) -> np.ndarray:
+    """(draws, P, E) one-step images of touches at TEST_POSITIONS at medium noise."""
+    data_mesh = data_model.mesh
+    fields = correction._touch_fields(data_mesh, jnp.asarray(TEST_POSITIONS), radius, intensity)
+    reference = data_model.measure(jnp.full(data_mesh.n_elements, BACKGROUND))
+    clean = jax.vmap(data_model.measure)(BACKGROUND * (1 + fields)) - reference
+    frames = jnp.broadcast_to(clean, (draws, *clean.shape)).reshape(-1, clean.shape[-1])
+    frames = add_noise(frames, reference, Noise.percent(MEDIUM_NOISE), jax.random.key(seed))
+    reconstruction = de.inverse.OneStep(model, "noser", 0.05, background=BACKGROUND)
+    return np.asarray(reconstruction.reconstruct(frames)).reshape(draws, len(TEST_POSITIONS), -1)
+
+
+def _relative_to_centre(mesh, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean peak and mean equivalent radius over the draws at each position, over the centre's."""
+    peaks = np.array([[metrics.peak(image) for image in draw] for draw in images]).mean(axis=0)
+    sizes = np.array([[metrics.equivalent_radius(mesh, image) for image in draw] for draw in images]).mean(axis=0)
+    return peaks / peaks[0], sizes / sizes[0]
+
+
+def test_off_centre_targets_match_the_centre_after_correction(models, calibration):
+    """Touches of radius 0.2 (calibrated: 0.15, 0.25) and dsigma/sigma -0.5 (calibrated: -0.4,
+    -0.6) at positions the calibration did not use, 16 medium-noise draws from another seed.
+    Measured, over the centre's (positions 1-4): before, peak 1.20, 1.35, 1.31, 1.32 and size
+    0.89, 0.85, 0.85, 0.87; after, peak 0.98, 1.01, 1.03, 1.00 and size 0.98, 0.99, 0.98, 1.01."""
+    model, data_model = models
+    images = _touch_images(model, data_model, 0.2, -0.5, draws=16, seed=1234)
+    peak_before, size_before = _relative_to_centre(model.mesh, images)
+    corrected = correction.correct(calibration, model.mesh, images.reshape(-1, model.n_elements))
+    peak_after, size_after = _relative_to_centre(model.mesh, corrected.reshape(images.shape))
+    report = f"before {peak_before.round(3)} {size_before.round(3)}, after {peak_after.round(3)} {size_after.round(3)}"
+    assert np.all(np.abs(peak_before[1:] - 1) > 0.15) and np.all(np.abs(size_before[1:] - 1) > 0.1), report
+    assert np.all(np.abs(peak_after[1:] - 1) < 0.1) and np.all(np.abs(size_after[1:] - 1) < 0.1), report
+
+
+def test_factors_are_one_at_the_reference_and_interpolate(calibration):
+    positions = calibration.positions
+    assert len(positions) == 34 and np.allclose(positions[0], 0, atol=1e-3)
+    intensity, size = calibration.factors(positions)
+    np.testing.assert_allclose(intensity, calibration.intensity_factor, rtol=1e-12)
+    np.testing.assert_allclose(size, calibration.size_factor, rtol=1e-12)
+    assert intensity[0] == size[0] == 1.0
+    # Near the rim a touch images with a larger peak (intensity factor < 1) and smaller (size > 1).
+    outer = np.linalg.norm(positions, axis=1) > 0.7
+    assert np.all(calibration.intensity_factor[outer] < 0.85) and np.all(calibration.size_factor[outer] > 1.1)
+    # Beyond the outer ring the nearest position's factors hold.
+    beyond = 0.95 * positions[outer][0] / np.linalg.norm(positions[outer][0])
+    assert calibration.factors(beyond)[0][0] == pytest.approx(calibration.intensity_factor[outer][0])
+    # The geometric mean of the per-setting ratios.
+    np.testing.assert_allclose(
+        calibration.intensity_factor, np.exp(np.log(calibration.intensity_table).mean(axis=(0, 1, 2))), rtol=1e-12
+    )
+
+
+def test_correction_of_hand_made_images():
+    """Unit factors change nothing; factors (2, 1.5) everywhere double each target's peak and
+    stretch its half-amplitude radius 1.5 times about its own centroid."""
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.05)
+    settings = correction.CalibrationSettings("noser", 0.05, (0.01,), (-0.5,), (0.2,), 0.5, 1, 0, 1, 1)
+    positions = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [-1.0, -1.0]])
+
+    def constant(intensity: float, size: float) -> correction.Calibration:
+        table = np.ones((1, 1, 1, 4))
+        return correction.Calibration(positions, np.full(4, intensity), np.full(4, size), table, table, settings)
+
+    image = -0.3 * (de.mesh.disc_fraction(mesh, (0.45, 0.0), 0.15) + de.mesh.disc_fraction(mesh, (-0.3, 0.4), 0.1))
+    np.testing.assert_array_equal(correction.correct(constant(1.0, 1.0), mesh, image), image)
+    corrected = correction.correct(constant(2.0, 1.5), mesh, image)
+    assert metrics.peak(corrected) == pytest.approx(-0.6)
+    figures = metrics.target_figures(mesh, corrected, [(0.45, 0.0), (-0.3, 0.4)])
+    np.testing.assert_allclose(figures.equivalent_radius, [0.225, 0.15], rtol=0.04)
+    assert np.all(figures.position_error < 0.02) and figures.n_artifacts == 0  # measured 0.003, 0.012
+    batch = correction.correct(constant(2.0, 1.5), mesh, np.stack([image, image]))
+    np.testing.assert_array_equal(batch[1], corrected)
+
+
+def test_the_background_does_not_change_the_factors(models):
+    """Without noise the image of a relative touch nearly scales with the background (the
+    hyperparameter is unit-free), so backgrounds 0.005 and 0.02 S/sq give the same ratios to
+    1e-3 (measured 3e-4): not exactly, because the contact impedance (0.01 ohm m) does not scale
+    with the background."""
+    model, data_model = models
+    few = np.array([[0.0, 0.0], [0.4, 0.0], [0.0, -0.6]])
+    calibration = correction.calibrate(
+        model, data_model, backgrounds=(0.005, 0.02), radii=(0.2,), positions=few, noise_percent=0.0,
+        noise_draws=1, progress=False,
+    )  # fmt: skip
+    np.testing.assert_allclose(calibration.intensity_table[0], calibration.intensity_table[1], rtol=1e-3)
+    np.testing.assert_allclose(calibration.size_table[0], calibration.size_table[1], rtol=1e-3)
+    assert np.ptp(calibration.intensity_table[0, 0, 0]) > 0.3  # while the positions differ by 20-33%
+
+
+def test_a_calibration_round_trips_through_a_file(calibration, tmp_path):
+    path = calibration.save(tmp_path / "calibration.npz")
+    loaded = correction.load(path)
+    assert loaded.settings == calibration.settings
+    assert loaded.settings.intensities == (-0.4, -0.6) and loaded.settings.noise_draws == 8
+    for name in ("positions", "intensity_factor", "size_factor", "intensity_table", "size_table"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(calibration, name))
+    points = np.array([[0.3, -0.2], [0.0, 0.9]])
+    np.testing.assert_array_equal(loaded.factors(points), calibration.factors(points))
+
+    np.savez(tmp_path / "other.npz", schema=np.array("something else"), version=np.array(1))
+    with pytest.raises(ValueError, match="is not a diffeit calibration"):
+        correction.load(tmp_path / "other.npz")
+    with np.load(path) as archive:
+        fields = dict(archive)
+    np.savez(tmp_path / "future.npz", **{**fields, "version": np.array(2)})
+    with pytest.raises(ValueError, match="format version 2; this diffeit reads 1"):
+        correction.load(tmp_path / "future.npz")
+
+
+def test_bad_input_is_refused(models, calibration):
+    model, data_model = models
+    mesh = model.mesh
+    with pytest.raises(ValueError, match=rf"image has shape \(5,\); expected \({mesh.n_elements},\)"):
+        correction.correct(calibration, mesh, np.ones(5))
+    with pytest.raises(ValueError, match="not finite"):
+        correction.correct(calibration, mesh, np.full(mesh.n_elements, np.nan))
+    with pytest.raises(ValueError, match="all zero"):
+        correction.correct(calibration, mesh, np.zeros(mesh.n_elements))
+    with pytest.raises(ValueError, match="intensities must be"):
+        correction.calibrate(model, data_model, intensities=(-1.2,))
+    with pytest.raises(ValueError, match="radii must be"):
+        correction.calibrate(model, data_model, radii=())
+    with pytest.raises(ValueError, match="noise_draws must be a positive integer"):
+        correction.calibrate(model, data_model, noise_draws=0)
+    with pytest.raises(ValueError, match=r"positions must be finite, shape \(P, 2\)"):
+        correction.calibrate(model, data_model, positions=np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="size_factor must be finite and positive"):
+        dataclasses.replace(calibration, size_factor=-calibration.size_factor)
+    with pytest.raises(ValueError, match=r"points must be finite \(x, y\) pairs"):
+        calibration.factors(np.array([[np.nan, 0.0]]))
