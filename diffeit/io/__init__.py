@@ -8,8 +8,10 @@ on it alone.
 In memory a data set is a `Recording` (frames, times, protocol, reference, mesh or geometry,
 provenance, images). `write_frames(path, recording)` writes one file (refusing to replace an
 existing file unless `overwrite=True`), `append_frames(path, frames, times)` grows it (a
-recorder), `read_frames(path)` reads and validates it. `read_eidors_mat(path, variable)` reads
-EIDORS-style MATLAB frames.
+recorder), `read_frames(path)` reads and validates it. Readers of other recordings, each
+mapping the frames to a diffeit protocol: `read_eidors_mat(path, variable)` (EIDORS-style
+MATLAB frames), `read_openeit(path)` (OpenEIT text logs, its opposition layout), `read_csv(path)`
+(one frame a row).
 
 The frames file (HDF5, schema "diffeit.frames", version 1):
 
@@ -46,11 +48,13 @@ format, which single-writer/multiple-reader (SWMR) access needs; `read_frames` r
 recorder is still writing, or was writing when it was killed, through SWMR access.
 """
 
+from ._csv import read_csv as read_csv
 from ._eidors import read_eidors_mat as read_eidors_mat
 from ._hdf5 import SCHEMA as SCHEMA
 from ._hdf5 import SCHEMA_VERSION as SCHEMA_VERSION
 from ._hdf5 import append_frames as append_frames
 from ._hdf5 import read_frames as read_frames
 from ._hdf5 import write_frames as write_frames
+from ._openeit import read_openeit as read_openeit
 from ._recording import Recording as Recording
 from ._recording import mesh_from_geometry as mesh_from_geometry

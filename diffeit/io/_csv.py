@@ -1,0 +1,112 @@
+"""Generic CSV frames: one frame a row."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .._messages import name_indices
+from ..protocol import Protocol, adjacent
+from ._recording import Recording
+
+
+def read_csv(
+    path: str | os.PathLike,
+    protocol: Protocol | None = None,
+    *,
+    time_column: int | str | None = None,
+    frame_rate: float = 1.0,
+    delimiter: str = ",",
+    voltage_unit: str = "V",
+) -> Recording:
+    """Frames from a CSV file: one frame a row, one reading a column.
+
+    A first row that is not all numbers is a header (column names). `time_column` names (or
+    numbers, from 0) a column of times in seconds; the other columns are the readings, in
+    `protocol`'s order and sign. Without a time column, frame t is at t / `frame_rate` seconds.
+
+    Without `protocol`, the number of reading columns chooses it: n(n-3) is `adjacent(n)`
+    (208: 16 electrodes, EIDORS's order), n * n is the full layout `adjacent(n,
+    measure_driven=True)` (256; `diffeit.protocol.from_full_layout` drops the driven pairs).
+    Anything else needs `protocol`.
+
+    **Raises:** `FileNotFoundError`; `ValueError` naming the file, row and column for rows of
+    another length, non-numbers, non-finite values, an unknown time column, readings that fit
+    no protocol.
+    """
+    path = Path(path)
+    if not math.isfinite(frame_rate) or frame_rate <= 0:
+        raise ValueError(f"frame_rate must be positive (frames per second); got {frame_rate}")
+    if not path.exists():
+        raise FileNotFoundError(f"no such CSV file: {path}")
+    with path.open(newline="") as file:
+        rows = [(number, row) for number, row in enumerate(csv.reader(file, delimiter=delimiter), start=1) if row]
+    if rows and not _numeric(rows[0][1]):
+        header, rows = [name.strip() for name in rows[0][1]], rows[1:]
+    else:
+        header = None
+    if not rows:
+        raise ValueError(f"{path} holds no rows of values")
+    width = len(rows[0][1])
+    uneven = [number for number, row in rows if len(row) != width]
+    if uneven:
+        raise ValueError(f"{path}: rows {name_indices(np.array(uneven))} do not have {width} columns as the first")
+    values = np.empty((len(rows), width))
+    for index, (number, row) in enumerate(rows):
+        try:
+            values[index] = [float(item) for item in row]
+        except ValueError:
+            column = next(c for c, item in enumerate(row) if not _numeric([item]))
+            raise ValueError(f"{path}: row {number}, column {column} is not a number: {row[column]!r}") from None
+    if not np.all(np.isfinite(values)):
+        bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+        raise ValueError(f"{path}: rows {name_indices(np.array([rows[i][0] for i in bad]))} hold non-finite values")
+    if time_column is not None:
+        if isinstance(time_column, str):
+            if header is None or time_column not in header:
+                raise ValueError(f"{path} has no column named {time_column!r}; columns: {header}")
+            time_column = header.index(time_column)
+        if not -width <= time_column < width:
+            raise ValueError(f"{path} has {width} columns; no time column {time_column}")
+        times = values[:, time_column]
+        values = np.delete(values, time_column, axis=1)
+    else:
+        times = np.arange(len(values)) / frame_rate
+    if protocol is None:
+        protocol = _protocol_of(values.shape[1], path)
+    if values.shape[1] != protocol.n_measurements:
+        raise ValueError(f"{path} holds {values.shape[1]} readings a row; the protocol has {protocol.n_measurements}")
+    return Recording(
+        frames=values,
+        times=times,
+        protocol=protocol,
+        provenance={
+            "source": f"CSV file {path.name}",
+            "metadata": {"file": str(path), "time_column": time_column, "columns": header},
+        },
+        voltage_unit=voltage_unit,
+    )
+
+
+def _protocol_of(n_readings: int, path: Path) -> Protocol:
+    for n in range(4, 129):
+        if n * (n - 3) == n_readings:
+            return adjacent(n)
+        if n * n == n_readings:
+            return adjacent(n, measure_driven=True)
+    raise ValueError(
+        f"{path} holds {n_readings} readings a row: not n(n-3) (adjacent) nor n * n (the full adjacent layout); "
+        "pass the protocol"
+    )
+
+
+def _numeric(items: list[str]) -> bool:
+    try:
+        [float(item) for item in items]
+    except ValueError:
+        return False
+    return True

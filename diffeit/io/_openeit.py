@@ -1,0 +1,111 @@
+"""OpenEIT text logs: `magnitudes:` lines of the opposition protocol."""
+
+from __future__ import annotations
+
+import collections
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .._messages import name_indices
+from ..protocol import opposite
+from ._recording import Recording
+
+# Values per line of OpenEIT's opposition layouts (firmware lookup tables), by electrode count.
+OPENEIT_ELECTRODES = {32: 8, 192: 16, 896: 32}
+
+
+def read_openeit(
+    path: str | os.PathLike,
+    *,
+    n_electrodes: int | None = None,
+    frame_rate: float = 1.0,
+    skip_malformed: bool = False,
+) -> Recording:
+    """Frames from an OpenEIT text log (what its dashboard records from the serial port).
+
+    Each frame is one line `magnitudes: v1 , v2 , ... ,` (the label and a trailing comma
+    optional). OpenEIT's imaging firmware drives opposite electrodes, pyEIT's
+    `eit_scan_lines(n, n/2)`: drive i puts current into electrode i and out of electrode i+n/2
+    (all n drives), and reads adjacent pairs (m, m+1), m increasing from 0, skipping pairs on a
+    driven electrode, as V(m+1) - V(m): 16 electrodes give 192 values (8: 32, 32: 896). Both
+    signs are the negation of diffeit's `opposite(n)` (current into i+n/2 and out of i,
+    reading U_m - U_(m+1)), so the frames are `opposite(n)`'s readings value for value.
+
+    The board prints magnitudes (impedance magnitudes in its own units, never negative), so the
+    sign of each reading is lost: the Recording has `voltage_unit="arbitrary"`, and difference
+    images should use relative differences ((V - V_ref) / V_ref, `diffeit reconstruct
+    --difference relative`), which do not depend on the sign.
+
+    **Arguments:** `n_electrodes` (8, 16 or 32; default: from the number of values per line),
+    `frame_rate` in frames per second (logs carry no times: frame t is at t / frame_rate s),
+    `skip_malformed`: drop lines of another length or with non-numbers instead of refusing the
+    file (their line numbers go in `provenance["metadata"]["skipped_lines"]`). Lines without a
+    comma (the firmware's messages such as "mode 3: imaging") and blank lines are always
+    skipped.
+
+    **Raises:** `FileNotFoundError`; `ValueError` naming the file and the lines for an empty
+    log, malformed lines (unless skipped), non-finite values, an unknown layout.
+    """
+    path = Path(path)
+    if not math.isfinite(frame_rate) or frame_rate <= 0:
+        raise ValueError(f"frame_rate must be positive (frames per second); got {frame_rate}")
+    if not path.exists():
+        raise FileNotFoundError(f"no such OpenEIT log: {path}")
+    rows: list[tuple[int, list[float] | None]] = []  # (line number from 1, values or None if unreadable)
+    with path.open("r", encoding="ascii", errors="replace") as file:
+        for number, line in enumerate(file, start=1):
+            if "," not in line:  # the firmware's messages ("mode 3: imaging") and blank lines
+                continue
+            numbers = line.split(":", 1)[-1]
+            items = [item.strip() for item in numbers.split(",")]
+            if items and not items[-1]:
+                items.pop()
+            try:
+                rows.append((number, [float(item) for item in items]))
+            except ValueError:
+                rows.append((number, None))
+    if not rows:
+        raise ValueError(f"{path} holds no lines of values: not an OpenEIT log?")
+    if n_electrodes is None:
+        counts = collections.Counter(len(values) for _, values in rows if values is not None)
+        known = [count for count, _ in counts.most_common() if count in OPENEIT_ELECTRODES]
+        if not known:
+            raise ValueError(
+                f"{path}: lines hold {sorted(counts)} values; OpenEIT's opposition layouts have "
+                f"{sorted(OPENEIT_ELECTRODES)} (8, 16, 32 electrodes): pass n_electrodes"
+            )
+        n_electrodes = OPENEIT_ELECTRODES[known[0]]
+    protocol = opposite(n_electrodes)
+    n_values = protocol.n_measurements
+    bad = [number for number, values in rows if values is None or len(values) != n_values]
+    if bad and not skip_malformed:
+        raise ValueError(
+            f"{path}: lines {name_indices(np.array(bad))} are not {n_values} numbers (the {n_electrodes}-electrode "
+            "opposition layout); pass skip_malformed=True to drop them"
+        )
+    kept = [(number, values) for number, values in rows if number not in set(bad)]
+    if not kept:
+        raise ValueError(f"{path}: no line holds {n_values} values")
+    frames = np.array([values for _, values in kept])
+    if not np.all(np.isfinite(frames)):
+        lines = [number for (number, _), row in zip(kept, frames, strict=True) if not np.all(np.isfinite(row))]
+        raise ValueError(f"{path}: lines {name_indices(np.array(lines))} hold non-finite values")
+    return Recording(
+        frames=frames,
+        times=np.arange(len(frames)) / frame_rate,
+        protocol=protocol,
+        provenance={
+            "source": f"OpenEIT text log {path.name}",
+            "metadata": {
+                "file": str(path),
+                "layout": f"OpenEIT opposition, {n_electrodes} electrodes, {n_values} values (diffeit opposite)",
+                "values": "magnitudes: the sign of each reading is lost",
+                "frame_rate": frame_rate,
+                "skipped_lines": bad,
+            },
+        },
+        voltage_unit="arbitrary",
+    )
