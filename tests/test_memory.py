@@ -321,3 +321,16 @@ def test_bad_fraction_sum_and_bad_frames():
         memory_response(np.full((2, 2), np.nan), np.array([0.0, 1.0]), over_foam())
     # Traced parameters are not checked (no values to check): construction under jit works.
     assert jax.jit(lambda tau: MemoryParameters(fast_time=tau).fast_time)(-1.0) == -1.0
+
+
+def test_gradient_is_finite_for_the_tiny_tails_of_smooth_edges():
+    """A smooth-edged touch leaves stimuli of 1e-200 far from it; the loading weight a_prev / a_k
+    must not overflow its derivative there (it did: NaN gradients through the simulator)."""
+    times = jnp.arange(4) * 0.1
+
+    def total(amplitude):
+        stimulus = jnp.array([0.0, 1e-200, 2e-200, 0.0])[:, None] * amplitude
+        return memory_response(stimulus, times, MemoryParameters()).sum()
+
+    gradient = float(jax.grad(total)(-0.3))
+    assert np.isfinite(gradient) and abs(gradient) < 1e-190

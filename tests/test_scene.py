@@ -152,7 +152,7 @@ def test_background_regions_and_functions():
     ramp = np.asarray(Background(function=lambda p: 0.01 + 0.005 * p[..., 0]).values_on(mesh))
     # The mean of a linear function over an element is its value at the centroid.
     np.testing.assert_allclose(ramp, 0.01 + 0.005 * x, rtol=1e-12)
-    with pytest.raises(ValueError, match="background.function"):
+    with pytest.raises(ValueError, match=r"background\.function"):
         Scene(skin=SKIN, background=Background(function=lambda p: 0.01 + 0 * p[..., 0])).to_dict()
 
 

@@ -91,6 +91,8 @@ ArrayLike = float | jax.Array | np.ndarray
 
 # The fields of MemoryParameters that are time constants (> 0, seconds) and fractions ([0, 1]).
 _TIMES = ("fast_time", "slow_time", "fatigue_recovery_time")
+# Stimuli below this magnitude (far below anything measurable) never divide (`apply_stimulus`).
+_TINY = 1e-100
 _FRACTIONS = ("fast_fraction", "slow_fraction", "relaxation", "first_cycle_offset", "fatigue_limit")
 
 
@@ -260,8 +262,11 @@ def apply_stimulus(state: MemoryState, stimulus: ArrayLike) -> MemoryState:
     previous = state.stimulus
     stimulus = jnp.broadcast_to(jnp.asarray(stimulus, previous.dtype), previous.shape)
     loading = jnp.abs(stimulus) > jnp.abs(previous)
-    # Safe denominator: where() differentiates both branches, and 0/0 would poison the gradient.
-    weight = jnp.clip(previous / jnp.where(loading, stimulus, 1), 0, 1)
+    # Safe denominator: where() differentiates both branches, and 0/0 would poison the gradient;
+    # so would the derivative -a_prev / a_k^2, which overflows for the 1e-200 tails of a
+    # smooth-edged touch: below _TINY a load enters at the present sensitivity (w = 1).
+    divides = loading & (jnp.abs(stimulus) > _TINY)
+    weight = jnp.where(divides, jnp.clip(previous / jnp.where(divides, stimulus, 1), 0, 1), 1)
     fresh = 1 - state.fatigue
     # Written as s + (kappa - s) w so that kappa stays exactly 1 on a skin that never fatigues.
     sensitivity = jnp.where(loading, fresh + (state.sensitivity - fresh) * weight, state.sensitivity)

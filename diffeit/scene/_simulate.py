@@ -289,12 +289,12 @@ class Simulation:
     def truth_on(self, mesh: Mesh) -> np.ndarray:
         """(T, E') the true conductivity (S/sq) on `mesh` (same skin), conservatively interpolated
         (`diffeit.mesh.interpolate`: element means of the overlaps)."""
-        return np.asarray(interpolate(self.mesh, mesh, np.asarray(self.truth).T).T)
+        return interpolate(np.asarray(self.truth), self.mesh, mesh)
 
     def truth_change_on(self, mesh: Mesh) -> np.ndarray:
         """(T, E') the true conductivity change from the untouched skin (S/sq) on `mesh`."""
         background = np.asarray(self.scene.background.values_on(self.mesh, level=_LEVEL))
-        return np.asarray(interpolate(self.mesh, mesh, (np.asarray(self.truth) - background).T).T)
+        return interpolate(np.asarray(self.truth) - background, self.mesh, mesh)
 
     def to_recording(self) -> io.Recording:
         """The simulation as a `diffeit.io.Recording`: frames, times, reference, the simulation
