@@ -19,6 +19,9 @@ if TYPE_CHECKING:
 _BATCH = 256
 # The sheet of a file with neither mesh nor geometry (an EIDORS .mat file): a unit disc.
 _DEFAULT_H = 0.08
+# The model of a file that says nothing of its sheet: S/sq and ohm m.
+_DEFAULT_BACKGROUND = 1.0
+_DEFAULT_CONTACT_IMPEDANCE = 0.01
 
 
 def _demo(arguments: argparse.Namespace) -> int:
@@ -72,13 +75,14 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         raise ValueError(f"{source} has no reference frame; choose one with --reference-frame K")
 
     mesh = _mesh_of(recording, arguments.h)
+    background, contact_impedance = _model_settings(recording, arguments)
     images, hyperparameter = reconstruct_recording(
         recording,
         mesh,
         prior=arguments.prior,
         hyperparameter=_hyperparameter_argument(arguments.hyperparameter),
-        background=arguments.background,
-        contact_impedance=arguments.contact_impedance,
+        background=background,
+        contact_impedance=contact_impedance,
         reference_frame=arguments.reference_frame,
         difference=arguments.difference,
     )
@@ -100,8 +104,8 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
                 "prior": arguments.prior,
                 "hyperparameter": hyperparameter,
                 "hyperparameter_choice": arguments.hyperparameter,
-                "background": arguments.background,
-                "contact_impedance": arguments.contact_impedance,
+                "background": background,
+                "contact_impedance": contact_impedance,
                 "difference": arguments.difference,
             },
         },
@@ -127,12 +131,31 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     return 0
 
 
+def _model_settings(recording: Recording, arguments: argparse.Namespace) -> tuple[float, float]:
+    """Background (S/sq) and contact impedance (ohm m) of the model: the options when given,
+    else a simulated file's scene (its uniform background, its skin's mean contact impedance),
+    else 1 S/sq and 0.01 ohm m."""
+    scene = recording.provenance.get("metadata", {}).get("scene", {})
+    background = scene.get("background", {}).get("conductivity", _DEFAULT_BACKGROUND)
+    contact_impedance = float(np.mean(scene.get("skin", {}).get("contact_impedance", _DEFAULT_CONTACT_IMPEDANCE)))
+    if arguments.background is not None:
+        background = arguments.background
+    if arguments.contact_impedance is not None:
+        contact_impedance = arguments.contact_impedance
+    return float(background), contact_impedance
+
+
 def _mesh_of(recording: Recording, h: float) -> Mesh:
-    """The file's mesh or geometry; without either, a unit disc with the protocol's electrodes."""
+    """The file's geometry (for a simulation: the reconstruction mesh, coarser than the mesh the
+    data were simulated on), else its mesh; without either, a unit disc with the protocol's
+    electrodes."""
+    from .. import io
     from .. import mesh as meshes
 
-    if recording.mesh is not None or recording.geometry is not None:
-        return recording.resolve_mesh()
+    if recording.geometry is not None:
+        return io.mesh_from_geometry(recording.geometry)
+    if recording.mesh is not None:
+        return recording.mesh
     n = recording.protocol.n_electrodes
     return meshes.disc(n, electrode_width=min(0.2, math.pi / n), h=h)
 
@@ -232,8 +255,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         default="0.1",
         help="unit-free regularisation weight (default 0.1), or a method choosing it from the data: gcv, lcurve",
     )
-    reconstruct.add_argument("--background", type=float, default=1.0, help="background conductivity, S/sq")
-    reconstruct.add_argument("--contact-impedance", type=float, default=0.01, help="ohm m (default 0.01)")
+    reconstruct.add_argument(
+        "--background", type=float, help="background conductivity, S/sq (default: a simulated file's scene's, else 1)"
+    )
+    reconstruct.add_argument(
+        "--contact-impedance", type=float, help="ohm m (default: a simulated file's scene's, else 0.01)"
+    )
     reconstruct.add_argument(
         "--difference",
         choices=("plain", "relative"),
@@ -249,6 +276,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct.add_argument("--frame-rate", type=float, default=1.0, help=".mat files: frames per second")
     reconstruct.add_argument("--overwrite", action="store_true", help="replace existing output files")
     reconstruct.set_defaults(run=_reconstruct)
+    from ._simulate import add_command as add_simulate
+
+    add_simulate(commands)
     arguments = parser.parse_args(argv)
     return arguments.run(arguments)
 
