@@ -18,8 +18,8 @@ from . import linear_solve as linear_solve
 from . import mesh as mesh
 from . import metrics as metrics
 from . import protocol as protocol
-from . import scene as scene
 from . import render as render
+from . import scene as scene
 from .forward import ForwardModel as ForwardModel
 from .forward import Potentials as Potentials
 from .forward import PrecisionWarning as PrecisionWarning

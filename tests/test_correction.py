@@ -39,6 +39,7 @@ def calibration(models):
         intensities=(-0.4, -0.6),
         radii=(0.15, 0.25),
         noise_percent=MEDIUM_NOISE,
+        noise_draws=32,  # the centre's mean peak to about 2.5% (one draw scatters by 14%)
         seed=0,
         progress=False,
     )
@@ -65,11 +66,14 @@ def _relative_to_centre(mesh, images: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def test_off_centre_targets_match_the_centre_after_correction(models, calibration):
     """Touches of radius 0.2 (calibrated: 0.15, 0.25) and dsigma/sigma -0.5 (calibrated: -0.4,
-    -0.6) at positions the calibration did not use, 16 medium-noise draws from another seed.
-    Measured, over the centre's (positions 1-4): before, peak 1.20, 1.35, 1.31, 1.32 and size
-    0.89, 0.85, 0.85, 0.87; after, peak 0.98, 1.01, 1.03, 1.00 and size 0.98, 0.99, 0.98, 1.01."""
+    -0.6) at positions the calibration did not use, 64 medium-noise draws from another seed.
+    Measured, over the centre's (positions 1-4): before, peak 1.29, 1.40, 1.40, 1.42 and size
+    0.84, 0.82, 0.81, 0.81; after, peak 1.04, 1.04, 1.08, 1.06 and size 0.95, 0.97, 0.93, 0.96
+    (calibration seeds 1, 2 with test seeds 99, 7: after, peak 1.03-1.10, size 0.92-0.96). The
+    correction under-corrects by a few percent: linear interpolation between the calibration
+    rings and the spread of the factors over sizes (module docstring of diffeit.correction)."""
     model, data_model = models
-    images = _touch_images(model, data_model, 0.2, -0.5, draws=16, seed=1234)
+    images = _touch_images(model, data_model, 0.2, -0.5, draws=64, seed=1234)
     peak_before, size_before = _relative_to_centre(model.mesh, images)
     corrected = correction.correct(calibration, model.mesh, images.reshape(-1, model.n_elements))
     peak_after, size_after = _relative_to_centre(model.mesh, corrected.reshape(images.shape))
@@ -108,13 +112,20 @@ def test_correction_of_hand_made_images():
         table = np.ones((1, 1, 1, 4))
         return correction.Calibration(positions, np.full(4, intensity), np.full(4, size), table, table, settings)
 
-    image = -0.3 * (de.mesh.disc_fraction(mesh, (0.45, 0.0), 0.15) + de.mesh.disc_fraction(mesh, (-0.3, 0.4), 0.1))
+    # Two cones (-0.3 (1 - |x - c| / base)+): half-amplitude radii 0.15 and 0.1.
+    cones = [((0.45, 0.0), 0.3), ((-0.3, 0.4), 0.2)]
+    image = sum(
+        -0.3 * np.maximum(0.0, 1 - np.linalg.norm(mesh.element_centroids - np.asarray(c), axis=1) / base)
+        for c, base in cones
+    )
     np.testing.assert_array_equal(correction.correct(constant(1.0, 1.0), mesh, image), image)
     corrected = correction.correct(constant(2.0, 1.5), mesh, image)
-    assert metrics.peak(corrected) == pytest.approx(-0.6)
+    assert metrics.peak(corrected) == pytest.approx(2 * metrics.peak(image))
     figures = metrics.target_figures(mesh, corrected, [(0.45, 0.0), (-0.3, 0.4)])
     np.testing.assert_allclose(figures.equivalent_radius, [0.225, 0.15], rtol=0.04)
-    assert np.all(figures.position_error < 0.02) and figures.n_artifacts == 0  # measured 0.003, 0.012
+    assert np.all(figures.matched) and np.all(figures.position_error < 0.01)
+    # At most slivers at the threshold beside the stretched rims (one element of 0.002 m^2 here).
+    assert figures.components.areas.sum() - figures.area.sum() < 0.02 * figures.area.sum()
     batch = correction.correct(constant(2.0, 1.5), mesh, np.stack([image, image]))
     np.testing.assert_array_equal(batch[1], corrected)
 
@@ -139,7 +150,7 @@ def test_a_calibration_round_trips_through_a_file(calibration, tmp_path):
     path = calibration.save(tmp_path / "calibration.npz")
     loaded = correction.load(path)
     assert loaded.settings == calibration.settings
-    assert loaded.settings.intensities == (-0.4, -0.6) and loaded.settings.noise_draws == 8
+    assert loaded.settings.intensities == (-0.4, -0.6) and loaded.settings.noise_draws == 32
     for name in ("positions", "intensity_factor", "size_factor", "intensity_table", "size_table"):
         np.testing.assert_array_equal(getattr(loaded, name), getattr(calibration, name))
     points = np.array([[0.3, -0.2], [0.0, 0.9]])

@@ -127,7 +127,7 @@ def test_difference_imaging_of_a_strong_touch(scene):
     result = GaussNewton(model, "laplace", 1e-2).difference(dv)
     _assert_sound(result)
     change = result.conductivity_change
-    assert change[np.argmax(np.abs(change))] < 0
+    assert de.metrics.peak(change) < 0
     assert de.metrics.position_error(mesh, change, (-0.3, 0.4)) < 0.05
     # The linearised image overshoots to a negative conductivity (measured: -1.03 S/sq on a
     # background of 1); the nonlinear one stays positive and nearer the true -0.7 (-0.63).
