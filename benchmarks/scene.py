@@ -1,0 +1,132 @@
+"""Simulation cost grows with a scene's effects, not with the catalogue of effects.
+
+    python benchmarks/scene.py [--frames 100] [--h 0.1] [--repeats 3] [--blas-threads N]
+
+One skin (the unit disc of the example scenes: 16 electrodes, adjacent protocol, reconstruction
+mesh h, simulation mesh h / 2), `--frames` frames at 25 Hz, and a ladder of scenes: nothing on
+the skin; one press (held for the middle half of the scene); then the press with one or more
+effects. For each: the stages `diffeit.scene.pipeline` built, the forward solves (one per
+distinct conductivity and contact-impedance state, reference included), and the median wall time
+of `diffeit.simulate` over `--repeats` runs after a warm-up run (compilation excluded; meshes
+are cached between runs). "vs press" is the time over the plain press's.
+
+What to read: instrument effects (noise, common-mode drift, open electrode) act on voltages and
+cost almost nothing; effects that make every frame a state of its own (memory: the skin keeps
+recovering; contact drift) cost one solve per frame. A scene pays only for what it declares.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import MarkdownTable, describe, describe_machine, format_seconds, machine_line
+
+
+def scenes(frames: int, h: float) -> list[tuple[str, object]]:
+    import diffeit as de
+    from diffeit.scene import (
+        CommonModeDrift,
+        ContactDrift,
+        Disc,
+        MeasurementNoise,
+        Noise,
+        OpenElectrodes,
+        Press,
+        Scene,
+        Skin,
+        Touch,
+    )
+
+    rate = 25.0
+    duration = frames / rate
+    press = Touch(Disc([0.5, 0.0], 0.2), -0.3, Press(start=duration / 4, hold=duration / 2))
+    base = Scene(skin=Skin(h=h), frame_rate=rate, duration=duration)
+    touched = base.replace(touches=(press,))
+    noise = MeasurementNoise(Noise.level("medium"))
+    drift = CommonModeDrift(offset=1e-4, rate=1e-5)
+    opened = OpenElectrodes((5,))
+    memory = de.scene.over_foam()
+    contact = ContactDrift(0.01)
+    return [
+        ("nothing on the skin", base),
+        ("press", touched),
+        ("press + noise", touched.replace(effects=(noise,))),
+        ("press + noise + drift + open electrode", touched.replace(effects=(noise, drift, opened))),
+        ("press + memory", touched.replace(effects=(memory,))),
+        ("press + contact drift", touched.replace(effects=(contact,))),
+        ("press + all six effects", touched.replace(effects=(memory, noise, drift, opened, contact))),
+    ]
+
+
+def run(options: argparse.Namespace) -> list[dict]:
+    import diffeit as de
+
+    rows = []
+    for name, scene in scenes(options.frames, options.h):
+        de.simulate(scene, progress=False)
+        times = []
+        for _ in range(options.repeats):
+            start = time.perf_counter()
+            simulation = de.simulate(scene, progress=False)
+            simulation.frames.block_until_ready()
+            times.append(time.perf_counter() - start)
+        rows.append(
+            {
+                "scene": name,
+                "stages": list(simulation.stages),
+                "solves": simulation.solves,
+                "frames": int(simulation.frames.shape[0]),
+                "triangles": simulation.mesh.n_elements,
+                "seconds": statistics.median(times),
+            }
+        )
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=100, help="frames per scene (at 25 Hz)")
+    parser.add_argument("--h", type=float, default=0.1, help="reconstruction element size; simulation uses h / 2")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per median (after a warm-up)")
+    parser.add_argument("--blas-threads", type=int, help="BLAS threads (OPENBLAS_NUM_THREADS and friends)")
+    parser.add_argument("--json", help="also write the rows as JSON to this path")
+    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)
+    options = parser.parse_args()
+    if options.describe:
+        print(json.dumps(describe()))
+        return
+    if options.blas_threads:
+        import os
+
+        for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ[variable] = str(options.blas_threads)
+    machine = describe_machine(__file__, options.blas_threads)
+    rows = run(options)
+    print(machine_line(machine, with_pyeit=False))
+    print(f"\nScene cost by effect: {rows[0]['frames']} frames, {rows[0]['triangles']} triangles (simulation mesh)\n")
+    press = next(row["seconds"] for row in rows if row["scene"] == "press")
+    table = MarkdownTable(["scene", "stages", "forward solves", "time", "vs press", "per frame"])
+    for row in rows:
+        table.row(
+            [
+                row["scene"],
+                ", ".join(row["stages"]),
+                str(row["solves"]),
+                format_seconds(row["seconds"]),
+                f"{row['seconds'] / press:.2f}",
+                format_seconds(row["seconds"] / row["frames"]),
+            ]
+        )
+    if options.json:
+        Path(options.json).write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
