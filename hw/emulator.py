@@ -49,6 +49,7 @@ FAULT_KINDS = ("bit_flip", "dropped_bytes", "truncated", "stall", "disconnect")
 # How long the emulator waits for the host to read what was sent, before a disconnection or at
 # the end (seconds).
 _DRAIN_TIMEOUT = 5.0
+_DRAIN_SETTLE = 0.05
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,8 @@ class FaultRates:
     def __post_init__(self) -> None:
         rates = [getattr(self, kind) for kind in FAULT_KINDS]
         if not all(0 <= rate <= 1 for rate in rates) or sum(rates) > 1:
-            raise ValueError(f"fault rates must be probabilities summing to at most 1; got {dict(zip(FAULT_KINDS, rates))}")
+            named = dict(zip(FAULT_KINDS, rates, strict=True))
+            raise ValueError(f"fault rates must be probabilities summing to at most 1; got {named}")
         if self.stall_seconds < 0 or self.disconnect_seconds < 0 or self.max_dropped_bytes < 1:
             raise ValueError("stall_seconds and disconnect_seconds must be >= 0 and max_dropped_bytes >= 1")
 
@@ -117,7 +119,8 @@ def plan_faults(frame_sizes: ArrayLike, rates: FaultRates) -> tuple[Fault, ...]:
         if kind == "bit_flip":
             plan.append(Fault(frame, kind, offset, int(rng.integers(0, 8))))
         elif kind == "dropped_bytes":
-            plan.append(Fault(frame, kind, offset, int(rng.integers(1, min(rates.max_dropped_bytes, size - offset) + 1))))
+            most = min(rates.max_dropped_bytes, size - offset)
+            plan.append(Fault(frame, kind, offset, int(rng.integers(1, most + 1))))
         elif kind == "stall":
             plan.append(Fault(frame, kind, offset, seconds=rates.stall_seconds))
         elif kind == "disconnect":
@@ -316,11 +319,20 @@ class Emulator:
         except OSError:
             return False
         try:
+            # The kernel moves written bytes into the input queue asynchronously: an empty queue
+            # counts only once it has stayed empty for _DRAIN_SETTLE seconds.
             deadline = time.monotonic() + _DRAIN_TIMEOUT
-            while struct.unpack("i", fcntl.ioctl(probe, termios.TIOCINQ, b"\0" * 4))[0]:
-                if time.monotonic() > deadline or self._stop.wait(0.005):
+            empty_since = None
+            while True:
+                now = time.monotonic()
+                if struct.unpack("i", fcntl.ioctl(probe, termios.TIOCINQ, b"\0" * 4))[0]:
+                    empty_since = None
+                elif empty_since is None:
+                    empty_since = now
+                elif now - empty_since >= _DRAIN_SETTLE:
+                    return True
+                if now > deadline or self._stop.wait(0.005):
                     return False
-            return True
         finally:
             os.close(probe)
 

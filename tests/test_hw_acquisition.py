@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -140,6 +141,7 @@ def _serve(data: bytes) -> int:
 
     def send() -> None:
         connection, _ = server.accept()
+        time.sleep(0.3)  # pyserial's socket:// discards what arrived before its open returned
         connection.sendall(data)
         connection.close()
         server.close()

@@ -279,6 +279,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._simulate import add_command as add_simulate
 
     add_simulate(commands)
+    from ._hardware import add_commands
+
+    add_commands(commands)
     arguments = parser.parse_args(argv)
     return arguments.run(arguments)
 

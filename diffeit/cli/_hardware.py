@@ -1,0 +1,354 @@
+"""`diffeit acquire`, `diffeit live` and `diffeit emulate`: the command line of the hardware
+module `hw`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import hw
+
+    from ..protocol import Protocol
+
+_PROTOCOLS = ("adjacent", "opposite", "full")
+
+
+def add_commands(commands: argparse._SubParsersAction) -> None:
+    """Add `acquire`, `live` and `emulate` to the subcommands of `diffeit`."""
+    acquire = commands.add_parser(
+        "acquire",
+        help="record frames from a serial device into a frames file",
+        description="Read frames from a serial port (binary diffeit frames, or text lines with --text) and append "
+        "each to OUT (a diffeit frames file, readable at any time, also after a crash). Ctrl-C ends the run.",
+    )
+    _source_arguments(acquire)
+    acquire.add_argument("-o", "--output", required=True, help="frames file to write (.h5)")
+    acquire.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    acquire.set_defaults(run=_acquire)
+
+    live = commands.add_parser(
+        "live",
+        help="reconstruct frames from a serial device as they arrive",
+        description="One-step difference images of frames as they arrive, in batches, against the first frame "
+        "(or the mean of the first --reference-frames). Shows them in a window, or without a display "
+        "saves the latest image to --png.",
+    )
+    _source_arguments(live)
+    live.add_argument("--reference-frames", type=int, default=1, help="frames averaged into the reference (1)")
+    live.add_argument("--batch", type=int, default=8, help="frames reconstructed together (8)")
+    live.add_argument("--prior", default="noser", help="prior of diffeit.inverse.OneStep (noser)")
+    live.add_argument("--hyperparameter", type=float, default=0.1, help="unit-free regularisation weight (0.1)")
+    live.add_argument("--background", type=float, default=1.0, help="background conductivity, S/sq (1.0)")
+    live.add_argument("--contact-impedance", type=float, default=0.01, help="ohm m (0.01)")
+    live.add_argument("--h", type=float, default=0.08, help="element size of the unit-disc mesh (0.08)")
+    live.add_argument("--png", default="live.png", help="image written when there is no display (live.png)")
+    live.set_defaults(run=_live)
+
+    emulate = commands.add_parser(
+        "emulate",
+        help="stream a simulated scene over a pseudo-terminal, as a device would",
+        description="Simulate SCENE.toml (diffeit.simulate) and stream its frames, the reference first, over a "
+        "pseudo-terminal in raw mode at the scene's frame rate; a client opens --port as a serial port.",
+    )
+    emulate.add_argument("scene", help="a scene file (.toml)")
+    emulate.add_argument("--port", default="./ttyEIT", help="path of the emulated port, a link (./ttyEIT)")
+    emulate.add_argument("--frame-rate", type=float, help="frames per second (default: the scene's)")
+    emulate.add_argument("--text", action="store_true", help="send text lines instead of binary frames")
+    emulate.add_argument(
+        "--faults",
+        default="",
+        help="fault rates per frame, e.g. bit_flip=0.01,truncated=0.01,disconnect=0.002 (kinds: bit_flip, "
+        "dropped_bytes, truncated, stall, disconnect)",
+    )
+    emulate.add_argument("--seed", type=int, default=0, help="seed of the faults (0)")
+    emulate.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a client (60)")
+    emulate.add_argument("--log", help="write the ground-truth fault log here (JSON)")
+    emulate.set_defaults(run=_emulate)
+
+
+def _source_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--port", required=True, help="serial port name or pyserial URL (socket://host:port)")
+    parser.add_argument("--baudrate", type=int, default=115200, help="bits per second (115200)")
+    parser.add_argument(
+        "--protocol",
+        choices=_PROTOCOLS,
+        help="the frames' protocol: adjacent (n(n-3) values), opposite, full (the n x n adjacent layout); "
+        "binary frames declare theirs, text lines need it (default adjacent)",
+    )
+    parser.add_argument("--electrodes", type=int, default=16, help="number of electrodes (16)")
+    parser.add_argument("--text", action="store_true", help="the device prints text lines, not binary frames")
+    parser.add_argument("--frames", type=int, help="stop after this many frames")
+    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument(
+        "--reconnect-timeout", type=float, default=5.0, help="seconds to wait for a vanished device (5)"
+    )
+
+
+def _protocol(name: str | None, n_electrodes: int) -> Protocol | None:
+    from ..protocol import adjacent, opposite
+
+    if name is None:
+        return None
+    if name == "opposite":
+        return opposite(n_electrodes)
+    return adjacent(n_electrodes, measure_driven=name == "full")
+
+
+def _open_source(arguments: argparse.Namespace) -> hw.SerialSource:
+    import hw
+
+    protocol = _protocol(arguments.protocol, arguments.electrodes)
+    if arguments.text:
+        parser = hw.TextParser(protocol if protocol is not None else _protocol("adjacent", arguments.electrodes))
+    else:
+        parser = hw.BinaryParser(protocol)
+    return hw.SerialSource(
+        arguments.port, parser, baudrate=arguments.baudrate, reconnect_timeout=arguments.reconnect_timeout
+    )
+
+
+def _frame_protocol(source: hw.SerialSource, frame: hw.Frame) -> Protocol:
+    """The protocol of the frames: the declared one, else the layout the first frame names."""
+    import hw
+
+    if source.parser.protocol is not None:
+        return source.parser.protocol
+    protocol = hw.layout_protocol(frame.layout, frame.n_electrodes)
+    if protocol is None:
+        raise ValueError(f"the device sends frames of {frame.n_values} values without a layout: pass --protocol")
+    return protocol
+
+
+def _acquire(arguments: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    import hw
+
+    output = Path(arguments.output)
+    if output.exists() and not arguments.overwrite:
+        print(f"diffeit acquire: error: {output} exists; pass --overwrite to replace it", file=sys.stderr)
+        return 2
+    try:
+        source = _open_source(arguments)
+    except (ValueError, ConnectionError) as error:
+        print(f"diffeit acquire: error: {error}", file=sys.stderr)
+        return 2
+    recorder, ending = None, "done"
+    progress = tqdm(total=arguments.frames, unit="frame", desc=f"recording {output.name}", disable=None)
+    try:
+        for frame in source.frames(max_frames=arguments.frames, duration=arguments.duration):
+            if recorder is None:
+                recorder = hw.Recorder(
+                    output, _frame_protocol(source, frame), metadata=source.description, overwrite=arguments.overwrite
+                )
+            statistics = source.statistics
+            recorder.append(frame, statistics)
+            progress.update()
+            progress.set_postfix(dropped=statistics.rejected, missing=statistics.missing_frames, refresh=False)
+    except hw.DeviceLost as error:
+        ending = str(error)
+    except KeyboardInterrupt:
+        ending = "interrupted"
+    except ValueError as error:
+        print(f"diffeit acquire: error: {error}", file=sys.stderr)
+        return 2
+    finally:
+        progress.close()
+        if recorder is not None:
+            recorder.append([], source.statistics)
+            recorder.close()
+        source.close()
+    statistics = source.statistics
+    print(
+        f"{ending}: {statistics.frames} frames recorded in {output if recorder else 'nothing (no frame arrived)'}; "
+        f"rejected {statistics.rejected} ({_kinds(statistics)}), missing {statistics.missing_frames} by the "
+        f"counter, {statistics.discarded_bytes} bytes discarded, {statistics.reconnects} reconnections"
+    )
+    return 0 if recorder is not None else 1
+
+
+def _kinds(statistics: hw.DropStatistics) -> str:
+    counts = [f"{kind} {getattr(statistics, kind)}" for kind in statistics.REJECTION_KINDS if getattr(statistics, kind)]
+    return ", ".join(counts) or "none"
+
+
+def _live(arguments: argparse.Namespace) -> int:
+    import hw
+
+    if arguments.batch < 1 or arguments.reference_frames < 1:
+        print("diffeit live: error: --batch and --reference-frames must be at least 1", file=sys.stderr)
+        return 2
+    try:
+        source = _open_source(arguments)
+    except (ValueError, ConnectionError) as error:
+        print(f"diffeit live: error: {error}", file=sys.stderr)
+        return 2
+    viewer, shown, ending = None, 0, "done"
+    reference_frames: list[np.ndarray] = []
+    batch: list[hw.Frame] = []
+    try:
+        for frame in source.frames(max_frames=arguments.frames, duration=arguments.duration):
+            if viewer is None:
+                viewer = _LiveViewer(_frame_protocol(source, frame), arguments)
+            if len(reference_frames) < arguments.reference_frames:
+                reference_frames.append(frame.values)
+                continue
+            batch.append(frame)
+            if len(batch) == arguments.batch:
+                shown += viewer.show(batch, np.mean(reference_frames, axis=0))
+                batch = []
+        if batch and reference_frames:
+            shown += viewer.show(batch, np.mean(reference_frames, axis=0))
+    except hw.DeviceLost as error:
+        ending = str(error)
+    except KeyboardInterrupt:
+        ending = "interrupted"
+    except ValueError as error:
+        print(f"diffeit live: error: {error}", file=sys.stderr)
+        return 2
+    finally:
+        source.close()
+    where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
+    print(f"{ending}: {shown} frames reconstructed, {source.statistics.rejected} rejected{where}")
+    return 0 if shown else 1
+
+
+class _LiveViewer:
+    """One-step reconstruction of batches of frames, shown in a window or saved as a PNG."""
+
+    def __init__(self, protocol: Protocol, arguments: argparse.Namespace) -> None:
+        import matplotlib.pyplot as plt
+
+        from .. import mesh as meshes
+        from ..forward import ForwardModel
+        from ..inverse import OneStep
+
+        n = protocol.n_electrodes
+        self.mesh = meshes.disc(n, electrode_width=min(0.2, math.pi / n), h=arguments.h)
+        model = ForwardModel(self.mesh, protocol, contact_impedance=arguments.contact_impedance)
+        self.solver = OneStep(
+            model, prior=arguments.prior, hyperparameter=arguments.hyperparameter, background=arguments.background
+        )
+        # Agg is what matplotlib falls back to without a display: then write PNGs instead.
+        self.headless = plt.get_backend().lower() == "agg"
+        self.png = arguments.png
+        self.figure, self.axes = plt.subplots(figsize=(5, 5))
+        self.axes.set_aspect("equal")
+        self.axes.set_axis_off()
+        if not self.headless:
+            plt.ion()
+            plt.show()
+
+    def show(self, batch: list[hw.Frame], reference: np.ndarray) -> int:
+        """Reconstruct the batch (one call), draw its last image; the frames reconstructed."""
+        import matplotlib.pyplot as plt
+
+        differences = np.array([frame.values for frame in batch]) - reference
+        images = np.asarray(self.solver.reconstruct(differences))
+        image = images[-1]
+        limit = float(np.max(np.abs(image))) or 1.0
+        self.axes.clear()
+        self.axes.set_axis_off()
+        self.axes.tripcolor(
+            *self.mesh.nodes.T, self.mesh.triangles, facecolors=image, cmap="RdBu_r", vmin=-limit, vmax=limit
+        )
+        counter = batch[-1].counter
+        self.axes.set_title(f"frame {counter if counter is not None else ''}: dsigma, S/sq (peak {limit:.3g})")
+        if self.headless:
+            self.figure.savefig(self.png, dpi=100)
+        else:
+            plt.pause(0.001)
+        return len(batch)
+
+
+def _emulate(arguments: argparse.Namespace) -> int:
+    try:
+        return _emulate_scene(arguments)
+    except (ValueError, FileNotFoundError) as error:
+        print(f"diffeit emulate: error: {error}", file=sys.stderr)
+        return 2
+
+
+def _emulate_scene(arguments: argparse.Namespace) -> int:
+    import hw
+    from hw.frame import LAYOUT_ADJACENT, LAYOUT_ADJACENT_FULL, LAYOUT_DECLARED, LAYOUT_OPPOSITE
+
+    from .. import Scene, simulate
+
+    faults = _fault_rates(arguments.faults, arguments.seed)
+    simulation = simulate(Scene.from_toml(arguments.scene))
+    frames = np.concatenate([np.asarray(simulation.reference)[None], np.asarray(simulation.frames)])
+    times = np.asarray(simulation.times)
+    frame_rate = arguments.frame_rate or (1 / np.median(np.diff(times)) if len(times) > 1 else 1.0)
+    protocol = simulation.protocol
+    layout = next(
+        (code for code in (LAYOUT_ADJACENT, LAYOUT_OPPOSITE, LAYOUT_ADJACENT_FULL) if _is_layout(code, protocol)),
+        LAYOUT_DECLARED,
+    )
+    emulator = hw.Emulator(
+        frames,
+        frame_rate=frame_rate,
+        text=arguments.text,
+        faults=faults,
+        port=arguments.port,
+        layout=layout,
+        n_electrodes=protocol.n_electrodes if layout != LAYOUT_DECLARED else 0,
+        host_timeout=arguments.wait,
+    )
+    print(
+        f"streaming {len(frames)} frames ({protocol.n_measurements} values; frame 0 the reference) at "
+        f"{frame_rate:g} frames/s on {emulator.port}",
+        flush=True,
+    )
+    emulator.start()
+    try:
+        emulator.wait()
+    except KeyboardInterrupt:
+        emulator.stop()
+    log = emulator.log
+    if arguments.log:
+        Path(arguments.log).write_text(json.dumps([fault.__dict__ for fault in log], indent=1))
+    kinds = sorted({fault.kind for fault in log})
+    summary = ", ".join(f"{kind} {sum(f.kind == kind for f in log)}" for kind in kinds) or "no faults"
+    print(f"done: {len(frames) - len(emulator.lost_frames)} frames sent intact; {summary}")
+    return 0
+
+
+def _is_layout(layout: int, protocol: Protocol) -> bool:
+    """Whether `protocol` is the protocol a binary frame layout id names."""
+    import hw
+
+    try:
+        candidate = hw.layout_protocol(layout, protocol.n_electrodes)
+    except ValueError:  # a layout this many electrodes cannot have
+        return False
+    return (
+        candidate.n_measurements == protocol.n_measurements
+        and np.array_equal(candidate.drive, protocol.drive)
+        and np.array_equal(candidate.measure, protocol.measure)
+    )
+
+
+def _fault_rates(text: str, seed: int) -> hw.FaultRates | None:
+    """--faults "bit_flip=0.01,truncated=0.02" as FaultRates (None when empty)."""
+    import hw
+
+    if not text.strip():
+        return None
+    rates = {}
+    for item in text.split(","):
+        name, equals, value = item.partition("=")
+        if not equals or name.strip() not in hw.emulator.FAULT_KINDS:
+            raise ValueError(f"--faults takes kind=rate items, kinds {hw.emulator.FAULT_KINDS}; got {item!r}")
+        try:
+            rates[name.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"--faults: {name.strip()} rate {value!r} is not a number") from None
+    return hw.FaultRates(**rates, seed=seed)

@@ -1,0 +1,79 @@
+"""`diffeit acquire`, `diffeit live` and `diffeit emulate` against the emulator's pty."""
+
+import json
+import threading
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+
+import diffeit as de
+import hw
+from diffeit.cli import main
+from diffeit.io import read_frames
+from diffeit.protocol import adjacent
+
+SCENE = Path(de.__file__).parent / "scene" / "examples" / "single_touch.toml"
+
+
+@pytest.fixture(scope="module")
+def touch() -> np.ndarray:
+    """Frames of a simulated press, the reference first (volts)."""
+    simulation = de.simulate(de.Scene.from_toml(SCENE), progress=False)
+    return np.concatenate([np.asarray(simulation.reference)[None], np.asarray(simulation.frames)])
+
+
+def test_acquire_records_what_arrives_and_reports_the_drops(tmp_path, touch, capsys):
+    frames = np.tile(touch, (4, 1))  # 104 frames
+    faults = hw.FaultRates(bit_flip=0.05, truncated=0.05, seed=2)
+    emulator = hw.Emulator(frames, frame_rate=200.0, faults=faults).start()
+    output = tmp_path / "run.h5"
+    status = main(["acquire", "--port", emulator.port, "-o", str(output), "--reconnect-timeout", "0.3"])
+    assert status == 0 and emulator.wait(5)
+    recording = read_frames(output)
+    lost = set(emulator.lost_frames)
+    kept = [i for i in range(len(frames)) if i not in lost]
+    assert len(lost) > 0 and recording.n_frames == len(kept)
+    np.testing.assert_array_equal(recording.frames, frames[kept].astype(np.float32))
+    np.testing.assert_array_equal(recording.protocol.measure, adjacent(16).measure)
+    statistics = recording.provenance["metadata"]["drop_statistics"]
+    assert statistics["frames"] == len(kept)
+    assert statistics["missing_frames"] == kept[-1] - kept[0] + 1 - len(kept)  # gaps between arrived frames
+    report = capsys.readouterr().out
+    assert f"{len(kept)} frames recorded in {output}" in report and "did not come back" in report
+    assert main(["acquire", "--port", emulator.port, "-o", str(output)]) == 2  # never overwrites unasked
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+
+
+def test_live_reconstructs_batches_and_saves_a_png_without_display(tmp_path, touch, capsys):
+    emulator = hw.Emulator(touch, frame_rate=100.0, text=True, label="v").start()
+    png = tmp_path / "live.png"
+    status = main(
+        ["live", "--port", emulator.port, "--text", "--protocol", "adjacent", "--frames", "21", "--batch", "5",
+         "--h", "0.15", "--png", str(png)]
+    )  # fmt: skip
+    emulator.stop()
+    assert status == 0
+    assert "20 frames reconstructed, 0 rejected; the latest image is in" in capsys.readouterr().out
+    image = matplotlib.image.imread(png)
+    assert image.shape[2] == 4 and np.ptp(image[..., :3]) > 0.5  # a coloured image, not a blank canvas
+
+
+def test_emulate_streams_the_scene_reference_first(tmp_path, touch, capsys):
+    port, log = tmp_path / "ttyEIT", tmp_path / "faults.json"
+    arguments = ["emulate", str(SCENE), "--port", str(port), "--frame-rate", "100", "--wait", "30"]
+    arguments += ["--faults", "stall=0.2", "--log", str(log)]
+    thread = threading.Thread(target=main, args=(arguments,))
+    thread.start()
+    with hw.SerialSource(str(port), open_timeout=60, reconnect_timeout=0.3) as source:
+        arrived = []
+        with pytest.raises(hw.DeviceLost):
+            arrived.extend(source.frames())
+    thread.join()
+    np.testing.assert_allclose([f.values for f in arrived], touch.astype(np.float32), rtol=1e-6)
+    assert [f.counter for f in arrived] == list(range(len(touch)))
+    stalls = json.loads(log.read_text())
+    assert stalls and {fault["kind"] for fault in stalls} == {"stall"}
+    assert f"done: {len(touch)} frames sent intact; stall {len(stalls)}" in capsys.readouterr().out
+    assert main(["emulate", str(SCENE), "--faults", "flip=0.1"]) == 2
