@@ -259,3 +259,16 @@ def test_random_bytes_are_never_frames(data, cuts):
             assert frames == []  # two CRCs: random bytes pass with probability ~2**-48
         for frame in frames:  # text: any four finite numbers on a line are a frame
             assert frame.n_values == 4 and np.all(np.isfinite(frame.values))
+
+
+def test_hw_depends_on_diffeit_io_and_protocols_only():
+    import ast
+    from pathlib import Path
+
+    for source in Path(hw.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(source.read_text())):
+            names = [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else []
+            names += [alias.name for alias in node.names] if isinstance(node, ast.Import) else []
+            for name in names:
+                if name.startswith("diffeit"):
+                    assert name in ("diffeit.io", "diffeit.protocol"), f"{source.name} imports {name}"
