@@ -148,9 +148,8 @@ class SerialSource:
         self.close()
         self._serial = self._open_within(self.reconnect_timeout) if self.reconnect_timeout > 0 else None
         if self._serial is None:
-            raise DeviceLost(
-                f"{self.port} disappeared and did not come back within {self.reconnect_timeout} s ({self._last_error})"
-            )
+            reason = f" ({self._last_error})" if self.reconnect_timeout > 0 else " (reconnection disabled)"
+            raise DeviceLost(f"{self.port} disappeared and did not come back within {self.reconnect_timeout} s{reason}")
         self._reconnects += 1
 
     def _open_within(self, timeout: float) -> serial.SerialBase | None:
