@@ -1,5 +1,6 @@
 """Scenes: TOML files with units round-trip, examples load, bad scenes name the field."""
 
+import jax
 import numpy as np
 import pytest
 
@@ -197,3 +198,15 @@ def test_bad_scene_objects_name_the_field():
         Scene.from_toml_string("frame_rate = = 3")
     with pytest.raises(ValueError, match="unknown example"):
         de.scene.example("two_touches")
+
+
+def test_integer_parameters_become_float_leaves():
+    """jax.grad refuses integer leaves: `hold=2` or integer vertices must not stop a gradient."""
+    scene = Scene(
+        skin=Skin(h=0.2, contact_impedance=1),
+        background=Background(1, (Region(Polygon([[0, -2], [2, -2], [2, 2], [0, 2]]), 2),)),
+        touches=(Touch(Disc([0, 0], 1 / 4), -0.25, Press(0, hold=2)),),
+    )
+    leaves = jax.tree_util.tree_leaves(scene)
+    assert leaves and all(np.issubdtype(np.asarray(leaf).dtype, np.floating) for leaf in leaves)
+    assert Touch(Polygon([[0, 0], [1, 0], [0, 1]]), -0.1).shape.vertices.dtype == np.float64

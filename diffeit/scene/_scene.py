@@ -450,6 +450,9 @@ class Scene:
     def __post_init__(self) -> None:
         object.__setattr__(self, "touches", tuple(self.touches))
         object.__setattr__(self, "effects", tuple(self.effects))
+        # Integer parameters (hold = 2, vertices [[0, -2], ...]) as floats: jax.grad needs them so.
+        for name in ("skin", "background", "touches", "effects"):
+            object.__setattr__(self, name, jax.tree_util.tree_map(_float_leaf, getattr(self, name)))
         if not isinstance(self.skin, Skin):
             raise ValueError(f"skin must be a Skin; got {self.skin!r}")
         if not isinstance(self.background, Background):
@@ -564,6 +567,12 @@ class Scene:
         except tomllib.TOMLDecodeError as error:
             raise ValueError(f"{source} is not valid TOML: {error}") from None
         return cls.from_dict(data)
+
+
+def _float_leaf(value: Any) -> Any:
+    if is_concrete(value) and np.issubdtype(np.asarray(value).dtype, np.integer):
+        return jnp.asarray(value, dtype=float)
+    return value
 
 
 # --- Examples -------------------------------------------------------------------------------

@@ -96,7 +96,7 @@ def _sequences_to_arrays(obj, names: tuple[str, ...]) -> None:
         value = getattr(obj, name)
         if isinstance(value, list | tuple):
             try:
-                object.__setattr__(obj, name, jnp.asarray(value))
+                object.__setattr__(obj, name, jnp.asarray(value, dtype=float))
             except (TypeError, ValueError):
                 raise ValueError(
                     f"{type(obj).__name__}.{name} must be a number or an array of numbers; got {value!r}"
