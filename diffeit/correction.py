@@ -69,8 +69,7 @@ from .forward import ForwardModel
 from .inverse import OneStep
 from .mesh import Mesh
 from .mesh._fields import barycentric_samples
-from .scene._instrument import Noise, add_noise
-from .scene._stimuli import Disc, Touch, touch_field
+from .scene import Disc, Noise, Touch, add_noise, touch_field
 
 SCHEMA = "diffeit.calibration"
 VERSION = 1

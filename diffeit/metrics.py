@@ -48,8 +48,7 @@ import scipy.optimize
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from .inverse.priors import element_adjacency
-from .mesh import Mesh, disc_fraction
+from .mesh import Mesh, disc_fraction, element_adjacency
 
 if TYPE_CHECKING:
     from .render import PixelGrid

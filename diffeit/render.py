@@ -23,8 +23,7 @@ import numpy as np
 import scipy.sparse
 
 from ._arrays import readonly
-from .inverse.greit import _pixel_overlaps
-from .mesh import Mesh
+from .mesh import Mesh, pixel_overlaps
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,7 +92,7 @@ def pixel_grid(mesh: Mesh, grid: int | tuple[int, int] = 64, min_coverage: float
     low, high = mesh.nodes.min(axis=0), mesh.nodes.max(axis=0)
     x_edges = np.linspace(low[0], high[0], shape[1] + 1)
     y_edges = np.linspace(low[1], high[1], shape[0] + 1)
-    overlap = _pixel_overlaps(mesh, x_edges, y_edges)
+    overlap = pixel_overlaps(mesh, x_edges, y_edges)
     covered = overlap.sum(axis=1)
     pixel_area = (x_edges[1] - x_edges[0]) * (y_edges[1] - y_edges[0])
     inside = (covered > 0) & (covered >= min_coverage * pixel_area)

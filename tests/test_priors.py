@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from diffeit.inverse.priors import Laplace, Matern, Noser, Tikhonov, element_adjacency, prior_named
+from diffeit.inverse.priors import Laplace, Matern, Noser, Tikhonov, prior_named
+from diffeit.mesh import element_adjacency
 
 
 @pytest.mark.parametrize("prior", [Tikhonov(), Noser(), Noser(0.2), Laplace(), Matern(0.3)], ids=repr)

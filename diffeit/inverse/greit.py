@@ -26,9 +26,8 @@ from scipy.spatial import cKDTree
 from .. import metrics
 from .._arrays import readonly
 from ..forward import ForwardModel
-from ..mesh import Mesh
+from ..mesh import Mesh, pixel_overlaps
 from ..mesh._fields import barycentric_samples
-from ..mesh._interpolate import triangle_intersection_areas
 
 DEFAULT_HYPERPARAMETER = 0.3
 _TRAININGS = ("linearised", "nonlinear")
@@ -36,8 +35,6 @@ _TRAININGS = ("linearised", "nonlinear")
 _INSIDE_FRACTION = 0.5
 # Midpoint rule on 8^2 sub-triangles for the targets' element fractions (as disc_fraction).
 _TARGET_SAMPLING_LEVEL = 8
-# Pixel-triangle pairs clipped per batch: bounds the temporaries to a few tens of MB.
-_PAIRS_PER_BATCH = 1 << 16
 # The noise-figure search scans the hyperparameter over these decades, then refines a crossing.
 _NOISE_FIGURE_SCAN = np.logspace(-8, 4, 121)
 
@@ -171,7 +168,7 @@ class GREIT:
         x_edges = np.linspace(low[0], high[0], shape[1] + 1)
         y_edges = np.linspace(low[1], high[1], shape[0] + 1)
         centres = np.stack(np.meshgrid(0.5 * (x_edges[1:] + x_edges[:-1]), 0.5 * (y_edges[1:] + y_edges[:-1])), -1)
-        overlap = _pixel_overlaps(mesh, x_edges, y_edges)
+        overlap = pixel_overlaps(mesh, x_edges, y_edges)
         covered = overlap.sum(axis=1)
         pixel_area = (x_edges[1] - x_edges[0]) * (y_edges[1] - y_edges[0])
         inside = covered >= _INSIDE_FRACTION * pixel_area
@@ -350,40 +347,6 @@ class _NoiseFigure:
             lambda t: self(10.0**t) - target, np.log10(_NOISE_FIGURE_SCAN[i]), np.log10(_NOISE_FIGURE_SCAN[i + 1])
         )
         return float(10.0**log_root)
-
-
-def _pixel_overlaps(mesh: Mesh, x_edges: np.ndarray, y_edges: np.ndarray) -> scipy.sparse.csr_array:
-    """(n_rows * n_columns, E) sparse: the area (m^2) of pixel p (row-major) inside triangle e,
-    exact up to rounding (each pixel as two triangles, clipped against each element)."""
-    corners = mesh.nodes[mesh.triangles]  # (E, 3, 2), counter-clockwise
-    n_columns, n_rows = len(x_edges) - 1, len(y_edges) - 1
-    dx, dy = x_edges[1] - x_edges[0], y_edges[1] - y_edges[0]
-    low, high = corners.min(axis=1), corners.max(axis=1)
-    first_column = np.clip(np.floor((low[:, 0] - x_edges[0]) / dx).astype(int), 0, n_columns - 1)
-    last_column = np.clip(np.floor((high[:, 0] - x_edges[0]) / dx).astype(int), 0, n_columns - 1)
-    first_row = np.clip(np.floor((low[:, 1] - y_edges[0]) / dy).astype(int), 0, n_rows - 1)
-    last_row = np.clip(np.floor((high[:, 1] - y_edges[0]) / dy).astype(int), 0, n_rows - 1)
-    # Every (element, pixel) pair whose bounding boxes meet: a superset of the overlapping pairs.
-    widths = last_column - first_column + 1
-    counts = widths * (last_row - first_row + 1)
-    element = np.repeat(np.arange(mesh.n_elements), counts)
-    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    column = first_column[element] + local % widths[element]
-    row = first_row[element] + local // widths[element]
-    areas = np.empty(len(element))
-    for start in range(0, len(element), _PAIRS_PER_BATCH):
-        batch = slice(start, start + _PAIRS_PER_BATCH)
-        x0, x1 = x_edges[column[batch]], x_edges[column[batch] + 1]
-        y0, y1 = y_edges[row[batch]], y_edges[row[batch] + 1]
-        lower = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1)], 1)
-        upper = np.stack([np.stack([x0, y0], -1), np.stack([x1, y1], -1), np.stack([x0, y1], -1)], 1)
-        subject = corners[element[batch]]
-        areas[batch] = triangle_intersection_areas(lower, subject) + triangle_intersection_areas(upper, subject)
-    kept = areas > 0
-    pixel = row * n_columns + column
-    return scipy.sparse.csr_array(
-        (areas[kept], (pixel[kept], element[kept])), shape=(n_rows * n_columns, mesh.n_elements)
-    )
 
 
 def _target_positions(mesh: Mesh, n_targets: int, radius: float, rng: np.random.Generator) -> np.ndarray:

@@ -43,8 +43,9 @@ import optimistix as optx
 from .._arrays import is_concrete
 from .._messages import name_indices
 from ..forward import ForwardModel
+from ..mesh import element_adjacency
 from .one_step import LinearisedProblem, check_frames, regularised_inverse
-from .priors import Laplace, Tikhonov, element_adjacency
+from .priors import Laplace, Tikhonov
 
 STOP_REASONS = ("converged", "max_steps", "stalled", "failed")
 """`TotalVariationSolution.stop_code` indexes this. "stalled": the solver's test (small

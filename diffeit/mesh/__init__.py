@@ -7,5 +7,7 @@ from ._generate import polygon as polygon
 from ._generate import rectangle as rectangle
 from ._interpolate import interpolate as interpolate
 from ._interpolate import overlap_areas as overlap_areas
+from ._interpolate import pixel_overlaps as pixel_overlaps
 from ._interpolate import remap_matrix as remap_matrix
 from ._mesh import Mesh as Mesh
+from ._topology import element_adjacency as element_adjacency

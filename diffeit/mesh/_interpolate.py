@@ -190,3 +190,37 @@ def triangle_intersection_areas(clip: np.ndarray, subject: np.ndarray) -> np.nda
     vertex_next = np.take_along_axis(polygon, following[..., None], axis=1)
     cross = polygon[..., 0] * vertex_next[..., 1] - vertex_next[..., 0] * polygon[..., 1]
     return 0.5 * np.sum(np.where(slots < count[:, None], cross, 0.0), axis=1)
+
+
+def pixel_overlaps(mesh: Mesh, x_edges: np.ndarray, y_edges: np.ndarray) -> scipy.sparse.csr_array:
+    """(n_rows * n_columns, E) sparse: the area (m^2) of pixel p (row-major) inside triangle e,
+    exact up to rounding (each pixel as two triangles, clipped against each element)."""
+    corners = mesh.nodes[mesh.triangles]  # (E, 3, 2), counter-clockwise
+    n_columns, n_rows = len(x_edges) - 1, len(y_edges) - 1
+    dx, dy = x_edges[1] - x_edges[0], y_edges[1] - y_edges[0]
+    low, high = corners.min(axis=1), corners.max(axis=1)
+    first_column = np.clip(np.floor((low[:, 0] - x_edges[0]) / dx).astype(int), 0, n_columns - 1)
+    last_column = np.clip(np.floor((high[:, 0] - x_edges[0]) / dx).astype(int), 0, n_columns - 1)
+    first_row = np.clip(np.floor((low[:, 1] - y_edges[0]) / dy).astype(int), 0, n_rows - 1)
+    last_row = np.clip(np.floor((high[:, 1] - y_edges[0]) / dy).astype(int), 0, n_rows - 1)
+    # Every (element, pixel) pair whose bounding boxes meet: a superset of the overlapping pairs.
+    widths = last_column - first_column + 1
+    counts = widths * (last_row - first_row + 1)
+    element = np.repeat(np.arange(mesh.n_elements), counts)
+    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    column = first_column[element] + local % widths[element]
+    row = first_row[element] + local // widths[element]
+    areas = np.empty(len(element))
+    for start in range(0, len(element), _PAIRS_PER_BATCH):
+        batch = slice(start, start + _PAIRS_PER_BATCH)
+        x0, x1 = x_edges[column[batch]], x_edges[column[batch] + 1]
+        y0, y1 = y_edges[row[batch]], y_edges[row[batch] + 1]
+        lower = np.stack([np.stack([x0, y0], -1), np.stack([x1, y0], -1), np.stack([x1, y1], -1)], 1)
+        upper = np.stack([np.stack([x0, y0], -1), np.stack([x1, y1], -1), np.stack([x0, y1], -1)], 1)
+        subject = corners[element[batch]]
+        areas[batch] = triangle_intersection_areas(lower, subject) + triangle_intersection_areas(upper, subject)
+    kept = areas > 0
+    pixel = row * n_columns + column
+    return scipy.sparse.csr_array(
+        (areas[kept], (pixel[kept], element[kept])), shape=(n_rows * n_columns, mesh.n_elements)
+    )
