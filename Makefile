@@ -18,7 +18,7 @@ demo: $(STAMP)
 # The tests run SciPy's solves (OpenBLAS) beside XLA's own threads: one BLAS thread avoids
 # oversubscribing small CI machines, where threaded BLAS can run tens of times slower.
 test: $(STAMP)
-	$(BIN)/ruff check diffeit tests benchmarks examples
+	$(BIN)/ruff check diffeit hw tests benchmarks examples
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest
 
 # One BLAS thread: on a small shared machine multithreaded BLAS is erratic; override for a

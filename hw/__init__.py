@@ -21,6 +21,8 @@ from .emulator import plan_faults as plan_faults
 from .frame import Frame as Frame
 from .frame import encode_frame as encode_frame
 from .frame import encode_text_line as encode_text_line
+from .frame import layout_matches as layout_matches
+from .frame import layout_of as layout_of
 from .frame import layout_protocol as layout_protocol
 from .parser import BinaryParser as BinaryParser
 from .parser import DropStatistics as DropStatistics

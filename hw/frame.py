@@ -115,6 +115,29 @@ def layout_protocol(layout: int, n_electrodes: int) -> Protocol | None:
     raise ValueError(f"unknown layout id {layout}; known: {LAYOUT_NAMES}")
 
 
+def layout_matches(layout: int, n_electrodes: int, protocol: Protocol) -> bool:
+    """Whether layout id `layout` with `n_electrodes` names exactly `protocol` (same drive and
+    measurement pairs, same order); False for `LAYOUT_DECLARED`, unknown ids and electrode
+    counts the layout cannot have."""
+    try:
+        declared = layout_protocol(layout, n_electrodes)
+    except ValueError:
+        return False
+    return (
+        declared is not None
+        and declared.n_measurements == protocol.n_measurements
+        and np.array_equal(declared.drive, protocol.drive)
+        and np.array_equal(declared.measure, protocol.measure)
+    )
+
+
+def layout_of(protocol: Protocol) -> int:
+    """The layout id that names `protocol`, or `LAYOUT_DECLARED` when no id does (the host
+    then declares the protocol to the parser)."""
+    known = (LAYOUT_ADJACENT, LAYOUT_OPPOSITE, LAYOUT_ADJACENT_FULL)
+    return next((code for code in known if layout_matches(code, protocol.n_electrodes, protocol)), LAYOUT_DECLARED)
+
+
 def encode_frame(
     values: ArrayLike,
     *,

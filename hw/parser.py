@@ -59,14 +59,13 @@ from .frame import (
     CRC_SIZE,
     HEADER_SIZE,
     LAYOUT_DECLARED,
-    LAYOUT_NAMES,
     MAX_VALUES,
     SYNC,
     VALUE_TYPES,
     VERSION,
     Frame,
     header_crc,
-    layout_protocol,
+    layout_matches,
 )
 
 _COUNTER_MODULUS = 2**32
@@ -241,7 +240,7 @@ class BinaryParser(AbstractParser):
             if layout == LAYOUT_DECLARED:
                 if n_values != self.protocol.n_measurements:
                     return "length"
-            elif layout not in LAYOUT_NAMES or not _same_protocol(layout, n_electrodes, self.protocol):
+            elif not layout_matches(layout, n_electrodes, self.protocol):
                 return "length"
         elif self._layout is not None and shape != self._layout:
             return "length"
@@ -258,18 +257,6 @@ class BinaryParser(AbstractParser):
         self._layout = shape
         self._last_counter = counter
         return None
-
-
-def _same_protocol(layout: int, n_electrodes: int, protocol: Protocol) -> bool:
-    try:
-        declared = layout_protocol(layout, n_electrodes)
-    except ValueError:  # an electrode count the layout cannot have
-        return False
-    return (
-        declared.n_measurements == protocol.n_measurements
-        and np.array_equal(declared.drive, protocol.drive)
-        and np.array_equal(declared.measure, protocol.measure)
-    )
 
 
 class TextParser(AbstractParser):

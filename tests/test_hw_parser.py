@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import hw
-from diffeit.protocol import adjacent, opposite
+from diffeit.protocol import adjacent, opposite, skip
 from hw.frame import HEADER_SIZE, LAYOUT_ADJACENT_FULL, LAYOUT_DECLARED, LAYOUT_OPPOSITE, SYNC
 
 RNG = np.random.default_rng(11)
@@ -78,6 +78,17 @@ def test_layouts_map_to_diffeit_protocols():
     assert hw.BinaryParser(opposite(16)).feed(data)[0].n_values == 192
     parser = hw.BinaryParser(adjacent(16))  # an opposite frame is not an adjacent one
     assert parser.feed(data) == [] and parser.statistics.length == 1
+
+
+def test_layout_of_names_each_protocol_and_declares_the_rest():
+    assert hw.layout_of(adjacent(16)) == hw.frame.LAYOUT_ADJACENT
+    assert hw.layout_of(adjacent(16, measure_driven=True)) == LAYOUT_ADJACENT_FULL
+    assert hw.layout_of(opposite(16)) == LAYOUT_OPPOSITE
+    assert hw.layout_of(skip(16, 3)) == LAYOUT_DECLARED
+    assert hw.layout_of(adjacent(16, rotate_measurements=True)) == LAYOUT_DECLARED  # same pairs, other order
+    assert not hw.layout_matches(hw.frame.LAYOUT_ADJACENT, 8, adjacent(16))
+    assert not hw.layout_matches(LAYOUT_DECLARED, 16, adjacent(16))
+    assert not hw.layout_matches(99, 16, adjacent(16))
 
 
 def test_garbage_before_between_and_after_frames_is_discarded():

@@ -278,7 +278,7 @@ def _emulate(arguments: argparse.Namespace) -> int:
 
 def _emulate_scene(arguments: argparse.Namespace) -> int:
     import hw
-    from hw.frame import LAYOUT_ADJACENT, LAYOUT_ADJACENT_FULL, LAYOUT_DECLARED, LAYOUT_OPPOSITE
+    from hw.frame import LAYOUT_DECLARED
 
     from .. import Scene, simulate
 
@@ -288,10 +288,7 @@ def _emulate_scene(arguments: argparse.Namespace) -> int:
     times = np.asarray(simulation.times)
     frame_rate = arguments.frame_rate or (1 / np.median(np.diff(times)) if len(times) > 1 else 1.0)
     protocol = simulation.protocol
-    layout = next(
-        (code for code in (LAYOUT_ADJACENT, LAYOUT_OPPOSITE, LAYOUT_ADJACENT_FULL) if _is_layout(code, protocol)),
-        LAYOUT_DECLARED,
-    )
+    layout = hw.layout_of(protocol)
     emulator = hw.Emulator(
         frames,
         frame_rate=frame_rate,
@@ -319,21 +316,6 @@ def _emulate_scene(arguments: argparse.Namespace) -> int:
     summary = ", ".join(f"{kind} {sum(f.kind == kind for f in log)}" for kind in kinds) or "no faults"
     print(f"done: {len(frames) - len(emulator.lost_frames)} frames sent intact; {summary}")
     return 0
-
-
-def _is_layout(layout: int, protocol: Protocol) -> bool:
-    """Whether `protocol` is the protocol a binary frame layout id names."""
-    import hw
-
-    try:
-        candidate = hw.layout_protocol(layout, protocol.n_electrodes)
-    except ValueError:  # a layout this many electrodes cannot have
-        return False
-    return (
-        candidate.n_measurements == protocol.n_measurements
-        and np.array_equal(candidate.drive, protocol.drive)
-        and np.array_equal(candidate.measure, protocol.measure)
-    )
 
 
 def _fault_rates(text: str, seed: int) -> hw.FaultRates | None:

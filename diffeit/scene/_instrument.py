@@ -225,7 +225,6 @@ class ContactDrift:
     rate: ArrayLike = 0.0
     kind: ContactDriftKind = "exponential"
 
-
     def __post_init__(self) -> None:
         if self.kind not in ("exponential", "linear"):
             raise ValueError(f"ContactDrift.kind must be 'exponential' or 'linear'; got {self.kind!r}")
