@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import hw
-from diffeit.io import read_frames
+from diffeit.io import append_frames, read_frames
 from diffeit.protocol import adjacent
 from hw.frame import HEADER_SIZE, SYNC
 
@@ -132,6 +132,10 @@ def test_the_recorder_killed_mid_run_leaves_every_frame_it_wrote(tmp_path):
     assert counters[: len(written)] == written == list(range(len(written)))
     assert len(counters) <= len(written) + 1  # at most the frame in flight besides
     np.testing.assert_array_equal([f.values for f in back], frames[counters].astype(np.float32))
+    assert read_frames(path).n_frames == len(back)
+    # Appending says why it cannot, and how to clear the writer's mark.
+    with pytest.raises(ValueError, match=r"marked open for writing.*h5clear -s"):
+        append_frames(path, frames[:1], [100.0])
     assert read_frames(path).n_frames == len(back)
 
 

@@ -286,7 +286,13 @@ def _open(path: Path, mode: str):
         file = h5py.File(path, mode)
     except OSError as error:
         if mode != "r":
-            raise ValueError(f"{path} is not a readable HDF5 file ({error})") from None
+            if "already open for write" in str(error):
+                raise ValueError(
+                    f"{path} is marked open for writing: a recorder is still writing it, or was killed before it "
+                    "closed the file. Its frames read as they are (read_frames); to append, first clear the mark "
+                    f"with `h5clear -s {path}` (Debian package hdf5-tools)"
+                ) from None
+            raise ValueError(f"{path} is not a writable HDF5 file ({error})") from None
         try:
             # A file a recorder is writing, or was writing when it was killed, is marked open
             # for writing; single-writer/multiple-reader access reads it all the same.
