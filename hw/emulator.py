@@ -23,7 +23,11 @@ Every fault that hit a frame loses that frame, except a stall. `log` is the grou
 `Fault`s injected, in order, and a `not_sent` entry for each frame never sent because the host
 closed the port or never came back (`host_timeout`) or `stop()` was called. Before a
 disconnection and at the end, the emulator waits until the host has read every byte already
-sent, so no intact frame is lost in the pseudo-terminal's buffer.
+sent, so no intact frame is lost in the pseudo-terminal's buffer. After the host opens the port
+the emulator waits until the host has flushed its input queue, as pyserial's `open()` does once
+it has configured the port (the pseudo-terminal's packet mode reports the flush), so that the
+flush cannot discard a frame; a client that never flushes is served after `_OPEN_FLUSH_WAIT`
+seconds.
 """
 
 from __future__ import annotations
@@ -50,6 +54,9 @@ FAULT_KINDS = ("bit_flip", "dropped_bytes", "truncated", "stall", "disconnect")
 # the end (seconds).
 _DRAIN_TIMEOUT = 5.0
 _DRAIN_SETTLE = 0.05
+# How long the emulator waits, after a host opened the port, for the host to flush its input
+# queue (seconds); pyserial flushes within milliseconds on an idle machine.
+_OPEN_FLUSH_WAIT = 2.0
 
 
 @dataclass(frozen=True)
@@ -305,11 +312,28 @@ class Emulator:
         return not dict(poller.poll(0)).get(self._master, 0) & select.POLLHUP
 
     def _wait_for_host(self) -> bool:
+        """Wait until a host has opened the port and flushed its input queue; False if none
+        came within `host_timeout` or `stop()` was called."""
         deadline = time.monotonic() + self.host_timeout
         while not self._host_connected():
             if time.monotonic() > deadline or self._stop.wait(0.01):
                 return False
+        flush_deadline = time.monotonic() + _OPEN_FLUSH_WAIT
+        while not self._host_flushed():
+            if time.monotonic() > flush_deadline:
+                return True
+            if self._stop.wait(0.002):
+                return False
         return True
+
+    def _host_flushed(self) -> bool:
+        """Whether the host flushed its input queue since the last call (a packet-mode status
+        byte with TIOCPKT_FLUSHREAD; the host never writes, so no data packet comes)."""
+        try:
+            status = os.read(self._master, 64)
+        except (BlockingIOError, OSError):  # nothing to report, or no host holds the port
+            return False
+        return bool(status) and bool(status[0] & termios.TIOCPKT_FLUSHREAD)
 
     def _drain(self) -> bool:
         """Wait until the host has read every byte sent; False if it went away first."""
@@ -342,6 +366,8 @@ class Emulator:
         self._serial_end = os.ttyname(serial_end)
         os.close(serial_end)  # so that polling the master tells whether a host holds it open
         os.set_blocking(master, False)
+        # Packet mode: the master reads a status byte when the host flushes its input queue.
+        fcntl.ioctl(master, termios.TIOCPKT, struct.pack("i", 1))
         self._master = master
         temporary = f"{self.port}.{os.getpid()}.link"
         os.symlink(self._serial_end, temporary)

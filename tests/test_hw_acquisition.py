@@ -7,6 +7,7 @@ import signal
 import socket
 import subprocess
 import sys
+import termios
 import threading
 import time
 
@@ -92,6 +93,25 @@ def test_every_frame_is_accounted_for_and_recorded(tmp_path, seconds):
     assert hw.recorded_statistics(tmp_path / "run.h5") == statistics
     assert recording.provenance["metadata"]["drop_statistics"] == statistics.as_dict()
     assert recording.provenance["metadata"]["port"] == emulator.port
+
+
+def test_the_emulator_waits_for_the_hosts_flush_after_opening():
+    """pyserial's open() flushes the input queue after configuring the port; the emulator must
+    not send before that flush, or the first frame (after each reconnection) would be discarded
+    unlogged. A slow host that flushes 0.3 s after opening still receives frame 0."""
+    frames = RNG.normal(scale=0.01, size=(3, 208))
+    emulator = hw.Emulator(frames, frame_rate=100.0).start()
+    descriptor = os.open(emulator.port, os.O_RDWR | os.O_NOCTTY)
+    try:
+        time.sleep(0.3)
+        termios.tcflush(descriptor, termios.TCIFLUSH)
+        parser, arrived = hw.BinaryParser(adjacent(16)), []
+        while len(arrived) < 3:
+            arrived += parser.feed(os.read(descriptor, 4096))
+    finally:
+        os.close(descriptor)
+    assert emulator.wait(timeout=10)
+    assert [frame.counter for frame in arrived] == [0, 1, 2] and emulator.log == ()
 
 
 def test_text_lines_through_the_port_with_the_callback_api():
