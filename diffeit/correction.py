@@ -126,9 +126,7 @@ class Calibration:
     settings: CalibrationSettings
 
     def __post_init__(self) -> None:
-        positions = np.asarray(self.positions, dtype=float)
-        if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 3:
-            raise ValueError(f"positions must be (P, 2) with P >= 3 (metres); got shape {positions.shape}")
+        positions = _checked_positions(self.positions)
         n = len(positions)
         shape = (len(self.settings.backgrounds), len(self.settings.intensities), len(self.settings.radii), n)
         for name, expected in (
@@ -192,6 +190,17 @@ def load(path: str | Path) -> Calibration:
     return Calibration(settings=CalibrationSettings(**raw), **arrays)
 
 
+def _checked_positions(positions: np.ndarray) -> np.ndarray:
+    """(P, 2) finite calibration positions, P >= 3, not all on one line (the factors are
+    interpolated on their Delaunay triangles)."""
+    positions = np.asarray(positions, dtype=float)
+    if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 3 or not np.all(np.isfinite(positions)):
+        raise ValueError(f"positions must be finite, shape (P, 2) with P >= 3 (metres); got shape {positions.shape}")
+    if np.linalg.matrix_rank(positions[1:] - positions[0]) < 2:
+        raise ValueError("positions all lie on one line: the factors need positions spanning the plane")
+    return positions
+
+
 def default_positions(mesh: Mesh) -> np.ndarray:
     """(P, 2) calibration positions: the domain's centroid, then rings about it at 0.25, 0.45,
     0.6 and 0.72 of the half-size R (half the largest side of the bounding box), with about one
@@ -253,9 +262,7 @@ def calibrate(
         raise ValueError(f"noise_draws must be a positive integer; got {noise_draws!r}")
     if model.protocol.n_measurements != data_model.protocol.n_measurements:
         raise ValueError("model and data_model must share the protocol (the same number of measurements)")
-    positions = default_positions(model.mesh) if positions is None else np.asarray(positions, dtype=float)
-    if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 3 or not np.all(np.isfinite(positions)):
-        raise ValueError(f"positions must be finite, shape (P, 2) with P >= 3; got shape {positions.shape}")
+    positions = default_positions(model.mesh) if positions is None else _checked_positions(positions)
 
     mesh, data_mesh = model.mesh, data_model.mesh
     measure = jax.jit(jax.vmap(data_model.measure))
@@ -279,10 +286,11 @@ def calibrate(
         sizes = np.array([[metrics.equivalent_radius(mesh, image) for image in draw] for draw in images]).mean(axis=0)
         intensity_table[b, a, r] = peaks[0] / peaks
         size_table[b, a, r] = sizes[0] / sizes
-        lost = np.flatnonzero(~(intensity_table[b, a, r] > 0))
+        lost = np.flatnonzero(np.sign(peaks) != np.sign(intensities[a]))  # the reference's too
         if len(lost):
             raise ValueError(
-                f"targets lost in the noise (mean peak of the wrong sign) at positions {positions[lost].tolist()} "
+                f"targets lost in the noise (mean peak of the wrong sign) at positions {positions[lost].tolist()}"
+                f"{' (row 0: the reference)' if lost[0] == 0 else ''} "
                 f"for background {background}, intensity {intensities[a]}, radius {radii[r]}: raise the intensity "
                 "or the hyperparameter, or lower the noise"
             )

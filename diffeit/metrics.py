@@ -18,14 +18,15 @@ element centroid or pixel centre) and value x_k.
 - Reconstructed size: area A = sum_(k in S) a_k (m^2) and equivalent radius r = sqrt(A / pi) (m).
 - Centroid c = sum_(k in S) a_k c_k / A; position error |c - c_true| (m) (DESIGN.md).
 - Shape deformation SD = sum_(k in S) a_k (1 - phi_k) / A, phi_k the fraction of cell k inside
-  the disc of radius r about c: the part of S outside the circle of equal area centred on it
+  the disc of radius r about c (for a pixel: of the whole pixel, also where it leaves the domain;
+  weighted by a_k, its area inside): the part of S outside the circle of equal area centred on it
   (0 for a disc, 1 - 1/sqrt(2) ... for elongated sets; in [0, 1)).
 - Components: the connected components of S, cells joined when they share an edge (a corner
   is not enough). Each has its own area, centroid and peak.
 - Targets and artifacts: with K true centres, the components are matched to the targets by the
-  assignment that minimises the sum of distances target centre - component centroid (Hungarian,
-  `scipy.optimize.linear_sum_assignment`), pairs further apart than `max_distance` left
-  unmatched; every unmatched component is an artifact.
+  assignment (Hungarian, `scipy.optimize.linear_sum_assignment`) that, among those with the
+  most pairs at most `max_distance` apart, minimises the sum of distances target centre -
+  component centroid; farther pairs are left unmatched; every unmatched component is an artifact.
 - Correlation: Pearson, area-weighted (DESIGN.md).
 
 GREIT's figures (Adler et al. 2009, "GREIT: a unified approach to 2D linear EIT reconstruction
@@ -139,6 +140,14 @@ def _checked_centres(centres, name: str = "centres") -> np.ndarray:
     return array
 
 
+def _checked_point(point, name: str) -> np.ndarray:
+    """(2,) one point (x, y) in metres."""
+    array = _checked_centres(point, name)
+    if len(array) != 1:
+        raise ValueError(f"{name} must be one point (x, y); got {len(array)} points")
+    return array[0]
+
+
 # --- Peak and amplitude sets (no geometry needed) ----------------------------------------------
 
 
@@ -212,7 +221,7 @@ def half_amplitude_centroid(geometry: Geometry, image: np.ndarray) -> np.ndarray
 
 def position_error(geometry: Geometry, image: np.ndarray, centre: Sequence[float]) -> float:
     """|c - centre|, m: distance from the true `centre` (x, y) to the half-amplitude centroid."""
-    (true_centre,) = _checked_centres(centre, "centre")
+    true_centre = _checked_point(centre, "centre")
     return float(np.linalg.norm(half_amplitude_centroid(geometry, image) - true_centre))
 
 
@@ -339,8 +348,8 @@ def target_figures(
 ) -> TargetFigures:
     """Match the components of the amplitude set S_f (half-amplitude by default) to the targets
     at `centres` (K, 2) m (or one (x, y)) and measure each matched component (module
-    docstring): the assignment minimises the summed distance centre - component centroid; a
-    pair further apart than `max_distance` (m) is not a match. The threshold is a fraction of
+    docstring): among the assignments with the most pairs at most `max_distance` (m) apart, the
+    one of least summed distance centre - component centroid; farther pairs are no match. The threshold is a fraction of
     the image's overall peak, so a much weaker target may have no component of its own."""
     centres = _checked_centres(centres)
     if not max_distance > 0:
@@ -350,8 +359,12 @@ def target_figures(
     labels, _ = _components(cells, chosen)
     components = _summarise(geometry, cells, labels)
     distances = np.linalg.norm(centres[:, None, :] - components.centroids[None, :, :], axis=2)
-    targets, matched = scipy.optimize.linear_sum_assignment(distances)
-    close = distances[targets, matched] <= max_distance
+    # Pairs beyond max_distance cost more than any set of allowed pairs, so the assignment first
+    # maximises the number of matches within reach, then minimises their summed distance.
+    allowed = distances <= max_distance
+    forbidden = 1.0 + len(centres) * float(np.max(distances, where=allowed, initial=0.0))
+    targets, matched = scipy.optimize.linear_sum_assignment(np.where(allowed, distances, forbidden))
+    close = allowed[targets, matched]
     component = np.full(len(centres), -1)
     component[targets[close]] = matched[close]
 
@@ -409,7 +422,7 @@ def cross_section(
 ) -> CrossSection:
     """The profile of `image` along the line through `through` (x, y) m (default: the centre of
     the peak's cell) in `direction` (any non-zero (dx, dy)), by point sampling: `n_points` points
-    evenly spaced over the line's span across the bounding box, kept where they lie in the domain
+    evenly spaced over the line's chord of the bounding box, kept where they lie in the domain
     (a mesh triangle, or a pixel of the mask); each takes the value of the cell containing it.
     Dissertation Fig. 5.1: the cross-section through the peak."""
     cells = _cells(geometry, image)
@@ -419,13 +432,16 @@ def cross_section(
     if direction.shape != (2,) or not np.all(np.isfinite(direction)) or not np.any(direction):
         raise ValueError(f"direction must be a finite non-zero (dx, dy); got {direction.tolist()}")
     direction = direction / np.linalg.norm(direction)
-    if through is None:
-        anchor = cells.centres[np.argmax(np.abs(cells.values))]
-    else:
-        (anchor,) = _checked_centres(through, "through")
+    peak_centre = cells.centres[np.argmax(np.abs(cells.values))]
+    anchor = peak_centre if through is None else _checked_point(through, "through")
     low, high = _bounding_box(geometry)
-    half_span = np.linalg.norm(high - low) + np.linalg.norm(anchor - 0.5 * (low + high))
-    distance = np.linspace(-half_span, half_span, n_points)
+    # The segment of the line inside the bounding box (slab method).
+    moving = direction != 0
+    enter, leave = (low - anchor)[moving] / direction[moving], (high - anchor)[moving] / direction[moving]
+    start, stop = np.max(np.minimum(enter, leave)), np.min(np.maximum(enter, leave))
+    if start >= stop or np.any(~moving & ((anchor < low) | (anchor > high))):
+        raise ValueError(f"the line through {anchor.tolist()} along {direction.tolist()} misses the domain")
+    distance = np.linspace(start, stop, n_points)
     points = anchor + distance[:, None] * direction
     index = _locate(geometry, points)
     kept = index >= 0
@@ -501,9 +517,13 @@ def greit_figures(
     - resolution RES = sqrt(A_q / A_0);
     - shape deformation SD = sum_(k in S_q) a_k (1 - phi_k) / A_q;
     - ringing RNG = sum_k a_k (1 - phi_k) max(0, -s x_hat_k) / sum_k a_k phi_k s x_hat_k with
-      s = sign(peak): the opposite-sign amplitude outside C over the amplitude inside C (>= 0).
+      s = sign(peak): the opposite-sign amplitude outside C over the amplitude inside C (>= 0;
+      ValueError when the image inside C does not sum to the peak's sign).
+
+    On a pixel grid phi_k is the fraction of the whole pixel inside C (the part of a rim pixel
+    outside the domain counts), weighted by the pixel's area inside the domain.
     """
-    (true_centre,) = _checked_centres(centre, "centre")
+    true_centre = _checked_point(centre, "centre")
     cells = _cells(geometry, image)
     truth_cells = _cells(geometry, truth, "truth")
     truth_integral = truth_cells.areas @ truth_cells.values
@@ -516,6 +536,12 @@ def greit_figures(
     inside = _disc_fraction(geometry, centroid, np.sqrt(area / np.pi))
     sign = np.sign(peak(cells.values))
     signed = sign * cells.values
+    inside_amplitude = (cells.areas * inside) @ signed
+    if inside_amplitude <= 0:
+        raise ValueError(
+            "the image inside the equal-area disc about the amplitude set's centroid is not of the peak's sign "
+            "(it sums to <= 0 there): ringing is undefined"
+        )
     return GreitFigures(
         amplitude_response=float(cells.areas @ cells.values / truth_integral),
         radial_position_error=float(
@@ -523,5 +549,5 @@ def greit_figures(
         ),
         resolution=float(np.sqrt(area / cells.areas.sum())),
         shape_deformation=float(cells.areas[chosen] @ (1 - inside[chosen]) / area),
-        ringing=float((cells.areas * (1 - inside)) @ np.maximum(0.0, -signed) / ((cells.areas * inside) @ signed)),
+        ringing=float((cells.areas * (1 - inside)) @ np.maximum(0.0, -signed) / inside_amplitude),
     )

@@ -183,6 +183,16 @@ def test_bad_input_is_refused(models, calibration):
         correction.calibrate(model, data_model, noise_draws=0)
     with pytest.raises(ValueError, match=r"positions must be finite, shape \(P, 2\)"):
         correction.calibrate(model, data_model, positions=np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="positions all lie on one line"):
+        correction.calibrate(model, data_model, positions=[(0.0, 0.0), (0.3, 0.0), (0.6, 0.0)])
+    with pytest.raises(ValueError, match="positions all lie on one line"):
+        dataclasses.replace(calibration, positions=np.outer(np.linspace(0, 0.7, 34), [1.0, 1.0]))
+    # A touch of -5% in 20% noise: every mean peak, the reference's too, of the wrong sign (+).
+    with pytest.raises(ValueError, match=r"targets lost in the noise .* \(row 0: the reference\)"):
+        correction.calibrate(
+            model, data_model, intensities=(-0.05,), radii=(0.1,), positions=[(0, 0), (0.4, 0), (0, -0.6), (-0.3, 0.3)],
+            noise_percent=20.0, noise_draws=1, seed=12, progress=False,
+        )  # fmt: skip
     with pytest.raises(ValueError, match="size_factor must be finite and positive"):
         dataclasses.replace(calibration, size_factor=-calibration.size_factor)
     with pytest.raises(ValueError, match=r"points must be finite \(x, y\) pairs"):

@@ -53,7 +53,11 @@ def test_a_cone_and_its_cross_section(mesh):
     peak_centre = mesh.element_centroids[np.argmax(np.abs(image))]
     np.testing.assert_allclose(section.points, peak_centre + section.distance[:, None] * [1.0, 0.0], atol=1e-12)
     assert np.all(np.linalg.norm(section.points, axis=1) <= 1.0) and np.ptp(section.distance) > 1.9  # a chord
-    assert section.distance[np.argmin(section.values)] == pytest.approx(0.0, abs=0.012)
+    # The samples span the line's chord of the bounding box: nearly all 201 land in the disc.
+    assert len(section.values) > 190 and np.diff(section.distance) == pytest.approx(0.01, rel=0.02)
+    # The line samples the peak's element: its lowest samples lie in it, within its reach (h = 0.05).
+    assert section.values.min() == image.min()
+    assert section.distance[np.argmin(section.values)] == pytest.approx(0.0, abs=0.04)
     # Each sample is the value of the element containing it: within the cone's slope times the
     # element's reach of the exact profile.
     exact = -0.02 * np.maximum(0.0, 1 - np.linalg.norm(section.points - [0.2, 0.1], axis=1) / 0.4)
@@ -96,6 +100,16 @@ def test_two_discs_are_matched_to_their_targets(mesh):
     gated = metrics.target_figures(mesh, image, [big[0], (-0.3, 0.6)], max_distance=0.1)
     np.testing.assert_array_equal(gated.matched, [True, False])
     assert gated.n_artifacts == 1
+
+
+def test_gating_comes_before_the_assignment(mesh):
+    """Discs at (0, 0) and (0.3, 0); targets (0.1, 0) and (-0.9, 0), max_distance 0.15. The
+    cheapest assignment overall pairs (0.1, 0) with the far disc (0.2 m, gated away); the match
+    within reach, (0.1, 0) with the disc at the origin (0.1 m), must win instead."""
+    image = -(de.mesh.disc_fraction(mesh, (0.0, 0.0), 0.08) + de.mesh.disc_fraction(mesh, (0.3, 0.0), 0.08))
+    figures = metrics.target_figures(mesh, image, [(0.1, 0.0), (-0.9, 0.0)], max_distance=0.15)
+    np.testing.assert_array_equal(figures.matched, [True, False])
+    assert figures.position_error[0] == pytest.approx(0.1, abs=0.01) and figures.n_artifacts == 1
 
 
 def test_components_connect_through_edges_not_corners():
@@ -209,6 +223,10 @@ def test_bad_images_are_refused(mesh):
         metrics.peak(np.zeros(0))
     with pytest.raises(ValueError, match=r"centres must be one point \(x, y\) or a list"):
         metrics.target_figures(mesh, image, [(0, 0, 0)])
+    with pytest.raises(ValueError, match=r"centre must be one point \(x, y\); got 2 points"):
+        metrics.position_error(mesh, image, [(0.5, 0.0), (0.0, 0.0)])
+    with pytest.raises(ValueError, match=r"through must be one point"):
+        metrics.cross_section(mesh, image, through=[(0.5, 0.0), (0.0, 0.0)])
     with pytest.raises(ValueError, match="centre must be finite"):
         metrics.position_error(mesh, image, (np.nan, 0))
     with pytest.raises(ValueError, match=r"fraction of the peak must be in \(0, 1\]"):
@@ -221,6 +239,10 @@ def test_bad_images_are_refused(mesh):
         metrics.correlation(mesh, image, np.ones(mesh.n_elements))
     with pytest.raises(ValueError, match="truth integrates to 0"):
         metrics.greit_figures(mesh, image, (0, 0), np.zeros(mesh.n_elements))
+    radius = _distance(mesh, (0.0, 0.0))  # a ring whose equal-area disc holds an opposite-sign core
+    ring = 1.0 * ((radius > 0.5) & (radius < 0.6)) - 0.2 * (radius < 0.3)
+    with pytest.raises(ValueError, match="ringing is undefined"):
+        metrics.greit_figures(mesh, ring, (0, 0), 1.0 * ((radius > 0.5) & (radius < 0.6)))
     with pytest.raises(ValueError, match="direction must be a finite non-zero"):
         metrics.cross_section(mesh, image, direction=(0, 0))
     with pytest.raises(ValueError, match="misses the domain"):
