@@ -48,7 +48,7 @@ def every_effect_scene() -> Scene:
             de.scene.bare_skin(),
             MeasurementNoise(Noise.snr_db(40.0), seed=7),
             CommonModeDrift(offset=1e-4, period=2.0),
-            ContactDrift(rate=0.01, kind="linear"),
+            ContactDrift(rate=np.linspace(0.0, 0.02, 16), kind="linear"),
             OpenElectrodes((3,), fill=0.0),
             ElectrodePositionError.random(16, 0.01, seed=3),
         ),
@@ -57,11 +57,20 @@ def every_effect_scene() -> Scene:
     )
 
 
+def assert_same_scene(again: Scene, scene: Scene) -> None:
+    """The same pytree (structure with its static data, so a list read back as 16 leaves instead
+    of one array fails) and the same leaves, value for value."""
+    assert jax.tree_util.tree_structure(again) == jax.tree_util.tree_structure(scene)
+    for leaf, expected in zip(jax.tree_util.tree_leaves(again), jax.tree_util.tree_leaves(scene), strict=True):
+        np.testing.assert_array_equal(np.asarray(leaf), np.asarray(expected))
+    assert again.to_dict() == scene.to_dict()
+
+
 def test_toml_round_trip_keeps_every_field(tmp_path):
     scene = every_effect_scene()
     path = scene.to_toml(tmp_path / "scene.toml")
     again = Scene.from_toml(path)
-    assert again.to_dict() == scene.to_dict()
+    assert_same_scene(again, scene)
     # And once more through text: the written file is a fixed point.
     assert Scene.from_toml_string(again.to_toml_string()).to_toml_string() == path.read_text()
     assert [de.scene._scene.effect_name(e) for e in again.effects] == list(de.scene.EFFECT_NAMES)
@@ -74,7 +83,7 @@ def test_toml_round_trip_keeps_every_field(tmp_path):
 def test_examples_load_and_round_trip(name):
     scene = de.scene.example(name)
     assert scene.name and scene.description
-    assert Scene.from_dict(scene.to_dict()).to_dict() == scene.to_dict()
+    assert_same_scene(Scene.from_dict(scene.to_dict()), scene)
     assert scene.touches
     assert scene.n_frames == len(scene.times) >= 10
 
@@ -113,6 +122,22 @@ def test_units_convert_to_si():
     noise = scene.effect("noise").noise
     assert noise.kind == "volts" and float(noise.value) == pytest.approx(2e-5)
     assert quantity("30 deg", "angle", "a") == pytest.approx(np.pi / 6)
+    assert quantity("0.2", "length", "a") == 0.2  # a bare number in a string: SI
+    # Noise given in percent stays in percent; a drift rate is in volts per second.
+    scene = Scene.from_toml_string('[effects.noise]\npercent = "0.5 %"\n[effects.common_mode_drift]\nrate = "1 mV/s"\n')
+    assert float(scene.effect("noise").noise.value) == 0.5 and scene.effect("noise").noise.kind == "percent"
+    assert float(scene.effect("common_mode_drift").rate) == pytest.approx(1e-3)
+
+
+def test_per_element_memory_parameters_round_trip_and_simulate():
+    """A memory parameter per element of the simulation mesh reads back as one array leaf."""
+    scene = Scene(skin=SKIN, touches=(Touch(Disc([0.3, 0.0], 0.3), -0.3, Press(0.1, hold=0.2)),), duration=0.5)
+    n_elements = scene.simulation_mesh().n_elements
+    gain = np.linspace(0.8, 1.2, n_elements)
+    scene = scene.replace(effects=(de.scene.MemoryParameters(gain=gain),))
+    again = Scene.from_toml_string(scene.to_toml_string())
+    assert_same_scene(again, scene)
+    np.testing.assert_array_equal(de.simulate(again, progress=False).frames, de.simulate(scene, progress=False).frames)
 
 
 def test_pressure_maps_bilinearly():
@@ -180,6 +205,25 @@ BAD_SCENES = [
     ('duration = "3 m"\n', "duration"),
     ("colour = 'red'\n", "unknown keys ['colour']"),
     ('[[touches]]\ncentre = [0, 0]\nradius = 0.2\namplitude = -0.3\nenvelope = { kind = "wobble" }\n', "envelope.kind"),
+    (
+        '[[touches]]\ncentre = [0, 0]\nradius = 0.2\npressure = { kind = "ramp", start = 0, duration = 1 }\n',
+        "touches[0].pressure must be a number",
+    ),
+    # Inside the reconstruction mesh's rim, outside the finer simulation mesh's.
+    ("[[touches]]\ncentre = [0.98763, 0.15615]\nradius = 0.1\namplitude = -0.3\n", "touches[0].shape.centre"),
+    (
+        '[[background.regions]]\nshape = "disc"\ncentre = [0, 0]\nradius = 0.3\nconductivity = 0.002\n'
+        "edge_width = -0.02\n",
+        "Region.edge_width",
+    ),
+    ("[effects.memory]\npreset = []\n", "effects.memory.preset must be a string"),
+    ("[effects.noise]\nlevel = []\n", "effects.noise.level must be a string"),
+    ('[effects.common_mode_drift]\nrate = "1 mV"\n', "effects.common_mode_drift.rate"),
+    ("[effects.contact_drift]\nrate = [0.1, 0.2]\n", "effects.contact_drift.rate has 2 values"),
+    ('duration = 0.3\n[effects.contact_drift]\nkind = "linear"\nrate = -5.0\n', "effects.contact_drift: a linear rate"),
+    ("[effects.electrode_position_error]\noffsets = [0.35" + ", 0" * 15 + "]\n", "effects.electrode_position_error: "),
+    ("[skin]\nradius = -1.0\n", "skin: "),
+    ('[skin]\nprotocol = "skip 16"\n', "skin.protocol 'skip 16'"),
 ]
 
 

@@ -101,8 +101,8 @@ def test_declared_stages_run_once_each(monkeypatch):
         "conductivity",
         "contact impedance",
         "forward",
-        "common-mode drift",
         "noise",
+        "common-mode drift",
     )
     # Noise and drift act on the frames and, separately, the reference.
     assert counts == {"stimulus": 1, "memory_response": 1, "contact_impedance": 1, "add_drift": 2, "add_noise": 2}
@@ -173,11 +173,23 @@ def test_noise_has_the_declared_level():
         reference_residual = np.asarray(noisy.reference) - np.asarray(exact.reference)
         assert 0.7 * std < reference_residual.std() < 1.3 * std
         assert not np.allclose(reference_residual, residual[0])
+    # The level is relative to the drift-free reference: a common-mode offset of 50 mV (12x the
+    # readings' RMS) adds the same noise, not 12x more.
+    offset = static.replace(effects=(MeasurementNoise(Noise.percent(2.0), seed=11), CommonModeDrift(offset=0.05)))
+    residual = np.asarray(de.simulate(offset).frames) - np.asarray(exact.frames) - 0.05
+    assert residual.std() == pytest.approx(0.02 * rms, rel=0.005)
     # Seeded: the same seed draws the same noise, another seed other noise.
     first = de.simulate(static.replace(effects=(MeasurementNoise(Noise.volts(1e-5), seed=11),)))
     other = de.simulate(static.replace(effects=(MeasurementNoise(Noise.volts(1e-5), seed=12),)))
     np.testing.assert_array_equal(np.asarray(first.frames), np.asarray(noisy.frames))
     assert not np.allclose(np.asarray(other.frames), np.asarray(noisy.frames))
+
+
+def test_memory_that_takes_the_conductivity_to_zero_is_refused():
+    """A touch of -0.96 over foam: recovery overshoots below -1, which no sheet can do."""
+    deep = scene_with(de.scene.over_foam(), touches=(Touch(Disc([0.0, 0.0], 0.3), -0.96, Press(0.1, hold=0.3)),))
+    with pytest.raises(ValueError, match=r"touches and effects\.memory: .* = -1\.008 \(<= -1"):
+        de.simulate(deep, progress=False)
 
 
 def test_open_electrode_loses_its_readings(plain):

@@ -146,6 +146,11 @@ class Skin:
             if np.any(z <= 0):
                 raise ValueError(f"skin.contact_impedance must be positive (ohm m); got {z}")
         protocol_of(self.protocol, self.n_electrodes)
+        try:  # both meshes (cached): a geometry that cannot be meshed is the skin's fault
+            self.mesh()
+            self.mesh(self.simulation_h)
+        except ValueError as error:
+            raise ValueError(f"skin: {error}") from None
 
     @property
     def kind(self) -> str:
@@ -175,12 +180,15 @@ class Skin:
 def protocol_of(name: str, n_electrodes: int) -> Protocol:
     """The protocol a scene names: "adjacent", "opposite" or "skip K"."""
     words = name.split() if isinstance(name, str) else []
-    if words == ["adjacent"]:
-        return protocols.adjacent(n_electrodes)
-    if words == ["opposite"]:
-        return protocols.opposite(n_electrodes)
-    if len(words) == 2 and words[0] == "skip" and words[1].isdigit():
-        return protocols.skip(n_electrodes, int(words[1]))
+    try:
+        if words == ["adjacent"]:
+            return protocols.adjacent(n_electrodes)
+        if words == ["opposite"]:
+            return protocols.opposite(n_electrodes)
+        if len(words) == 2 and words[0] == "skip" and words[1].isdigit():
+            return protocols.skip(n_electrodes, int(words[1]))
+    except ValueError as error:
+        raise ValueError(f"skin.protocol {name!r}: {error}") from None
     raise ValueError(f'skin.protocol must be "adjacent", "opposite" or "skip K" (K an integer); got {name!r}')
 
 
@@ -243,6 +251,10 @@ class Region:
         if not isinstance(self.shape, AbstractShape):
             raise ValueError(f"Region.shape must be a Disc, an Ellipse or a Polygon; got {self.shape!r}")
         _check_positive(self.conductivity, "Region.conductivity", "S/sq")
+        if self.edge_width is not None:
+            width = concrete_floats(self.edge_width, "Region.edge_width")
+            if width is not None and (width.shape != () or width <= 0):
+                raise ValueError(f"Region.edge_width must be a positive number (metres) or None; got {width}")
 
 
 @partial(register_dataclass, static=("function",))
@@ -488,7 +500,30 @@ class Scene:
                 f"effects.electrode_position_error.offsets has {len(moved.offsets)} values; the skin has "
                 f"{self.skin.n_electrodes} electrodes"
             )
-        check_touches(self.skin.mesh(), self.touches)
+        self._check_contact_drift()
+        try:
+            mesh = self.simulation_mesh()
+        except ValueError as error:
+            raise ValueError(f"effects.electrode_position_error: {error}") from None
+        # On the simulation mesh, finer than the reconstruction's: its rim reaches further out.
+        check_touches(mesh, self.touches)
+
+    def _check_contact_drift(self) -> None:
+        drift = self.effect("contact_drift")
+        rate = None if drift is None else concrete_floats(drift.rate, "effects.contact_drift.rate")
+        if rate is None:
+            return
+        if rate.ndim == 1 and len(rate) not in (1, self.skin.n_electrodes):
+            raise ValueError(
+                f"effects.contact_drift.rate has {len(rate)} values; give one, or one per electrode "
+                f"({self.skin.n_electrodes})"
+            )
+        last = self.times[-1]
+        if drift.kind == "linear" and np.any(1 + rate * last <= 0):
+            raise ValueError(
+                f"effects.contact_drift: a linear rate of {rate.min():.4g} 1/s takes the contact impedance to "
+                f'z0 (1 + rate t) <= 0 by t = {last:g} s; use a smaller rate or kind = "exponential"'
+            )
 
     @property
     def n_frames(self) -> int:

@@ -70,6 +70,19 @@ class _Table:
             raise ValueError(f"{self.path or 'scene'}: unknown keys {unknown} (known here: {known})")
 
 
+def _leaf(value: Any) -> Any:
+    """A list read from a file as one array leaf (per electrode, per element), as in code."""
+    return jnp.asarray(value, dtype=float) if isinstance(value, list) else value
+
+
+def _word(table: _Table, key: str, default: str | None = None) -> str | None:
+    """A string-valued key (a name from a fixed set), refused when it is not a string."""
+    value = table.raw(key, default)
+    if not isinstance(value, str):
+        raise ValueError(f"{table.field(key)} must be a string (a name); got {value!r}")
+    return value
+
+
 def _course(table: _Table, kind: str) -> AbstractTimeCourse:
     course = table.raw("kind")
     smooth = table.raw("smooth", False)
@@ -148,7 +161,7 @@ def _skin(table: _Table) -> Skin:
         geometry=geometry,
         h=table.get("h", "length", 0.1),
         simulation_h=table.get("simulation_h", "length"),
-        contact_impedance=jnp.asarray(contact, dtype=float) if isinstance(contact, list) else contact,
+        contact_impedance=_leaf(contact),
         drive_current=table.get("drive_current", "current", 1e-3),
         protocol=table.raw("protocol", "adjacent"),
     )
@@ -182,6 +195,9 @@ def _touch(table: _Table) -> Touch:
     shape = _shape(table)
     if table.has("amplitude") == table.has("pressure"):
         raise ValueError(f"{table.path}: give either amplitude (dsigma/sigma) or pressure (kPa)")
+    for key in ("amplitude", "pressure"):
+        if isinstance(table.data.get(key), Mapping):
+            raise ValueError(f"{table.field(key)} must be a number; a time course goes in {table.field('envelope')}")
     if table.has("amplitude"):
         amplitude = table.get("amplitude", "ratio")
     else:
@@ -210,13 +226,13 @@ def _touch(table: _Table) -> Touch:
 def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
     with _naming(table.path):
         if name == "memory":
-            preset = table.raw("preset", "over_foam")
+            preset = _word(table, "preset", "over_foam")
             presets = {"over_foam": over_foam, "bare_skin": bare_skin}
             if preset not in presets:
                 raise ValueError(f"preset must be one of {sorted(presets)}; got {preset!r}")
             base = presets[preset]()
             units = {"fast_time": "time", "slow_time": "time", "fatigue_recovery_time": "time", "fatigue_rate": "rate"}
-            values = {f: table.get(f, units.get(f, "ratio")) for f in base.__dataclass_fields__ if table.has(f)}
+            values = {f: _leaf(table.get(f, units.get(f, "ratio"))) for f in base.__dataclass_fields__ if table.has(f)}
             made = MemoryParameters(**{**{f: getattr(base, f) for f in base.__dataclass_fields__}, **values})
         elif name == "noise":
             given = [key for key in ("level", "percent", "snr_db", "volts") if table.has(key)]
@@ -224,17 +240,18 @@ def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
                 raise ValueError(f"give exactly one of level, percent, snr_db, volts; got {given or 'none'}")
             key = given[0]
             if key == "level":
-                noise = Noise.level(table.raw("level"))
+                noise = Noise.level(_word(table, "level"))
             else:
-                unit = {"percent": "ratio", "snr_db": "decibel", "volts": "voltage"}[key]
+                unit = {"percent": "percent", "snr_db": "decibel", "volts": "voltage"}[key]
                 noise = Noise(table.get(key, unit), key)
             made = MeasurementNoise(noise, table.raw("seed", 0))
         elif name == "common_mode_drift":
-            units = {"offset": "voltage", "rate": "voltage", "amplitude": "voltage", "period": "time"}
+            units = {"offset": "voltage", "rate": "voltage rate", "amplitude": "voltage", "period": "time"}
             units |= {"phase": "angle", "gain_rate": "rate"}
-            made = CommonModeDrift(**{key: table.get(key, unit) for key, unit in units.items() if table.has(key)})
+            given = {key: _leaf(table.get(key, unit)) for key, unit in units.items() if table.has(key)}
+            made = CommonModeDrift(**given)
         elif name == "contact_drift":
-            made = ContactDrift(table.get("rate", "rate", 0.0), table.raw("kind", "exponential"))
+            made = ContactDrift(_leaf(table.get("rate", "rate", 0.0)), _word(table, "kind", "exponential"))
         elif name == "open_electrode":
             made = OpenElectrodes(table.raw("electrodes"), table.get("fill", "voltage", 0.0))
         else:

@@ -2,7 +2,7 @@
 
 `pipeline(scene)` builds the stages from the scene alone: touches, then the memory effect, the
 conductivity per frame, the contact impedance per frame (drift, open electrodes), one forward
-solve per distinct state, then the instrument (common-mode drift, noise, lost readings). A stage
+solve per distinct state, then the instrument (noise, common-mode drift, lost readings). A stage
 exists only when the scene calls for it: a scene without memory never runs the integrator, one
 without noise returns exact voltages, and a static scene costs one forward solve. Each stage is
 a small frozen dataclass, a pure function of the `Frames` flowing through (`stage(frames) ->
@@ -11,7 +11,7 @@ frames`), so `simulate` is differentiable in every continuous parameter of the s
 
 Conventions: conductivity in S/sq, times in seconds, voltages in volts, contact impedance in
 ohm m. The reference frame is the untouched skin (its background) at the first frame time,
-measured like a frame (drift, noise and lost readings apply to it too).
+measured like a frame (noise, drift and lost readings apply to it too).
 """
 
 from __future__ import annotations
@@ -116,6 +116,11 @@ class Conductivity:
         if state.response is None:
             conductivity = jnp.broadcast_to(state.background, (len(state.times), len(state.background)))
         else:
+            if is_concrete(state.response) and (lowest := float(jnp.min(state.response))) <= -1:
+                raise ValueError(
+                    f"touches and effects.memory: the skin's response reaches dsigma/sigma = {lowest:.4g} "
+                    "(<= -1, a conductivity <= 0); lower the touches' amplitudes or the memory's fractions"
+                )
             conductivity = state.background * (1 + state.response)
         return state.replace(conductivity=conductivity)
 
@@ -246,12 +251,13 @@ def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
     )
     model = ForwardModel(mesh, skin.make_protocol(), skin.contact_impedances(), drive_current=skin.drive_current)
     stages.append(Forward(model, progress))
-    drift = scene.effect("common_mode_drift")
-    if drift is not None:
-        stages.append(AddDrift(drift))
+    # Noise before drift: its scale is the percentage of RMS(V_ref) of the drift-free reference.
     noise = scene.effect("noise")
     if noise is not None:
         stages.append(AddNoise(noise))
+    drift = scene.effect("common_mode_drift")
+    if drift is not None:
+        stages.append(AddDrift(drift))
     if opened is not None:
         stages.append(LostReadings(model.protocol, opened))
     return tuple(stages)

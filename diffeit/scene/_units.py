@@ -19,10 +19,12 @@ UNITS: dict[str, dict[str, float]] = {
     "contact impedance": {"ohm m": 1.0, "ohm cm": 1e-2, "ohm mm": 1e-3, "kohm m": 1e3},
     "current": {"A": 1.0, "mA": 1e-3, "uA": 1e-6},
     "voltage": {"V": 1.0, "mV": 1e-3, "uV": 1e-6},
+    "voltage rate": {"V/s": 1.0, "mV/s": 1e-3, "uV/s": 1e-6},
     "pressure": {"kPa": 1.0, "Pa": 1e-3, "MPa": 1e3},
     "angle": {"rad": 1.0, "deg": 3.141592653589793 / 180},
     "rate": {"1/s": 1.0, "1/min": 1 / 60},
     "ratio": {"": 1.0, "%": 1e-2},
+    "percent": {"%": 1.0},  # a quantity given in percent (noise levels): "0.5 %" is 0.5
     "decibel": {"dB": 1.0},
 }
 # Sheet resistance is the reciprocal of sheet conductivity: "100 ohm/sq" is 0.01 S/sq.
@@ -57,6 +59,8 @@ def quantity(value: Any, kind: str, field: str) -> float:
         return 1.0 / (number * _SHEET_RESISTANCE[unit])
     if unit in UNITS[kind]:
         return number * UNITS[kind][unit]
+    if not unit:  # a number written as a string: in the SI unit, as a bare number
+        return number
     found = _unit_kind(unit)
     accepted = ", ".join(repr(u) for u in UNITS[kind] if u) or "none"
     if kind == "sheet conductivity":
