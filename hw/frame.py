@@ -163,8 +163,8 @@ def encode_frame(
         raise ValueError(f"frame values hold NaN or inf at {np.flatnonzero(~np.isfinite(values))[:10].tolist()}")
     if value_type not in VALUE_TYPE_NAMES:
         raise ValueError(f"value_type must be one of {list(VALUE_TYPE_NAMES)}; got {value_type!r}")
-    if not (math.isfinite(scale) and scale != 0):
-        raise ValueError(f"scale must be finite and non-zero (volts per stored unit); got {scale}")
+    if not (math.isfinite(scale) and np.isfinite(np.float32(scale)) and np.float32(scale) != 0):
+        raise ValueError(f"scale must be finite and non-zero in float32 (volts per stored unit); got {scale}")
     if not 0 <= counter < 2**32:
         raise ValueError(f"counter must be in 0..2**32-1; got {counter}")
     if not (math.isfinite(device_time) and 0 <= device_time < 2**64 / 1e6):
@@ -188,7 +188,11 @@ def encode_frame(
         VERSION, code, layout, 0 if protocol is None else n_electrodes, len(values), counter,
         round(device_time * 1e6), scale,
     )  # fmt: skip
-    body = header + _HEADER_CRC.pack(header_crc(header)) + stored.astype(dtype).tobytes()
+    with np.errstate(over="ignore"):
+        stored = stored.astype(dtype)
+    if not np.all(np.isfinite(stored)):  # float32 overflow
+        raise ValueError(f"values / scale overflow {value_type} (scale {scale} V per unit is too small)")
+    body = header + _HEADER_CRC.pack(header_crc(header)) + stored.tobytes()
     return body + _FRAME_CRC.pack(zlib.crc32(body))
 
 

@@ -44,6 +44,7 @@ lines that never arrive cannot be counted.
 from __future__ import annotations
 
 import abc
+import functools
 import math
 import zlib
 from dataclasses import asdict, dataclass, replace
@@ -66,9 +67,15 @@ from .frame import (
     Frame,
     header_crc,
     layout_matches,
+    layout_protocol,
 )
 
 _COUNTER_MODULUS = 2**32
+# A counter at most this far behind the last accepted one is a stale frame (rejected, `counter`);
+# farther back, or further ahead than _MAX_GAP (a loss of days of frames is no gap), the device
+# restarted its numbering: accepted, counted in `restarts`. A counter of 0 always restarts.
+_STALE_WINDOW = 16
+_MAX_GAP = 2**24
 
 
 @dataclass(frozen=True)
@@ -80,12 +87,14 @@ class DropStatistics:
       frames; not blank text lines), not counting bytes still held for a frame in progress.
     - rejected frames (binary) or lines (text), by kind: `header` (header CRC or impossible
       header values), `version` (a newer frame version), `crc` (frame CRC), `length` (another
-      layout or number of values than expected), `non_finite` (NaN or inf values), `counter`
-      (a counter that repeats or runs backwards), `malformed` (a text line that is not ASCII
+      layout or number of values than expected, or than its layout has), `non_finite` (NaN or
+      inf values), `counter` (a counter that repeats, or up to 16 behind the last: a stale
+      frame), `malformed` (a text line that is not ASCII
       numbers, or too long), `truncated` (a frame cut off by a disconnection or the end).
     - `missing_frames`: frames the device numbered that were not accepted (sum of the counter
       jumps between accepted frames), `gaps`: how many jumps; `restarts`: the counter went back
-      to 0 (a device reset), accepted as a new start.
+      to 0, more than 16 back, or more than 2**24 ahead (a device reset, its first frames
+      perhaps lost), accepted as a new start.
     - `reconnects`: times the port was reopened (set by `hw.SerialSource`).
     """
 
@@ -181,9 +190,17 @@ class BinaryParser(AbstractParser):
         self.protocol = protocol
         self._layout: tuple[int, int, int] | None = None  # (layout id, electrodes, values) once fixed
         self._last_counter: int | None = None
+        self._matching: dict[tuple[int, int], bool] = {}  # layouts checked against `protocol`
 
     def _holds_partial_frame(self) -> bool:
         return self._buffer.startswith(SYNC)
+
+    def _matches(self, layout: int, n_electrodes: int) -> bool:
+        """`hw.layout_matches` for `protocol`, once per layout: it builds a protocol each time."""
+        key = (layout, n_electrodes)
+        if key not in self._matching:
+            self._matching[key] = layout_matches(layout, n_electrodes, self.protocol)
+        return self._matching[key]
 
     def _parse(self) -> list[Frame]:
         buffer, frames, position = self._buffer, [], 0
@@ -240,23 +257,39 @@ class BinaryParser(AbstractParser):
             if layout == LAYOUT_DECLARED:
                 if n_values != self.protocol.n_measurements:
                     return "length"
-            elif not layout_matches(layout, n_electrodes, self.protocol):
+            elif n_values != self.protocol.n_measurements or not self._matches(layout, n_electrodes):
                 return "length"
         elif self._layout is not None and shape != self._layout:
             return "length"
+        elif layout != LAYOUT_DECLARED and _layout_size(layout, n_electrodes) != n_values:
+            return "length"  # the values disagree with the layout the frame declares
         if not np.all(np.isfinite(values)):
             return "non_finite"
         if self._last_counter is not None:
             step = (counter - self._last_counter) % _COUNTER_MODULUS
-            if step == 0 or (step >= _COUNTER_MODULUS // 2 and counter != 0):
+            behind = (self._last_counter - counter) % _COUNTER_MODULUS
+            if step == 0:
                 return "counter"
-            if step >= _COUNTER_MODULUS // 2:
+            if step > _MAX_GAP:
+                if counter != 0 and behind <= _STALE_WINDOW:
+                    return "counter"
                 self._count(restarts=1)
             elif step > 1:
                 self._count(missing_frames=step - 1, gaps=1)
         self._layout = shape
         self._last_counter = counter
         return None
+
+
+@functools.lru_cache(maxsize=64)
+def _layout_size(layout: int, n_electrodes: int) -> int | None:
+    """Values in a frame of this layout, None for a layout id or electrode count that cannot be."""
+    try:
+        protocol = layout_protocol(layout, n_electrodes)
+    except ValueError:
+        return None
+    return None if protocol is None else protocol.n_measurements
+
 
 
 class TextParser(AbstractParser):
@@ -282,6 +315,10 @@ class TextParser(AbstractParser):
 
     def _holds_partial_frame(self) -> bool:
         return bool(self._buffer.strip()) and not self._skipping_long_line
+
+    def reset(self) -> None:
+        super().reset()
+        self._skipping_long_line = False  # the long line ended with the connection
 
     def _parse(self) -> list[Frame]:
         buffer, frames, position = self._buffer, [], 0

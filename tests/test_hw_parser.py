@@ -60,6 +60,8 @@ def test_integer_values_with_a_scale():
         (np.r_[np.nan, np.ones(207)], {}, "NaN or inf at \\[0\\]"),
         (np.ones(208), {"value_type": "float16"}, "value_type must be one of"),
         (np.ones(208), {"scale": 0.0}, "scale must be finite and non-zero"),
+        (np.ones(208), {"scale": 1e-50}, "scale must be finite and non-zero in float32"),
+        (np.full(208, 1e30), {"scale": 1e-10}, "overflow float32"),
         (np.ones(208), {"counter": 2**32}, "counter must be in"),
         (np.ones(192), {"layout": 9}, "unknown layout id 9"),
     ],
@@ -157,6 +159,23 @@ def test_counter_gaps_duplicates_and_restarts():
     assert (parser.statistics.counter, parser.statistics.restarts) == (2, 1)
 
 
+def test_a_reset_whose_first_frame_is_lost_restarts_the_count():
+    """Counters 0..99, then the device resets and its frame 0 is lost: 1..50 are a new start
+    (more than 16 behind), not 50 stale frames. A counter 16 behind is stale; a jump of more
+    than 2**24 ahead restarts, one of 2**24 is a gap."""
+    parser = hw.BinaryParser()
+    parser.feed(b"".join(_stream(np.ones((100, 208)))))
+    frames = parser.feed(b"".join(_stream(np.ones((50, 208)), first_counter=1)))
+    assert [f.counter for f in frames] == list(range(1, 51))
+    assert (parser.statistics.counter, parser.statistics.restarts, parser.statistics.missing_frames) == (0, 1, 0)
+    parser.feed(b"".join(_stream(np.ones((1, 208)), first_counter=34)))  # 50 -> 34: 16 behind, stale
+    assert (parser.statistics.counter, parser.statistics.restarts, parser.statistics.missing_frames) == (1, 1, 0)
+    parser.feed(b"".join(_stream(np.ones((1, 208)), first_counter=50 + 2**24 + 1)))  # days ahead
+    assert (parser.statistics.restarts, parser.statistics.missing_frames) == (2, 0)
+    parser.feed(b"".join(_stream(np.ones((1, 208)), first_counter=50 + 2**24 + 1 + 2**24)))  # a gap
+    assert (parser.statistics.restarts, parser.statistics.missing_frames) == (2, 2**24 - 1)
+
+
 def test_frames_of_another_layout_or_with_nan_are_rejected_whole():
     parser = hw.BinaryParser()  # the first frame fixes 208 adjacent values
     full = hw.encode_frame(np.ones(256), counter=1, device_time=0, layout=LAYOUT_ADJACENT_FULL)
@@ -215,6 +234,30 @@ def test_text_rejections_by_kind():
     np.testing.assert_array_equal(frames[0].values, np.full(208, 1.5))
     statistics = parser.finish()
     assert (statistics.length, statistics.malformed, statistics.non_finite, statistics.truncated) == (1, 3, 1, 1)
+
+
+def test_a_reset_ends_a_long_line():
+    """A reconnection in the middle of an over-long line: the next line is a line of its own."""
+    parser = hw.TextParser(4, max_line_bytes=10)
+    assert parser.feed(b"9" * 30) == []
+    parser.reset()
+    frames = parser.feed(b"1,2,3,4\n5,6,7,8\n")
+    assert [f.values.tolist() for f in frames] == [[1, 2, 3, 4], [5, 6, 7, 8]]
+    assert parser.statistics.malformed == 1
+
+
+def test_a_frame_whose_values_disagree_with_its_layout_is_rejected():
+    """Header: adjacent, 16 electrodes (208 values), but 100 values, CRCs valid: `length`, with
+    or without a declared protocol, so a recorder never sees it."""
+    frame = hw.encode_frame(np.ones(100), counter=0, device_time=0, layout=hw.frame.LAYOUT_DECLARED)
+    header = bytearray(frame[: HEADER_SIZE - 2])
+    header[len(SYNC) + 2] = hw.frame.LAYOUT_ADJACENT  # layout id, then the electrode count
+    header[len(SYNC) + 3] = 16
+    body = bytes(header) + hw.frame.header_crc(bytes(header)).to_bytes(2, "little") + frame[HEADER_SIZE:-4]
+    forged = body + zlib.crc32(body).to_bytes(4, "little")
+    for protocol in (adjacent(16), None):
+        parser = hw.BinaryParser(protocol)
+        assert parser.feed(forged) == [] and parser.statistics.length == 1
 
 
 # -- fuzzing ----------------------------------------------------------------------------------
