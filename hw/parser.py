@@ -291,7 +291,6 @@ def _layout_size(layout: int, n_electrodes: int) -> int | None:
     return None if protocol is None else protocol.n_measurements
 
 
-
 class TextParser(AbstractParser):
     """Parser of text lines `[label:] v1, v2, ..., vN` whose N values are the readings of the
     declared `protocol` (or, given an int, of `n_values` readings).

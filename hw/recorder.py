@@ -29,6 +29,7 @@ import dataclasses
 import json
 import os
 import time
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -44,6 +45,8 @@ from .parser import DropStatistics
 
 _KINDS = tuple(field.name for field in dataclasses.fields(DropStatistics))
 _CHUNK_ROWS = 64
+# Seconds `close` keeps trying to reopen the file when a reader holds it.
+_CLOSE_RETRY_SECONDS = 5.0
 
 
 class Recorder:
@@ -152,9 +155,24 @@ class Recorder:
             return
         self._file.close()
         self._file = None
-        with h5py.File(self.path, "r+") as file:
-            metadata = {**json.loads(file.attrs["metadata"]), "drop_statistics": self._statistics.as_dict()}
-            file.attrs["metadata"] = json.dumps(metadata)
+        # A reader opening the file just now holds a lock for a moment: retry, and if it keeps
+        # it, warn; /acquisition/drops holds the same statistics (`recorded_statistics`).
+        deadline = time.monotonic() + _CLOSE_RETRY_SECONDS
+        while True:
+            try:
+                with h5py.File(self.path, "r+") as file:
+                    metadata = {**json.loads(file.attrs["metadata"]), "drop_statistics": self._statistics.as_dict()}
+                    file.attrs["metadata"] = json.dumps(metadata)
+                return
+            except OSError as error:  # BlockingIOError included
+                if time.monotonic() > deadline:
+                    warnings.warn(
+                        f"{self.path}: could not store the drop statistics in the metadata ({error}); "
+                        "/acquisition/drops holds them",
+                        stacklevel=2,
+                    )
+                    return
+                time.sleep(0.05)
 
     def __enter__(self) -> Recorder:
         return self

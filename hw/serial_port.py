@@ -42,7 +42,8 @@ class SerialSource:
     `run(callback, ...)` calls `callback(frame)` for each. Both end after `max_frames` frames,
     `duration` seconds or `stop()` (from another thread or the callback), and raise `DeviceLost`
     when the device is gone for good. Frames already parsed when an iteration ends are kept for
-    the next one: none is lost. `statistics` is the parser's `DropStatistics` with `reconnects`.
+    the next one: none is lost. `statistics` is the parser's `DropStatistics` with `reconnects`
+    (its `frames`: those delivered).
     Use as a context manager, or call `close()`.
     """
 
@@ -95,7 +96,10 @@ class SerialSource:
 
     @property
     def statistics(self) -> DropStatistics:
-        return replace(self.parser.statistics, reconnects=self._reconnects)
+        """The parser's statistics with `reconnects`; `frames` counts the frames delivered (those
+        parsed but still waiting for the next iteration are not yet counted)."""
+        parsed = self.parser.statistics
+        return replace(parsed, frames=parsed.frames - len(self._pending), reconnects=self._reconnects)
 
     def frames(self, *, max_frames: int | None = None, duration: float | None = None) -> Iterator[Frame]:
         """Frames as they arrive (see the class docstring)."""

@@ -159,6 +159,35 @@ def test_the_recorder_killed_mid_run_leaves_every_frame_it_wrote(tmp_path):
     assert read_frames(path).n_frames == len(back)
 
 
+def test_a_recording_reads_consistently_while_it_is_written(tmp_path):
+    """A reader polling the file while a recorder appends: every read is a prefix of the frames,
+    none fails on rows counted but not yet visible, and the recorder closes cleanly."""
+    path = tmp_path / "live.h5"
+    script = (
+        "import sys, numpy as np, hw\n"
+        "from diffeit.protocol import adjacent\n"
+        "with hw.Recorder(sys.argv[1], adjacent(16), durable=False) as recorder:\n"
+        "    print('ready', flush=True)\n"
+        "    for i in range(1500):\n"
+        "        recorder.append(hw.Frame(np.full(208, float(i)), counter=i, device_time=i / 100))\n"
+    )
+    writer = subprocess.Popen(
+        [sys.executable, "-W", "error", "-c", script, str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert writer.stdout.readline() == "ready\n"
+    lengths = []
+    while writer.poll() is None:
+        frames = read_frames(path).frames
+        np.testing.assert_array_equal(frames[:, 0], np.arange(len(frames)))
+        lengths.append(len(frames))
+    assert writer.wait() == 0, writer.stderr.read()
+    assert len(lengths) > 3 and lengths == sorted(lengths)
+    assert read_frames(path).n_frames == 1500 and hw.recorded_statistics(path).frames == 0
+
+
 def _serve(data: bytes) -> int:
     """A TCP port that sends `data` to its first client and hangs up."""
     server = socket.create_server(("127.0.0.1", 0))

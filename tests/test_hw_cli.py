@@ -46,6 +46,20 @@ def test_acquire_records_what_arrives_and_reports_the_drops(tmp_path, touch, cap
     assert "exists; pass --overwrite" in capsys.readouterr().err
 
 
+def test_acquire_counts_what_it_recorded_and_checks_the_folder_first(tmp_path, touch, capsys):
+    """--frames 5 from a fast device: the report and the stored statistics count the 5 frames
+    recorded, not frames parsed beyond them; a missing folder is refused before reading."""
+    emulator = hw.Emulator(touch, frame_rate=1e5).start()
+    output = tmp_path / "five.h5"
+    assert main(["acquire", "--port", emulator.port, "-o", str(output), "--frames", "5"]) == 0
+    emulator.stop()
+    assert read_frames(output).n_frames == 5
+    assert read_frames(output).provenance["metadata"]["drop_statistics"]["frames"] == 5
+    assert "5 frames recorded" in capsys.readouterr().out
+    status = main(["acquire", "--port", "/dev/null", "-o", str(tmp_path / "no" / "run.h5")])
+    assert status == 2 and f"the folder {tmp_path / 'no'} does not exist" in capsys.readouterr().err
+
+
 def test_live_reconstructs_batches_and_saves_a_png_without_display(tmp_path, touch, capsys):
     emulator = hw.Emulator(touch, frame_rate=100.0, text=True, label="v").start()
     png = tmp_path / "live.png"

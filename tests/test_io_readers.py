@@ -97,6 +97,23 @@ def test_csv_without_header_full_layout_and_semicolons(tmp_path):
     np.testing.assert_array_equal(recording.protocol.measure, adjacent(16, measure_driven=True).measure)
 
 
+def test_csv_headers_of_column_numbers_and_a_byte_order_mark(tmp_path):
+    """pandas writes a header 0,1,...,207; Excel's "CSV UTF-8" starts with a byte-order mark:
+    neither costs a frame nor adds one."""
+    frames = RNG.normal(size=(3, 208))
+    rows = [",".join(repr(float(v)) for v in row) for row in frames]
+    numbered = tmp_path / "pandas.csv"
+    numbered.write_text("\n".join([",".join(str(i) for i in range(208)), *rows]) + "\n")
+    np.testing.assert_array_equal(read_csv(numbered).frames, frames)
+    np.testing.assert_array_equal(read_csv(numbered, header=False).frames[1:], frames)  # when told otherwise
+    marked = tmp_path / "excel.csv"
+    marked.write_bytes(b"\xef\xbb\xbf" + ("\r\n".join(rows) + "\r\n").encode())
+    np.testing.assert_array_equal(read_csv(marked).frames, frames)
+    named = tmp_path / "named.csv"
+    named.write_text("\n".join([",".join(f"v{i}" for i in range(208)), *rows]))
+    assert read_csv(named, header=True).provenance["metadata"]["columns"][:2] == ["v0", "v1"]
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [

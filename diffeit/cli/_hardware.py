@@ -135,6 +135,9 @@ def _acquire(arguments: argparse.Namespace) -> int:
     if output.exists() and not arguments.overwrite:
         print(f"diffeit acquire: error: {output} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
+    if not output.parent.is_dir():  # before the device streams: no frame is read to be lost
+        print(f"diffeit acquire: error: the folder {output.parent} does not exist", file=sys.stderr)
+        return 2
     try:
         source = _open_source(arguments)
     except (ValueError, ConnectionError) as error:
@@ -156,7 +159,7 @@ def _acquire(arguments: argparse.Namespace) -> int:
         ending = str(error)
     except KeyboardInterrupt:
         ending = "interrupted"
-    except ValueError as error:
+    except (ValueError, OSError) as error:  # a frame the recording cannot take, a file it cannot write
         print(f"diffeit acquire: error: {error}", file=sys.stderr)
         return 2
     finally:

@@ -22,10 +22,14 @@ def read_csv(
     frame_rate: float = 1.0,
     delimiter: str = ",",
     voltage_unit: str = "V",
+    header: bool | None = None,
 ) -> Recording:
     """Frames from a CSV file: one frame a row, one reading a column.
 
-    A first row that is not all numbers is a header (column names). `time_column` names (or
+    `header`: whether the first row holds column names; None (default) decides: a first row
+    that is not all numbers, or that numbers the columns 0, 1, 2, ... or 1, 2, 3, ... (as pandas
+    writes them), is a header. A UTF-8 byte-order mark (Excel's "CSV UTF-8") is skipped.
+    `time_column` names (or
     numbers, from 0) a column of times in seconds; the other columns are the readings, in
     `protocol`'s order and sign. Without a time column, frame t is at t / `frame_rate` seconds.
 
@@ -43,12 +47,14 @@ def read_csv(
         raise ValueError(f"frame_rate must be positive (frames per second); got {frame_rate}")
     if not path.exists():
         raise FileNotFoundError(f"no such CSV file: {path}")
-    with path.open(newline="") as file:
+    with path.open(newline="", encoding="utf-8-sig") as file:
         rows = [(number, row) for number, row in enumerate(csv.reader(file, delimiter=delimiter), start=1) if row]
-    if rows and not _numeric(rows[0][1]):
-        header, rows = [name.strip() for name in rows[0][1]], rows[1:]
+    if header is None:
+        header = bool(rows) and (not _numeric(rows[0][1]) or _numbers_columns(rows[0][1]))
+    if header and rows:
+        names, rows = [name.strip() for name in rows[0][1]], rows[1:]
     else:
-        header = None
+        names = None
     if not rows:
         raise ValueError(f"{path} holds no rows of values")
     width = len(rows[0][1])
@@ -67,9 +73,9 @@ def read_csv(
         raise ValueError(f"{path}: rows {name_indices(np.array([rows[i][0] for i in bad]))} hold non-finite values")
     if time_column is not None:
         if isinstance(time_column, str):
-            if header is None or time_column not in header:
-                raise ValueError(f"{path} has no column named {time_column!r}; columns: {header}")
-            time_column = header.index(time_column)
+            if names is None or time_column not in names:
+                raise ValueError(f"{path} has no column named {time_column!r}; columns: {names}")
+            time_column = names.index(time_column)
         if not -width <= time_column < width:
             raise ValueError(f"{path} has {width} columns; no time column {time_column}")
         times = values[:, time_column]
@@ -86,7 +92,7 @@ def read_csv(
         protocol=protocol,
         provenance={
             "source": f"CSV file {path.name}",
-            "metadata": {"file": str(path), "time_column": time_column, "columns": header},
+            "metadata": {"file": str(path), "time_column": time_column, "columns": names},
         },
         voltage_unit=voltage_unit,
     )
@@ -102,6 +108,13 @@ def _protocol_of(n_readings: int, path: Path) -> Protocol:
         f"{path} holds {n_readings} readings a row: not n(n-3) (adjacent) nor n * n (the full adjacent layout); "
         "pass the protocol"
     )
+
+
+def _numbers_columns(items: list[str]) -> bool:
+    """Whether a row of numbers counts the columns, 0.. or 1.. (a header of column indices); a
+    frame of 8 readings or more never does."""
+    values = np.array([float(item) for item in items])
+    return len(values) >= 8 and any(np.array_equal(values, np.arange(len(values)) + first) for first in (0, 1))
 
 
 def _numeric(items: list[str]) -> bool:

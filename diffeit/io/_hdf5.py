@@ -7,6 +7,7 @@ import datetime
 import itertools
 import json
 import os
+import time
 import uuid
 from collections.abc import Mapping
 from pathlib import Path
@@ -25,6 +26,8 @@ SCHEMA_VERSION = 1
 # Rows per HDF5 chunk of `frames` and `times`: about 100 kB for 208 readings, so appending one
 # frame at a time touches one chunk and reading a few frames reads little.
 _CHUNK_ROWS = 64
+# Seconds a reader waits while another process holds a file's lock.
+_LOCK_WAIT = 5.0
 # HDF5 file format 1.10 or later: what single-writer/multiple-reader (SWMR) mode needs, so a
 # recorder can append while a viewer reads.
 _LIBVER = "v110"
@@ -182,9 +185,14 @@ def _read(file: h5py.File) -> Recording:
     measure = _dataset(file, "protocol/measure")[()]
     drive_index = _dataset(file, "protocol/drive_index")[()]
     protocol = _protocol(drive, measure, drive_index)
+    # A recorder may be appending (SWMR): the committed count first, then the datasets, refreshed,
+    # hold at least the rows it counts (the recorder flushes the rows before the count).
+    committed = _committed_frames(file)
     frames_dataset = _dataset(file, "frames")
     times_dataset = _dataset(file, "times")
-    committed = _committed_frames(file)
+    if file.swmr_mode:
+        frames_dataset.refresh()
+        times_dataset.refresh()
     frames = frames_dataset[()] if committed is None else frames_dataset[:committed]
     times = times_dataset[()] if committed is None else times_dataset[:committed]
     if committed is not None and not (committed <= len(frames_dataset) and committed <= len(times_dataset)):
@@ -283,7 +291,7 @@ def _open(path: Path, mode: str):
     if not path.exists():
         raise FileNotFoundError(f"no such frames file: {path}")
     try:
-        file = h5py.File(path, mode)
+        file = _open_locked(path, mode)
     except OSError as error:
         if mode != "r":
             if "already open for write" in str(error):
@@ -296,11 +304,24 @@ def _open(path: Path, mode: str):
         try:
             # A file a recorder is writing, or was writing when it was killed, is marked open
             # for writing; single-writer/multiple-reader access reads it all the same.
-            file = h5py.File(path, "r", swmr=True)
+            file = _open_locked(path, "r", swmr=True)
         except OSError:
             raise ValueError(f"{path} is not a readable HDF5 file ({error})") from None
     with file:
         yield file
+
+
+def _open_locked(path: Path, mode: str, **options: Any) -> h5py.File:
+    """h5py.File, waiting up to _LOCK_WAIT seconds while another process holds the file's lock
+    (a recorder creating the file, or reopening it as it closes)."""
+    deadline = time.monotonic() + _LOCK_WAIT
+    while True:
+        try:
+            return h5py.File(path, mode, **options)
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
 
 
 def _publish(temporary: Path, path: Path, overwrite: bool) -> None:
