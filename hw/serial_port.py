@@ -151,6 +151,8 @@ class SerialSource:
         self.parser.reset()
         self.close()
         self._serial = self._open_within(self.reconnect_timeout) if self.reconnect_timeout > 0 else None
+        if self._serial is None and self._stopping:  # stop() while reconnecting: end, not DeviceLost
+            return
         if self._serial is None:
             reason = f" ({self._last_error})" if self.reconnect_timeout > 0 else " (reconnection disabled)"
             raise DeviceLost(f"{self.port} disappeared and did not come back within {self.reconnect_timeout} s{reason}")

@@ -207,8 +207,6 @@ def _live(arguments: argparse.Namespace) -> int:
             if len(batch) == arguments.batch:
                 shown += viewer.show(batch, np.mean(reference_frames, axis=0))
                 batch = []
-        if batch and reference_frames:
-            shown += viewer.show(batch, np.mean(reference_frames, axis=0))
     except hw.DeviceLost as error:
         ending = str(error)
     except KeyboardInterrupt:
@@ -218,6 +216,8 @@ def _live(arguments: argparse.Namespace) -> int:
         return 2
     finally:
         source.close()
+    if batch:  # the last, partial batch: also when the device went away
+        shown += viewer.show(batch, np.mean(reference_frames, axis=0))
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
     print(f"{ending}: {shown} frames reconstructed, {source.statistics.rejected} rejected{where}")
     return 0 if shown else 1
