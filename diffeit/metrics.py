@@ -349,8 +349,9 @@ def target_figures(
     """Match the components of the amplitude set S_f (half-amplitude by default) to the targets
     at `centres` (K, 2) m (or one (x, y)) and measure each matched component (module
     docstring): among the assignments with the most pairs at most `max_distance` (m) apart, the
-    one of least summed distance centre - component centroid; farther pairs are no match. The threshold is a fraction of
-    the image's overall peak, so a much weaker target may have no component of its own."""
+    one of least summed distance centre - component centroid; farther pairs are no match. The
+    threshold is a fraction of the image's overall peak, so a much weaker target may have no
+    component of its own."""
     centres = _checked_centres(centres)
     if not max_distance > 0:
         raise ValueError(f"max_distance must be positive (metres); got {max_distance}")

@@ -29,9 +29,10 @@ def read_csv(
     `header`: whether the first row holds column names; None (default) decides: a first row
     that is not all numbers, or that numbers the columns 0, 1, 2, ... or 1, 2, 3, ... (as pandas
     writes them), is a header. A UTF-8 byte-order mark (Excel's "CSV UTF-8") is skipped.
-    `time_column` names (or
-    numbers, from 0) a column of times in seconds; the other columns are the readings, in
-    `protocol`'s order and sign. Without a time column, frame t is at t / `frame_rate` seconds.
+
+    `time_column` names (or numbers, from 0) a column of times in seconds; the other columns
+    are the readings, in `protocol`'s order and sign. Without a time column, frame t is at
+    t / `frame_rate` seconds.
 
     Without `protocol`, the number of reading columns chooses it: n(n-3) is `adjacent(n)`
     (208: 16 electrodes, EIDORS's order), n * n is the full layout `adjacent(n,
