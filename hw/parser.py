@@ -14,9 +14,10 @@ waits for the whole frame (its length from the checked header) and checks the fr
 any of these checks fails, the candidate is rejected and the search resumes **one byte after
 the rejected marker**, over bytes already received: nothing that follows a damaged frame is
 skipped on its behalf. A frame whose CRC holds but whose layout differs from the expected one
-(`length`), whose values are not finite (`non_finite`) or whose counter repeats or runs
-backwards (`counter`) is rejected whole: its CRC vouches for its boundaries, and the search
-resumes after it.
+(`length`), whose values are not finite (`non_finite`) or whose counter repeats or is up to 16
+behind the last (`counter`, a stale frame) is rejected whole: its CRC vouches for its
+boundaries, and the search resumes after it. A counter of 0, more than 16 behind or more than
+2**24 ahead is a device reset (`restarts`), accepted as a new start.
 
 Consequences, exactly:
 
@@ -89,8 +90,8 @@ class DropStatistics:
       header values), `version` (a newer frame version), `crc` (frame CRC), `length` (another
       layout or number of values than expected, or than its layout has), `non_finite` (NaN or
       inf values), `counter` (a counter that repeats, or up to 16 behind the last: a stale
-      frame), `malformed` (a text line that is not ASCII
-      numbers, or too long), `truncated` (a frame cut off by a disconnection or the end).
+      frame), `malformed` (a text line that is not ASCII numbers, or too long), `truncated` (a
+      frame cut off by a disconnection or the end).
     - `missing_frames`: frames the device numbered that were not accepted (sum of the counter
       jumps between accepted frames), `gaps`: how many jumps; `restarts`: the counter went back
       to 0, more than 16 back, or more than 2**24 ahead (a device reset, its first frames
