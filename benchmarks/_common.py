@@ -51,6 +51,10 @@ def last_json(output: str) -> dict:
     return json.loads(output.strip().splitlines()[-1])
 
 
+# The environment variables that set thread counts; the benchmarks print which were set.
+THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "XLA_FLAGS")
+
+
 def blas_environment(environment: dict[str, str], blas_threads: int | None) -> dict[str, str]:
     """`environment` with the BLAS thread count of the measuring processes set, when given."""
     environment = dict(environment)
@@ -96,6 +100,10 @@ def describe() -> dict:
     except Exception:  # the layout of NumPy's build information is not an API
         blas = "unknown BLAS"
     device = jax.devices()[0]
+    from threadpoolctl import threadpool_info
+
+    pools = [f"{pool['internal_api']} {pool['num_threads']}" for pool in threadpool_info() if pool["user_api"] == "blas"]
+    variables = [f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ]
     return {
         "processor": platform.processor() or platform.machine(),
         "cpus": os.cpu_count(),
@@ -106,6 +114,8 @@ def describe() -> dict:
         "device": device.device_kind,
         "platform": device.platform,
         "pyeit": pyeit_version,
+        "threads": f"BLAS pools found: {', '.join(pools) or 'none'} threads; "
+        + (f"set: {' '.join(variables)}" if variables else "no thread variables set"),
     }
 
 
@@ -129,5 +139,5 @@ def machine_line(machine: dict, *, with_pyeit: bool) -> str:
         + f", {machine['python']}, jax {machine['jax']}, device {machine['device']} ({machine['platform']})"
         + f", NumPy {machine['numpy']} ({machine['blas']})"
         + (f", pyEIT {machine['pyeit']}" if machine["pyeit"] and with_pyeit else "")
-        + (f", {machine['blas_threads']} BLAS threads" if machine["blas_threads"] else "")
+        + f"; {machine['threads']}"
     )

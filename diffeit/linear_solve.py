@@ -20,6 +20,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from ._threads import host_algebra
+
 
 @dataclass(frozen=True, eq=False)
 class SparsityPattern:
@@ -192,6 +194,7 @@ def _factorise(pattern: SparsityPattern, values: np.ndarray, cache_size: int) ->
     return factor
 
 
+@host_algebra
 def _host_solve(pattern: SparsityPattern, values: np.ndarray, rhs: np.ndarray, cache_size: int) -> np.ndarray:
     batch = np.broadcast_shapes(values.shape[:-1], rhs.shape[:-2])
     n, k = rhs.shape[-2:]

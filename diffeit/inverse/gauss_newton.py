@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
+from .._threads import host_algebra
 from ..forward import ForwardModel
 from .one_step import check_frames
 from .priors import AbstractPrior, PriorOperator, prior_named
@@ -109,6 +110,7 @@ class GaussNewton:
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {self.prior!r}")
         object.__setattr__(self, "prior", prior)
 
+    @host_algebra
     def absolute(
         self,
         voltages: jax.Array,
@@ -130,6 +132,7 @@ class GaussNewton:
             start = np.log(_positive_map(initial, self.model.n_elements))[None] * np.ones((len(frames), 1))
         return self._solve(frames, start, estimate_contact_impedance, single, dtype)
 
+    @host_algebra
     def difference(self, voltage_difference: jax.Array, *, background: float | np.ndarray = 1.0) -> GaussNewtonResult:
         """Nonlinear difference imaging: the conductivity sigma with V(sigma) - V(background)
         = `voltage_difference` (M,) or (T, M) volts, starting from and regularised towards the

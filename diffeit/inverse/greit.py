@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 
 from .. import metrics
 from .._arrays import readonly
+from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import Mesh, pixel_overlaps
 from ..mesh._fields import barycentric_samples
@@ -157,6 +158,7 @@ class GREIT:
     target_centres: np.ndarray = field(init=False, repr=False)
     """(K, 2) centres of the training targets, metres."""
 
+    @host_algebra
     def __post_init__(self) -> None:
         mesh = self.model.mesh
         shape = self._checked_parameters()

@@ -32,6 +32,7 @@ from typing import Literal
 import jax
 import numpy as np
 
+from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import disc_fraction
 from .one_step import LinearisedProblem, OneStep, check_frames
@@ -65,6 +66,7 @@ class HyperparameterSelection:
     note: str = ""
 
 
+@host_algebra
 def select_hyperparameter(
     model: ForwardModel,
     voltage_difference: jax.Array,

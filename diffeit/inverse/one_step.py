@@ -11,6 +11,7 @@ import scipy.linalg
 
 from .._arrays import is_concrete
 from .._messages import name_indices
+from .._threads import host_algebra
 from ..forward import ForwardModel
 from .priors import AbstractPrior, prior_named
 
@@ -57,6 +58,7 @@ class LinearisedProblem:
     eigenvectors: np.ndarray = field(repr=False)
 
     @classmethod
+    @host_algebra
     def at(
         cls,
         model: ForwardModel,
@@ -186,6 +188,7 @@ class OneStep:
         return _apply(self.matrix, dv)
 
 
+@host_algebra
 def regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np.ndarray:
     """(E, M) P J_n^T (G + lambda^2 I)^-1 / c, through the eigendecomposition of G."""
     inverse = 1.0 / (problem.eigenvalues + hyperparameter**2)

@@ -1,0 +1,89 @@
+"""Speed in the environment users have: no BLAS thread variables set. diffeit limits BLAS to one
+thread only while it computes, and leaves the process's setting as it found it."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax.numpy as jnp
+import numpy as np
+from threadpoolctl import threadpool_info
+
+import diffeit as de
+from diffeit._threads import one_blas_thread
+
+_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "XLA_FLAGS")
+
+# One-step set-ups in a fresh process, either plain or, with the argument "limited", all inside
+# threadpoolctl's limiter (separate processes: an OpenBLAS worker keeps spinning after a limit).
+_SETUP_TIMES = textwrap.dedent(
+    """
+    import json, statistics, sys, time
+    from threadpoolctl import threadpool_limits
+    import diffeit as de
+
+    with threadpool_limits(limits=1 if sys.argv[1] == "limited" else None, user_api="blas"):
+        model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.05), de.protocol.adjacent(16))
+        de.inverse.OneStep(model, "noser", 0.1).matrix.block_until_ready()  # compile
+        times = []
+        for k in range(10):
+            start = time.perf_counter()
+            de.inverse.OneStep(model, "noser", 0.1, background=1 + 1e-6 * k)
+            times.append(time.perf_counter() - start)
+    print(json.dumps(statistics.median(times)))
+    """
+)
+
+
+def test_one_step_setup_in_a_clean_environment_runs_as_fast_as_inside_a_limiter():
+    """A user who sets no variable gets the benchmarked speed: the median set-up (about 3,300
+    triangles) is within 2x of the same set-up with BLAS limited to one thread by the caller.
+    Before diffeit limited its own algebra this ratio was 1 to 20 on 2 cores."""
+    environment = {k: v for k, v in os.environ.items() if k not in _THREAD_VARIABLES}
+    times = {}
+    for mode in ("plain", "limited"):
+        result = subprocess.run(
+            [sys.executable, "-c", _SETUP_TIMES, mode], env=environment, capture_output=True, text=True, check=True
+        )
+        times[mode] = json.loads(result.stdout.strip().splitlines()[-1])
+    assert times["plain"] / times["limited"] <= 2.0, times
+
+
+def _blas_threads() -> list[int]:
+    return [library["num_threads"] for library in threadpool_info() if library["user_api"] == "blas"]
+
+
+def test_the_process_blas_setting_is_restored_after_diffeit_computes(small_model):
+    """diffeit's limit lasts only as long as its call: afterwards the thread counts are the
+    ones the process had (changed here to 2 first, so that a limit left behind would show)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        de.inverse.OneStep(small_model, "laplace", 0.1)
+        assert _blas_threads() == before
+        with one_blas_thread():
+            assert set(_blas_threads()) == {1}
+            with one_blas_thread():  # nested: still one, and the outer exit restores
+                assert set(_blas_threads()) == {1}
+            assert set(_blas_threads()) == {1}
+        assert _blas_threads() == before
+
+
+def test_concurrent_callbacks_share_one_limit(small_model):
+    """Solves inside XLA's callbacks and the caller's algebra overlap; however they interleave,
+    the setting is restored once, at the end."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from threadpoolctl import threadpool_limits
+
+    sigma = jnp.ones(small_model.n_elements)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        with ThreadPoolExecutor(4) as pool:
+            voltages = list(pool.map(lambda k: np.asarray(small_model.measure(sigma * (1 + k))), range(8)))
+        assert _blas_threads() == before
+    for k, concurrent in enumerate(voltages):
+        np.testing.assert_allclose(concurrent, np.asarray(small_model.measure(sigma * (1 + k))), rtol=1e-12)
