@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arrays import ContentIdentity
 from .linear_solve import SparsityPattern
 from .mesh import Mesh
 
@@ -41,10 +42,11 @@ def basis_gradients(mesh: Mesh) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class CompleteElectrodeSystem:
+class CompleteElectrodeSystem(ContentIdentity):
     """The fixed structure of the grounded complete-electrode-model matrix of one mesh.
 
-    `values(sigma, z)` returns the (nnz,) matrix values on `pattern`. Static data for JAX.
+    `values(sigma, z)` returns the (nnz,) matrix values on `pattern`. Static data for JAX,
+    compared and hashed by the mesh it was built from.
     """
 
     pattern: SparsityPattern
@@ -61,6 +63,7 @@ class CompleteElectrodeSystem:
     electrode_cols: np.ndarray
     electrode_slots: np.ndarray  # (C,)
     grounded_node: int
+    fingerprint: bytes  # of the mesh: the system is a function of it
 
     @classmethod
     def from_mesh(cls, mesh: Mesh) -> CompleteElectrodeSystem:
@@ -109,6 +112,7 @@ class CompleteElectrodeSystem:
             electrode_cols=cols,
             electrode_slots=stiffness.extra_slots,
             grounded_node=grounded,
+            fingerprint=mesh.fingerprint,
         )
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
@@ -145,7 +149,7 @@ class CompleteElectrodeSystem:
 
 
 @dataclass(frozen=True, eq=False)
-class PointElectrodeSystem:
+class PointElectrodeSystem(ContentIdentity):
     """The stiffness matrix of one mesh with point electrodes, grounded at one node.
 
     Electrode l is the single node `electrode_nodes[l]` (the node of its boundary chain
@@ -168,6 +172,7 @@ class PointElectrodeSystem:
     stiffness_table: np.ndarray
     electrode_nodes: np.ndarray  # (L,) node index of each electrode
     grounded_node: int
+    fingerprint: bytes  # of the mesh: the system is a function of it
 
     @classmethod
     def from_mesh(cls, mesh: Mesh) -> PointElectrodeSystem:
@@ -187,6 +192,7 @@ class PointElectrodeSystem:
             stiffness_table=stiffness.table,
             electrode_nodes=electrode_nodes,
             grounded_node=grounded,
+            fingerprint=mesh.fingerprint,
         )
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:

@@ -87,8 +87,11 @@ class ForwardModel:
     work on them. On concrete inputs they raise `ValueError` for a conductivity of the wrong
     shape, non-finite or non-positive values.
 
-    A model is immutable and a JAX pytree whose one leaf is `contact_impedance`; it hashes by
-    identity, so `jax.jit(model.measure)` works.
+    A model is immutable and a JAX pytree whose one leaf is `contact_impedance`; everything
+    else is static data compared by content (mesh, protocol, drive current, solver settings),
+    so the compiled forward solve and Jacobian of one model serve every model on an equal mesh
+    and protocol: a second model compiles nothing. The model itself hashes by identity, so
+    `jax.jit(model.measure)` works.
     """
 
     mesh: Mesh
@@ -236,7 +239,8 @@ class ForwardModel:
         return jnp.broadcast_to(z, (n,))
 
 
-# The computations, jitted once per model (hashed by identity), shape and dtype. The methods
+# The computations, jitted once per mesh, protocol, drive current and solver (compared by
+# content), shape and dtype. The methods
 # above validate concrete inputs first with messages naming the elements; under an outer jit or
 # vmap only `_positive` can see the values.
 

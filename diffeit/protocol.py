@@ -20,12 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ._arrays import readonly
+from ._arrays import ContentIdentity, fingerprint, readonly
 from ._messages import name_indices
 
 
 @dataclass(frozen=True, eq=False)
-class Protocol:
+class Protocol(ContentIdentity):
     """Current patterns and the voltage readings taken under each.
 
     `Protocol(drive, measure)`:
@@ -42,7 +42,8 @@ class Protocol:
 
     Measurements are ordered drive by drive, then in the given order within a drive, and
     stored flat: `measure` (n_measurements, L) with `drive_index` (n_measurements,) naming the
-    drive each belongs to. A protocol is static data for JAX (a pytree without leaves).
+    drive each belongs to. A protocol is static data for JAX (a pytree without leaves); protocols
+    compare and hash by content.
     Invalid input raises `ValueError` naming the offending rows.
     """
 
@@ -53,6 +54,7 @@ class Protocol:
     """(P, L) the distinct rows of `measure`."""
     pattern_index: np.ndarray = field(init=False, repr=False)
     """(n_measurements,) row of `measure_patterns` each measurement uses."""
+    fingerprint: bytes = field(init=False, repr=False)
 
     def __init__(self, drive: np.ndarray, measure: np.ndarray | Sequence[np.ndarray]) -> None:
         drive = np.array(drive, dtype=np.float64)
@@ -93,6 +95,7 @@ class Protocol:
         object.__setattr__(self, "drive_index", readonly(drive_index))
         object.__setattr__(self, "measure_patterns", readonly(patterns))
         object.__setattr__(self, "pattern_index", readonly(pattern_index.ravel()))
+        object.__setattr__(self, "fingerprint", fingerprint(drive, flat, drive_index))
 
     @property
     def n_electrodes(self) -> int:

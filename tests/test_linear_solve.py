@@ -66,9 +66,9 @@ def counted_host_calls(monkeypatch):
     calls = []
     original = linear_solve._host_solve
 
-    def counting(pattern, values, rhs, cache_size):
+    def counting(pattern, values, rhs, cache_size, cache):
         calls.append((values.shape, rhs.shape))
-        return original(pattern, values, rhs, cache_size)
+        return original(pattern, values, rhs, cache_size, cache)
 
     monkeypatch.setattr(linear_solve, "_host_solve", counting)
     return calls

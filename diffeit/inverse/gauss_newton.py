@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import partial
 
 import jax
@@ -36,7 +37,7 @@ class GaussNewtonResult:
     - `history`: the objective (data misfit plus prior, normalised, see `GaussNewton`) at every
       iterate, the start included: it never rises.
     - `stop_reason`: "discrepancy" (misfit at the noise level), "stagnation" (the objective no
-      longer decreases by a relative 1e-6), "max_iterations", or "line_search_failed" (no step
+      longer decreases by a relative `stagnation_tolerance`), "max_iterations", or "line_search_failed" (no step
       decreased the objective, even damped).
     - `iterations`: accepted steps.
     - `misfit`: the final normalised data misfit ||V - v|| / s.
@@ -61,7 +62,8 @@ class GaussNewton:
     """Regularised Gauss-Newton on s = ln(sigma), with Levenberg-Marquardt damping and a
     backtracking line search; every step is solved in measurement space (M x M).
 
-    `GaussNewton(model, prior="laplace", hyperparameter=1e-2, *, max_iterations=20, noise=None)`
+    `GaussNewton(model, prior="laplace", hyperparameter=1e-2, max_iterations=20, noise=None,
+    discrepancy_safety=1.05, contact_impedance_spread=1.0, stagnation_tolerance=1e-6)`
 
     The objective, with v the data, s_d = RMS(V(sigma_0)) the data scale at the start and
     s_ref the prior's centre (ln of the start for absolute imaging, of the background for
@@ -80,9 +82,10 @@ class GaussNewton:
 
     (with an extra block for w), an M x M solve whatever the mesh size. mu shrinks after a
     full step and grows after a shortened or failed one. The iteration stops at the noise
-    level when `noise` (percent of RMS(v), DESIGN.md) is known (the discrepancy principle,
-    ||r|| <= `discrepancy_safety` x the expected noise norm), when the objective stagnates, or
-    after `max_iterations`.
+    level when `noise` (percent of RMS(v)) is known (the discrepancy principle,
+    ||r|| <= `discrepancy_safety` x the expected noise norm), when the objective stagnates (a
+    relative decrease below `stagnation_tolerance`; 0 never stops for that), or after
+    `max_iterations`. The prior's sparse factorisations are made once, at construction.
 
     `absolute(v)` and `difference(dv)` accept one frame (M,) or a batch (T, M): a batch runs
     in one loop, every frame with its own step, damping and stop.
@@ -95,6 +98,9 @@ class GaussNewton:
     noise: float | None = None
     discrepancy_safety: float = 1.05
     contact_impedance_spread: float = 1.0
+    stagnation_tolerance: float = 1e-6
+    bound_prior: Callable[[np.ndarray], PriorOperator] = field(init=False, repr=False)
+    """The prior on the model's mesh, factorised once (`AbstractPrior.bind`)."""
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.hyperparameter) and self.hyperparameter > 0):
@@ -108,7 +114,10 @@ class GaussNewton:
         prior = prior_named(self.prior) if isinstance(self.prior, str) else self.prior
         if not isinstance(prior, AbstractPrior):
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {self.prior!r}")
+        if not self.stagnation_tolerance >= 0:
+            raise ValueError(f"stagnation_tolerance must be >= 0; got {self.stagnation_tolerance}")
         object.__setattr__(self, "prior", prior)
+        object.__setattr__(self, "bound_prior", prior.bind(self.model.mesh))
 
     @host_algebra
     def absolute(
@@ -186,7 +195,7 @@ class GaussNewton:
         operators, prior_scale = [], np.empty(n_frames)
         for k in range(n_frames):
             normalised = jacobian[k] / scale[k]
-            operator = self.prior.operator(mesh, normalised)
+            operator = self.bound_prior(normalised)
             operators.append(operator)
             prior_scale[k] = np.sum(operator.root_transpose(np.ascontiguousarray(normalised.T)) ** 2) / len(normalised)
         noise_norm = None
@@ -242,7 +251,7 @@ class GaussNewton:
                 iterations[k] += 1
                 if noise_norm is not None and np.linalg.norm(new_residual) <= noise_norm[k]:
                     stop[k], active[k] = "discrepancy", False
-                elif decrease < 1e-6:
+                elif decrease < self.stagnation_tolerance:
                     stop[k], active[k] = "stagnation", False
             if active.any():
                 # The whole batch, always: a fixed shape compiles once.

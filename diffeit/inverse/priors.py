@@ -25,6 +25,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from ..linear_solve import splu_spd
 from ..mesh import Mesh, element_adjacency
 
 
@@ -37,7 +38,7 @@ class PriorOperator:
 
     Iterative solvers use the factor: J P J^T = (S^T J^T)^T (S^T J^T) and P J^T y = S (S^T J^T y)
     cost one sparse solve with many right-hand sides, where P J^T costs two. Sparse
-    factorisations are made once, when the operator is built.
+    factorisations are made once per mesh, by `AbstractPrior.bind`.
     """
 
     covariance: Callable[[np.ndarray], np.ndarray]
@@ -50,8 +51,14 @@ class AbstractPrior(abc.ABC):
     """A prior covariance P (E x E, symmetric positive definite) on the relative change."""
 
     @abc.abstractmethod
+    def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        """The prior on `mesh`, its sparse factorisations made once: a function from the
+        normalised Jacobian (M, E) to the operator (only NOSER reads the Jacobian). Iterative
+        solvers bind once and build an operator per iterate."""
+
     def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
         """P bound to `mesh`; `jacobian` (M, E) is the normalised Jacobian (only NOSER reads it)."""
+        return self.bind(mesh)(jacobian)
 
     def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
         """(E, M) P J^T for the (M, E) normalised Jacobian `jacobian`."""
@@ -62,8 +69,9 @@ class AbstractPrior(abc.ABC):
 class Tikhonov(AbstractPrior):
     """P = I: every element's change independent, equally likely."""
 
-    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
-        return PriorOperator(np.array, np.array, np.array, np.array)
+    def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        identity = PriorOperator(np.array, np.array, np.array, np.array)
+        return lambda jacobian: identity
 
 
 @dataclass(frozen=True)
@@ -74,7 +82,10 @@ class Noser(AbstractPrior):
 
     exponent: float = 0.5
 
-    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
+    def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        return self._operator
+
+    def _operator(self, jacobian: np.ndarray) -> PriorOperator:
         sensitivity = np.sum(jacobian**2, axis=0)
         if np.any(sensitivity <= 0):
             raise ValueError(f"{np.count_nonzero(sensitivity <= 0)} element(s) have zero sensitivity: NOSER undefined")
@@ -100,16 +111,15 @@ class Laplace(AbstractPrior):
 
     ridge: float = 1e-2
 
-    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
+    def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
         if not self.ridge > 0:
             raise ValueError(f"ridge must be positive; got {self.ridge}")
         first, second, _ = element_adjacency(mesh)
         root = _graph_laplacian(first, second, np.ones(len(first)), mesh.n_elements)
         root = (root + self.ridge * scipy.sparse.eye(mesh.n_elements)).tocsc()
-        factor = _splu_spd(root)
-        return PriorOperator(
-            lambda x: factor.solve(factor.solve(x)), lambda x: root @ (root @ x), factor.solve, factor.solve
-        )  # S = S^T = (L + ridge I)^-1
+        solve = _block_solver(splu_spd(root))
+        operator = PriorOperator(lambda x: solve(solve(x)), lambda x: root @ (root @ x), solve, solve)
+        return lambda jacobian: operator  # S = S^T = (L + ridge I)^-1
 
 
 @dataclass(frozen=True)
@@ -123,7 +133,7 @@ class Matern(AbstractPrior):
 
     correlation_length: float = 0.2
 
-    def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
+    def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
         if not self.correlation_length > 0:
             raise ValueError(f"correlation_length must be positive (metres); got {self.correlation_length}")
         kappa = np.sqrt(8.0) / self.correlation_length
@@ -132,18 +142,19 @@ class Matern(AbstractPrior):
         laplacian = _graph_laplacian(first, second, edge_lengths / distance, mesh.n_elements)
         areas = mesh.element_areas
         operator = (kappa**2 * scipy.sparse.diags(areas) + laplacian).tocsc()
-        factor = _splu_spd(operator)
+        solve = _block_solver(splu_spd(operator))
 
         def per_element(x: np.ndarray) -> np.ndarray:
             return areas.reshape((-1,) + (1,) * (np.ndim(x) - 1))
 
         # S = K^-1 C^(1/2): S S^T = K^-1 C K^-1 (K is symmetric).
-        return PriorOperator(
-            lambda x: factor.solve(per_element(x) * factor.solve(x)),
+        bound = PriorOperator(
+            lambda x: solve(per_element(x) * solve(x)),
             lambda x: operator @ ((operator @ x) / per_element(x)),
-            lambda x: factor.solve(np.sqrt(per_element(x)) * x),
-            lambda x: np.sqrt(per_element(x)) * factor.solve(x),
+            lambda x: solve(np.sqrt(per_element(x)) * x),
+            lambda x: np.sqrt(per_element(x)) * solve(x),
         )
+        return lambda jacobian: bound
 
 
 def prior_named(name: str) -> AbstractPrior:
@@ -155,12 +166,11 @@ def prior_named(name: str) -> AbstractPrior:
     return priors[name]()
 
 
-def _splu_spd(matrix: scipy.sparse.csc_matrix) -> scipy.sparse.linalg.SuperLU:
-    """Sparse LU of a symmetric positive definite matrix: a symmetric fill-reducing order and
-    diagonal pivots (about 40% less fill than SuperLU's default here)."""
-    return scipy.sparse.linalg.splu(
-        matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-    )
+def _block_solver(factor: scipy.sparse.linalg.SuperLU) -> Callable[[np.ndarray], np.ndarray]:
+    """`factor.solve` for a vector or a block of columns (E, k), the block in column-major
+    order: SuperLU solves column by column, and a row-major block costs it a strided copy
+    (208 columns on 2,900 elements: 16 ms instead of 23 ms)."""
+    return lambda x: factor.solve(np.asfortranarray(x))
 
 
 def _graph_laplacian(first: np.ndarray, second: np.ndarray, weights: np.ndarray, n: int) -> scipy.sparse.csr_matrix:

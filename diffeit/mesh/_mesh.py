@@ -11,7 +11,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from .._arrays import readonly
+from .._arrays import ContentIdentity, fingerprint, readonly
 from .._messages import name_indices
 
 if TYPE_CHECKING:
@@ -28,7 +28,7 @@ def _signed_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class Mesh:
+class Mesh(ContentIdentity):
     """An immutable P1 triangle mesh of a sheet, with electrodes on its boundary.
 
     Construct with `Mesh.from_arrays`, `Mesh.from_skfem` or a generator (`diffeit.mesh.disc`,
@@ -46,7 +46,8 @@ class Mesh:
       (counter-clockwise along the outer boundary).
     - `element_areas`: (E,) triangle areas in m^2.
 
-    A mesh is static data for JAX: it is a pytree without leaves, hashed by identity.
+    A mesh is static data for JAX: a pytree without leaves. Meshes compare and hash by content
+    (nodes, triangles, electrodes), so functions compiled for one mesh serve an equal one.
     """
 
     nodes: np.ndarray
@@ -54,6 +55,7 @@ class Mesh:
     electrodes: tuple[np.ndarray, ...]
     boundary_edges: np.ndarray = field(init=False, repr=False)
     element_areas: np.ndarray = field(init=False, repr=False)
+    fingerprint: bytes = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         nodes = np.asarray(self.nodes, dtype=np.float64)
@@ -76,6 +78,8 @@ class Mesh:
         object.__setattr__(self, "electrodes", tuple(readonly(e) for e in electrodes))
         object.__setattr__(self, "boundary_edges", readonly(boundary_edges))
         object.__setattr__(self, "element_areas", readonly(areas))
+        lengths = np.array([len(e) for e in electrodes])
+        object.__setattr__(self, "fingerprint", fingerprint(nodes, triangles, lengths, *electrodes))
 
     @classmethod
     def from_arrays(cls, nodes: np.ndarray, triangles: np.ndarray, electrodes: list) -> Mesh:

@@ -1,0 +1,117 @@
+"""Work done once: one compilation per mesh (not per model), one factorisation per matrix
+(forward, adjoint and Jacobian share it), and host caches that belong to their solver."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse.linalg
+
+import diffeit as de
+from diffeit import linear_solve
+
+_COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/backend_compile_duration")
+
+
+@pytest.fixture
+def compilations():
+    """The trace and compile events JAX reports while the test runs."""
+    events = []
+
+    def listener(event: str, duration: float, **_kwargs) -> None:
+        if event in _COMPILE_EVENTS:
+            events.append(event)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    yield events
+    jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def test_equal_meshes_and_protocols_compare_and_hash_by_content():
+    first = de.mesh.disc(16, electrode_width=0.2, h=0.15)
+    second = de.mesh.disc(16, electrode_width=0.2, h=0.15)
+    assert first is not second and first == second and hash(first) == hash(second)
+    assert first != de.mesh.disc(16, electrode_width=0.2, h=0.16)
+    assert first != de.mesh.disc(16, electrode_width=0.25, h=0.15)  # other electrodes, other mesh
+    moved = de.Mesh.from_arrays(first.nodes * 1.001, first.triangles, first.electrodes)
+    assert moved != first
+    assert de.protocol.adjacent(16) == de.protocol.adjacent(16)
+    assert de.protocol.adjacent(16) != de.protocol.skip(16, 1)
+    assert de.protocol.adjacent(16) != de.protocol.adjacent(16, measure_driven=True)
+
+
+def test_a_second_model_on_an_equal_mesh_compiles_nothing(compilations):
+    """Forward, Jacobian and one-step set-up of a model on a freshly generated, equal mesh reuse
+    the first model's compiled functions: no trace, no compile."""
+
+    def use(model):
+        sigma = jnp.full(model.n_elements, 0.5)
+        np.asarray(model.measure(sigma))
+        np.asarray(model.jacobian(sigma))
+        de.inverse.OneStep(model, "noser", 0.1).matrix.block_until_ready()
+
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.17)
+    use(de.ForwardModel(mesh, de.protocol.adjacent(16), 0.02))
+    assert compilations  # the first model compiled: the listener hears compilations
+    compilations.clear()
+    again = de.mesh.disc(16, electrode_width=0.2, h=0.17)
+    use(de.ForwardModel(again, de.protocol.adjacent(16), 0.03))  # contact impedance is a leaf
+    assert compilations == []
+    use(de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.18), de.protocol.adjacent(16), 0.02))
+    assert compilations  # another mesh compiles anew
+
+
+def _primitives(jaxpr) -> list[str]:
+    """The primitive names of a jaxpr, sub-jaxprs included."""
+    names = []
+    for equation in jaxpr.eqns:
+        names.append(equation.primitive.name)
+        for parameter in equation.params.values():
+            for sub in parameter if isinstance(parameter, tuple | list) else [parameter]:
+                inner = getattr(sub, "jaxpr", None)
+                if inner is not None:
+                    names.extend(_primitives(getattr(inner, "jaxpr", inner)))
+    return names
+
+
+def test_dense_cholesky_factorises_once_for_the_forward_and_the_adjoint(small_disc):
+    """The gradient of the voltages (a forward and an adjoint solve) and the Jacobian hold one
+    Cholesky factorisation each, and both agree with the host backend."""
+    model = de.ForwardModel(small_disc, de.protocol.adjacent(16), 0.01, solver="dense_cholesky")
+    sigma = jnp.linspace(0.5, 1.5, small_disc.n_elements)
+    weights = jnp.asarray(np.random.default_rng(3).normal(size=model.n_measurements))
+
+    def loss(s):
+        return model.measure(s) @ weights
+
+    for function in (jax.grad(loss), lambda s: model.jacobian(s)):
+        jaxpr = jax.make_jaxpr(function)(sigma)
+        assert _primitives(jaxpr.jaxpr).count("cholesky") == 1
+    host = de.ForwardModel(small_disc, de.protocol.adjacent(16), 0.01)
+    np.testing.assert_allclose(jax.grad(loss)(sigma), jax.grad(lambda s: host.measure(s) @ weights)(sigma), rtol=1e-9)
+
+
+def test_host_factorisations_belong_to_their_solver(monkeypatch):
+    """Two solvers with different cache sizes keep separate caches: one's trimming does not
+    evict the other's factorisations."""
+    rng = np.random.default_rng(2)
+    n = 20
+    rows, cols = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    near = np.abs(rows - cols) <= 1
+    pattern, _ = linear_solve.SparsityPattern.from_entries(rows[near], cols[near], n)
+    values = np.where(pattern.rows == pattern.cols, 4.0, -1.0)
+    rhs = jnp.asarray(rng.normal(size=(n, 1)))
+    keeper, trimmer = linear_solve.HostSparse(cache_size=4), linear_solve.HostSparse(cache_size=1)
+    linear_solve.solve_spd(pattern, jnp.asarray(values), rhs, keeper)
+    for scale in (2.0, 3.0, 5.0):
+        linear_solve.solve_spd(pattern, jnp.asarray(scale * values), rhs, trimmer)
+    factorisations = []
+    original = scipy.sparse.linalg.splu
+    monkeypatch.setattr(
+        scipy.sparse.linalg, "splu", lambda *a, **k: factorisations.append(1) or original(*a, **k)
+    )
+    linear_solve.solve_spd(pattern, jnp.asarray(values), rhs, keeper)
+    assert factorisations == []  # still in the keeper's cache
+    keeper.clear_cache()
+    linear_solve.solve_spd(pattern, jnp.asarray(values), rhs, keeper)
+    assert len(factorisations) == 2  # the ordering and the factorisation, made again
