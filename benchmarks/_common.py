@@ -102,7 +102,10 @@ def describe() -> dict:
     device = jax.devices()[0]
     from threadpoolctl import threadpool_info
 
-    pools = [f"{pool['internal_api']} {pool['num_threads']}" for pool in threadpool_info() if pool["user_api"] == "blas"]
+    import diffeit  # noqa: F401 (loads SciPy's BLAS beside NumPy's, as the measuring processes do)
+
+    blas_pools = [pool for pool in threadpool_info() if pool["user_api"] == "blas"]
+    pools = [f"{pool['internal_api']} {pool['num_threads']}" for pool in blas_pools]
     variables = [f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ]
     return {
         "processor": platform.processor() or platform.machine(),
