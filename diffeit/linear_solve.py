@@ -22,7 +22,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from ._arrays import ContentIdentity, fingerprint
-from ._threads import host_algebra
+from ._threads import host_algebra, one_blas_thread_in_xla
 
 
 @dataclass(frozen=True, eq=False)
@@ -269,8 +269,10 @@ class DenseCholesky(AbstractLinearSolver):
     """Dense Cholesky factorisation in JAX (XLA), in the dtype of the values.
 
     For small meshes and for accelerators: the n x n matrix is formed, so memory grows as n^2
-    and time as n^3 (a few thousand unknowns at most). Runs under jit and vmap natively. A
-    matrix that is not positive definite (in the working precision) gives NaN.
+    and time as n^3 (a few thousand unknowns at most). Runs under jit and vmap natively; on
+    CPU, XLA's Cholesky and triangular solves call OpenBLAS, which runs on one thread while
+    they do (see `diffeit._threads`). A matrix that is not positive definite (in the working
+    precision) gives NaN.
     `refinement_steps` steps of iterative refinement follow the triangular solves.
     """
 
@@ -279,20 +281,23 @@ class DenseCholesky(AbstractLinearSolver):
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the lower Cholesky factor (n, n), the values (nnz,) for the refinement's residual)."""
         matrix = jnp.zeros((pattern.size, pattern.size), values.dtype).at[pattern.rows, pattern.cols].set(values)
-        return jnp.linalg.cholesky(matrix), values
+        return one_blas_thread_in_xla(jnp.linalg.cholesky)(matrix), values
 
     def solve_factorised(
         self, pattern: SparsityPattern, factor: tuple[jax.Array, jax.Array], rhs: jax.Array
     ) -> jax.Array:
         lower, values = factor
-        b = rhs.astype(values.dtype)
-        x = jax.scipy.linalg.cho_solve((lower, True), b)
-        # Cholesky without pivoting is normwise but not componentwise backward stable: with
-        # entries spanning many decades (contact impedance 1e-9, contrast 1e6) a step of
-        # iterative refinement, O(n^2) against the O(n^3) factorisation, restores it.
-        for _ in range(self.refinement_steps):
-            x = x + jax.scipy.linalg.cho_solve((lower, True), b - pattern.matvec(values, x))
-        return x.astype(rhs.dtype)
+
+        def refined(b: jax.Array) -> jax.Array:
+            x = jax.scipy.linalg.cho_solve((lower, True), b)
+            # Cholesky without pivoting is normwise but not componentwise backward stable: with
+            # entries spanning many decades (contact impedance 1e-9, contrast 1e6) a step of
+            # iterative refinement, O(n^2) against the O(n^3) factorisation, restores it.
+            for _ in range(self.refinement_steps):
+                x = x + jax.scipy.linalg.cho_solve((lower, True), b - pattern.matvec(values, x))
+            return x
+
+        return one_blas_thread_in_xla(refined)(rhs.astype(values.dtype)).astype(rhs.dtype)
 
 
 @dataclass(frozen=True)
