@@ -10,10 +10,14 @@ spin and removes the slowdown, and with XLA single-threaded, which does not). Th
 here are small (M = 208 rows): one thread loses little, and XLA's own thread pool keeps the
 large ones parallel.
 
-`one_blas_thread` limits every loaded BLAS to one thread while diffeit computes, through
-threadpoolctl, and restores the user's setting when the outermost use ends: the process's
-setting is untouched outside diffeit's calls. Nested and concurrent uses (XLA runs callbacks on
-its own threads) share one limit, counted, so the setting is restored exactly once.
+`one_blas_thread` limits every loaded BLAS to one thread while diffeit computes (the libraries
+found by threadpoolctl) and restores the user's setting when the outermost use ends: the
+process's setting is untouched outside diffeit's calls. Nested and concurrent uses (XLA runs
+callbacks on its own threads) share one limit, counted under a lock, so the setting is changed
+once and restored once, possibly by another thread than the one that changed it. threadpoolctl
+lets only one "controlling" thread change OpenBLAS and silently ignores the others; so the
+count here decides, and each change releases that control again, leaving the user's own
+threadpoolctl calls (from any thread) in charge as before.
 
 XLA's own linear algebra on CPU (Cholesky, triangular solves, eigendecompositions) calls the
 LAPACK and BLAS of SciPy's OpenBLAS too, from inside compiled code that a user may call under
@@ -36,7 +40,7 @@ from threadpoolctl import ThreadpoolController
 
 _lock = threading.Lock()
 _depth = 0
-_active_limit: Any = None
+_original_threads: list[int] = []
 _controller: ThreadpoolController | None = None
 
 P = ParamSpec("P")
@@ -53,21 +57,32 @@ def _blas_controller() -> ThreadpoolController:
     return _controller
 
 
+def _set_threads(counts: list[int]) -> None:
+    """Set each BLAS's thread count from whichever thread runs this (the caller holds `_lock`)."""
+    for library, count in zip(_blas_controller().lib_controllers, counts, strict=True):
+        release = getattr(library, "clear_controlling_thread", None)  # threadpoolctl >= 3.5, OpenBLAS
+        if release is not None:
+            release()
+        library.set_num_threads(count)
+        if release is not None:
+            release()
+
+
 def _take() -> None:
-    global _depth, _active_limit
+    global _depth, _original_threads
     with _lock:
         if _depth == 0:
-            _active_limit = _blas_controller().limit(limits=1)
+            _original_threads = [library.get_num_threads() for library in _blas_controller().lib_controllers]
+            _set_threads([1] * len(_original_threads))
         _depth += 1
 
 
 def _release() -> None:
-    global _depth, _active_limit
+    global _depth
     with _lock:
         _depth -= 1
         if _depth == 0:
-            _active_limit.restore_original_limits()
-            _active_limit = None
+            _set_threads(_original_threads)
 
 
 @contextmanager

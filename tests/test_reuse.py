@@ -80,6 +80,7 @@ def test_dense_cholesky_factorises_once_for_the_forward_and_the_adjoint(small_di
     def loss(s):
         return model.measure(s) @ weights
 
+    jax.clear_caches()  # an equal model of an earlier test would otherwise spare the trace
     jax.make_jaxpr(jax.grad(loss))(sigma)
     assert calls == ["factorise", "solve_factorised", "solve_factorised"]
     host = de.ForwardModel(small_disc, de.protocol.adjacent(16), 0.01)

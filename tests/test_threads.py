@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -104,3 +105,31 @@ def test_concurrent_callbacks_share_one_limit(small_model):
         assert _blas_threads() == before
     for k, concurrent in enumerate(voltages):
         np.testing.assert_allclose(concurrent, np.asarray(small_model.measure(sigma * (1 + k))), rtol=1e-12)
+
+
+def test_a_limit_taken_on_one_thread_and_released_on_another_is_restored(small_disc):
+    """XLA may run the two callbacks around its LAPACK calls on different threads (and
+    threadpoolctl ignores OpenBLAS changes from all but one controlling thread): the setting
+    still comes back, and the user's own limiter still works afterwards."""
+    import threading
+
+    from threadpoolctl import threadpool_limits
+
+    from diffeit import _threads
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        for taker, releaser in ((None, "other"), ("other", None)):
+            for action, where in ((_threads._take, taker), (_threads._release, releaser)):
+                if where is None:
+                    action()
+                else:
+                    thread = threading.Thread(target=action)
+                    thread.start()
+                    thread.join()
+            assert _blas_threads() == before
+        model = de.ForwardModel(small_disc, de.protocol.adjacent(16), solver="dense_cholesky")
+        np.asarray(jax.jit(model.measure)(jnp.ones(small_disc.n_elements)))
+        assert _blas_threads() == before
+    with threadpool_limits(limits=1, user_api="blas"):
+        assert set(_blas_threads()) == {1}

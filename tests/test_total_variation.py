@@ -1,9 +1,11 @@
 """Total-variation reconstruction: the objective's gradient, sharper touches than one-step
-Laplace at the same data fit, convergence reporting, batches, extremes and refusals."""
+Laplace at the same data fit, the minimiser (against a long L-BFGS run), convergence reporting,
+batches, backends, extremes and refusals."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 import pytest
 
 import diffeit as de
@@ -88,7 +90,8 @@ def test_sharper_than_one_step_laplace_at_the_same_data_fit(scene, solution):
     TV's (the discrepancy principle aimed at TV's residual, 0.123; one-step lambda 0.026).
     Measured: correlation 0.963 (TV) against 0.884 (one-step); 10-90% transition width
     0.085 m against 0.30 m (the true image, interpolated onto the mesh, has 0.068 m); position
-    error 0.019 against 0.005 m. TV's plateau is -0.64, flat to 0.1%, near ln(0.5) = -0.69
+    error 0.019 against 0.005 m (the same figures as L-BFGS gave on this objective). TV's
+    plateau is -0.64, flat (standard deviation 0.2% of it over the core), near ln(0.5) = -0.69
     rather than -0.5: linearised at the background, a halving reads about as its logarithm."""
     model, difference, truth = scene
     mesh = model.mesh
@@ -121,7 +124,43 @@ def test_sharper_than_one_step_laplace_at_the_same_data_fit(scene, solution):
     assert -0.75 < np.median(tv_image[core]) < -0.5
 
 
+def test_the_solution_is_the_minimiser(scene, reconstruction, solution):
+    """The optimality condition, checked with jax.grad of the public objective (not the
+    solver's own figure), and a long L-BFGS run on the same objective from the same warm start
+    (the method this module used before, 100 times tighter than its old defaults: about 4,000
+    steps). Measured: the gradient 9e-8 of its value at 0 after 11 iterations; the image
+    1.5e-3 of its peak from L-BFGS's and f 9.5e-10 of f above it (the minimum is flat: a
+    gradient of 1e-7 still leaves that much); at gradient_tolerance 1e-12 (16 iterations) the
+    image is 7e-5 of its peak from L-BFGS's and f lower by 4e-12 of f."""
+    model, difference, _ = scene
+    image = jnp.asarray(solution.conductivity_change)
+    gradient = jax.jit(jax.grad(reconstruction.objective))
+    scale = float(jnp.abs(gradient(jnp.zeros(model.n_elements), difference)).max())
+    gradient_norm = float(jnp.abs(gradient(image, difference)).max()) / scale
+    assert gradient_norm < reconstruction.gradient_tolerance
+    np.testing.assert_allclose(float(solution.gradient_norm), gradient_norm, rtol=1e-6)
+
+    def objective(x, args):
+        return reconstruction.objective(x, difference)
+
+    warm_start = OneStep(model, "laplace", reconstruction.hyperparameter).reconstruct(difference)
+    solver = optx.LBFGS(rtol=1e-8, atol=1e-10, history_length=10)
+    reference = optx.minimise(objective, solver, jnp.asarray(warm_start), max_steps=20_000, throw=False)
+    assert reference.result == optx.RESULTS.successful
+    lowest = float(objective(reference.value, None))
+    peak = float(jnp.abs(reference.value).max())
+    assert float(solution.objective) <= lowest * (1 + 5e-9)
+    np.testing.assert_allclose(image, reference.value, rtol=0, atol=5e-3 * peak)
+
+    tight = TotalVariation(model, reconstruction.hyperparameter, gradient_tolerance=1e-12).solve(difference)
+    assert tight.stop_reason == "converged" and int(tight.iterations) <= 25
+    assert float(tight.objective) <= lowest * (1 + 1e-12)
+    np.testing.assert_allclose(tight.conductivity_change, reference.value, rtol=0, atol=5e-4 * peak)
+
+
 def test_objective_decreases_and_convergence_is_reported(scene, reconstruction, solution):
+    """Tens of iterations, not hundreds (measured: 11), the objective lower than the warm
+    start's, and an iteration limit reported as such."""
     model, difference, _ = scene
     warm_start = OneStep(model, "laplace", reconstruction.hyperparameter).reconstruct(difference)
     start = float(reconstruction.objective(warm_start, difference))
@@ -130,30 +169,46 @@ def test_objective_decreases_and_convergence_is_reported(scene, reconstruction, 
     np.testing.assert_allclose(final, reconstruction.objective(solution.conductivity_change, difference), rtol=1e-12)
     assert bool(solution.converged) and solution.stop_reason == "converged"
     assert float(solution.gradient_norm) < reconstruction.gradient_tolerance
-    assert 0 < int(solution.steps) < reconstruction.max_steps
+    assert 5 <= int(solution.iterations) <= 20
 
-    short = TotalVariation(model, reconstruction.hyperparameter, max_steps=50)
+    short = TotalVariation(model, reconstruction.hyperparameter, max_iterations=3)
     cut = short.solve(difference)
-    assert not bool(cut.converged) and cut.stop_reason == "max_steps" and int(cut.steps) == 50
-    assert final < float(cut.objective) < start  # L-BFGS only accepts decreasing steps
+    assert not bool(cut.converged) and cut.stop_reason == "max_iterations" and int(cut.iterations) == 3
+    assert float(cut.gradient_norm) > reconstruction.gradient_tolerance
+    assert final < float(cut.objective) < start  # every iteration decreases f
     with pytest.warns(ConvergenceWarning, match=r"did not converge in frame\(s\) \[0\]"):
         short.reconstruct(difference)
 
 
 def test_a_batch_equals_frame_by_frame(small_model, small_frames):
-    """In sequence (batch_size 1, the default) and vmapped (batch_size 3), a batch equals one
-    frame at a time, to the solver's tolerance: the compiled loops round differently."""
+    """A batch of three frames, one vmapped solve, gives the images of three single calls
+    (the same iterations, to rounding: the batched products round differently)."""
     reconstruction = TotalVariation(small_model, 0.05)
-    singles = np.stack([reconstruction.reconstruct(frame) for frame in small_frames])
-    scale = np.abs(singles).max()
-    for batch_size in (1, 3):
-        batch = TotalVariation(small_model, 0.05, batch_size=batch_size).solve(small_frames)
-        assert batch.conductivity_change.shape == (3, small_model.n_elements)
-        assert batch.stop_reason == ["converged"] * 3
-        np.testing.assert_allclose(batch.conductivity_change, singles, rtol=0, atol=1e-3 * scale)
+    singles = [reconstruction.solve(frame) for frame in small_frames]
+    images = np.stack([single.conductivity_change for single in singles])
+    scale = np.abs(images).max()
+    batch = reconstruction.solve(small_frames)
+    assert batch.conductivity_change.shape == (3, small_model.n_elements)
+    assert batch.stop_reason == ["converged"] * 3
+    np.testing.assert_array_equal(batch.iterations, [int(single.iterations) for single in singles])
+    np.testing.assert_allclose(batch.conductivity_change, images, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(batch.objective, [float(single.objective) for single in singles], rtol=1e-12)
     single = reconstruction.reconstruct(small_frames[0].astype(np.float32))
     assert single.dtype == jnp.float32
-    np.testing.assert_allclose(single, singles[0], rtol=0, atol=1e-3 * scale)
+    np.testing.assert_allclose(single, images[0], rtol=0, atol=1e-6 * scale)
+
+
+def test_the_backends_agree(small_disc, small_model, small_frames):
+    """The host's sparse LU (the default) and XLA's dense Cholesky solve the same Newton
+    systems: the same iterations and images, to rounding (measured: 4e-7 of the peak; the
+    Woodbury solve amplifies the rounding of the two factorisations differently)."""
+    dense_model = de.ForwardModel(small_disc, small_model.protocol, contact_impedance=0.01, solver="dense_cholesky")
+    host = TotalVariation(small_model, 0.05).solve(small_frames)
+    dense = TotalVariation(dense_model, 0.05).solve(small_frames)
+    assert dense.stop_reason == ["converged"] * 3
+    np.testing.assert_array_equal(dense.iterations, host.iterations)
+    scale = float(jnp.abs(host.conductivity_change).max())
+    np.testing.assert_allclose(dense.conductivity_change, host.conductivity_change, rtol=0, atol=1e-5 * scale)
 
 
 def test_the_hyperparameter_is_unit_free(small_model, small_frames):
@@ -168,17 +223,20 @@ def test_the_hyperparameter_is_unit_free(small_model, small_frames):
 
 @pytest.mark.parametrize("hyperparameter", [1e-8, 1e3])
 def test_extreme_hyperparameters_give_finite_images(small_model, small_frames, hyperparameter):
-    """1e-8 is a least-squares fit (noise blown up, still finite); 1e3 flattens the image to
-    nearly a constant and makes the problem so stiff that L-BFGS may stall. Either way the
-    images are finite and the report is consistent."""
-    solution = TotalVariation(small_model, hyperparameter).solve(small_frames)
+    """1e-8 is a least-squares fit (noise blown up, still finite; one iteration, the problem
+    being quadratic); 1e3 flattens the image to nearly a constant (4 or 5 iterations: the data
+    of a uniform change stay in the Newton matrix however large lambda). Either way the images
+    are finite, the report is consistent, and every frame converges."""
+    reconstruction = TotalVariation(small_model, hyperparameter)
+    solution = reconstruction.solve(small_frames)
     image = np.asarray(solution.conductivity_change)
     assert np.all(np.isfinite(image)) and np.all(np.abs(image).max(axis=1) > 0)
     assert np.all(np.isfinite(np.asarray(solution.objective)))
     converged = np.asarray(solution.converged)
     np.testing.assert_array_equal(converged, np.asarray(solution.stop_code) == 0)
-    assert np.all(np.asarray(solution.gradient_norm)[converged] <= 1e-4)
-    assert set(solution.stop_reason) <= {"converged", "stalled", "max_steps"}
+    assert np.all(np.asarray(solution.gradient_norm)[converged] <= reconstruction.gradient_tolerance)
+    assert np.all(np.asarray(solution.iterations) <= reconstruction.max_iterations)
+    assert solution.stop_reason == ["converged"] * 3 and np.all(np.asarray(solution.iterations) <= 10)
 
 
 def test_bad_frames_and_settings_are_refused(small_model, small_frames):
@@ -195,9 +253,9 @@ def test_bad_frames_and_settings_are_refused(small_model, small_frames):
         ({"hyperparameter": 0.0}, "hyperparameter must be finite and positive"),
         ({"hyperparameter": np.nan}, "hyperparameter must be finite and positive"),
         ({"smoothing": -1e-3}, "smoothing must be finite and positive"),
-        ({"max_steps": 0}, "max_steps must be a positive integer"),
-        ({"batch_size": 2.5}, "batch_size must be a positive integer"),
-        ({"rtol": 0.0, "atol": 0.0}, "rtol and atol are both zero"),
+        ({"gradient_tolerance": 0.0}, "gradient_tolerance must be finite and positive"),
+        ({"max_iterations": 0}, "max_iterations must be a positive integer"),
+        ({"max_iterations": 2.5}, "max_iterations must be a positive integer"),
         ({"background": 0.0}, "background conductivity must be finite and positive"),
     ]:
         with pytest.raises(ValueError, match=message):
