@@ -65,7 +65,7 @@ the number of cores it kept busy (XLA's CPU matmul uses its own threads, not BLA
 use more cores than `--blas-threads` gives NumPy).
 
 Table 4, where reconstruct's time goes (same sizes, float64 and float32): the input checks alone
-(`diffeit.inverse.one_step.check_frames`), what an eager `matrix.T.astype(dtype)` would cost on
+(`diffeit.inverse.linearised.check_frames`), what an eager `matrix.T.astype(dtype)` would cost on
 every call (reconstruct's jitted product avoids it), and the product with the transposed matrix
 made beforehand.
 
@@ -434,7 +434,7 @@ def _breakdown(reconstruction, difference, frames, repeats: int) -> dict:
     import numpy as np
 
     try:
-        from diffeit.inverse.one_step import check_frames
+        from diffeit.inverse.linearised import check_frames
     except ImportError as error:
         return {"error": str(error)}
     matrix, n_meas = reconstruction.matrix, reconstruction.model.n_measurements

@@ -71,8 +71,7 @@ from tqdm.auto import tqdm
 from . import metrics
 from .forward import ForwardModel
 from .inverse import OneStep
-from .mesh import Mesh
-from .mesh._fields import barycentric_samples
+from .mesh import Mesh, element_sample_points
 from .scene import Disc, Noise, Touch, add_noise, touch_field
 
 SCHEMA = "diffeit.calibration"
@@ -359,7 +358,7 @@ def _correct_one(calibration: Calibration, mesh: Mesh, finder, image: np.ndarray
     intensity, size = calibration.factors(centroids)
     # The warped image averaged over each element: sample points on `_WARP_LEVEL`^2
     # sub-triangles, each pulled back to where its value comes from in the uncorrected image.
-    points = np.einsum("sk,ekx->esx", barycentric_samples(_WARP_LEVEL), mesh.nodes[mesh.triangles])  # (E, S, 2)
+    points = element_sample_points(mesh, _WARP_LEVEL)  # (E, S, 2)
     owner = np.argmin(np.linalg.norm(mesh.element_centroids[:, None, :] - centroids[None], axis=2), axis=1)
     centre = centroids[owner][:, None, :]
     sources = (centre + (points - centre) / size[owner, None, None]).reshape(-1, 2)

@@ -4,17 +4,13 @@ cases, batches, difference imaging, joint contact impedance."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import noisy
 
 import diffeit as de
 from diffeit.inverse import GaussNewton, OneStep
 
 CENTRE, RADIUS, CONTRAST, BACKGROUND = (0.5, 0.0), 0.2, 10.0, 2.0
 STOPS = {"discrepancy", "stagnation", "max_iterations", "line_search_failed"}
-
-
-def _noisy(voltages: np.ndarray, percent: float, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return voltages + percent / 100 * np.sqrt(np.mean(voltages**2)) * rng.standard_normal(voltages.shape)
 
 
 def _assert_sound(result) -> None:
@@ -34,7 +30,7 @@ def scene():
     protocol = de.protocol.adjacent(16)
     fine = de.mesh.disc(16, electrode_width=0.2, h=0.03)
     inclusion = BACKGROUND * (1 + (CONTRAST - 1) * de.mesh.disc_fraction(fine, CENTRE, RADIUS))
-    voltages = _noisy(np.asarray(de.ForwardModel(fine, protocol).measure(jnp.asarray(inclusion))), 1.0, 0)
+    voltages = noisy(np.asarray(de.ForwardModel(fine, protocol).measure(jnp.asarray(inclusion))), 1.0, 0)
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.054)
     return de.ForwardModel(mesh, protocol), voltages, de.mesh.interpolate(inclusion, fine, mesh)
 
@@ -123,7 +119,7 @@ def test_difference_imaging_of_a_strong_touch(scene):
     mesh = model.mesh
     touch = 1 - 0.7 * de.mesh.disc_fraction(mesh, (-0.3, 0.4), 0.2)
     reference = model.measure(jnp.ones(mesh.n_elements))
-    dv = _noisy(np.asarray(model.measure(jnp.asarray(touch)) - reference), 0.1, 1)
+    dv = noisy(np.asarray(model.measure(jnp.asarray(touch)) - reference), 0.1, 1)
     result = GaussNewton(model, "laplace", 1e-2).difference(dv)
     _assert_sound(result)
     change = result.conductivity_change

@@ -4,6 +4,7 @@ normalised differences, batches and hard cases."""
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import noisy
 from pyeit.eit import protocol as pyeit_protocol
 from pyeit.eit.jac import JAC
 from pyeit.mesh import PyEITMesh
@@ -12,12 +13,6 @@ import diffeit as de
 from diffeit.inverse import Laplace, Matern, Noser, OneStep, Tikhonov, select_hyperparameter
 
 CENTRE, RADIUS, CONTRAST = (0.5, 0.0), 0.2, 10.0  # the issue's scene: a disc 10x the background
-
-
-def _noisy(reference: np.ndarray, clean: np.ndarray, percent: float, seed: int) -> np.ndarray:
-    """DESIGN.md's noise: p% of RMS(V_ref), independent on every reading, seeded."""
-    rng = np.random.default_rng(seed)
-    return clean + percent / 100 * np.sqrt(np.mean(reference**2)) * rng.standard_normal(clean.shape)
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +24,7 @@ def scene():
     data_model = de.ForwardModel(fine, protocol)
     reference = np.asarray(data_model.measure(jnp.ones(fine.n_elements)))
     inclusion = 1 + (CONTRAST - 1) * de.mesh.disc_fraction(fine, CENTRE, RADIUS)
-    difference = _noisy(reference, np.asarray(data_model.measure(jnp.asarray(inclusion))) - reference, 1.0, 0)
+    difference = noisy(np.asarray(data_model.measure(jnp.asarray(inclusion))) - reference, 1.0, 0, reference=reference)
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.054)
     truth = de.mesh.interpolate(inclusion - 1, fine, mesh)
     return de.ForwardModel(mesh, protocol), difference, truth, reference

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
+from helpers import noisy
 
 import diffeit as de
 from diffeit.inverse import OneStep, select_hyperparameter
@@ -14,11 +15,6 @@ from diffeit.inverse.total_variation import ConvergenceWarning, TotalVariation
 
 CENTRE, RADIUS, CONTRAST = (0.4, 0.2), 0.25, 0.5  # a touch: the conductivity halved in a disc
 NOISE = 1.0  # percent of RMS(V_ref), DESIGN.md
-
-
-def _noisy(reference: np.ndarray, clean: np.ndarray, percent: float, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return clean + percent / 100 * np.sqrt(np.mean(reference**2)) * rng.standard_normal(clean.shape)
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +25,7 @@ def scene():
     data_model = de.ForwardModel(fine, protocol)
     reference = np.asarray(data_model.measure(jnp.ones(fine.n_elements)))
     touch = 1 - CONTRAST * de.mesh.disc_fraction(fine, CENTRE, RADIUS)
-    difference = _noisy(reference, np.asarray(data_model.measure(jnp.asarray(touch))) - reference, NOISE, 0)
+    difference = noisy(np.asarray(data_model.measure(jnp.asarray(touch))) - reference, NOISE, 0, reference=reference)
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.08)
     truth = de.mesh.interpolate(touch - 1, fine, mesh)
     return de.ForwardModel(mesh, protocol), difference, truth
@@ -55,7 +51,7 @@ def small_frames(small_model):
     for centre, change in [((0.4, 0.2), -0.5), ((-0.3, -0.5), -0.3), ((0.0, 0.0), 1.0)]:
         sigma = 1 + change * de.mesh.disc_fraction(mesh, centre, 0.3)
         frames.append(np.asarray(small_model.measure(jnp.asarray(sigma))) - reference)
-    return _noisy(reference, np.stack(frames), NOISE, 1)
+    return noisy(np.stack(frames), NOISE, 1, reference=reference)
 
 
 def _transition_width(mesh: de.Mesh, image: np.ndarray, perimeter: float) -> float:

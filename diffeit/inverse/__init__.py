@@ -7,7 +7,7 @@ from .hyperparameter import HyperparameterSelection as HyperparameterSelection
 from .hyperparameter import from_external_hyperparameter as from_external_hyperparameter
 from .hyperparameter import select_hyperparameter as select_hyperparameter
 from .hyperparameter import to_external_hyperparameter as to_external_hyperparameter
-from .one_step import LinearisedProblem as LinearisedProblem
+from .linearised import LinearisedProblem as LinearisedProblem
 from .one_step import OneStep as OneStep
 from .priors import Laplace as Laplace
 from .priors import Matern as Matern

@@ -13,7 +13,7 @@ import scipy.linalg
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from .one_step import check_frames
+from .linearised import check_frames
 from .priors import AbstractPrior, PriorOperator, prior_named
 
 # Armijo's sufficient-decrease constant, the step halvings tried, the largest change of

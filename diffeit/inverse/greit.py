@@ -27,8 +27,7 @@ from .. import metrics
 from .._arrays import readonly
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..mesh import Mesh, pixel_overlaps
-from ..mesh._fields import barycentric_samples
+from ..mesh import Mesh, distance_to_segments, element_sample_points, pixel_overlaps
 
 DEFAULT_HYPERPARAMETER = 0.3
 _TRAININGS = ("linearised", "nonlinear")
@@ -361,7 +360,7 @@ def _target_positions(mesh: Mesh, n_targets: int, radius: float, rng: np.random.
     for _ in range(10):  # enough wherever at least 1 in 50 points of the box is a valid centre
         points = rng.uniform(low, high, size=(5 * n_targets, 2))
         points = points[finder(points[:, 0], points[:, 1]) >= 0]
-        found = np.concatenate([found, points[_distance_to_segments(points, start, end) >= radius]])
+        found = np.concatenate([found, points[distance_to_segments(points, start, end) >= radius]])
         if len(found) >= n_targets:
             return found[:n_targets]
     raise ValueError(
@@ -370,18 +369,10 @@ def _target_positions(mesh: Mesh, n_targets: int, radius: float, rng: np.random.
     )
 
 
-def _distance_to_segments(points: np.ndarray, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """(P,) distance from each point to the nearest of the segments start[b] -> end[b]."""
-    edge = end - start  # (B, 2)
-    offset = points[:, None, :] - start[None]  # (P, B, 2)
-    t = np.clip(np.sum(offset * edge, axis=2) / np.sum(edge**2, axis=1), 0, 1)
-    return np.min(np.linalg.norm(offset - t[..., None] * edge, axis=2), axis=1, initial=np.inf)
-
-
 def _disc_fractions(mesh: Mesh, centres: np.ndarray, radius: float) -> tuple[scipy.sparse.csc_array, np.ndarray]:
     """(E, K) sparse fraction of each element inside each disc (midpoint rule on 64
     sub-triangles, as `diffeit.mesh.disc_fraction`), and (K,) the discs' areas on the mesh."""
-    samples = np.einsum("sk,ekx->esx", barycentric_samples(_TARGET_SAMPLING_LEVEL), mesh.nodes[mesh.triangles])
+    samples = element_sample_points(mesh, _TARGET_SAMPLING_LEVEL)
     centroids = mesh.element_centroids
     reach = np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - centroids[:, None], axis=2))
     near = cKDTree(centroids).query_ball_point(centres, radius + reach)

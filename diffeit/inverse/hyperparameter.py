@@ -35,7 +35,8 @@ import numpy as np
 from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import disc_fraction
-from .one_step import LinearisedProblem, OneStep, check_frames
+from .linearised import LinearisedProblem, check_frames
+from .one_step import OneStep
 from .priors import AbstractPrior, Noser, Tikhonov
 
 Method = Literal["gcv", "lcurve", "discrepancy", "noise_figure"]

@@ -102,7 +102,7 @@ from .._threads import one_blas_thread_in_xla
 from ..forward import ForwardModel
 from ..linear_solve import AbstractLinearSolver, SparsityPattern, solve_spd
 from ..mesh import element_adjacency
-from .one_step import LinearisedProblem, check_frames, regularised_inverse
+from .linearised import LinearisedProblem, check_frames, regularised_inverse
 from .priors import Laplace, Tikhonov
 
 STOP_REASONS = ("converged", "max_iterations", "stalled", "failed")

@@ -1,4 +1,5 @@
-"""Element fields defined by geometry: what fraction of each triangle a shape covers."""
+"""Element fields defined by geometry: sample points inside each triangle, distances to
+segments, and what fraction of each triangle a shape covers."""
 
 from __future__ import annotations
 
@@ -19,6 +20,22 @@ def barycentric_samples(level: int) -> np.ndarray:
     return np.column_stack([1 - points.sum(axis=1), points])
 
 
+def element_sample_points(mesh: Mesh, level: int = 8) -> np.ndarray:
+    """(E, S, 2) points in metres: the centroids of the level^2 congruent sub-triangles of each
+    triangle (S = level^2), each standing for 1/S of its area. Averages over them are the
+    midpoint rule on the sub-triangles."""
+    return np.einsum("sk,ekx->esx", barycentric_samples(level), mesh.nodes[mesh.triangles])
+
+
+def distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """(P,) distance (in the points' units) from each of `points` (P, 2) to the nearest of the
+    segments starts[k] -> stops[k] (K, 2 each); inf when there is no segment."""
+    direction = stops - starts
+    relative = points[:, None] - starts[None]  # (P, K, 2)
+    t = np.clip(np.sum(relative * direction, axis=2) / np.sum(direction**2, axis=1), 0.0, 1.0)
+    return np.min(np.linalg.norm(relative - t[..., None] * direction, axis=2), axis=1, initial=np.inf)
+
+
 def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level: int = 8) -> np.ndarray:
     """(E,) fraction of each triangle's area inside the disc |x - centre| < radius.
 
@@ -27,7 +44,6 @@ def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level:
     """
     if radius <= 0:
         raise ValueError(f"radius must be positive; got {radius}")
-    weights = barycentric_samples(level)  # (S, 3)
-    points = np.einsum("sk,ekx->esx", weights, mesh.nodes[mesh.triangles])
+    points = element_sample_points(mesh, level)
     inside = np.linalg.norm(points - np.asarray(centre, dtype=float), axis=2) < radius
     return inside.mean(axis=1)

@@ -9,6 +9,7 @@ import numpy as np
 import triangle
 
 from .._messages import name_indices
+from ._fields import distance_to_segments
 from ._mesh import Mesh, _signed_areas
 
 # triangle's mean element area is about 0.65 of the area bound it is given: this factor makes
@@ -236,7 +237,7 @@ def polygon(
     piece_stops = position(np.mod(piece_ends[electrode_pieces], perimeter))
 
     def target_size(points: np.ndarray) -> np.ndarray:
-        return size(_distance_to_segments(points, piece_starts, piece_stops))
+        return size(distance_to_segments(points, piece_starts, piece_stops))
 
     nodes, triangles = _triangulate(position(arc), _closed_loop(0, len(arc)), h, target_size)
     return Mesh(nodes, triangles, electrodes)
@@ -378,14 +379,6 @@ def _snap_to_corners(arcs: np.ndarray, corner_arcs: np.ndarray, perimeter: float
     nearest = np.argmin(distance, axis=-1)
     close = np.take_along_axis(distance, nearest[..., None], axis=-1)[..., 0] <= _CORNER_SNAP * perimeter
     return np.where(close, corner_arcs[nearest], arcs)
-
-
-def _distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
-    """(M,) distance from each point to the nearest of the segments starts[k] -> stops[k]."""
-    direction = stops - starts
-    relative = points[:, None] - starts[None]  # (M, K, 2)
-    t = np.clip(np.sum(relative * direction, axis=2) / np.sum(direction**2, axis=1), 0.0, 1.0)
-    return np.min(np.linalg.norm(relative - t[..., None] * direction, axis=2), axis=1)
 
 
 def _closed_loop(offset: int, n: int) -> np.ndarray:

@@ -74,7 +74,7 @@ from .. import mesh as meshes
 from .. import protocol as protocols
 from .._arrays import concrete_floats, is_concrete
 from .._pytree import register_dataclass
-from ..mesh import Mesh
+from ..mesh import Mesh, element_sample_points
 from ..protocol import Protocol
 from ._instrument import CommonModeDrift, ContactDrift, Noise
 from ._memory import MemoryParameters
@@ -285,9 +285,9 @@ class Background:
     def values_on(self, mesh: Mesh, *, level: int = 8) -> jax.Array:
         """(E,) the element-wise sheet conductivity on `mesh`, S/sq. ValueError when a concrete
         value is not positive."""
-        from ._stimuli import _float, _fraction, _sample_points
+        from ._stimuli import _float, _fraction
 
-        points = _sample_points(mesh, level)
+        points = element_sample_points(mesh, level)
         if self.function is None:
             values = jnp.broadcast_to(_float(self.conductivity), (mesh.n_elements,))
         else:

@@ -75,8 +75,7 @@ from jax.scipy.special import erfc
 
 from .._arrays import concrete_floats, is_concrete
 from .._pytree import register_dataclass
-from ..mesh._fields import barycentric_samples
-from ..mesh._mesh import Mesh
+from ..mesh import Mesh, element_sample_points
 
 ArrayLike = float | jax.Array | np.ndarray
 
@@ -499,11 +498,6 @@ for _cls in (Disc, Ellipse, Polygon, Touch):
 # --- Fields on a mesh -----------------------------------------------------------------------
 
 
-def _sample_points(mesh: Mesh, level: int) -> np.ndarray:
-    """(E, S, 2) the barycentric sample points of `disc_fraction`, metres."""
-    return np.einsum("sk,ekx->esx", barycentric_samples(level), mesh.nodes[mesh.triangles])
-
-
 def default_edge_width(mesh: Mesh, level: int = 8) -> float:
     """The default edge width of `mesh`, metres: 2 sqrt(max element area) / level, twice the
     spacing of the sample points in the largest element (module docstring)."""
@@ -537,7 +531,7 @@ def shape_fraction(
 
 @partial(jax.jit, static_argnames=("mesh", "level"))
 def _shape_fraction(mesh: Mesh, shape: AbstractShape, t: jax.Array, edge_width, level: int) -> jax.Array:
-    return _fraction(_sample_points(mesh, level), default_edge_width(mesh, level), shape, edge_width, t)
+    return _fraction(element_sample_points(mesh, level), default_edge_width(mesh, level), shape, edge_width, t)
 
 
 def touch_field(mesh: Mesh, touch: Touch, t: ArrayLike, *, level: int = 8) -> jax.Array:
@@ -551,7 +545,7 @@ def touch_field(mesh: Mesh, touch: Touch, t: ArrayLike, *, level: int = 8) -> ja
 
 @partial(jax.jit, static_argnames=("mesh", "level"))
 def _jitted_touch_field(mesh: Mesh, touch: Touch, t: jax.Array, level: int) -> jax.Array:
-    return _touch_field(_sample_points(mesh, level), default_edge_width(mesh, level), touch, t)
+    return _touch_field(element_sample_points(mesh, level), default_edge_width(mesh, level), touch, t)
 
 
 def _touch_field(points: np.ndarray, default_width: float, touch: Touch, t: jax.Array) -> jax.Array:
@@ -594,7 +588,7 @@ def stimulus(mesh: Mesh, touches: Sequence[Touch], times: ArrayLike, *, level: i
 
 @partial(jax.jit, static_argnames=("mesh", "level", "batch"))
 def _stimulus(mesh: Mesh, touches: tuple[Touch, ...], times: jax.Array, level: int, batch: int) -> jax.Array:
-    points, default_width = _sample_points(mesh, level), default_edge_width(mesh, level)
+    points, default_width = element_sample_points(mesh, level), default_edge_width(mesh, level)
 
     def frame(t: jax.Array) -> jax.Array:
         field = jnp.zeros(mesh.n_elements, dtype=jnp.result_type(float))
