@@ -33,6 +33,7 @@ def backend_pair(request, small_disc, contact_impedance):
     )
 
 
+@pytest.mark.slow
 def test_backends_agree_on_voltages_potentials_and_jacobians(backend_pair, rough_conductivity):
     model, reference = backend_pair
     assert _relative(model.measure(rough_conductivity), reference.measure(rough_conductivity)) < 1e-9
@@ -46,6 +47,7 @@ def test_backends_agree_on_voltages_potentials_and_jacobians(backend_pair, rough
         )
 
 
+@pytest.mark.slow
 def test_backends_work_under_jit_vmap_jvp_and_jacrev(backend_pair, rough_conductivity, contact_impedance):
     model, reference = backend_pair
     batch = jnp.stack([rough_conductivity, rough_conductivity**2, jnp.sqrt(rough_conductivity)])

@@ -24,6 +24,7 @@ level = "low"
 """
 
 
+@pytest.mark.slow
 def test_simulate_then_reconstruct(tmp_path, capsys):
     scene = tmp_path / "scene.toml"
     scene.write_text(SCENE)

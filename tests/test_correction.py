@@ -64,6 +64,7 @@ def _relative_to_centre(mesh, images: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return peaks / peaks[0], sizes / sizes[0]
 
 
+@pytest.mark.slow
 def test_off_centre_targets_match_the_centre_after_correction(models, calibration):
     """Touches of radius 0.2 (calibrated: 0.15, 0.25) and dsigma/sigma -0.5 (calibrated: -0.4,
     -0.6) at positions the calibration did not use, 64 medium-noise draws from another seed.

@@ -23,6 +23,7 @@ def disc_3000() -> de.Mesh:
     return mesh
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("solver", ["host_sparse", "dense_cholesky", "conjugate_gradient"])
 def test_float32_holds_1e_4_at_3000_triangles(disc_3000, solver):
     model = de.ForwardModel(disc_3000, de.protocol.adjacent(16), 0.01, solver=solver)

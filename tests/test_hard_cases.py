@@ -87,6 +87,7 @@ def _thin_strip() -> de.Mesh:
     return de.Mesh.from_arrays(square.nodes * [1.0, 1e-3], square.triangles, electrodes=list(square.electrodes))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("build", [_thin_column_grid, _thin_strip])
 def test_thin_and_badly_shaped_elements(build):
     mesh = build()

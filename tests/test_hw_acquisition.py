@@ -126,6 +126,7 @@ def test_text_lines_through_the_port_with_the_callback_api():
     assert {f.label for f in arrived} == {"frame"} and statistics == hw.DropStatistics(frames=40)
 
 
+@pytest.mark.slow
 def test_the_recorder_killed_mid_run_leaves_every_frame_it_wrote(tmp_path):
     frames = RNG.normal(scale=0.01, size=(2000, 208))
     emulator = hw.Emulator(frames, frame_rate=100.0, host_timeout=60.0).start()
@@ -159,6 +160,7 @@ def test_the_recorder_killed_mid_run_leaves_every_frame_it_wrote(tmp_path):
     assert read_frames(path).n_frames == len(back)
 
 
+@pytest.mark.slow
 def test_a_recording_reads_consistently_while_it_is_written(tmp_path):
     """A reader polling the file while a recorder appends: every read is a prefix of the frames,
     none fails on rows counted but not yet visible, and the recorder closes cleanly."""

@@ -61,6 +61,7 @@ def test_a_second_model_on_an_equal_mesh_compiles_nothing(compilations):
     assert compilations  # another mesh compiles anew
 
 
+@pytest.mark.slow
 def test_dense_cholesky_factorises_once_for_the_forward_and_the_adjoint(small_disc, monkeypatch):
     """The gradient of the voltages is a forward and an adjoint solve with one factorisation
     between them (counted as traced), and it agrees with the host backend."""

@@ -244,6 +244,7 @@ def test_simulation_round_trips_through_the_frames_file(tmp_path):
         simulation.save(path)
 
 
+@pytest.mark.slow
 def test_gradients_flow_through_the_simulator():
     """d/dparameter of a loss on the frames, against central differences."""
     scene = scene_with(MemoryParameters(), CommonModeDrift(offset=1e-4), duration=0.6)

@@ -49,6 +49,7 @@ _TIMES = textwrap.dedent(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("what", "h"), [("one_step", 0.05), ("dense_cholesky", 0.1)])
 def test_in_a_clean_environment_diffeit_runs_as_fast_as_inside_a_limiter(what, h):
     """A user who sets no variable gets the benchmarked speed: the median time of a one-step

@@ -120,6 +120,7 @@ def test_sharper_than_one_step_laplace_at_the_same_data_fit(scene, solution):
     assert -0.75 < np.median(tv_image[core]) < -0.5
 
 
+@pytest.mark.slow
 def test_the_solution_is_the_minimiser(scene, reconstruction, solution):
     """The optimality condition, checked with jax.grad of the public objective (not the
     solver's own figure), and a long L-BFGS run on the same objective from the same warm start
@@ -176,6 +177,7 @@ def test_objective_decreases_and_convergence_is_reported(scene, reconstruction, 
         short.reconstruct(difference)
 
 
+@pytest.mark.slow
 def test_a_batch_equals_frame_by_frame(small_model, small_frames):
     """A batch of three frames, one vmapped solve, gives the images of three single calls
     (the same iterations, to rounding: the batched products round differently)."""
@@ -194,6 +196,7 @@ def test_a_batch_equals_frame_by_frame(small_model, small_frames):
     np.testing.assert_allclose(single, images[0], rtol=0, atol=1e-6 * scale)
 
 
+@pytest.mark.slow
 def test_the_backends_agree(small_disc, small_model, small_frames):
     """The host's sparse LU (the default) and XLA's dense Cholesky solve the same Newton
     systems: the same iterations and images, to rounding (measured: 4e-7 of the peak; the
