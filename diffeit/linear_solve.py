@@ -120,6 +120,13 @@ class _FactorCache:
             self.orderings.clear()
             self.factors.clear()
 
+    # A pickled solver (a model sent to another process) arrives with an empty cache.
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
+
 
 @dataclass(frozen=True)
 class HostSparse(AbstractLinearSolver):

@@ -112,3 +112,21 @@ def test_host_factorisations_belong_to_their_solver(monkeypatch):
     keeper.clear_cache()
     linear_solve.solve_spd(pattern, jnp.asarray(values), rhs, keeper)
     assert len(factorisations) == 2  # the ordering and the factorisation, made again
+
+
+def test_a_model_pickles_with_an_empty_cache_and_reuses_the_compiled_functions(compilations):
+    """Models travel to other processes (sweeps): a pickled model arrives equal in content,
+    with an empty host cache of its own, and measures what the original measures."""
+    import pickle
+
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.3)
+    model = de.ForwardModel(mesh, de.protocol.adjacent(16), 0.02)
+    sigma = jnp.linspace(0.5, 1.5, mesh.n_elements)
+    voltages = np.asarray(model.measure(sigma))
+    copy = pickle.loads(pickle.dumps(model))
+    assert copy.mesh == mesh and copy.mesh is not mesh and copy.protocol == model.protocol
+    assert copy.solver == model.solver and copy.solver._cache is not model.solver._cache
+    assert not copy.solver._cache.factors
+    compilations.clear()
+    np.testing.assert_array_equal(np.asarray(copy.measure(sigma)), voltages)
+    assert compilations == []
