@@ -3,11 +3,13 @@ the child processes that measure one mesh each."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
 import subprocess
 import sys
+from collections.abc import Callable, Iterator
 
 
 def disc_with_about(n_triangles: int):
@@ -144,3 +146,53 @@ def machine_line(machine: dict, *, with_pyeit: bool) -> str:
         + (f", pyEIT {machine['pyeit']}" if machine["pyeit"] and with_pyeit else "")
         + f"; {machine['threads']}"
     )
+
+
+def driver_arguments(parser: argparse.ArgumentParser, sizes: list[int]) -> None:
+    """The options every per-mesh benchmark takes: sizes, repeats, BLAS threads, JSON output,
+    and the two internal ones its child processes are started with."""
+    parser.add_argument("--sizes", type=int, nargs="+", default=sizes, help="about how many triangles")
+    parser.add_argument("--repeats", type=int, default=5, help="timed calls per median (after a warm-up call)")
+    parser.add_argument(
+        "--blas-threads",
+        type=int,
+        metavar="N",
+        help="run the measurements with N BLAS/OpenMP threads (default: the environment's setting)",
+    )
+    parser.add_argument("--json", metavar="PATH", help="also save the machine and the raw rows as JSON")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one size, print JSON
+    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
+
+
+def child_work(options: argparse.Namespace, run_one: Callable[[int, argparse.Namespace], dict]) -> bool:
+    """Do a child process's work (`--describe` or `--one SIZE`, printing JSON); False in the parent."""
+    if options.describe:
+        print(json.dumps(describe()))
+        return True
+    if options.one:
+        print(json.dumps(run_one(options.one, options)))
+        return True
+    return False
+
+
+def measure_sizes(
+    options: argparse.Namespace, command: Callable[[int], list[str]]
+) -> Iterator[tuple[dict | None, str | None]]:
+    """Each size of `options.sizes` measured in a process of its own (`command(size)`), under the
+    chosen BLAS threads: (the row it printed, None), or (None, why it failed)."""
+    environment = blas_environment(os.environ, options.blas_threads)
+    for size in options.sizes:
+        child = subprocess.run(command(size), capture_output=True, text=True, env=environment)
+        if child.returncode != 0:
+            tail = child.stderr.strip().splitlines()[-1:] or ["no output"]
+            yield None, f"size {size} failed (exit status {child.returncode}): {tail[0]}"
+        else:
+            yield last_json(child.stdout), None
+
+
+def save_json(options: argparse.Namespace, machine: dict, rows: list[dict]) -> None:
+    """The machine, the options and the raw rows, to `--json` when given."""
+    if options.json:
+        with open(options.json, "w") as file:
+            settings = {key: value for key, value in vars(options).items() if key not in ("one", "describe", "json")}
+            json.dump({"machine": machine, "options": settings, "rows": rows}, file, indent=1)

@@ -61,26 +61,24 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
-import os
 import resource
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 
 from _common import (
     MarkdownTable,
-    blas_environment,
-    describe,
+    child_work,
     describe_machine,
     disc_with_about,
+    driver_arguments,
     format_seconds,
     fraction,
-    last_json,
     machine_line,
+    measure_sizes,
     relative,
+    save_json,
 )
 
 PYEIT_JACOBIAN_LIMIT = 10_000  # pyEIT inverts the dense N x N matrix: beyond this it takes minutes
@@ -304,10 +302,7 @@ def _child_command(options: argparse.Namespace, size: int) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument(
-        "--sizes", type=int, nargs="+", default=[700, 2800, 8000, 30000], help="about how many triangles"
-    )
-    parser.add_argument("--repeats", type=int, default=5, help="timed calls per median (after a warm-up call)")
+    driver_arguments(parser, [700, 2800, 8000, 30000])
     parser.add_argument(
         "--backends", nargs="+", choices=BACKENDS, default=list(BACKENDS), help="backends of table 2 (default: all)"
     )
@@ -321,26 +316,12 @@ def main() -> None:
         help=f"skip dense_cholesky above this many triangles (default {DENSE_CHOLESKY_LIMIT})",
     )
     parser.add_argument("--skip-pyeit", action="store_true", help="leave pyEIT out of table 1")
-    parser.add_argument(
-        "--blas-threads",
-        type=int,
-        metavar="N",
-        help="run the measurements with N BLAS/OpenMP threads (default: the environment's setting)",
-    )
-    parser.add_argument("--json", metavar="PATH", help="also save the machine and the raw rows as JSON")
-    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one size, print JSON
-    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
     options = parser.parse_args()
     if options.repeats < 1:
         parser.error("--repeats must be at least 1")
-    if options.describe:
-        print(json.dumps(describe()))
-        return
-    if options.one:
-        print(json.dumps(run_one(options.one, options)))
+    if child_work(options, run_one):
         return
 
-    environment = blas_environment(os.environ, options.blas_threads)
     machine = describe_machine(__file__, options.blas_threads)
     print(machine_line(machine, with_pyeit=not options.skip_pyeit) + f", {options.repeats} repeats")
     print()
@@ -362,13 +343,10 @@ def main() -> None:
         ]
     )
     rows, notes, failures = [], [], []
-    for size in options.sizes:
-        child = subprocess.run(_child_command(options, size), capture_output=True, text=True, env=environment)
-        if child.returncode != 0:
-            tail = child.stderr.strip().splitlines()[-1:] or ["no output"]
-            failures.append(f"size {size} failed (exit status {child.returncode}): {tail[0]}")
+    for row, failure in measure_sizes(options, lambda size: _child_command(options, size)):
+        if row is None:
+            failures.append(failure)
             continue
-        row = last_json(child.stdout)
         rows.append(row)
         table.row(
             [
@@ -426,10 +404,7 @@ def main() -> None:
     for note in dict.fromkeys(notes):
         print(f"note: {note}")
 
-    if options.json:
-        with open(options.json, "w") as file:
-            settings = {key: value for key, value in vars(options).items() if key not in ("one", "describe", "json")}
-            json.dump({"machine": machine, "options": settings, "rows": rows}, file, indent=1)
+    save_json(options, machine, rows)
 
 
 if __name__ == "__main__":

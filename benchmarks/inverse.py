@@ -159,25 +159,23 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
-import os
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 
 from _common import (
     MarkdownTable,
-    blas_environment,
-    describe,
+    child_work,
     describe_machine,
     disc_with_about,
+    driver_arguments,
     format_seconds,
     fraction,
-    last_json,
     machine_line,
+    measure_sizes,
     relative,
+    save_json,
 )
 
 HYPERPARAMETER = 0.2  # diffeit's unit-free lambda (about what GCV picks for these data); pyEIT's lamb converted
@@ -1025,8 +1023,7 @@ def _child_command(options: argparse.Namespace, size: int) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[700, 2800, 8000], help="about how many triangles")
-    parser.add_argument("--repeats", type=int, default=5, help="timed calls per median (after a warm-up call)")
+    driver_arguments(parser, [700, 2800, 8000])
     parser.add_argument("--frames", type=int, default=1000, help="frames in a batch (default 1000)")
     parser.add_argument("--skip-pyeit", action="store_true", help="leave pyEIT out")
     parser.add_argument("--skip-gn", action="store_true", help="leave out table 5 (absolute Gauss-Newton)")
@@ -1038,28 +1035,14 @@ def main() -> None:
         metavar="TRIANGLES",
         help=f"run pyEIT's gn() only up to this many triangles (default {PYEIT_GN_LIMIT})",
     )
-    parser.add_argument(
-        "--blas-threads",
-        type=int,
-        metavar="N",
-        help="run the measurements with N BLAS/OpenMP threads (default: the environment's setting)",
-    )
-    parser.add_argument("--json", metavar="PATH", help="also save the machine and the raw rows as JSON")
-    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one size, print JSON
-    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
     options = parser.parse_args()
     if options.repeats < 1:
         parser.error("--repeats must be at least 1")
     if options.frames < 1:
         parser.error("--frames must be at least 1")
-    if options.describe:
-        print(json.dumps(describe()))
-        return
-    if options.one:
-        print(json.dumps(run_one(options.one, options)))
+    if child_work(options, run_one):
         return
 
-    environment = blas_environment(os.environ, options.blas_threads)
     machine = describe_machine(__file__, options.blas_threads)
     print(
         machine_line(machine, with_pyeit=not options.skip_pyeit)
@@ -1067,13 +1050,10 @@ def main() -> None:
     )
     print()
     rows, notes = [], []
-    for size in options.sizes:
-        child = subprocess.run(_child_command(options, size), capture_output=True, text=True, env=environment)
-        if child.returncode != 0:
-            tail = child.stderr.strip().splitlines()[-1:] or ["no output"]
-            notes.append(f"size {size} failed (exit status {child.returncode}): {tail[0]}")
+    for row, failure in measure_sizes(options, lambda size: _child_command(options, size)):
+        if row is None:
+            notes.append(failure)
             continue
-        row = last_json(child.stdout)
         rows.append(row)
         if row.get("pyeit_note"):
             notes.append(row["pyeit_note"])
@@ -1091,10 +1071,7 @@ def main() -> None:
     for note in dict.fromkeys(notes):
         print(f"note: {note}")
 
-    if options.json:
-        with open(options.json, "w") as file:
-            settings = {key: value for key, value in vars(options).items() if key not in ("one", "describe", "json")}
-            json.dump({"machine": machine, "options": settings, "rows": rows}, file, indent=1)
+    save_json(options, machine, rows)
 
 
 if __name__ == "__main__":
