@@ -8,7 +8,7 @@ and data in the same run), and total variation (against L-BFGS, the method it re
 The problem: unit disc, 16 electrodes of width 0.2, adjacent protocol (M = 208 voltages), contact
 impedance 0.01, background 1 S/sq. The data: a touch (conductivity -50% in a disc of radius 0.2
 at (0.5, 0)) simulated with diffeit's complete electrode model on the reconstruction mesh itself,
-plus 1% noise (DESIGN.md: standard deviation 1% of RMS(V_ref), seeded); a batch is `--frames`
+plus 1% noise (the README's convention: standard deviation 1% of RMS(V_ref), seeded); a batch is `--frames`
 frames of that touch, each with noise of its own. diffeit reconstructs with
 `OneStep(model, "noser", HYPERPARAMETER)`; pyEIT with `JAC` and `setup(p=0.5, lamb, method="kotre",
 perm=1.0)`, the same NOSER prior, `lamb` converted from diffeit's hyperparameter by

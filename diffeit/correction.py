@@ -93,7 +93,7 @@ class CalibrationSettings:
     - `prior`, `hyperparameter`: the one-step reconstruction (hyperparameter unit-free).
     - `backgrounds` (S/sq), `intensities` (dsigma/sigma under the touch, > -1), `radii` (m): the
       simulated settings, every combination.
-    - `noise_percent`: Gaussian noise, percent of RMS(V_ref) (DESIGN.md); `noise_draws` per
+    - `noise_percent`: Gaussian noise, percent of RMS(V_ref) (README, Conventions); `noise_draws` per
       touch; `seed` of the draws.
     - `n_elements`, `n_data_elements`: the reconstruction and simulation meshes' sizes.
     """

@@ -40,7 +40,7 @@ def rec(model) -> GREIT:
 
 @pytest.fixture(scope="module")
 def simulate(data_model):
-    """dV (volts) of a disc target on the finer data mesh, with DESIGN.md's p% noise, seeded."""
+    """dV (volts) of a disc target on the finer data mesh, with the README's p% noise, seeded."""
     mesh = data_model.mesh
     reference = np.asarray(data_model.measure(jnp.ones(mesh.n_elements)))
     noise_std = NOISE_PERCENT / 100 * np.sqrt(np.mean(reference**2))

@@ -14,7 +14,7 @@ from diffeit.inverse import OneStep, select_hyperparameter
 from diffeit.inverse.total_variation import ConvergenceWarning, TotalVariation
 
 CENTRE, RADIUS, CONTRAST = (0.4, 0.2), 0.25, 0.5  # a touch: the conductivity halved in a disc
-NOISE = 1.0  # percent of RMS(V_ref), DESIGN.md
+NOISE = 1.0  # percent of RMS(V_ref), the README's noise convention
 
 
 @pytest.fixture(scope="module")

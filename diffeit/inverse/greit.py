@@ -88,7 +88,7 @@ class GREIT:
     R_n, and dividing by K makes lambda independent of the number of targets.
 
     **The hyperparameter** lambda is unit-free: it is the standard deviation of independent
-    measurement noise, as a fraction of RMS(V_reference) (DESIGN.md's "p%" is lambda = p/100),
+    measurement noise, as a fraction of RMS(V_reference) (the README's "p%" is lambda = p/100),
     per unit target strength. An object whose relative change integrates to S times the sheet's
     area (S = 9 * 0.04 = 0.36 for a disc of radius 0.2 and 10x conductivity on the unit disc,
     linearised; its true response is weaker, about 1.6 / 9 of that) seen with p% noise is
@@ -264,7 +264,7 @@ class GREIT:
 
     def position_error(self, image: np.ndarray, centre: tuple[float, float]) -> float:
         """Distance (m) from `centre` to the centroid of the half-amplitude set of one image
-        (pixels in `mask` at or beyond half the peak, on the peak's side; DESIGN.md's definition
+        (pixels in `mask` at or beyond half the peak, on the peak's side; the README's definition
         with pixels for elements, each weighted by its area in the domain)."""
         image = np.asarray(image, dtype=float)
         if image.shape != self.shape:

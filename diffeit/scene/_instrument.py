@@ -5,7 +5,7 @@ scale, drift offsets and rates, contact impedances and their rates) is a pytree 
 `jax.grad` differentiates through it. Units: voltages in volts, times in seconds, contact
 impedance in ohm m (as `diffeit.ForwardModel`), rates per second.
 
-## Measurement noise (../shared/DESIGN.md)
+## Measurement noise (the README's convention)
 "p%" noise is independent Gaussian noise of standard deviation sigma = p/100 x RMS(V_ref) on
 every reading, RMS(V_ref) = sqrt(mean(V_ref^2)) over the reference frame's readings. A `Noise`
 is given as a percentage, an SNR in dB (SNR = 20 log10(RMS(V_ref) / sigma), so
