@@ -110,6 +110,20 @@ def test_batch_equals_frames(rec, simulate):
         np.testing.assert_allclose(image, np.asarray(rec.reconstruct(frame)), rtol=1e-12, atol=1e-15)
 
 
+def test_jit_and_vmap_give_the_eager_images(rec, simulate):
+    """GREIT reconstructs under jit and vmap, as OneStep does: the same images, in the input's
+    dtype (float32 in, float32 out)."""
+    import jax
+
+    frames = jnp.asarray(np.stack([simulate(c, seed=i) for i, c in enumerate(POSITIONS[:3])]))
+    eager = np.asarray(rec.reconstruct(frames))
+    np.testing.assert_allclose(np.asarray(jax.jit(rec.reconstruct)(frames)), eager, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(jax.vmap(rec.reconstruct)(frames)), eager, rtol=1e-12, atol=1e-15)
+    single = rec.reconstruct(frames[0].astype(jnp.float32))
+    assert single.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(single), eager[0], rtol=0, atol=1e-5 * np.abs(eager[0]).max())
+
+
 def test_bad_voltages_are_refused(rec, model):
     n = model.n_measurements
     with pytest.raises(ValueError, match=r"shape \(207,\)"):

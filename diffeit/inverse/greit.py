@@ -28,6 +28,7 @@ from .._arrays import readonly
 from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import Mesh, distance_to_segments, element_sample_points, pixel_overlaps
+from .linearised import apply_matrix, check_frames
 
 DEFAULT_HYPERPARAMETER = 0.3
 _TRAININGS = ("linearised", "nonlinear")
@@ -241,16 +242,11 @@ class GREIT:
         """Conductivity change dsigma (S/sq) per pixel for dV = V - V_reference (volts).
 
         `voltage_difference` is (n_meas,) or a batch (T, n_meas); the result is one image
-        (n_rows, n_columns) or (T, n_rows, n_columns), exactly 0 outside `mask`.
+        (n_rows, n_columns) or (T, n_rows, n_columns), exactly 0 outside `mask`, in the input's
+        dtype. Works under jit and vmap, as `OneStep.reconstruct` does.
         """
-        dv = np.asarray(voltage_difference, dtype=float)
-        n_meas = self.model.n_measurements
-        if dv.ndim not in (1, 2) or dv.shape[-1] != n_meas:
-            raise ValueError(f"voltage differences have shape {dv.shape}; expected ({n_meas},) or (T, {n_meas})")
-        if not np.all(np.isfinite(dv)):
-            frames = np.flatnonzero(~np.all(np.isfinite(np.atleast_2d(dv)), axis=1))
-            raise ValueError(f"voltage differences are not finite (NaN or inf) in frame(s) {frames.tolist()}")
-        return (dv @ self.matrix.T).reshape(*dv.shape[:-1], *self.shape)
+        dv = check_frames(voltage_difference, self.model.n_measurements, "voltage differences")
+        return apply_matrix(self.matrix, dv).reshape(*dv.shape[:-1], *self.shape)
 
     def to_pixels(self, values: np.ndarray) -> np.ndarray:
         """An element field (E,) or batch (T, E) on the model's mesh as images (area-weighted

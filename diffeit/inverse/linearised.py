@@ -144,3 +144,11 @@ def check_frames(frames: jax.Array, n_measurements: int, what: str) -> jax.Array
             raise ValueError(f"{what} are not finite (NaN or inf) in frame(s) {name_indices(np.flatnonzero(~finite))}")
     array = jnp.asarray(array)
     return array if jnp.issubdtype(array.dtype, jnp.floating) else array.astype(float)
+
+
+@jax.jit
+def apply_matrix(matrix: jax.Array, frames: jax.Array) -> jax.Array:
+    """frames (..., M) @ matrix.T for a reconstruction matrix (K, M), in the frames' dtype:
+    under jit the transpose and the conversion fold into the product instead of copying the
+    K x M matrix on every call. Works under an outer jit and vmap."""
+    return frames @ matrix.T.astype(frames.dtype)

@@ -11,7 +11,7 @@ import numpy as np
 from .._arrays import is_concrete
 from .._messages import name_indices
 from ..forward import ForwardModel
-from .linearised import LinearisedProblem, check_frames, regularised_inverse
+from .linearised import LinearisedProblem, apply_matrix, check_frames, regularised_inverse
 from .priors import AbstractPrior
 
 
@@ -86,11 +86,4 @@ class OneStep:
             dv = dv / reference
         elif reference is not None:
             raise ValueError("a reference is only used for normalised differences (normalised=True)")
-        return _apply(self.matrix, dv)
-
-
-@jax.jit
-def _apply(matrix: jax.Array, frames: jax.Array) -> jax.Array:
-    """frames @ matrix.T in the frames' dtype: under jit the transpose and the conversion fold
-    into the product instead of copying the E x M matrix on every call."""
-    return frames @ matrix.T.astype(frames.dtype)
+        return apply_matrix(self.matrix, dv)
