@@ -27,6 +27,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import MarkdownTable, describe, describe_machine, format_seconds, machine_line
+from threadpoolctl import threadpool_limits
 
 
 def scenes(frames: int, h: float) -> list[tuple[str, object]]:
@@ -95,20 +96,17 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=100, help="frames per scene (at 25 Hz)")
     parser.add_argument("--h", type=float, default=0.1, help="reconstruction element size; simulation uses h / 2")
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per median (after a warm-up)")
-    parser.add_argument("--blas-threads", type=int, help="BLAS threads (OPENBLAS_NUM_THREADS and friends)")
+    parser.add_argument("--blas-threads", type=int, help="BLAS threads of the measurements")
     parser.add_argument("--json", help="also write the rows as JSON to this path")
     parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)
     options = parser.parse_args()
     if options.describe:
         print(json.dumps(describe()))
         return
-    if options.blas_threads:
-        import os
-
-        for variable in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ[variable] = str(options.blas_threads)
     machine = describe_machine(__file__, options.blas_threads)
-    rows = run(options)
+    # This process has loaded its BLAS already: environment variables would no longer reach it.
+    with threadpool_limits(limits=options.blas_threads, user_api="blas"):
+        rows = run(options)
     print(machine_line(machine, with_pyeit=False))
     print(f"\nScene cost by effect: {rows[0]['frames']} frames, {rows[0]['triangles']} triangles (simulation mesh)\n")
     press = next(row["seconds"] for row in rows if row["scene"] == "press")

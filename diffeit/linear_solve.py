@@ -9,7 +9,6 @@ solve with the same matrix), so backends only have to solve.
 from __future__ import annotations
 
 import abc
-import hashlib
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -221,7 +220,7 @@ def _ordering(pattern: SparsityPattern, cache: _FactorCache) -> _Ordering:
 
 def _factorise(pattern: SparsityPattern, values: np.ndarray, cache_size: int, cache: _FactorCache) -> _Factor | None:
     values = np.ascontiguousarray(values, dtype=np.float64)
-    key = (pattern.fingerprint, hashlib.blake2b(values.tobytes(), digest_size=16).digest())
+    key = (pattern.fingerprint, fingerprint(values))
     with cache.lock:
         if key in cache.factors:
             cache.factors.move_to_end(key)
