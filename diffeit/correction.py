@@ -1,6 +1,6 @@
 """The spatial correction ("scaling matrix"): position-dependent factors for the intensity and
-the size of reconstructed targets, calibrated on simulated touches (dissertation Figs. 5.4, 5.5,
-5.9 in ../shared/SCIENCE.md).
+the size of reconstructed targets, calibrated on simulated touches (the tactile-skin dissertation's
+Figs. 5.4, 5.5 and 5.9).
 
 A linear reconstruction does not image a touch the same everywhere: at the working point (one-step
 NOSER, hyperparameter 0.05, medium noise) a touch near the rim comes out with a larger peak and a

@@ -13,7 +13,7 @@ import diffeit as de
 from diffeit import correction, metrics
 from diffeit.scene._instrument import Noise, add_noise
 
-BACKGROUND = 0.01  # S/sq, the working point of SCIENCE.md: medium noise, hyperparameter 0.05
+BACKGROUND = 0.01  # S/sq, the dissertation's working point: medium noise, hyperparameter 0.05
 MEDIUM_NOISE = 0.5  # percent of RMS(V_ref)
 # Positions between and beyond the calibration rings (0.25, 0.45, 0.6, 0.72 of the radius).
 TEST_POSITIONS = [(0.0, 0.0), (0.5, 0.15), (-0.2, 0.55), (-0.4, -0.4), (0.1, -0.62)]

@@ -1,4 +1,4 @@
-"""The memory effect: exact integration, the figures of SCIENCE.md, switching off, gradients, checks."""
+"""The memory effect: exact integration, the dissertation's figures, switching off, gradients, checks."""
 
 import dataclasses
 
@@ -157,7 +157,7 @@ def second_press_ratio(p: MemoryParameters, gap: float) -> float:
 
 
 def test_presets_recover_to_ten_percent_as_measured():
-    # SCIENCE.md: about 4 s for the bare skin, 7-8 s over foam.
+    # The dissertation: about 4 s for the bare skin, 7-8 s over foam.
     assert recovery_time(bare_skin()) == pytest.approx(4.0, abs=0.1)
     assert 7.0 <= recovery_time(over_foam()) <= 8.0
     assert recovery_time(over_foam()) == pytest.approx(7.5, abs=0.1)

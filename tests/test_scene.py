@@ -141,7 +141,7 @@ def test_per_element_memory_parameters_round_trip_and_simulate():
 
 
 def test_pressure_maps_bilinearly():
-    # SCIENCE.md: 1.3 %/kPa up to 38 kPa, then 0.2 %/kPa, on the relative resistance.
+    # The multi-layer skin paper: 1.3 %/kPa up to 38 kPa, then 0.2 %/kPa, on the relative resistance.
     x = np.array([0.0, 20.0, 38.0, 100.0])
     resistance = np.array([0.0, 0.26, 0.494, 0.494 + 0.002 * 62])
     np.testing.assert_allclose(np.asarray(pressure_to_change(x)), -resistance / (1 + resistance), rtol=1e-14)

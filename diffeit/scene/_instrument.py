@@ -19,7 +19,7 @@ levels, defined once in `NOISE_LEVELS` as percentages of RMS(V_ref):
 | "high" | 2% | 34 dB |
 
 Why: the dissertation leaves the levels undefined. The one figure of the hardware
-(../shared/SCIENCE.md) is the strip readout's rms noise at rest, dR/R0 = 0.0055, about 0.5% of
+(the tactile-skin dissertation's strip readout) is the strip readout's rms noise at rest, dR/R0 = 0.0055, about 0.5% of
 the signal: "medium" is that instrument. "low" is a well-averaged EIT front end (0.1%, 60 dB, the
 order of commercial systems); "high" (2%, 34 dB) is a noisy, unshielded skin, where small touches
 drown in the noise.

@@ -5,7 +5,7 @@ memoryless skin would show: <= 0 under a touch (strain breaks percolation paths)
 a response r(t) (also dsigma/sigma) that remembers its history: an instant rise on loading,
 relaxation while held, an instant drop on release, a slow recovery with two time constants, a
 permanent first-cycle (Mullins) offset and a lower sensitivity shortly after a touch
-(../shared/SCIENCE.md, "Memory effects"). Every element evolves on its own.
+(the tactile-skin dissertation's memory effects). Every element evolves on its own.
 
 ## Input between frames
 The stimulus is held between frames (zero-order hold, piecewise constant): a(t) = a_k for
@@ -56,8 +56,8 @@ r = g sum_i f_i b_i + mu a_max. On a rested skin: r = g a [1 - rho sum_i f_i (1 
 + mu a_max while held.
 
 ## Defaults (the presets `bare_skin` and `over_foam`; `MemoryParameters()` is `over_foam()`)
-Calibrated on a reference press a = -0.3 (dR/R0 about 43%, the middle of the finger presses of
-SCIENCE.md) held 5 s on a preconditioned, rested skin; changes are measured from the baseline
+Calibrated on a reference press a = -0.3 (dR/R0 about 43%, the middle of the dissertation's
+finger presses) held 5 s on a preconditioned, rested skin; changes are measured from the baseline
 before the press, the peak is the change at the press:
 
 | | bare_skin | over_foam |
@@ -69,7 +69,7 @@ before the press, the peak is the change at the press:
 | recovery to 10% of the peak, after release | 4.0 s (3.6-4.4 s for holds of 30-1 s) | 7.5 s (6.3-8.2 s) |
 
 Both: gain g = 1; first-cycle offset mu = 0.05 (5% of the largest stimulus stays, so the first
-touch reads 5% of its depth larger; SCIENCE.md gives no figure); fatigue limit phi_max = 0.4
+touch reads 5% of its depth larger; the dissertation gives no figure); fatigue limit phi_max = 0.4
 (cycling lowers the sensitivity about 40%), fatigue rate k = 1.3 /s per unit |stimulus|, fatigue
 recovery time tau_phi = 100 s: a second reference press 30 s after the first reads 25% less than
 on a rested skin (between 4% less for a 1 s tap of -0.1 and 29% less for long or deep presses), and

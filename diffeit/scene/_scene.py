@@ -318,10 +318,10 @@ def _check_positive(value: Any, name: str, unit: str) -> None:
 @register_dataclass
 @dataclass(frozen=True, eq=False)
 class FoamStack:
-    """How a pressure on the skin over soft foam changes its conductivity (../shared/SCIENCE.md,
-    skin1 of the multi-layer stack): the relative resistance rises by `sensitivity` per kPa up to
-    the `knee` (kPa), then by `sensitivity_above` per kPa. Sensitivities are fractions per kPa
-    (1.3 %/kPa = 0.013), each a pytree leaf."""
+    """How a pressure on the skin over soft foam changes its conductivity (skin1 of the
+    multi-layer skin stack the tactile-skin dissertation builds on): the relative resistance
+    rises by `sensitivity` per kPa up to the `knee` (kPa), then by `sensitivity_above` per kPa.
+    Sensitivities are fractions per kPa (1.3 %/kPa = 0.013), each a pytree leaf."""
 
     sensitivity: ArrayLike = 0.013
     knee: ArrayLike = 38.0

@@ -1,7 +1,7 @@
 """Touches on the skin: footprints with smooth edges, time courses, and the stimulus of a scene.
 
-A touch lowers the sheet conductivity under its footprint (strain breaks percolation paths,
-../shared/SCIENCE.md). Its stimulus is the relative conductivity change dsigma/sigma
+A touch lowers the sheet conductivity under its footprint (strain breaks percolation paths in
+the graphite-latex sheet). Its stimulus is the relative conductivity change dsigma/sigma
 (dimensionless) that an ideal, memoryless skin would show, per element and frame:
 
     field_e(t) = amplitude(t) x fraction_e(shape at t),
