@@ -11,6 +11,11 @@ import subprocess
 import sys
 from collections.abc import Callable, Iterator
 
+import jax
+
+# diffeit computes in float64; every benchmark process says so before building a model.
+jax.config.update("jax_enable_x64", True)
+
 
 def disc_with_about(n_triangles: int):
     """A unit disc (16 electrodes of width 0.2) with about `n_triangles` triangles (within 8%)."""

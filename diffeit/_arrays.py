@@ -1,5 +1,6 @@
 """Array helpers shared by the modules of diffeit."""
 
+import dataclasses
 import hashlib
 
 import jax
@@ -20,13 +21,32 @@ def fingerprint(*parts: np.ndarray | bytes) -> bytes:
     return digest.digest()
 
 
-class ContentIdentity:
-    """Equality and hashing by content, for the immutable static data JAX sees (meshes,
-    protocols, sparsity patterns, assembled systems): two equal meshes built separately key
-    the same compiled functions, so a second model on an equal mesh compiles nothing. A
-    subclass sets `fingerprint` (bytes, see `fingerprint`) at construction."""
+class StaticData:
+    """Immutable data that JAX treats as static (a pytree without leaves), compared and hashed
+    by content: meshes, protocols, sparsity patterns, assembled electrode systems. Two equal
+    meshes built separately key the same compiled functions, so a second model on an equal
+    mesh compiles nothing.
+
+    A subclass is a `dataclass(eq=False)` with its own `__init__`, which validates its input
+    and assigns every field once, `fingerprint` (bytes, see `fingerprint`) included. A field
+    cannot be assigned again or deleted: the data is fixed at construction. Models hold such
+    data in static fields (`eqx.field(static=True)`); everything with array leaves is an
+    `equinox.Module`.
+    """
 
     fingerprint: bytes
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        jax.tree_util.register_static(cls)
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in self.__dict__:
+            raise dataclasses.FrozenInstanceError(f"cannot assign to {name!r}: {type(self).__name__} is immutable")
+        super().__setattr__(name, value)
+
+    def __delattr__(self, name: str) -> None:
+        raise dataclasses.FrozenInstanceError(f"cannot delete field {name!r}: {type(self).__name__} is immutable")
 
     def __eq__(self, other: object) -> bool:
         return type(self) is type(other) and self.fingerprint == other.fingerprint

@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._arrays import ContentIdentity
+from ._arrays import StaticData
 from .linear_solve import SparsityPattern
 from .mesh import Mesh
 
@@ -41,8 +41,8 @@ def basis_gradients(mesh: Mesh) -> np.ndarray:
     return gradients / (2 * mesh.element_areas[:, None, None])
 
 
-@dataclass(frozen=True, eq=False)
-class CompleteElectrodeSystem(ContentIdentity):
+@dataclass(eq=False)
+class CompleteElectrodeSystem(StaticData):
     """The fixed structure of the grounded complete-electrode-model matrix of one mesh.
 
     `values(sigma, z)` returns the (nnz,) matrix values on `pattern`. Static data for JAX,
@@ -148,8 +148,8 @@ class CompleteElectrodeSystem(ContentIdentity):
         return jax.ops.segment_sum(products, self.electrode_of_entry, num_segments=self.n_electrodes).T
 
 
-@dataclass(frozen=True, eq=False)
-class PointElectrodeSystem(ContentIdentity):
+@dataclass(eq=False)
+class PointElectrodeSystem(StaticData):
     """The stiffness matrix of one mesh with point electrodes, grounded at one node.
 
     Electrode l is the single node `electrode_nodes[l]` (the node of its boundary chain
@@ -280,10 +280,6 @@ def _midpoint_node(mesh: Mesh, chain: np.ndarray) -> int:
     steps = np.linalg.norm(np.diff(mesh.nodes[chain], axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(steps)])
     return int(chain[np.argmin(np.abs(arc - arc[-1] / 2))])
-
-
-jax.tree_util.register_static(CompleteElectrodeSystem)
-jax.tree_util.register_static(PointElectrodeSystem)
 
 
 def _gather_table(slots: np.ndarray, n_slots: int) -> np.ndarray:

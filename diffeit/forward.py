@@ -14,6 +14,7 @@ import numpy as np
 
 from ._arrays import is_concrete
 from ._messages import name_indices
+from ._precision import PrecisionWarning, ensure_float64
 from .assembly import CompleteElectrodeSystem, ElectrodeSystem, PointElectrodeSystem
 from .linear_solve import (
     AbstractLinearSolver,
@@ -42,10 +43,6 @@ class Potentials(NamedTuple):
     electrode: jax.Array
     relative_residual: jax.Array
     backward_error: jax.Array
-
-
-class PrecisionWarning(UserWarning):
-    """A float32 computation whose voltages are estimated to be off by more than 1e-3."""
 
 
 # float32 is an opt-in for throughput; beyond this estimated relative voltage error it is not.
@@ -111,6 +108,7 @@ class ForwardModel:
         solver: AbstractLinearSolver | str | None = None,
         electrode_model: Literal["complete", "point"] = "complete",
     ) -> None:
+        ensure_float64()
         if protocol.n_electrodes != mesh.n_electrodes:
             raise ValueError(
                 f"the protocol addresses {protocol.n_electrodes} electrodes; the mesh has {mesh.n_electrodes}"

@@ -20,12 +20,12 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from ._arrays import ContentIdentity, fingerprint
+from ._arrays import StaticData, fingerprint
 from ._threads import host_algebra, one_blas_thread_in_xla
 
 
-@dataclass(frozen=True, eq=False)
-class SparsityPattern(ContentIdentity):
+@dataclass(eq=False)
+class SparsityPattern(StaticData):
     """The nonzero positions of a symmetric n x n matrix, in compressed sparse column order.
 
     Static data for JAX, compared and hashed by content: values live in a separate (nnz,)
@@ -74,9 +74,6 @@ class SparsityPattern(ContentIdentity):
 
     def to_scipy(self, values: np.ndarray) -> scipy.sparse.csc_matrix:
         return scipy.sparse.csc_matrix((values, self.rows, self.indptr), shape=(self.size, self.size))
-
-
-jax.tree_util.register_static(SparsityPattern)
 
 
 class AbstractLinearSolver(abc.ABC):

@@ -20,12 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ._arrays import ContentIdentity, fingerprint, readonly
+from ._arrays import StaticData, fingerprint, readonly
 from ._messages import name_indices
 
 
-@dataclass(frozen=True, eq=False)
-class Protocol(ContentIdentity):
+@dataclass(init=False, eq=False)
+class Protocol(StaticData):
     """Current patterns and the voltage readings taken under each.
 
     `Protocol(drive, measure)`:
@@ -49,12 +49,12 @@ class Protocol(ContentIdentity):
 
     drive: np.ndarray
     measure: np.ndarray
-    drive_index: np.ndarray = field(init=False)
-    measure_patterns: np.ndarray = field(init=False, repr=False)
+    drive_index: np.ndarray
+    measure_patterns: np.ndarray = field(repr=False)
     """(P, L) the distinct rows of `measure`."""
-    pattern_index: np.ndarray = field(init=False, repr=False)
+    pattern_index: np.ndarray = field(repr=False)
     """(n_measurements,) row of `measure_patterns` each measurement uses."""
-    fingerprint: bytes = field(init=False, repr=False)
+    fingerprint: bytes = field(repr=False)
 
     def __init__(self, drive: np.ndarray, measure: np.ndarray | Sequence[np.ndarray]) -> None:
         drive = np.array(drive, dtype=np.float64)
@@ -90,12 +90,12 @@ class Protocol(ContentIdentity):
             raise ValueError("the protocol has no measurements")
         drive_index = np.repeat(np.arange(n_drives), [len(m) for m in per_drive])
         patterns, pattern_index = np.unique(flat, axis=0, return_inverse=True)
-        object.__setattr__(self, "drive", readonly(drive))
-        object.__setattr__(self, "measure", readonly(flat))
-        object.__setattr__(self, "drive_index", readonly(drive_index))
-        object.__setattr__(self, "measure_patterns", readonly(patterns))
-        object.__setattr__(self, "pattern_index", readonly(pattern_index.ravel()))
-        object.__setattr__(self, "fingerprint", fingerprint(drive, flat, drive_index))
+        self.drive = readonly(drive)
+        self.measure = readonly(flat)
+        self.drive_index = readonly(drive_index)
+        self.measure_patterns = readonly(patterns)
+        self.pattern_index = readonly(pattern_index.ravel())
+        self.fingerprint = fingerprint(drive, flat, drive_index)
 
     @property
     def n_electrodes(self) -> int:
@@ -114,9 +114,6 @@ class Protocol(ContentIdentity):
             f"Protocol(n_electrodes={self.n_electrodes}, n_drives={self.n_drives}, "
             f"n_measurements={self.n_measurements})"
         )
-
-
-jax.tree_util.register_static(Protocol)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -218,13 +215,13 @@ Frames: TypeAlias = np.ndarray | jax.Array
 gives a JAX array out (jit and vmap work), anything else a NumPy array."""
 
 
-@dataclass(frozen=True, eq=False)
-class Conversion:
+@dataclass(init=False, eq=False)
+class Conversion(StaticData):
     """Maps frames recorded under one protocol onto the order and sign of another.
 
     `Conversion(source, target, *, fill=None)`, then `conversion(frames)`: frames (..., n_source)
     voltages, a NumPy or JAX array (one frame or a batch), give (..., n_target), one gather.
-    Under `jax.jit` the map is static data.
+    Under `jax.jit` the map is static data; conversions compare and hash by content.
 
     Each target reading (drive d, weights w) takes the value of a source reading with the same
     drive and the same weights; a negated drive or negated weights negate the value, both
@@ -251,6 +248,7 @@ class Conversion:
     index: np.ndarray = field(repr=False)
     sign: np.ndarray = field(repr=False)
     missing: np.ndarray = field(repr=False)
+    fingerprint: bytes = field(repr=False)
 
     def __init__(self, source: Protocol, target: Protocol, *, fill: float | None = None) -> None:
         if source.n_electrodes != target.n_electrodes:
@@ -275,12 +273,13 @@ class Conversion:
                 f"weights {_nonzero(target.measure[first])}, as electrode: value); pass fill=0.0 to fill them"
             )
         sign = drive_sign[rows, index] * weight_sign[rows, index]
-        object.__setattr__(self, "source", source)
-        object.__setattr__(self, "target", target)
-        object.__setattr__(self, "fill", None if fill is None else float(fill))
-        object.__setattr__(self, "index", readonly(np.where(missing, 0, index)))
-        object.__setattr__(self, "sign", readonly(np.where(missing, 1, sign).astype(np.float64)))
-        object.__setattr__(self, "missing", readonly(missing))
+        self.source = source
+        self.target = target
+        self.fill = None if fill is None else float(fill)
+        self.index = readonly(np.where(missing, 0, index))
+        self.sign = readonly(np.where(missing, 1, sign).astype(np.float64))
+        self.missing = readonly(missing)
+        self.fingerprint = fingerprint(source.fingerprint, target.fingerprint, repr(self.fill).encode())
 
     def __call__(self, frames: ArrayLike | jax.Array) -> Frames:
         """(..., n_target) frames in the target's order and sign, from (..., n_source) frames."""
@@ -297,9 +296,6 @@ class Conversion:
         if self.missing.any():
             values = xp.where(self.missing, xp.asarray(self.fill, frames.dtype), values)
         return values
-
-
-jax.tree_util.register_static(Conversion)
 
 
 def convert(frames: ArrayLike | jax.Array, source: Protocol, target: Protocol, *, fill: float | None = None) -> Frames:

@@ -17,7 +17,10 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
 import numpy as np
+
+jax.config.update("jax_enable_x64", True)  # diffeit computes in float64
 
 import diffeit as de
 import diffeit.io

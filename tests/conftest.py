@@ -1,6 +1,10 @@
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
+# diffeit computes in float64; the tests say so explicitly, as a program using diffeit should.
+jax.config.update("jax_enable_x64", True)
 
 import diffeit as de
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import diffeit as de
-from diffeit.forward import PrecisionWarning
+from diffeit import PrecisionWarning
 
 
 def _relative(a, b) -> float:

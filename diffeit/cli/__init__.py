@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import jax
 import numpy as np
 
 if TYPE_CHECKING:
@@ -233,6 +234,7 @@ def _rms(values: np.ndarray) -> float:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `diffeit` command with `argv` (default: the process's arguments); returns the
     exit status."""
+    jax.config.update("jax_enable_x64", True)  # the command is a program of its own: float64, said once here
     parser = argparse.ArgumentParser(prog="diffeit", description="Differentiable EIT for tactile skins.")
     commands = parser.add_subparsers(dest="command", required=True)
     demo = commands.add_parser("demo", help="simulate a touch on a 16-electrode skin and image it")

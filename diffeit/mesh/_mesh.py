@@ -6,12 +6,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
-import jax
 import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from .._arrays import ContentIdentity, fingerprint, readonly
+from .._arrays import StaticData, fingerprint, readonly
 from .._messages import name_indices
 
 if TYPE_CHECKING:
@@ -27,8 +26,8 @@ def _signed_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
 
 
-@dataclass(frozen=True, eq=False)
-class Mesh(ContentIdentity):
+@dataclass(init=False, eq=False)
+class Mesh(StaticData):
     """An immutable P1 triangle mesh of a sheet, with electrodes on its boundary.
 
     Construct with `Mesh.from_arrays`, `Mesh.from_skfem` or a generator (`diffeit.mesh.disc`,
@@ -53,18 +52,18 @@ class Mesh(ContentIdentity):
     nodes: np.ndarray
     triangles: np.ndarray
     electrodes: tuple[np.ndarray, ...]
-    boundary_edges: np.ndarray = field(init=False, repr=False)
-    element_areas: np.ndarray = field(init=False, repr=False)
-    fingerprint: bytes = field(init=False, repr=False)
+    boundary_edges: np.ndarray = field(repr=False)
+    element_areas: np.ndarray = field(repr=False)
+    fingerprint: bytes = field(repr=False)
 
-    def __post_init__(self) -> None:
-        nodes = np.asarray(self.nodes, dtype=np.float64)
+    def __init__(self, nodes: ArrayLike, triangles: ArrayLike, electrodes: Sequence[ArrayLike]) -> None:
+        nodes = np.asarray(nodes, dtype=np.float64)
         if nodes.ndim != 2 or nodes.shape[1] != 2:
             raise ValueError(f"nodes must have shape (N, 2); got {nodes.shape}")
         if not np.all(np.isfinite(nodes)):
             bad = np.flatnonzero(~np.all(np.isfinite(nodes), axis=1))
             raise ValueError(f"nodes {name_indices(bad)} have non-finite coordinates")
-        triangles = _checked_triangles(self.triangles, len(nodes))
+        triangles = _checked_triangles(triangles, len(nodes))
         areas = _signed_areas(nodes, triangles)
         triangles = np.where((areas < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
         areas = np.abs(areas)
@@ -72,14 +71,14 @@ class Mesh(ContentIdentity):
         _check_all_nodes_used(triangles, len(nodes))
         boundary_edges = _boundary_edges(triangles)
         _check_connected(triangles, len(nodes))
-        electrodes = _checked_electrodes(self.electrodes, boundary_edges, len(nodes))
-        object.__setattr__(self, "nodes", readonly(nodes))
-        object.__setattr__(self, "triangles", readonly(triangles))
-        object.__setattr__(self, "electrodes", tuple(readonly(e) for e in electrodes))
-        object.__setattr__(self, "boundary_edges", readonly(boundary_edges))
-        object.__setattr__(self, "element_areas", readonly(areas))
+        electrodes = _checked_electrodes(electrodes, boundary_edges, len(nodes))
+        self.nodes = readonly(nodes)
+        self.triangles = readonly(triangles)
+        self.electrodes = tuple(readonly(e) for e in electrodes)
+        self.boundary_edges = readonly(boundary_edges)
+        self.element_areas = readonly(areas)
         lengths = np.array([len(e) for e in electrodes])
-        object.__setattr__(self, "fingerprint", fingerprint(nodes, triangles, lengths, *electrodes))
+        self.fingerprint = fingerprint(nodes, triangles, lengths, *electrodes)
 
     @classmethod
     def from_arrays(cls, nodes: np.ndarray, triangles: np.ndarray, electrodes: list) -> Mesh:
@@ -168,7 +167,6 @@ class Mesh(ContentIdentity):
         return f"Mesh(n_nodes={self.n_nodes}, n_elements={self.n_elements}, n_electrodes={self.n_electrodes})"
 
 
-jax.tree_util.register_static(Mesh)
 
 
 def _checked_triangles(triangles: np.ndarray, n_nodes: int) -> np.ndarray:

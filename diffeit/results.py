@@ -1,0 +1,86 @@
+"""Result codes of diffeit's iterative and fallible computations.
+
+Every solve that can fall short (a conjugate-gradient solve, Gauss-Newton, total variation,
+hyperparameter selection, the joint fit) returns a result value carrying a `result` field, an
+item of `RESULTS`, and takes a `throw=` choice:
+
+- `throw=True` (the default): a result other than `RESULTS.successful` raises, with the code's
+  message. Under `jax.jit` the error is raised at run time (`equinox.error_if`).
+- `throw=False`: nothing raises; inspect `solution.result` yourself. Compare codes with `==`
+  (`solution.result == RESULTS.max_iterations_reached`); a batched solve carries one code per
+  frame, and `RESULTS[item]` gives the message of a single code.
+
+The codes are shared by every solver, as in optimistix, so code that handles one handles all.
+"""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+import equinox as eqx
+import numpy as np
+
+from ._messages import name_indices
+
+__all__ = ["RESULTS", "SolverError", "failed", "messages", "throw_if_failed"]
+
+
+class RESULTS(eqx.Enumeration):
+    """The outcome of an iterative or fallible computation (see the module docstring)."""
+
+    successful = ""
+    max_iterations_reached = (
+        "the iteration limit was reached before convergence: raise `max_iterations` or loosen the tolerance"
+    )
+    line_search_failed = (
+        "no step along the search direction decreased the objective: the iterate is as good as the "
+        "precision of the forward model allows, or the problem is badly scaled"
+    )
+    stalled = (
+        "steps no longer change the objective although the gradient tolerance is not met: the tolerance "
+        "is below what the precision resolves"
+    )
+    nonfinite = "a non-finite value appeared (a failed linear solve, or non-finite input)"
+    linear_solve_not_converged = (
+        "the conjugate-gradient solve did not reach its tolerance within its iteration limit: raise "
+        "`max_iterations`, or use the host or dense backend for this ill-conditioned system"
+    )
+    selection_at_boundary = (
+        "the selected hyperparameter is at an end of the candidates (or the criterion's level is not "
+        "reached within them): widen the candidates"
+    )
+
+
+class SolverError(RuntimeError):
+    """A computation ended with a result other than `RESULTS.successful` and `throw=True`."""
+
+
+def failed(result: RESULTS) -> np.ndarray:
+    """Boolean mask of the frames whose code is not `RESULTS.successful` (a concrete result;
+    a 0-d mask for one frame)."""
+    return np.asarray(result != RESULTS.successful)
+
+
+def messages(result: RESULTS) -> list[str]:
+    """The message of each code of a concrete result (one per frame of a batch), "" for success."""
+    return [RESULTS._index_to_message[code] for code in np.atleast_1d(np.asarray(result._value)).tolist()]
+
+
+Value = TypeVar("Value")
+
+
+def throw_if_failed(value: Value, result: RESULTS, what: str) -> Value:
+    """`value`, after raising for a failed `result` (`what` names the computation).
+
+    On a concrete result a `SolverError` names `what`, the failing frames of a batch and the
+    first failure's message; on a traced one (under jit or vmap) `equinox.error_if` raises at
+    run time with the code's message. `value` is returned unchanged.
+    """
+    if result.is_traced():
+        return result.error_if(value, result != RESULTS.successful)
+    mask = np.atleast_1d(failed(result))
+    if not mask.any():
+        return value
+    frames = np.flatnonzero(mask)
+    where = f" (frames {name_indices(frames)})" if np.ndim(failed(result)) else ""
+    raise SolverError(f"{what}{where}: {messages(result)[frames[0]]}; pass throw=False to get the result instead")
