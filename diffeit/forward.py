@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
 from functools import partial
 from typing import Literal, NamedTuple
 
@@ -22,10 +21,12 @@ from .linear_solve import (
     backward_error,
     relative_residual,
     solve_spd,
+    solve_spd_with_result,
     solver_named,
 )
 from .mesh import Mesh
 from .protocol import Protocol
+from .results import RESULTS
 
 
 class Potentials(NamedTuple):
@@ -37,12 +38,15 @@ class Potentials(NamedTuple):
     - `backward_error`: (n_drives,) componentwise backward error of the linear solve (see
       `diffeit.linear_solve.backward_error`): near machine epsilon for a sound solve even
       when extreme contact impedance or contrast makes the relative residual large.
+    - `result`: the solve's `diffeit.results.RESULTS` code: `linear_solve_not_converged` when
+      a conjugate-gradient solve with `throw=False` stopped at its iteration limit.
     """
 
     nodal: jax.Array
     electrode: jax.Array
     relative_residual: jax.Array
     backward_error: jax.Array
+    result: RESULTS
 
 
 # float32 is an opt-in for throughput; beyond this estimated relative voltage error it is not.
@@ -55,13 +59,8 @@ def _name_elements(mask: np.ndarray) -> str:
     return f"{np.count_nonzero(mask)} element(s) {name_indices(np.flatnonzero(mask))}"
 
 
-@jax.tree_util.register_pytree_node_class
-@dataclass(frozen=True, eq=False)
-class ForwardModel:
+class ForwardModel(eqx.Module):
     """Complete electrode model on a P1 triangle mesh of a sheet.
-
-    `ForwardModel(mesh, protocol, contact_impedance=0.01, *, drive_current=1e-3, solver=None,
-    electrode_model="complete")`
 
     Conventions: sheet conductivity sigma in S/sq, piecewise constant per element; contact
     impedance z in ohm m (2D), a scalar or one per electrode; drive current in amperes, the
@@ -84,19 +83,19 @@ class ForwardModel:
     work on them. On concrete inputs they raise `ValueError` for a conductivity of the wrong
     shape, non-finite or non-positive values.
 
-    A model is immutable and a JAX pytree whose one leaf is `contact_impedance`; everything
-    else is static data compared by content (mesh, protocol, drive current, solver settings),
-    so the compiled forward solve and Jacobian of one model serve every model on an equal mesh
-    and protocol: a second model compiles nothing. The model itself hashes by identity, so
-    `jax.jit(model.measure)` works.
+    A model is an immutable `equinox.Module` whose one array leaf is `contact_impedance`;
+    everything else sits in static fields compared by content (mesh, protocol, drive current,
+    solver settings), so the compiled forward solve and Jacobian of one model serve every
+    model on an equal mesh and protocol: a second model compiles nothing. `jax.jit(model.measure)`
+    works.
     """
 
-    mesh: Mesh
-    protocol: Protocol
+    mesh: Mesh = eqx.field(static=True)
+    protocol: Protocol = eqx.field(static=True)
     contact_impedance: jax.Array
-    drive_current: float
-    solver: AbstractLinearSolver
-    system: ElectrodeSystem = field(repr=False)
+    drive_current: float = eqx.field(static=True)
+    solver: AbstractLinearSolver = eqx.field(static=True)
+    system: ElectrodeSystem = eqx.field(static=True, repr=False)
 
     def __init__(
         self,
@@ -115,10 +114,9 @@ class ForwardModel:
             )
         if not (np.isfinite(drive_current) and drive_current != 0):
             raise ValueError(f"drive_current must be finite and nonzero (amperes); got {drive_current}")
-        set_field = object.__setattr__  # frozen: fields are set once, here
-        set_field(self, "mesh", mesh)
-        set_field(self, "protocol", protocol)
-        set_field(self, "drive_current", float(drive_current))
+        self.mesh = mesh
+        self.protocol = protocol
+        self.drive_current = float(drive_current)
         if isinstance(solver, str):
             solver = solver_named(solver)
         elif solver is None:
@@ -128,20 +126,17 @@ class ForwardModel:
         systems = {"complete": CompleteElectrodeSystem, "point": PointElectrodeSystem}
         if electrode_model not in systems:
             raise ValueError(f"electrode_model must be 'complete' or 'point'; got {electrode_model!r}")
-        set_field(self, "solver", solver)
-        set_field(self, "system", systems[electrode_model].from_mesh(mesh))
-        set_field(self, "contact_impedance", self._checked_contact_impedance(contact_impedance))
+        self.solver = solver
+        self.system = systems[electrode_model].from_mesh(mesh)
+        self.contact_impedance = _checked_contact_impedance(contact_impedance, mesh.n_electrodes)
 
-    def tree_flatten(self) -> tuple[tuple[jax.Array], tuple]:
-        return (self.contact_impedance,), (self.mesh, self.protocol, self.drive_current, self.solver, self.system)
+    # Identity, as for functions: `jax.jit(model.measure)` hashes the bound method, and with
+    # it the model, whose contact impedance is an array.
+    def __eq__(self, other: object) -> bool:
+        return self is other
 
-    @classmethod
-    def tree_unflatten(cls, static: tuple, leaves: tuple[jax.Array]) -> ForwardModel:
-        model = object.__new__(cls)
-        names = ("mesh", "protocol", "drive_current", "solver", "system", "contact_impedance")
-        for name, value in zip(names, static + leaves, strict=True):
-            object.__setattr__(model, name, value)
-        return model
+    def __hash__(self) -> int:
+        return id(self)
 
     @property
     def n_measurements(self) -> int:
@@ -207,7 +202,10 @@ class ForwardModel:
                 raise ValueError(f"conductivity is not finite (NaN or inf) at {_name_elements(~np.isfinite(values))}")
             if np.any(values <= 0):
                 raise ValueError(f"conductivity must be positive (S/sq); it is <= 0 at {_name_elements(values <= 0)}")
-        z = self.contact_impedance if contact_impedance is None else self._checked_contact_impedance(contact_impedance)
+        if contact_impedance is None:
+            z = self.contact_impedance
+        else:
+            z = _checked_contact_impedance(contact_impedance, self.mesh.n_electrodes)
         return sigma, z.astype(sigma.dtype)
 
     def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
@@ -223,18 +221,19 @@ class ForwardModel:
                 stacklevel=3,
             )
 
-    def _checked_contact_impedance(self, contact_impedance) -> jax.Array:
-        n = self.mesh.n_electrodes
-        z = jnp.asarray(contact_impedance)
-        if not jnp.issubdtype(z.dtype, jnp.floating):
-            z = z.astype(float)
-        if z.shape not in ((), (n,)):
-            raise ValueError(f"contact_impedance has shape {z.shape}; expected a scalar or ({n},), one per electrode")
-        if is_concrete(contact_impedance):
-            values = np.asarray(z)
-            if not np.all(np.isfinite(values)) or np.any(values <= 0):
-                raise ValueError(f"contact_impedance must be finite and positive (ohm m); got {values}")
-        return jnp.broadcast_to(z, (n,))
+
+def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
+    """(n,) contact impedance, ohm m, from a scalar or one value per electrode."""
+    z = jnp.asarray(contact_impedance)
+    if not jnp.issubdtype(z.dtype, jnp.floating):
+        z = z.astype(float)
+    if z.shape not in ((), (n,)):
+        raise ValueError(f"contact_impedance has shape {z.shape}; expected a scalar or ({n},), one per electrode")
+    if is_concrete(contact_impedance):
+        values = np.asarray(z)
+        if not np.all(np.isfinite(values)) or np.any(values <= 0):
+            raise ValueError(f"contact_impedance must be finite and positive (ohm m); got {values}")
+    return jnp.broadcast_to(z, (n,))
 
 
 # The computations, jitted once per mesh, protocol, drive current and solver (compared by
@@ -258,7 +257,7 @@ def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentia
     values = system.values(sigma, z)
     currents = model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype)
     rhs = system.current_rhs(currents)
-    solution = solve_spd(system.pattern, values, rhs, model.solver)
+    solution, result = solve_spd_with_result(system.pattern, values, rhs, model.solver)
     solution = eqx.error_if(
         solution,
         ~jnp.all(jnp.isfinite(solution)),
@@ -271,6 +270,7 @@ def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentia
         electrode,
         relative_residual(system.pattern, values, solution, rhs),
         backward_error(system.pattern, values, solution, rhs),
+        result,
     )
 
 

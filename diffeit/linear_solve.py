@@ -14,6 +14,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -22,6 +23,7 @@ import scipy.sparse.linalg
 
 from ._arrays import StaticData, fingerprint
 from ._threads import host_algebra, one_blas_thread_in_xla
+from .results import RESULTS
 
 
 @dataclass(eq=False)
@@ -76,7 +78,7 @@ class SparsityPattern(StaticData):
         return scipy.sparse.csc_matrix((values, self.rows, self.indptr), shape=(self.size, self.size))
 
 
-class AbstractLinearSolver(abc.ABC):
+class AbstractLinearSolver(eqx.Module):
     """A backend: solves A X = B for a symmetric positive definite A given on a pattern.
 
     A backend splits its work in two: `factorise` does what depends on the matrix alone, once
@@ -84,6 +86,9 @@ class AbstractLinearSolver(abc.ABC):
     the factor to every solve with that matrix (the forward solve, the adjoint solve of a
     gradient, the solves of a Jacobian). Neither need be differentiable (`solve_spd` defines
     derivatives); both must work under `jax.vmap`. `values` are (nnz,), `rhs` (n, k).
+
+    A backend is an `equinox.Module` of static settings (no array leaves): models hold it in a
+    static field, so equal backends key the same compiled functions.
     """
 
     @abc.abstractmethod
@@ -91,12 +96,12 @@ class AbstractLinearSolver(abc.ABC):
         """The factor of the matrix with `values` on `pattern`: a pytree of arrays."""
 
     @abc.abstractmethod
-    def solve_factorised(self, pattern: SparsityPattern, factor: Any, rhs: jax.Array) -> jax.Array:
-        """X = A^-1 `rhs` for the matrix `factor` was made from."""
+    def solve_factorised(self, pattern: SparsityPattern, factor: Any, rhs: jax.Array) -> tuple[jax.Array, RESULTS]:
+        """(X = A^-1 `rhs` for the matrix `factor` was made from, the result code of the solve)."""
 
     def solve(self, pattern: SparsityPattern, values: jax.Array, rhs: jax.Array) -> jax.Array:
         """X = A^-1 `rhs` (factorise, then solve; not differentiable, see `solve_spd`)."""
-        return self.solve_factorised(pattern, self.factorise(pattern, values), rhs)
+        return self.solve_factorised(pattern, self.factorise(pattern, values), rhs)[0]
 
 
 class _FactorCache:
@@ -124,7 +129,6 @@ class _FactorCache:
         self.__init__()
 
 
-@dataclass(frozen=True)
 class HostSparse(AbstractLinearSolver):
     """Sparse LU (SciPy's SuperLU, symmetric mode) on the host, through `jax.pure_callback`.
 
@@ -134,26 +138,39 @@ class HostSparse(AbstractLinearSolver):
     once; `clear_cache()` empties it. Equal instances (the same `cache_size`) are
     interchangeable: a function compiled with one serves models holding the other, with the
     first one's cache. Computes in float64 whatever the input dtype. A matrix that cannot be
-    factorised gives NaN, not an exception (exceptions cannot cross the callback).
+    factorised gives NaN and `RESULTS.nonfinite`, not an exception (exceptions cannot cross the
+    callback).
     """
 
-    cache_size: int = 4
-    _cache: _FactorCache = field(default_factory=lambda: _FactorCache(), init=False, repr=False, compare=False)
+    cache_size: int = eqx.field(static=True)
+    _cache: _FactorCache = eqx.field(static=True, repr=False)
+
+    def __init__(self, cache_size: int = 4) -> None:
+        self.cache_size = int(cache_size)
+        self._cache = _FactorCache()
+
+    # Equal settings are interchangeable, whatever each instance has cached.
+    def __eq__(self, other: object) -> bool:
+        return type(other) is HostSparse and other.cache_size == self.cache_size
+
+    def __hash__(self) -> int:
+        return hash((HostSparse, self.cache_size))
 
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> jax.Array:
         # The factorisation happens on the host, in the first solve's callback; later solves
         # with the same values find it in the cache.
         return values
 
-    def solve_factorised(self, pattern: SparsityPattern, factor: jax.Array, rhs: jax.Array) -> jax.Array:
+    def solve_factorised(
+        self, pattern: SparsityPattern, factor: jax.Array, rhs: jax.Array
+    ) -> tuple[jax.Array, RESULTS]:
         def host(values: np.ndarray, rhs: np.ndarray) -> np.ndarray:
             return _host_solve(pattern, np.asarray(values), np.asarray(rhs), self.cache_size, self._cache)
 
         # expand_dims: an unbatched argument arrives with a leading axis of size 1, so a batch
         # of right-hand sides meets one matrix in a single call.
-        return jax.pure_callback(
-            host, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), factor, rhs, vmap_method="expand_dims"
-        )
+        x = jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), factor, rhs, vmap_method="expand_dims")
+        return x, _finite_result(x)
 
     def clear_cache(self) -> None:
         """Forget every factorisation and ordering this solver holds."""
@@ -267,7 +284,6 @@ def _solve_columns(factor: _Factor | None, columns: np.ndarray) -> np.ndarray:
     return factor.solve(columns)
 
 
-@dataclass(frozen=True)
 class DenseCholesky(AbstractLinearSolver):
     """Dense Cholesky factorisation in JAX (XLA), in the dtype of the values.
 
@@ -275,11 +291,11 @@ class DenseCholesky(AbstractLinearSolver):
     and time as n^3 (a few thousand unknowns at most). Runs under jit and vmap natively; on
     CPU, XLA's Cholesky and triangular solves call OpenBLAS, which runs on one thread while
     they do (see `diffeit._threads`). A matrix that is not positive definite (in the working
-    precision) gives NaN.
+    precision) gives NaN and `RESULTS.nonfinite`.
     `refinement_steps` steps of iterative refinement follow the triangular solves.
     """
 
-    refinement_steps: int = 1
+    refinement_steps: int = eqx.field(static=True, default=1)
 
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the lower Cholesky factor (n, n), the values (nnz,) for the refinement's residual)."""
@@ -288,7 +304,7 @@ class DenseCholesky(AbstractLinearSolver):
 
     def solve_factorised(
         self, pattern: SparsityPattern, factor: tuple[jax.Array, jax.Array], rhs: jax.Array
-    ) -> jax.Array:
+    ) -> tuple[jax.Array, RESULTS]:
         lower, values = factor
 
         def refined(b: jax.Array) -> jax.Array:
@@ -300,23 +316,28 @@ class DenseCholesky(AbstractLinearSolver):
                 x = x + jax.scipy.linalg.cho_solve((lower, True), b - pattern.matvec(values, x))
             return x
 
-        return one_blas_thread_in_xla(refined)(rhs.astype(values.dtype)).astype(rhs.dtype)
+        x = one_blas_thread_in_xla(refined)(rhs.astype(values.dtype)).astype(rhs.dtype)
+        return x, _finite_result(x)
 
 
-@dataclass(frozen=True)
 class ConjugateGradient(AbstractLinearSolver):
     """Matrix-free conjugate gradients with a Jacobi (diagonal) preconditioner, in JAX.
 
     For large meshes on accelerators: memory is a few vectors per right-hand side, and every
     iteration is one sparse product on the pattern. Each column of the right-hand side runs
     until its relative residual ||b - A x|| / ||b|| is below `relative_tolerance` (default:
-    1e-12 in float64, 1e-6 in float32) or `max_iterations` (default: twice the system size)
-    is reached; the residual that the model reports says which. Not expected to reach 1e-9
-    agreement with the direct backends at extreme conductivity contrast (slow convergence).
+    1e-12 in float64, 1e-6 in float32) or `max_iterations` (default: ten times the system size;
+    in exact arithmetic CG needs at most the size, and rounding on thin or badly shaped
+    elements can take it past twice that) is reached. A column that stops at `max_iterations` gives
+    `RESULTS.linear_solve_not_converged`: with `throw=True` (the default) the solve raises (at
+    run time under jit), so `measure` and `jacobian` never return an unconverged answer
+    silently; with `throw=False` the code reaches `Potentials.result`. Not expected to reach
+    1e-9 agreement with the direct backends at extreme conductivity contrast (slow convergence).
     """
 
-    relative_tolerance: float | None = None
-    max_iterations: int | None = None
+    relative_tolerance: float | None = eqx.field(static=True, default=None)
+    max_iterations: int | None = eqx.field(static=True, default=None)
+    throw: bool = eqx.field(static=True, default=True)
 
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the values (nnz,), the inverse of the diagonal (n, 1): the Jacobi preconditioner)."""
@@ -324,14 +345,14 @@ class ConjugateGradient(AbstractLinearSolver):
 
     def solve_factorised(
         self, pattern: SparsityPattern, factor: tuple[jax.Array, jax.Array], rhs: jax.Array
-    ) -> jax.Array:
+    ) -> tuple[jax.Array, RESULTS]:
         values, inverse_diagonal = factor
         dtype = values.dtype
         b = rhs.astype(dtype)
         tolerance = self.relative_tolerance
         if tolerance is None:
             tolerance = 1e-12 if dtype == jnp.float64 else 1e-6
-        max_iterations = 2 * pattern.size if self.max_iterations is None else self.max_iterations
+        max_iterations = 10 * pattern.size if self.max_iterations is None else self.max_iterations
         threshold = (tolerance * jnp.linalg.norm(b, axis=0)) ** 2
 
         def step(state):
@@ -348,14 +369,20 @@ class ConjugateGradient(AbstractLinearSolver):
             p = z + jnp.where(active, rz_next / rz, 0.0) * p
             return x, r, p, jnp.where(active, rz_next, rz), k + 1
 
+        def unconverged(r: jax.Array) -> jax.Array:
+            return jnp.any(jnp.sum(r * r, axis=0) > threshold)
+
         def unfinished(state):
             _x, r, _p, _rz, k = state
-            return (k < max_iterations) & jnp.any(jnp.sum(r * r, axis=0) > threshold)
+            return (k < max_iterations) & unconverged(r)
 
         z = inverse_diagonal * b
         state = (jnp.zeros_like(b), b, z, jnp.sum(b * z, axis=0), 0)
-        x = jax.lax.while_loop(unfinished, step, state)[0]
-        return x.astype(rhs.dtype)
+        x, r, *_ = jax.lax.while_loop(unfinished, step, state)
+        result = RESULTS.where(unconverged(r), RESULTS.linear_solve_not_converged, _finite_result(x))
+        if self.throw:
+            x = result.error_if(x, result != RESULTS.successful)
+        return x.astype(rhs.dtype), result
 
 
 def solver_named(name: str) -> AbstractLinearSolver:
@@ -364,6 +391,10 @@ def solver_named(name: str) -> AbstractLinearSolver:
     if name not in backends:
         raise ValueError(f"unknown solver {name!r}; choose one of {sorted(backends)}")
     return backends[name]()
+
+
+def _finite_result(x: jax.Array) -> RESULTS:
+    return RESULTS.where(jnp.all(jnp.isfinite(x)), RESULTS.successful, RESULTS.nonfinite)
 
 
 def solve_spd(
@@ -377,19 +408,30 @@ def solve_spd(
     Differentiable in `values` and `rhs`, in forward and reverse mode: the derivative of the
     solution is another solve with the same matrix (A is symmetric, so the transposed solve
     is the solve), and it reuses the factorisation: the solver factorises once. `rhs` has
-    shape (n,) or (n, k).
+    shape (n,) or (n, k). `solve_spd_with_result` also returns the solve's result code.
     """
+    return solve_spd_with_result(pattern, values, rhs, solver)[0]
+
+
+def solve_spd_with_result(
+    pattern: SparsityPattern,
+    values: jax.Array,
+    rhs: jax.Array,
+    solver: AbstractLinearSolver,
+) -> tuple[jax.Array, RESULTS]:
+    """(X, the `RESULTS` code of the solve): `solve_spd` with the backend's verdict, for the
+    callers that report it (`ForwardModel.potentials`)."""
     factor = solver.factorise(pattern, jax.lax.stop_gradient(values))
 
     def matvec(x: jax.Array) -> jax.Array:
         return pattern.matvec(values, x)
 
-    def solve(_matvec, b: jax.Array) -> jax.Array:
+    def solve(_matvec, b: jax.Array) -> tuple[jax.Array, RESULTS]:
         columns = b if b.ndim == 2 else b[:, None]
-        x = solver.solve_factorised(pattern, factor, columns)
-        return x if b.ndim == 2 else x[:, 0]
+        x, result = solver.solve_factorised(pattern, factor, columns)
+        return (x if b.ndim == 2 else x[:, 0]), result
 
-    return jax.lax.custom_linear_solve(matvec, rhs, solve, symmetric=True)
+    return jax.lax.custom_linear_solve(matvec, rhs, solve, symmetric=True, has_aux=True)
 
 
 def relative_residual(pattern: SparsityPattern, values: jax.Array, x: jax.Array, rhs: jax.Array) -> jax.Array:

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg
 
+import diffeit as de
 import diffeit.linear_solve as linear_solve
+from diffeit.results import RESULTS
 
 
 def _laplacian_system(n: int = 30, seed: int = 0):
@@ -137,8 +139,44 @@ def test_conjugate_gradient_stops_each_column_at_its_tolerance():
     residual = linear_solve.relative_residual(pattern, values, together, rhs)
     assert np.all(residual <= 1e-4)
     assert np.all(residual > 1e-12)  # it did stop early: not solved to rounding error
-    capped = linear_solve.ConjugateGradient(max_iterations=3)
+    capped = linear_solve.ConjugateGradient(max_iterations=3, throw=False)
     assert np.all(linear_solve.relative_residual(pattern, values, capped.solve(pattern, values, rhs), rhs) > 1e-3)
+
+
+def test_conjugate_gradient_reports_or_raises_when_it_stops_at_its_limit():
+    """An unconverged solve raises by default (also under jit), and with throw=False carries
+    the result code instead; a converged one reports success."""
+    pattern, values, _ = _laplacian_system(seed=9)
+    rhs = jnp.asarray(np.random.default_rng(10).normal(size=(30, 2)))
+    with pytest.raises(Exception, match="did not reach its tolerance"):
+        linear_solve.solve_spd(pattern, values, rhs, linear_solve.ConjugateGradient(max_iterations=3))
+    with pytest.raises(Exception, match="did not reach its tolerance"):
+        jax.jit(lambda v: linear_solve.solve_spd(pattern, v, rhs, linear_solve.ConjugateGradient(max_iterations=3)))(
+            values
+        )
+    capped = linear_solve.ConjugateGradient(max_iterations=3, throw=False)
+    _, result = linear_solve.solve_spd_with_result(pattern, values, rhs, capped)
+    assert result == RESULTS.linear_solve_not_converged
+    for backend in (linear_solve.ConjugateGradient(), linear_solve.HostSparse(), linear_solve.DenseCholesky()):
+        x, result = linear_solve.solve_spd_with_result(pattern, values, rhs, backend)
+        assert result == RESULTS.successful
+        assert np.all(linear_solve.relative_residual(pattern, values, x, rhs) < 1e-10)
+
+
+def test_the_forward_model_passes_the_solve_result_on(small_model, rough_conductivity):
+    """measure raises for an unconverged conjugate-gradient solve; potentials with throw=False
+    carries the code and the large residual."""
+    capped = linear_solve.ConjugateGradient(max_iterations=5)
+    strict = de.ForwardModel(small_model.mesh, small_model.protocol, solver=capped)
+    with pytest.raises(Exception, match="did not reach its tolerance"):
+        strict.measure(rough_conductivity)
+    lenient = de.ForwardModel(
+        small_model.mesh, small_model.protocol, solver=linear_solve.ConjugateGradient(max_iterations=5, throw=False)
+    )
+    potentials = lenient.potentials(rough_conductivity)
+    assert potentials.result == RESULTS.linear_solve_not_converged
+    assert np.all(potentials.relative_residual > 1e-4)
+    assert small_model.potentials(rough_conductivity).result == RESULTS.successful
 
 
 def test_backward_error_is_near_epsilon_for_a_direct_solve_and_not_for_a_wrong_one():
