@@ -42,28 +42,49 @@ def basis_gradients(mesh: Mesh) -> np.ndarray:
 
 
 @dataclass(eq=False)
-class CompleteElectrodeSystem(StaticData):
-    """The fixed structure of the grounded complete-electrode-model matrix of one mesh.
-
-    `values(sigma, z)` returns the (nnz,) matrix values on `pattern`. Static data for JAX,
-    compared and hashed by the mesh it was built from.
-    """
+class _GroundedSystem(StaticData):
+    """What both electrode systems hold: the stiffness part of a matrix grounded at one node,
+    built from one mesh. Static data for JAX, compared and hashed by that mesh."""
 
     pattern: SparsityPattern
     n_nodes: int
     n_electrodes: int
+    grounded_node: int
+    fingerprint: bytes  # of the mesh: the system is a function of it
     triangles: np.ndarray  # (E, 3) node indices
     element_areas: np.ndarray  # (E,) m^2
     gradients: np.ndarray  # (E, 2, 3) basis function gradients, 1/m
     unit_stiffness: np.ndarray  # (E, 9): area * grad phi_i . grad phi_j, row-major
     stiffness_table: np.ndarray  # (nnz, k): flat indices into unit_stiffness summed per slot, E*9 pads
+
+    @staticmethod
+    def _stiffness_fields(mesh: Mesh, stiffness: _Stiffness, grounded: int) -> dict:
+        return {
+            "pattern": stiffness.pattern,
+            "n_nodes": mesh.n_nodes,
+            "n_electrodes": mesh.n_electrodes,
+            "grounded_node": grounded,
+            "fingerprint": mesh.fingerprint,
+            "triangles": mesh.triangles,
+            "element_areas": mesh.element_areas,
+            "gradients": stiffness.gradients,
+            "unit_stiffness": stiffness.unit,
+            "stiffness_table": stiffness.table,
+        }
+
+
+@dataclass(eq=False)
+class CompleteElectrodeSystem(_GroundedSystem):
+    """The fixed structure of the grounded complete-electrode-model matrix of one mesh.
+
+    `values(sigma, z)` returns the (nnz,) matrix values on `pattern`.
+    """
+
     electrode_weights: np.ndarray  # (C,) geometric integral of each electrode entry, m
     electrode_of_entry: np.ndarray  # (C,) the electrode whose 1/z scales the entry
     electrode_rows: np.ndarray  # (C,) row and column of each electrode entry in the system
     electrode_cols: np.ndarray
     electrode_slots: np.ndarray  # (C,)
-    grounded_node: int
-    fingerprint: bytes  # of the mesh: the system is a function of it
 
     @classmethod
     def from_mesh(cls, mesh: Mesh) -> CompleteElectrodeSystem:
@@ -98,21 +119,12 @@ class CompleteElectrodeSystem(StaticData):
         rows, cols, weights, owner = rows[kept], cols[kept], weights[kept], owner[kept]
         stiffness = _Stiffness.from_mesh(mesh, unknown_of_node, rows, cols, size)
         return cls(
-            pattern=stiffness.pattern,
-            n_nodes=n_nodes,
-            n_electrodes=n_electrodes,
-            triangles=mesh.triangles,
-            element_areas=mesh.element_areas,
-            gradients=stiffness.gradients,
-            unit_stiffness=stiffness.unit,
-            stiffness_table=stiffness.table,
+            **cls._stiffness_fields(mesh, stiffness, grounded),
             electrode_weights=weights,
             electrode_of_entry=owner,
             electrode_rows=rows,
             electrode_cols=cols,
             electrode_slots=stiffness.extra_slots,
-            grounded_node=grounded,
-            fingerprint=mesh.fingerprint,
         )
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
@@ -149,7 +161,7 @@ class CompleteElectrodeSystem(StaticData):
 
 
 @dataclass(eq=False)
-class PointElectrodeSystem(StaticData):
+class PointElectrodeSystem(_GroundedSystem):
     """The stiffness matrix of one mesh with point electrodes, grounded at one node.
 
     Electrode l is the single node `electrode_nodes[l]` (the node of its boundary chain
@@ -162,17 +174,7 @@ class PointElectrodeSystem(StaticData):
     model for physics.
     """
 
-    pattern: SparsityPattern
-    n_nodes: int
-    n_electrodes: int
-    triangles: np.ndarray
-    element_areas: np.ndarray
-    gradients: np.ndarray
-    unit_stiffness: np.ndarray
-    stiffness_table: np.ndarray
     electrode_nodes: np.ndarray  # (L,) node index of each electrode
-    grounded_node: int
-    fingerprint: bytes  # of the mesh: the system is a function of it
 
     @classmethod
     def from_mesh(cls, mesh: Mesh) -> PointElectrodeSystem:
@@ -181,19 +183,7 @@ class PointElectrodeSystem(StaticData):
         size = mesh.n_nodes - 1
         empty = np.zeros(0, dtype=np.int64)
         stiffness = _Stiffness.from_mesh(mesh, _unknown_of_node(mesh.n_nodes, grounded, size), empty, empty, size)
-        return cls(
-            pattern=stiffness.pattern,
-            n_nodes=mesh.n_nodes,
-            n_electrodes=mesh.n_electrodes,
-            triangles=mesh.triangles,
-            element_areas=mesh.element_areas,
-            gradients=stiffness.gradients,
-            unit_stiffness=stiffness.unit,
-            stiffness_table=stiffness.table,
-            electrode_nodes=electrode_nodes,
-            grounded_node=grounded,
-            fingerprint=mesh.fingerprint,
-        )
+        return cls(**cls._stiffness_fields(mesh, stiffness, grounded), electrode_nodes=electrode_nodes)
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
         """(nnz,) matrix values for element-wise `conductivity` (E,) in S/sq; the contact
