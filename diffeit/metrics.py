@@ -225,6 +225,17 @@ def position_error(geometry: Geometry, image: np.ndarray, centre: Sequence[float
     return float(np.linalg.norm(half_amplitude_centroid(geometry, image) - true_centre))
 
 
+def transition_width(geometry: Geometry, image: np.ndarray, edge_length: float) -> float:
+    """Edge blur, m: the area of the cells between 10% and 90% of the peak (on the peak's side),
+    sum_(k : 0.1 <= x_k / p <= 0.9) a_k, divided by the true edge's length `edge_length` (m,
+    2 pi r for a disc of radius r). A sharp edge gives about one cell's width."""
+    if not (np.isfinite(edge_length) and edge_length > 0):
+        raise ValueError(f"edge_length must be positive (m); got {edge_length}")
+    cells = _cells(geometry, image)
+    relative = cells.values / peak(cells.values)
+    return float(cells.areas[(relative >= 0.1) & (relative <= 0.9)].sum() / edge_length)
+
+
 def shape_deformation(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
     """SD = sum_(k in S_f) a_k (1 - phi_k) / A: the fraction of the amplitude set's area outside
     the disc of equal area centred on its centroid (phi_k: part of cell k inside that disc,

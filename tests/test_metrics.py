@@ -42,6 +42,21 @@ def test_a_disc(mesh):
     assert metrics.correlation(mesh, image, -image) == pytest.approx(-1.0)
 
 
+def test_transition_width_of_a_sharp_and_a_linear_edge(mesh):
+    """A sharp disc's edge blurs over only the elements its boundary cuts; a linear ramp from the
+    peak at r = 0.1 to zero at r = 0.3 has 80% of its 0.2 m ramp between 10% and 90%."""
+    perimeter = 2 * np.pi * 0.2
+    sharp = -0.003 * de.mesh.disc_fraction(mesh, (0.0, 0.0), 0.2)
+    assert metrics.transition_width(mesh, sharp, perimeter) < 0.06  # about one element (h = 0.05)
+    radius = np.linalg.norm(mesh.element_centroids, axis=1)
+    ramp = -np.clip((0.3 - radius) / 0.2, 0.0, 1.0)
+    # The band 0.12 < r < 0.28 has area pi (0.28^2 - 0.12^2); over the mid-ramp circle 2 pi 0.2.
+    expected = np.pi * (0.28**2 - 0.12**2) / (2 * np.pi * 0.2)
+    assert metrics.transition_width(mesh, ramp, 2 * np.pi * 0.2) == pytest.approx(expected, rel=0.1)
+    with pytest.raises(ValueError, match="edge_length"):
+        metrics.transition_width(mesh, ramp, 0.0)
+
+
 def test_a_cone_and_its_cross_section(mesh):
     """A cone of height -0.02 and base radius 0.4: the half-amplitude set is the disc r = 0.2,
     and the cross-section through the peak is the cone's profile."""
