@@ -15,6 +15,7 @@ from . import mesh as mesh
 from . import metrics as metrics
 from . import protocol as protocol
 from . import render as render
+from . import results as results
 from . import scene as scene
 from ._precision import PrecisionWarning as PrecisionWarning
 from .forward import ForwardModel as ForwardModel

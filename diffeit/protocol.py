@@ -28,7 +28,7 @@ from ._messages import name_indices
 class Protocol(StaticData):
     """Current patterns and the voltage readings taken under each.
 
-    `Protocol(drive, measure)`:
+    **Arguments:**
 
     - `drive`: (n_drives, L) current pattern per drive, in units of the model's drive current:
       entry l is the current entering the sheet through electrode l (positive in). Each row
@@ -219,8 +219,8 @@ gives a JAX array out (jit and vmap work), anything else a NumPy array."""
 class Conversion(StaticData):
     """Maps frames recorded under one protocol onto the order and sign of another.
 
-    `Conversion(source, target, *, fill=None)`, then `conversion(frames)`: frames (..., n_source)
-    voltages, a NumPy or JAX array (one frame or a batch), give (..., n_target), one gather.
+    Build it once, then call it: `conversion(frames)` maps frames (..., n_source) voltages, a
+    NumPy or JAX array (one frame or a batch), to (..., n_target), one gather.
     Under `jax.jit` the map is static data; conversions compare and hash by content.
 
     Each target reading (drive d, weights w) takes the value of a source reading with the same
