@@ -20,6 +20,7 @@ demo: $(STAMP)
 # pins the measuring processes instead.
 test: $(STAMP)
 	$(BIN)/ruff check diffeit hw tests benchmarks examples
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
 
 BENCH_FLAGS ?=

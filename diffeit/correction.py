@@ -61,6 +61,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib.tri
@@ -110,15 +111,14 @@ class CalibrationSettings:
     n_data_elements: int
 
 
-@dataclass(frozen=True, eq=False)
-class Calibration:
+class Calibration(eqx.Module):
     """Position-dependent correction factors (module docstring).
 
     - `positions` (P, 2) m: the calibration positions (true touch centres); row 0 the reference.
     - `intensity_factor`, `size_factor` (P,): g_I and g_S there (1 at the reference).
     - `intensity_table`, `size_table` (B, I, R, P): the ratios of each setting (backgrounds x
       intensities x radii of `settings`) whose geometric means the factors are.
-    - `settings`: `CalibrationSettings`.
+    - `settings`: `CalibrationSettings` (static).
     - `image_positions` (P, 2) m: where the touches at `positions` appear, the mean
       half-amplitude centroid of their images (default: `positions`). `factors` is looked up
       by a reconstructed centroid, so it interpolates over these.
@@ -129,13 +129,30 @@ class Calibration:
     size_factor: np.ndarray
     intensity_table: np.ndarray
     size_table: np.ndarray
-    settings: CalibrationSettings
-    image_positions: np.ndarray | None = None
+    settings: CalibrationSettings = eqx.field(static=True)
+    image_positions: np.ndarray
 
-    def __post_init__(self) -> None:
-        positions = _checked_positions(self.positions)
-        if self.image_positions is None:
-            object.__setattr__(self, "image_positions", positions)
+    def __init__(
+        self,
+        positions: np.ndarray,
+        intensity_factor: np.ndarray,
+        size_factor: np.ndarray,
+        intensity_table: np.ndarray,
+        size_table: np.ndarray,
+        settings: CalibrationSettings,
+        image_positions: np.ndarray | None = None,
+    ) -> None:
+        checked = _checked_positions(positions)
+        self.positions = positions
+        self.intensity_factor = intensity_factor
+        self.size_factor = size_factor
+        self.intensity_table = intensity_table
+        self.size_table = size_table
+        self.settings = settings
+        self.image_positions = checked if image_positions is None else image_positions
+
+    def __check_init__(self) -> None:
+        positions = np.asarray(self.positions, dtype=float)
         if np.shape(self.image_positions) != positions.shape:
             raise ValueError(f"image_positions has shape {np.shape(self.image_positions)}; expected {positions.shape}")
         _checked_positions(self.image_positions)

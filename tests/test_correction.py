@@ -11,7 +11,7 @@ import pytest
 
 import diffeit as de
 from diffeit import correction, metrics
-from diffeit.scene._instrument import Noise, add_noise
+from diffeit.scene import Noise, add_noise
 
 BACKGROUND = 0.01  # S/sq, the dissertation's working point: medium noise, hyperparameter 0.05
 MEDIUM_NOISE = 0.5  # percent of RMS(V_ref)

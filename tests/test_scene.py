@@ -73,7 +73,7 @@ def test_toml_round_trip_keeps_every_field(tmp_path):
     assert_same_scene(again, scene)
     # And once more through text: the written file is a fixed point.
     assert Scene.from_toml_string(again.to_toml_string()).to_toml_string() == path.read_text()
-    assert [de.scene._scene.effect_name(e) for e in again.effects] == list(de.scene.EFFECT_NAMES)
+    assert [de.scene._effects.effect_name(e) for e in again.effects] == list(de.scene.EFFECT_NAMES)
     np.testing.assert_array_equal(np.asarray(again.skin.contact_impedance), np.linspace(0.01, 0.02, 16))
     with pytest.raises(FileExistsError):
         scene.to_toml(path)

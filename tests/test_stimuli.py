@@ -7,21 +7,10 @@ import numpy as np
 import pytest
 
 import diffeit as de
-from diffeit.scene import _stimuli
-from diffeit.scene._stimuli import (
-    Disc,
-    Ellipse,
-    Path,
-    Press,
-    Ramp,
-    Touch,
-    check_touches,
-    combine_changes,
-    default_edge_width,
-    shape_fraction,
-    stimulus,
-    touch_field,
-)
+from diffeit.scene import _touches
+from diffeit.scene._shapes import Disc, Ellipse, default_edge_width, shape_fraction
+from diffeit.scene._time_courses import Path, Press, Ramp
+from diffeit.scene._touches import Touch, check_touches, combine_changes, stimulus, touch_field
 
 CENTRE, RADIUS = np.array([0.23, -0.11]), 0.31  # off the mesh's symmetries, well inside the unit disc
 
@@ -257,7 +246,7 @@ def test_stimulus_gradients_and_batches(mesh, monkeypatch):
     # Frames mapped a few at a time give the same frames.
     touch = Touch(Disc((0.2, 0.1), 0.2), -0.3, Press(0.3, 0.5, 0.5, 0.5))
     whole = stimulus(mesh, [touch], times)
-    monkeypatch.setattr(_stimuli, "_SAMPLES_PER_BATCH", 2 * mesh.n_elements * 64)
+    monkeypatch.setattr(_touches, "_SAMPLES_PER_BATCH", 2 * mesh.n_elements * 64)
     np.testing.assert_allclose(stimulus(mesh, [touch], times), whole, rtol=1e-14, atol=1e-16)
 
 

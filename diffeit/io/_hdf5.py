@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import importlib.metadata
 import itertools
 import json
 import os
@@ -126,12 +127,10 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
 
 
 def _write(file: h5py.File, recording: Recording, metadata: str) -> None:
-    from .. import __version__
-
     provenance = recording.provenance
     file.attrs["schema"] = SCHEMA
     file.attrs["schema_version"] = SCHEMA_VERSION
-    file.attrs["diffeit_version"] = provenance.get("diffeit_version", __version__)
+    file.attrs["diffeit_version"] = provenance.get("diffeit_version", importlib.metadata.version("diffeit"))
     file.attrs["created_utc"] = provenance.get("created_utc", _now())
     file.attrs["source"] = provenance.get("source", "")
     file.attrs["metadata"] = metadata

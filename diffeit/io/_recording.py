@@ -3,30 +3,28 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
+import equinox as eqx
 import numpy as np
+from numpy.typing import ArrayLike
 
-from .. import mesh as meshes
 from .._arrays import readonly
 from .._messages import name_indices
-from ..mesh import Mesh
+from ..mesh import Mesh, disc, polygon, rectangle
 from ..protocol import Protocol
 
 PROVENANCE_KEYS = ("source", "created_utc", "diffeit_version", "metadata")
-# Generators a geometry description may name; their keyword arguments are its other entries.
-GEOMETRY_KINDS = ("disc", "rectangle", "polygon")
+# The generators a geometry description may name; their keyword arguments are its other entries.
+_GENERATORS = {"disc": disc, "rectangle": rectangle, "polygon": polygon}
+GEOMETRY_KINDS = tuple(_GENERATORS)
 
 
-@dataclass(frozen=True, eq=False, kw_only=True)
-class Recording:
+class Recording(eqx.Module):
     """Frames of boundary voltages, simulated, recorded or reconstructed, with what they need.
 
-    `Recording(frames=..., times=..., protocol=..., reference=None, mesh=None, geometry=None,
-    provenance={}, images=None, image_quantity=None, voltage_unit="V")`, keywords only. Arrays
-    are stored as read-only float64 copies; construction checks shapes and finiteness and raises
-    `ValueError` naming the problem.
+    Arrays are stored as read-only float64 copies; construction checks shapes and finiteness
+    and raises `ValueError` naming the problem.
 
     **Fields:**
 
@@ -50,57 +48,74 @@ class Recording:
       the reference) or "conductivity"; None without images.
     - `voltage_unit`: unit of `frames` and `reference`: "V" (volts) for diffeit's simulations
       and calibrated hardware, "arbitrary" for data in device units (EIDORS files, ADC counts).
+
+    A recording is an `equinox.Module`: the arrays, geometry and provenance are its leaves;
+    protocol, mesh, image_quantity and voltage_unit are static fields.
     """
 
     frames: np.ndarray
     times: np.ndarray
-    protocol: Protocol
-    reference: np.ndarray | None = None
-    mesh: Mesh | None = None
-    geometry: Mapping[str, Any] | None = None
-    provenance: Mapping[str, Any] = field(default_factory=dict)
-    images: np.ndarray | None = None
-    image_quantity: str | None = None
-    voltage_unit: str = "V"
+    protocol: Protocol = eqx.field(static=True)
+    reference: np.ndarray | None
+    mesh: Mesh | None = eqx.field(static=True)
+    geometry: dict[str, Any] | None
+    provenance: dict[str, Any]
+    images: np.ndarray | None
+    image_quantity: str | None = eqx.field(static=True)
+    voltage_unit: str = eqx.field(static=True)
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.protocol, Protocol):
-            raise ValueError(f"protocol must be a diffeit.protocol.Protocol; got {type(self.protocol).__name__}")
-        n_meas = self.protocol.n_measurements
-        frames = _finite_array("frames", self.frames, (None, n_meas), f"(T, {n_meas}): one value per reading")
+    def __init__(
+        self,
+        *,
+        frames: ArrayLike,
+        times: ArrayLike,
+        protocol: Protocol,
+        reference: ArrayLike | None = None,
+        mesh: Mesh | None = None,
+        geometry: Mapping[str, Any] | None = None,
+        provenance: Mapping[str, Any] | None = None,
+        images: ArrayLike | None = None,
+        image_quantity: str | None = None,
+        voltage_unit: str = "V",
+    ) -> None:
+        if not isinstance(protocol, Protocol):
+            raise ValueError(f"protocol must be a diffeit.protocol.Protocol; got {type(protocol).__name__}")
+        n_meas = protocol.n_measurements
+        frames = _finite_array("frames", frames, (None, n_meas), f"(T, {n_meas}): one value per reading")
         n_frames = len(frames)
-        times = _finite_array("times", self.times, (n_frames,), f"({n_frames},): one time per frame, seconds")
-        reference = None
-        if self.reference is not None:
-            reference = _finite_array("reference", self.reference, (n_meas,), f"({n_meas},): one frame")
-        if self.mesh is not None:
-            if not isinstance(self.mesh, Mesh):
-                raise ValueError(f"mesh must be a diffeit Mesh; got {type(self.mesh).__name__}")
-            if self.mesh.n_electrodes != self.protocol.n_electrodes:
+        times = _finite_array("times", times, (n_frames,), f"({n_frames},): one time per frame, seconds")
+        if reference is not None:
+            reference = _finite_array("reference", reference, (n_meas,), f"({n_meas},): one frame")
+        if mesh is not None:
+            if not isinstance(mesh, Mesh):
+                raise ValueError(f"mesh must be a diffeit Mesh; got {type(mesh).__name__}")
+            if mesh.n_electrodes != protocol.n_electrodes:
                 raise ValueError(
-                    f"the mesh has {self.mesh.n_electrodes} electrodes; the protocol addresses "
-                    f"{self.protocol.n_electrodes}"
+                    f"the mesh has {mesh.n_electrodes} electrodes; the protocol addresses {protocol.n_electrodes}"
                 )
-        geometry = None if self.geometry is None else _checked_geometry(self.geometry)
-        provenance = _checked_provenance(self.provenance)
-        images = None
-        if self.images is not None:
-            if self.mesh is None:
+        geometry = None if geometry is None else _checked_geometry(geometry)
+        provenance = _checked_provenance({} if provenance is None else provenance)
+        if images is not None:
+            if mesh is None:
                 raise ValueError("images need the mesh they live on: pass mesh=")
-            n_elements = self.mesh.n_elements
-            images = _finite_array("images", self.images, (n_frames, n_elements), f"({n_frames}, {n_elements})")
-            if not isinstance(self.image_quantity, str) or not self.image_quantity:
+            n_elements = mesh.n_elements
+            images = _finite_array("images", images, (n_frames, n_elements), f"({n_frames}, {n_elements})")
+            if not isinstance(image_quantity, str) or not image_quantity:
                 raise ValueError('images need image_quantity, e.g. "conductivity change" or "conductivity"')
-        elif self.image_quantity is not None:
+        elif image_quantity is not None:
             raise ValueError("image_quantity is given without images")
-        if not isinstance(self.voltage_unit, str) or not self.voltage_unit:
-            raise ValueError(f'voltage_unit must be a non-empty string such as "V"; got {self.voltage_unit!r}')
-        object.__setattr__(self, "frames", frames)
-        object.__setattr__(self, "times", times)
-        object.__setattr__(self, "reference", reference)
-        object.__setattr__(self, "geometry", geometry)
-        object.__setattr__(self, "provenance", provenance)
-        object.__setattr__(self, "images", images)
+        if not isinstance(voltage_unit, str) or not voltage_unit:
+            raise ValueError(f'voltage_unit must be a non-empty string such as "V"; got {voltage_unit!r}')
+        self.frames = frames
+        self.times = times
+        self.protocol = protocol
+        self.reference = reference
+        self.mesh = mesh
+        self.geometry = geometry
+        self.provenance = provenance
+        self.images = images
+        self.image_quantity = image_quantity
+        self.voltage_unit = voltage_unit
 
     @property
     def n_frames(self) -> int:
@@ -153,7 +168,7 @@ def mesh_from_geometry(geometry: Mapping[str, Any]) -> Mesh:
     `diffeit.mesh.disc(**keywords)`; likewise "rectangle" and "polygon" (lengths in metres)."""
     geometry = _checked_geometry(geometry)
     keywords = {k: v for k, v in geometry.items() if k != "kind"}
-    generator = getattr(meshes, geometry["kind"])
+    generator = _GENERATORS[geometry["kind"]]
     try:
         return generator(**keywords)
     except TypeError as error:  # an unknown keyword: say which generator refused what

@@ -1,9 +1,12 @@
-"""The instrument's effects: measurement noise, common-mode drift, contact impedance drift, open electrodes.
+"""The instrument's effects: measurement noise, common-mode drift, contact impedance drift, open
+electrodes, electrode position error.
 
-Each effect is a small pure JAX function of its own parameters; every continuous parameter (noise
-scale, drift offsets and rates, contact impedances and their rates) is a pytree leaf, so
-`jax.grad` differentiates through it. Units: voltages in volts, times in seconds, contact
-impedance in ohm m (as `diffeit.ForwardModel`), rates per second.
+Each effect is a small pure JAX function of its own parameters, and an `equinox.Module` that a
+scene declares (`MeasurementNoise`, `CommonModeDrift`, `ContactDrift`, `OpenElectrodes`,
+`ElectrodePositionError`); every continuous parameter (noise scale, drift offsets and rates,
+contact impedances and their rates) is a leaf, so `jax.grad` differentiates through it. Units:
+voltages in volts, times in seconds, contact impedance in ohm m (as `diffeit.ForwardModel`),
+rates per second.
 
 ## Measurement noise (the README's convention)
 "p%" noise is independent Gaussian noise of standard deviation sigma = p/100 x RMS(V_ref) on
@@ -45,21 +48,26 @@ it (a current source into an open circuit rails, its voltages are garbage), is r
 `fill` (0 V by default; never NaN, so frames stay finite for any downstream code), and
 `open_electrodes` returns the boolean mask (M,) of these lost readings, True where lost, so
 reconstructions can drop them. The fault is discrete: the mask has no gradient.
+
+## Electrode position error
+The electrodes of the simulation mesh sit along the boundary off their nominal positions by
+given offsets (metres, counter-clockwise), while the reconstruction mesh keeps the nominal ones.
+It changes the mesh, so it has no gradient.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
-from functools import partial
-from typing import Literal
+from typing import Any, Literal
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._arrays import concrete_floats
-from .._pytree import register_dataclass
 from ..protocol import Protocol
 
 ArrayLike = float | jax.Array | np.ndarray
@@ -77,21 +85,19 @@ ContactDriftKind = Literal["exponential", "linear"]
 # --- Measurement noise ---------------------------------------------------------------------------
 
 
-@partial(register_dataclass, static=("kind",))
-@dataclass(frozen=True, eq=False)
-class Noise:
+class Noise(eqx.Module):
     """Measurement noise: independent Gaussian noise of one standard deviation on every reading.
 
-    `Noise(value, kind)` with `kind` "percent" (value in percent of RMS(V_ref), >= 0), "snr_db"
-    (value in dB, any finite number) or "volts" (value the standard deviation in volts, >= 0).
-    Build with `Noise.percent(p)`, `Noise.snr_db(s)`, `Noise.volts(v)` or `Noise.level(name)`
-    (a name of `NOISE_LEVELS`). `value` is a pytree leaf (differentiable); `kind` is static.
+    `value` in the unit `kind` names: "percent" (percent of RMS(V_ref), >= 0), "snr_db" (dB, any
+    finite number) or "volts" (the standard deviation in volts, >= 0). Build with
+    `Noise.percent(p)`, `Noise.snr_db(s)`, `Noise.volts(v)` or `Noise.level(name)` (a name of
+    `NOISE_LEVELS`). `value` is a leaf (differentiable); `kind` is static.
     """
 
     value: ArrayLike
-    kind: NoiseKind = "percent"
+    kind: NoiseKind = eqx.field(default="percent", static=True)
 
-    def __post_init__(self) -> None:
+    def __check_init__(self) -> None:
         if self.kind not in ("percent", "snr_db", "volts"):
             raise ValueError(f"Noise.kind must be 'percent', 'snr_db' or 'volts'; got {self.kind!r}")
         value = concrete_floats(self.value, "Noise.value")
@@ -152,12 +158,24 @@ def add_noise(frames: ArrayLike, reference: ArrayLike, noise: Noise, key: jax.Ar
     return frames + std * jax.random.normal(key, frames.shape, frames.dtype)
 
 
+class MeasurementNoise(eqx.Module):
+    """The effect "noise": Gaussian noise of `noise` (a `Noise`) on every reading of every frame
+    and of the reference, drawn from `jax.random.key(seed)` (static)."""
+
+    noise: Noise
+    seed: int = eqx.field(default=0, static=True)
+
+    def __check_init__(self) -> None:
+        if not isinstance(self.noise, Noise):
+            raise ValueError(f"effects.noise needs a Noise; got {self.noise!r}")
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
+            raise ValueError(f"effects.noise.seed must be an integer; got {self.seed!r}")
+
+
 # --- Common-mode drift ---------------------------------------------------------------------------
 
 
-@register_dataclass
-@dataclass(frozen=True, eq=False)
-class CommonModeDrift:
+class CommonModeDrift(eqx.Module):
     """Drift common to all readings: V'(t) = (1 + gain_rate t) V(t) + offset(t).
 
     - `offset`: constant offset (volts).
@@ -166,7 +184,7 @@ class CommonModeDrift:
       seconds > 0, radians).
     - `gain_rate`: relative gain drift (1/s): the gain is 1 + gain_rate t.
 
-    Every field is a scalar pytree leaf (differentiable). All zero (the defaults): no change.
+    Every field is a scalar leaf (differentiable). All zero (the defaults): no change.
     """
 
     offset: ArrayLike = 0.0
@@ -176,8 +194,8 @@ class CommonModeDrift:
     phase: ArrayLike = 0.0
     gain_rate: ArrayLike = 0.0
 
-    def __post_init__(self) -> None:
-        for f in fields(self):
+    def __check_init__(self) -> None:
+        for f in dataclasses.fields(self):
             concrete_floats(getattr(self, f.name), f"CommonModeDrift.{f.name}")
         period = concrete_floats(self.period, "CommonModeDrift.period")
         if period is not None and not np.all(period > 0):
@@ -209,9 +227,7 @@ def add_drift(frames: ArrayLike, times: ArrayLike, drift: CommonModeDrift) -> ja
 # --- Contact impedance drift ---------------------------------------------------------------------
 
 
-@partial(register_dataclass, static=("kind",))
-@dataclass(frozen=True, eq=False)
-class ContactDrift:
+class ContactDrift(eqx.Module):
     """How the contact impedance of every electrode drifts in time (the skin holds its value
     at t = 0).
 
@@ -219,13 +235,13 @@ class ContactDrift:
       z0 (1 + rate t) ("linear"; keep 1 + rate t > 0 over the scene).
     - `kind`: "exponential" (default) or "linear" (static).
 
-    `rate` is a pytree leaf (differentiable). A rate of 0: no change.
+    `rate` is a leaf (differentiable). A rate of 0: no change.
     """
 
     rate: ArrayLike = 0.0
-    kind: ContactDriftKind = "exponential"
+    kind: ContactDriftKind = eqx.field(default="exponential", static=True)
 
-    def __post_init__(self) -> None:
+    def __check_init__(self) -> None:
         if self.kind not in ("exponential", "linear"):
             raise ValueError(f"ContactDrift.kind must be 'exponential' or 'linear'; got {self.kind!r}")
         rate = concrete_floats(self.rate, "ContactDrift.rate")
@@ -296,3 +312,51 @@ def open_electrodes(
         raise ValueError(f"frames has shape {frames.shape}; expected (T, {protocol.n_measurements})")
     mask = lost_readings(protocol, electrodes)
     return jnp.where(jnp.asarray(mask), jnp.asarray(fill, frames.dtype), frames), mask
+
+
+def _electrode_indices(electrodes: Any) -> tuple[int, ...]:
+    """The open electrodes as a tuple of Python integers (static, hashable)."""
+    index = np.atleast_1d(np.asarray(electrodes))
+    if index.ndim != 1 or index.size == 0 or not np.issubdtype(index.dtype, np.integer):
+        raise ValueError(f"effects.open_electrode.electrodes must be electrode indices; got {electrodes!r}")
+    return tuple(int(e) for e in index)
+
+
+class OpenElectrodes(eqx.Module):
+    """The effect "open_electrode": the electrodes (indices) that carry no current; their
+    readings are replaced by `fill` volts and flagged (`Simulation.lost`). Static: the fault is
+    discrete."""
+
+    electrodes: tuple[int, ...] = eqx.field(static=True, converter=_electrode_indices)
+    fill: float = eqx.field(default=0.0, static=True)
+
+    def __check_init__(self) -> None:
+        if not (isinstance(self.fill, int | float) and math.isfinite(self.fill)):
+            raise ValueError(f"effects.open_electrode.fill must be a finite voltage; got {self.fill!r}")
+
+
+# --- Electrode position error --------------------------------------------------------------------
+
+
+def _offsets(offsets: Any) -> tuple[float, ...]:
+    """The offsets as a tuple of Python floats (static, hashable)."""
+    values = concrete_floats(offsets, "effects.electrode_position_error.offsets")
+    if values is None or values.ndim != 1:
+        raise ValueError("effects.electrode_position_error.offsets must be one number per electrode (metres)")
+    return tuple(float(v) for v in values)
+
+
+class ElectrodePositionError(eqx.Module):
+    """The effect "electrode_position_error": every electrode of the simulation mesh moved along
+    the boundary by `offsets` (metres, counter-clockwise; one per electrode), while the
+    reconstruction mesh keeps the nominal positions. Static: it changes the mesh, so it has no
+    gradient."""
+
+    offsets: tuple[float, ...] = eqx.field(static=True, converter=_offsets)
+
+    @classmethod
+    def random(cls, n_electrodes: int, std: float, seed: int = 0) -> ElectrodePositionError:
+        """Independent Gaussian offsets of standard deviation `std` metres."""
+        if not (math.isfinite(std) and std >= 0):
+            raise ValueError(f"effects.electrode_position_error.std must be >= 0 (metres); got {std}")
+        return cls(tuple(np.random.default_rng(seed).normal(0.0, std, n_electrodes)))

@@ -78,9 +78,9 @@ on a rested skin (between 4% less for a 1 s tap of -0.1 and 29% less for long or
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-from typing import NamedTuple
+import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -96,14 +96,12 @@ _TINY = 1e-100
 _FRACTIONS = ("fast_fraction", "slow_fraction", "relaxation", "first_cycle_offset", "fatigue_limit")
 
 
-@jax.tree_util.register_pytree_with_keys_class
-@dataclass(frozen=True, eq=False)
-class MemoryParameters:
+class MemoryParameters(eqx.Module):
     """Parameters of the memory effect (see the module docstring for the model).
 
     Every field is a scalar or an array broadcasting against the elements (for example one value
-    per element, for a skin partly over foam); every field is a leaf of this JAX pytree, so
-    `jax.grad` differentiates with respect to all of them. Defaults are `over_foam()`.
+    per element, for a skin partly over foam); every field is a leaf, so `jax.grad`
+    differentiates with respect to all of them. Defaults are `over_foam()`.
 
     - `gain`: g, response per unit stimulus of a rested, preconditioned skin (dimensionless, > 0).
     - `fast_fraction`, `slow_fraction`: f_fast, f_slow, the parts of the response carried by the
@@ -130,28 +128,14 @@ class MemoryParameters:
     fatigue_rate: ArrayLike = 1.3
     fatigue_recovery_time: ArrayLike = 100.0
 
-    def __post_init__(self) -> None:
+    def __check_init__(self) -> None:
         _check_parameters(self)
-
-    def tree_flatten_with_keys(self) -> tuple[tuple, None]:
-        return tuple((jax.tree_util.GetAttrKey(f.name), getattr(self, f.name)) for f in fields(self)), None
-
-    def tree_flatten(self) -> tuple[tuple, None]:
-        return tuple(getattr(self, f.name) for f in fields(self)), None
-
-    @classmethod
-    def tree_unflatten(cls, static: None, leaves: tuple) -> MemoryParameters:
-        # Transformations rebuild parameters from tracers or placeholders: no checks then.
-        parameters = object.__new__(cls)
-        for f, value in zip(fields(cls), leaves, strict=True):
-            object.__setattr__(parameters, f.name, value)
-        return parameters
 
 
 def _check_parameters(parameters: MemoryParameters) -> None:
     """ValueError naming the field for concrete values out of range; traced values pass."""
     values = {}
-    for f in fields(parameters):
+    for f in dataclasses.fields(parameters):
         value = concrete_floats(getattr(parameters, f.name), f"MemoryParameters.{f.name}")
         if value is not None:
             values[f.name] = value
@@ -183,8 +167,8 @@ def over_foam() -> MemoryParameters:
     return MemoryParameters()
 
 
-class MemoryState(NamedTuple):
-    """The memory of every element at one time (a JAX pytree; arrays of the elements' shape).
+class MemoryState(eqx.Module):
+    """The memory of every element at one time (arrays of the elements' shape).
 
     - `time`: () seconds, the time the state refers to.
     - `stimulus`: a_prev, the stimulus held since the last frame (dsigma/sigma).
@@ -242,7 +226,8 @@ def advance(state: MemoryState, parameters: MemoryParameters, until: ArrayLike) 
     drive = p.fatigue_rate * jnp.abs(state.stimulus) * p.fatigue_recovery_time  # x = k |a| tau_phi
     fatigue_target = p.fatigue_limit * drive / (1 + drive)
     fatigue = _settle(state.fatigue, fatigue_target, *exponentials((1 + drive) / p.fatigue_recovery_time))
-    return state._replace(
+    return dataclasses.replace(
+        state,
         time=jnp.asarray(until, state.time.dtype),
         fast=fast.astype(dtype),
         slow=slow.astype(dtype),
@@ -272,7 +257,8 @@ def apply_stimulus(state: MemoryState, stimulus: ArrayLike) -> MemoryState:
     sensitivity = jnp.where(loading, fresh + (state.sensitivity - fresh) * weight, state.sensitivity)
     increment = jnp.where(loading, sensitivity * stimulus - state.sensitivity * previous, 0)
     extreme = jnp.where(jnp.abs(stimulus) > jnp.abs(state.extreme), stimulus, state.extreme)
-    return state._replace(
+    return dataclasses.replace(
+        state,
         stimulus=stimulus,
         sensitivity=sensitivity,
         fast=state.fast + increment,

@@ -1,35 +1,32 @@
-"""Scene files: reading TOML data into a `Scene` (checking every field, converting units) and
-writing a `Scene` back as SI numbers. The format is described in `diffeit.scene._scene`."""
+"""Scene files: reading TOML data into the arguments of a `Scene` (checking every field,
+converting units) and writing a scene back as SI numbers. The format is described in the
+docstring of the module of `Scene` (`diffeit.scene._scene`), which calls into this one."""
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 from collections.abc import Iterator, Mapping
 from typing import Any
 
 import jax.numpy as jnp
 
 from .._arrays import concrete_floats
-from ._instrument import CommonModeDrift, ContactDrift, Noise
-from ._memory import MemoryParameters, bare_skin, over_foam
-from ._scene import (
-    EFFECT_NAMES,
-    EFFECTS,
-    GEOMETRY_KEYS,
-    SKIN_KINDS,
-    Background,
+from ._background import Background, Region
+from ._effects import EFFECT_NAMES, EFFECTS, effect_name
+from ._instrument import (
+    CommonModeDrift,
+    ContactDrift,
     ElectrodePositionError,
-    FoamStack,
     MeasurementNoise,
+    Noise,
     OpenElectrodes,
-    Region,
-    Scene,
-    Skin,
-    effect_name,
-    pressure_to_change,
-    thawed,
 )
-from ._stimuli import AbstractShape, AbstractTimeCourse, Disc, Ellipse, Path, Polygon, Press, Ramp, Touch
+from ._memory import bare_skin, over_foam
+from ._shapes import AbstractShape, Disc, Ellipse, Polygon
+from ._skin import GEOMETRY_KEYS, SKIN_KINDS, Skin, thawed
+from ._time_courses import AbstractTimeCourse, Path, Press, Ramp
+from ._touches import FoamStack, Touch, pressure_to_change
 from ._units import quantities
 
 # --- Reading --------------------------------------------------------------------------------
@@ -232,8 +229,8 @@ def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
                 raise ValueError(f"preset must be one of {sorted(presets)}; got {preset!r}")
             base = presets[preset]()
             units = {"fast_time": "time", "slow_time": "time", "fatigue_recovery_time": "time", "fatigue_rate": "rate"}
-            values = {f: _leaf(table.get(f, units.get(f, "ratio"))) for f in base.__dataclass_fields__ if table.has(f)}
-            made = MemoryParameters(**{**{f: getattr(base, f) for f in base.__dataclass_fields__}, **values})
+            values = {f: _leaf(table.get(f, units.get(f, "ratio"))) for f in _field_names(base) if table.has(f)}
+            made = dataclasses.replace(base, **values)
         elif name == "noise":
             given = [key for key in ("level", "percent", "snr_db", "volts") if table.has(key)]
             if len(given) != 1:
@@ -265,7 +262,9 @@ def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
     return made
 
 
-def scene_from_dict(data: Mapping[str, Any]) -> Scene:
+def scene_arguments(data: Mapping[str, Any]) -> dict[str, Any]:
+    """The keyword arguments of the `Scene` that `data` (as read from TOML) describes, each
+    checked; ValueError naming the field."""
     top = _Table(data, "")
     skin = _skin(_Table(top.raw("skin", {}), "skin"))
     background = _background(_Table(top.raw("background", {}), "background"))
@@ -283,18 +282,18 @@ def scene_from_dict(data: Mapping[str, Any]) -> Scene:
     for key in ("name", "description"):
         if not isinstance(top.raw(key, ""), str):
             raise ValueError(f"{key} must be a string")
-    scene = Scene(
-        skin=skin,
-        background=background,
-        touches=tuple(_touch(_Table(t, f"touches[{i}]")) for i, t in enumerate(touches)),
-        frame_rate=top.get("frame_rate", "frequency", 10.0),
-        duration=top.get("duration", "time", 1.0),
-        effects=tuple(effects),
-        name=top.raw("name", ""),
-        description=top.raw("description", ""),
-    )
+    arguments = {
+        "skin": skin,
+        "background": background,
+        "touches": tuple(_touch(_Table(t, f"touches[{i}]")) for i, t in enumerate(touches)),
+        "frame_rate": top.get("frame_rate", "frequency", 10.0),
+        "duration": top.get("duration", "time", 1.0),
+        "effects": tuple(effects),
+        "name": top.raw("name", ""),
+        "description": top.raw("description", ""),
+    }
     top.done()
-    return scene
+    return arguments
 
 
 # --- Writing --------------------------------------------------------------------------------
@@ -356,10 +355,15 @@ def _effect_dict(effect: Any) -> dict[str, Any]:
         return {"electrodes": list(effect.electrodes), "fill": effect.fill}
     if isinstance(effect, ElectrodePositionError):
         return {"offsets": list(effect.offsets)}
-    return {f: _plain(getattr(effect, f), f"{where}.{f}") for f in effect.__dataclass_fields__}
+    return {f: _plain(getattr(effect, f), f"{where}.{f}") for f in _field_names(effect)}
 
 
-def scene_to_dict(scene: Scene) -> dict[str, Any]:
+def _field_names(block: Any) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(block))
+
+
+def scene_to_dict(scene: Any) -> dict[str, Any]:
+    """A `Scene` as TOML-ready data (SI numbers); ValueError for what TOML cannot hold."""
     skin = scene.skin
     skin_data = {**thawed(skin.geometry), "h": skin.h, "simulation_h": skin.simulation_h}
     skin_data |= {

@@ -5,8 +5,8 @@ conductivity per frame, the contact impedance per frame (drift, open electrodes)
 solve per distinct state, then the instrument (noise, common-mode drift, lost readings). A stage
 exists only when the scene calls for it: a scene without memory never runs the integrator, one
 without noise returns exact voltages, and a static scene costs one forward solve. Each stage is
-a small frozen dataclass, a pure function of the `Frames` flowing through (`stage(frames) ->
-frames`), so `simulate` is differentiable in every continuous parameter of the scene (a
+a small `equinox.Module`, a pure function of the `State` flowing through (`stage(state) ->
+state`), so `simulate` is differentiable in every continuous parameter of the scene (a
 `Scene` is a pytree): `jax.grad(lambda s: loss(simulate(s).frames))(scene)`.
 
 Conventions: conductivity in S/sq, times in seconds, voltages in volts, contact impedance in
@@ -18,10 +18,10 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path as FilePath
 from typing import Any, ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -35,6 +35,8 @@ from ..protocol import Protocol
 from ._instrument import (
     CommonModeDrift,
     ContactDrift,
+    MeasurementNoise,
+    OpenElectrodes,
     add_drift,
     add_noise,
     contact_impedance,
@@ -42,8 +44,8 @@ from ._instrument import (
     open_contact_impedance,
 )
 from ._memory import MemoryParameters, memory_response
-from ._scene import MeasurementNoise, OpenElectrodes, Scene
-from ._stimuli import Touch, stimulus
+from ._scene import Scene
+from ._touches import Touch, stimulus
 
 # Forward solves per batch: one host call each, and one step of the progress bar.
 _SOLVES_PER_BATCH = 16
@@ -51,8 +53,7 @@ _SOLVES_PER_BATCH = 16
 _LEVEL = 8
 
 
-@dataclass(frozen=True)
-class State:
+class State(eqx.Module):
     """What flows through the pipeline; a stage fills or transforms some fields.
 
     - `times` (T,) s; `background` (E,) S/sq on the simulation mesh.
@@ -73,7 +74,7 @@ class State:
     frames: jax.Array | None = None
     reference: jax.Array | None = None
     lost: np.ndarray | None = None
-    solves: int = 0
+    solves: int = eqx.field(default=0, static=True)
 
     def replace(self, **changes: Any) -> State:
         return dataclasses.replace(self, **changes)
@@ -82,12 +83,11 @@ class State:
 # --- Stages ---------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, eq=False)
-class Touches:
+class Touches(eqx.Module):
     """The touches' stimulus dsigma/sigma per frame and element (`diffeit.scene.stimulus`)."""
 
     name: ClassVar[str] = "touches"
-    mesh: Mesh
+    mesh: Mesh = eqx.field(static=True)
     touches: tuple[Touch, ...]
 
     def __call__(self, state: State) -> State:
@@ -95,8 +95,7 @@ class Touches:
         return state.replace(stimulus=change, response=change)
 
 
-@dataclass(frozen=True, eq=False)
-class Memory:
+class Memory(eqx.Module):
     """The skin's viscoelastic memory of the stimulus (`diffeit.scene.memory_response`)."""
 
     name: ClassVar[str] = "memory"
@@ -106,8 +105,7 @@ class Memory:
         return state.replace(response=memory_response(state.stimulus, state.times, self.parameters))
 
 
-@dataclass(frozen=True, eq=False)
-class Conductivity:
+class Conductivity(eqx.Module):
     """sigma = background (1 + response), per frame (S/sq); the background alone without touches."""
 
     name: ClassVar[str] = "conductivity"
@@ -125,15 +123,14 @@ class Conductivity:
         return state.replace(conductivity=conductivity)
 
 
-@dataclass(frozen=True, eq=False)
-class ContactImpedance:
+class ContactImpedance(eqx.Module):
     """Contact impedance per frame and electrode (ohm m): the skin's, drifting when declared, and
     open electrodes' multiplied by `OPEN_FACTOR`."""
 
     name: ClassVar[str] = "contact impedance"
     initial: jax.Array
     drift: ContactDrift | None
-    open_electrodes: tuple[int, ...]
+    open_electrodes: tuple[int, ...] = eqx.field(static=True)
 
     def __call__(self, state: State) -> State:
         times = jnp.concatenate([state.times[:1], state.times])
@@ -146,8 +143,7 @@ class ContactImpedance:
         return state.replace(reference_contact_impedance=z[0], contact_impedance=z[1:])
 
 
-@dataclass(frozen=True, eq=False)
-class Forward:
+class Forward(eqx.Module):
     """Voltages of every frame and of the reference, one forward solve per distinct state.
 
     On concrete inputs, frames whose conductivity and contact impedance are equal bit for bit
@@ -156,7 +152,7 @@ class Forward:
 
     name: ClassVar[str] = "forward"
     model: ForwardModel
-    progress: bool = True
+    progress: bool = eqx.field(default=True, static=True)
 
     def __call__(self, state: State) -> State:
         conductivity = jnp.concatenate([state.background[None], state.conductivity])
@@ -184,8 +180,7 @@ class Forward:
         )
 
 
-@dataclass(frozen=True, eq=False)
-class AddDrift:
+class AddDrift(eqx.Module):
     """Common-mode drift of all readings (`diffeit.scene.add_drift`); the reference at the
     first frame time."""
 
@@ -198,8 +193,7 @@ class AddDrift:
         return state.replace(frames=frames, reference=reference)
 
 
-@dataclass(frozen=True, eq=False)
-class AddNoise:
+class AddNoise(eqx.Module):
     """Measurement noise on every reading of the frames and of the reference (independent
     draws, `jax.random.key(seed)`), its scale set by the noise-free reference."""
 
@@ -213,12 +207,11 @@ class AddNoise:
         return state.replace(frames=frames, reference=reference)
 
 
-@dataclass(frozen=True, eq=False)
-class LostReadings:
+class LostReadings(eqx.Module):
     """Readings lost to open electrodes set to `fill` volts, and their mask."""
 
     name: ClassVar[str] = "lost readings"
-    protocol: Protocol
+    protocol: Protocol = eqx.field(static=True)
     open_electrodes: OpenElectrodes
 
     def __call__(self, state: State) -> State:
@@ -266,8 +259,7 @@ def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
 # --- Simulation -----------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, eq=False)
-class Simulation:
+class Simulation(eqx.Module):
     """A simulated scene: what a recording would hold, with the ground truth.
 
     - `frames` (T, M) volts, in the protocol's order and sign; `times` (T,) seconds;
@@ -282,15 +274,15 @@ class Simulation:
     """
 
     scene: Scene
-    mesh: Mesh
-    protocol: Protocol
+    mesh: Mesh = eqx.field(static=True)
+    protocol: Protocol = eqx.field(static=True)
     times: jax.Array
     frames: jax.Array
     reference: jax.Array
     truth: jax.Array
     lost: np.ndarray | None
-    stages: tuple[str, ...]
-    solves: int
+    stages: tuple[str, ...] = eqx.field(static=True)
+    solves: int = eqx.field(static=True)
 
     def truth_on(self, mesh: Mesh) -> np.ndarray:
         """(T, E') the true conductivity (S/sq) on `mesh` (same skin), conservatively interpolated

@@ -1,0 +1,86 @@
+"""The skin's conductivity without touches: a uniform value, regions of their own value, or a
+function of position. Sheet conductivity in S/sq, lengths in metres."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._arrays import concrete_floats, is_concrete
+from ..mesh import Mesh, element_sample_points
+from ._shapes import AbstractShape, covered_fraction, default_edge_width
+from ._time_courses import ArrayLike, as_float
+
+
+class Region(eqx.Module):
+    """Part of the skin with its own conductivity: a footprint (`Disc`, `Ellipse`, `Polygon`),
+    its sheet conductivity (S/sq, > 0) and the width of its blurred edge (metres; None: the
+    mesh's default, as touches)."""
+
+    shape: AbstractShape
+    conductivity: ArrayLike
+    edge_width: ArrayLike | None = None
+
+    def __check_init__(self) -> None:
+        if not isinstance(self.shape, AbstractShape):
+            raise ValueError(f"Region.shape must be a Disc, an Ellipse or a Polygon; got {self.shape!r}")
+        _check_positive(self.conductivity, "Region.conductivity", "S/sq")
+        if self.edge_width is not None:
+            width = concrete_floats(self.edge_width, "Region.edge_width")
+            if width is not None and (width.shape != () or width <= 0):
+                raise ValueError(f"Region.edge_width must be a positive number (metres) or None; got {width}")
+
+
+class Background(eqx.Module):
+    """The skin's conductivity without touches, S/sq.
+
+    `conductivity`: the uniform value (> 0); `regions`: regions of other values, applied in
+    order (each replaces what lies under it, with a smooth edge); `function`: a map instead of
+    the uniform value, points (..., 2) in metres -> S/sq (static; a JAX function is
+    differentiable; a scene with a function cannot be saved as TOML). Element values are means
+    over `level`^2 sample points, like touches.
+    """
+
+    conductivity: ArrayLike = 0.01
+    regions: tuple[Region, ...] = eqx.field(default=(), converter=tuple)
+    function: Callable[[jax.Array], jax.Array] | None = eqx.field(default=None, static=True)
+
+    def __check_init__(self) -> None:
+        _check_positive(self.conductivity, "background.conductivity", "S/sq")
+        for index, region in enumerate(self.regions):
+            if not isinstance(region, Region):
+                raise ValueError(f"background.regions[{index}] must be a Region; got {region!r}")
+        if self.function is not None and not callable(self.function):
+            raise ValueError(f"background.function must be a function of points (..., 2); got {self.function!r}")
+
+    def values_on(self, mesh: Mesh, *, level: int = 8) -> jax.Array:
+        """(E,) the element-wise sheet conductivity on `mesh`, S/sq. ValueError when a concrete
+        value is not positive."""
+        points = element_sample_points(mesh, level)
+        if self.function is None:
+            values = jnp.broadcast_to(as_float(self.conductivity), (mesh.n_elements,))
+        else:
+            values = jnp.mean(jnp.asarray(self.function(jnp.asarray(points)), dtype=float), axis=1)
+        width = default_edge_width(mesh, level)
+        for region in self.regions:
+            fraction = covered_fraction(points, width, region.shape, region.edge_width, as_float(0.0))
+            values = values + fraction * (region.conductivity - values)
+        if is_concrete(values):
+            bad = np.flatnonzero(~(np.asarray(values) > 0))
+            if bad.size:
+                raise ValueError(
+                    f"background conductivity must be positive and finite (S/sq); element {bad[0]} has "
+                    f"{float(values[bad[0]])}"
+                )
+        return values
+
+
+def _check_positive(value: Any, name: str, unit: str) -> None:
+    array = concrete_floats(value, name)
+    if array is not None and not np.all(array > 0):
+        raise ValueError(f"{name} must be positive ({unit}); got {array}")

@@ -1,0 +1,225 @@
+"""Footprints with smooth edges: `Disc`, `Ellipse`, `Polygon`, and the fraction of each element
+they cover.
+
+Lengths are in metres, times in seconds, angles in radians (counter-clockwise from the x axis).
+A shape's parameters are numbers or time courses (`diffeit.scene.Press`, `Ramp`, `Path`).
+
+## Smooth edges
+An exact area fraction is piecewise constant in the touch's position and size wherever no
+element corner crosses the boundary, and jumps elsewhere: useless for gradients. Here each
+sample point x of an element counts with the weight
+
+    weight(x) = P(N(0, edge_width^2) > d(x)) = erfc(d(x) / (sqrt(2) edge_width)) / 2,
+
+d(x) the signed distance to the footprint's boundary (negative inside): the indicator of the
+footprint blurred by a Gaussian of standard deviation `edge_width` across its edge (exact for a
+straight edge). The fraction of an element is the mean weight over the level^2 barycentric
+sample points of `diffeit.mesh.disc_fraction` (the centroids of level^2 congruent
+sub-triangles), so as edge_width -> 0 it becomes disc_fraction's area fraction, error O(1/level)
+of an element the edge cuts. An erf edge rather than a logistic one: its tails fall like
+exp(-d^2 / 2 edge_width^2), so the field is 0 to rounding a few widths outside the touch (and
+1 inside), where a logistic edge would leak exp(-d / edge_width) over the whole skin.
+Blurring keeps the boundary (weight 1/2 on it) and, for a disc, the integral of the weight over
+the plane is pi (r^2 + edge_width^2): the area is biased by (edge_width / r)^2 relative, and
+its derivative in r is exactly 2 pi r.
+
+Default edge width (`default_edge_width`): twice the spacing of the sample points in the
+largest element, 2 sqrt(max area) / level, one width for the whole mesh (about 0.02 m on a unit
+disc meshed at h = 0.1, 0.01 m at h = 0.05, with level 8). The samples then resolve the edge:
+over ten discs well inside unit discs meshed at h = 0.15, 0.1 and 0.05, the derivative of the
+covered area in the radius is 2 pi r within 9e-4 and in the centre 0 within 4e-4 of 2 pi r.
+Narrower defaults did worse: one sample spacing up to 2e-3, and the local spacing of each
+element up to 2e-2 (a blur whose width jumps between elements is no longer a normalised
+kernel). A finer mesh (or a higher level) gives a sharper default, converging to the exact area
+fraction. Pass `edge_width` (metres) for a physical edge that does not depend on the mesh; keep
+it well below the radius (the area bias is (edge_width / r)^2: small touches need a fine mesh
+or a narrow edge) and above the sample spacing (narrower edges make the gradients jumpy).
+"""
+
+# No `from __future__ import annotations`: equinox reads `AbstractVar` annotations as types.
+
+import abc
+import math
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from equinox import AbstractVar
+from jax.scipy.special import erfc
+
+from .._arrays import concrete_floats
+from ..mesh import Mesh, element_sample_points
+from ._time_courses import AbstractTimeCourse, ArrayLike, as_float, float_array, reach, value_at
+
+
+class AbstractShape(eqx.Module):
+    """A footprint (of a touch or a region). Its parameters are numbers or time courses (metres,
+    radians); `centre` (2,) is a point of it (metres)."""
+
+    centre: AbstractVar[ArrayLike | AbstractTimeCourse]
+
+    @abc.abstractmethod
+    def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        """(...) the distance (metres) of `points` (..., 2) to the footprint's boundary at time
+        `t` (seconds): negative inside, 0 on the boundary, with unit gradient at the boundary."""
+
+
+def _check_centre(centre: ArrayLike | AbstractTimeCourse, name: str) -> None:
+    values = reach(centre, name)
+    if values is not None and values.shape[1:] != (2,):
+        raise ValueError(f"{name} must be a point (x, y) in metres, shape (2,); got values of shape {values.shape[1:]}")
+
+
+def _safe_norm(v: jax.Array) -> jax.Array:
+    """|v| over the last axis, with a zero (not NaN) gradient at v = 0."""
+    squared = jnp.sum(v * v, axis=-1)
+    positive = squared > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+
+
+class Disc(AbstractShape):
+    """A round footprint: `centre` (2,) and `radius` (> 0), metres; either may be a time
+    course (`Path` for a slide, `Ramp` for a growing contact)."""
+
+    centre: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Disc.centre"))
+    radius: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Disc.radius"))
+
+    def __check_init__(self) -> None:
+        _check_centre(self.centre, "Disc.centre")
+        radius = reach(self.radius, "Disc.radius")
+        if radius is not None:
+            if radius.shape[1:] != ():
+                raise ValueError(f"Disc.radius must be a number (metres); got values of shape {radius.shape[1:]}")
+            if np.any(radius <= 0):
+                raise ValueError(f"Disc.radius must be positive (metres); got {radius.min()}")
+
+    def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        t = as_float(t)
+        return _safe_norm(points - value_at(self.centre, t)) - value_at(self.radius, t)
+
+
+class Ellipse(AbstractShape):
+    """An elliptic footprint: `centre` (2,) and `semi_axes` (2,) (> 0) in metres, the first
+    semi-axis turned `angle` radians counter-clockwise from the x axis; each may be a time course.
+
+    The signed distance is the first-order estimate d = k0 (k0 - 1) / k1, k0 = |q / (a, b)|,
+    k1 = |q / (a^2, b^2)|, q the point in the ellipse's axes: exact on the boundary with unit
+    gradient there (so `edge_width` is a width across the edge, in metres), exact for a circle,
+    an estimate away from the boundary (where the edge weight is 0 or 1 anyway)."""
+
+    centre: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Ellipse.centre"))
+    semi_axes: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Ellipse.semi_axes"))
+    angle: ArrayLike | AbstractTimeCourse = eqx.field(default=0.0, converter=float_array("Ellipse.angle"))
+
+    def __check_init__(self) -> None:
+        _check_centre(self.centre, "Ellipse.centre")
+        axes = reach(self.semi_axes, "Ellipse.semi_axes")
+        if axes is not None:
+            if axes.shape[1:] != (2,):
+                raise ValueError(
+                    f"Ellipse.semi_axes must be two lengths (a, b) in metres, shape (2,); got shape {axes.shape[1:]}"
+                )
+            if np.any(axes <= 0):
+                raise ValueError(f"Ellipse.semi_axes must be positive (metres); got {axes.min()}")
+        angle = reach(self.angle, "Ellipse.angle")
+        if angle is not None and angle.shape[1:] != ():
+            raise ValueError(f"Ellipse.angle must be a number (radians); got values of shape {angle.shape[1:]}")
+
+    def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        t = as_float(t)
+        axes, angle = value_at(self.semi_axes, t), value_at(self.angle, t)
+        offset = points - value_at(self.centre, t)
+        cos, sin = jnp.cos(angle), jnp.sin(angle)
+        q = jnp.stack([cos * offset[..., 0] + sin * offset[..., 1], cos * offset[..., 1] - sin * offset[..., 0]], -1)
+        k0 = _safe_norm(q / axes)
+        k1 = _safe_norm(q / axes**2)
+        positive = k1 > 0
+        # At the centre itself the estimate has no limit; any value well inside does.
+        return jnp.where(positive, k0 * (k0 - 1) / jnp.where(positive, k1, 1.0), -jnp.min(axes))
+
+
+class Polygon(AbstractShape):
+    """A polygonal footprint or region: `vertices` (K, 2) in metres, K >= 3, a simple polygon in
+    either orientation (the region of a non-uniform background, a half of the skin). The signed
+    distance is exact: the distance to the nearest edge, negative inside (even-odd rule). Its
+    `centre` is the mean of the vertices."""
+
+    vertices: ArrayLike = eqx.field(converter=float_array("Polygon.vertices"))
+
+    def __check_init__(self) -> None:
+        vertices = concrete_floats(self.vertices, "Polygon.vertices")
+        if vertices is not None:
+            if vertices.ndim != 2 or vertices.shape[1] != 2 or len(vertices) < 3:
+                raise ValueError(
+                    f"Polygon.vertices must be (K, 2) points in metres, K >= 3; got shape {vertices.shape}"
+                )
+            edges = np.roll(vertices, -1, axis=0) - vertices
+            if np.any(np.hypot(edges[:, 0], edges[:, 1]) == 0):
+                raise ValueError("Polygon.vertices must not repeat a vertex: an edge has zero length")
+
+    @property
+    def centre(self) -> jax.Array:
+        return jnp.mean(as_float(self.vertices), axis=0)
+
+    def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        start = as_float(self.vertices)
+        stop = jnp.roll(start, -1, axis=0)
+        edge = stop - start
+        offset = points[..., None, :] - start  # (..., K, 2)
+        along = jnp.clip(jnp.sum(offset * edge, -1) / jnp.sum(edge * edge, -1), 0.0, 1.0)
+        distance = jnp.min(_safe_norm(offset - along[..., None] * edge), axis=-1)
+        x, y = points[..., 0:1], points[..., 1:2]
+        straddles = (start[:, 1] > y) != (stop[:, 1] > y)
+        rise = jnp.where(straddles, edge[:, 1], 1.0)
+        crossing = start[:, 0] + (y - start[:, 1]) * edge[:, 0] / rise
+        inside = jnp.sum(straddles & (x < crossing), axis=-1) % 2 == 1
+        return jnp.where(inside, -distance, distance)
+
+
+# --- Fractions on a mesh --------------------------------------------------------------------
+
+
+def default_edge_width(mesh: Mesh, level: int = 8) -> float:
+    """The default edge width of `mesh`, metres: 2 sqrt(max element area) / level, twice the
+    spacing of the sample points in the largest element (module docstring)."""
+    check_level(level)
+    return 2.0 * math.sqrt(float(np.max(mesh.element_areas))) / level
+
+
+def check_level(level: int) -> None:
+    """ValueError unless `level` (level^2 sample points per element) is a positive integer."""
+    if not isinstance(level, int | np.integer) or isinstance(level, bool) or level < 1:
+        raise ValueError(f"level must be a positive integer (level^2 samples per element); got {level!r}")
+
+
+def covered_fraction(
+    points: np.ndarray, default_width: float, shape: AbstractShape, width: ArrayLike | None, t: jax.Array
+) -> jax.Array:
+    """(E,) the fraction of each element under `shape` at time `t` (seconds): the mean edge
+    weight over its sample `points` (E, S, 2) (module docstring), with an edge of standard
+    deviation `width` (metres; None: `default_width`)."""
+    width = default_width if width is None else width
+    distance = shape.signed_distance(points, t)
+    return jnp.mean(0.5 * erfc(distance / (math.sqrt(2) * width)), axis=1)
+
+
+def shape_fraction(
+    mesh: Mesh, shape: AbstractShape, t: ArrayLike = 0.0, *, edge_width: ArrayLike | None = None, level: int = 8
+) -> jax.Array:
+    """(E,) the fraction in [0, 1] of each element under `shape` at time `t` (seconds), with a
+    Gaussian-blurred edge of standard deviation `edge_width` (metres; default
+    `default_edge_width`), averaged over level^2 sample points per element (module docstring).
+    Pure JAX in the shape's parameters and t: jit, grad and vmap work."""
+    check_level(level)
+    if not isinstance(shape, AbstractShape):
+        raise ValueError(f"shape must be a Disc or an Ellipse; got {shape!r}")
+    return _shape_fraction(mesh, shape, as_float(t), edge_width, level)
+
+
+@partial(jax.jit, static_argnames=("mesh", "level"))
+def _shape_fraction(
+    mesh: Mesh, shape: AbstractShape, t: jax.Array, edge_width: ArrayLike | None, level: int
+) -> jax.Array:
+    return covered_fraction(element_sample_points(mesh, level), default_edge_width(mesh, level), shape, edge_width, t)

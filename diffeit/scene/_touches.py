@@ -1,0 +1,253 @@
+"""Touches on the skin: a footprint, an amplitude and its time course, and the stimulus of a scene.
+
+A touch lowers the sheet conductivity under its footprint (strain breaks percolation paths in
+the graphite-latex sheet). Its stimulus is the relative conductivity change dsigma/sigma
+(dimensionless) that an ideal, memoryless skin would show, per element and frame:
+
+    field_e(t) = amplitude(t) x fraction_e(shape at t),
+
+with `fraction_e` in [0, 1] the part of element e under the footprint, smooth-edged (see
+`diffeit.scene.shape_fraction`). Lengths are in metres, times in seconds.
+
+## Several touches
+Overlapping touches add their strains, and R = R0 (1 + GF strain) makes their relative
+resistance changes add: with rho_i = -a_i / (1 + a_i) the resistance change of stimulus a_i,
+the combined stimulus is a = -rho / (1 + rho), rho = sum_i rho_i. Pairwise,
+a (+) b = (a + b + 2 a b) / (1 - a b): exactly a where b = 0 (a touch whose field is 0 there,
+unpressed or of amplitude 0, changes nothing, bit for bit), a + b to first order (touches apart
+sum to rounding), and always above -1 for touches lowering the conductivity (two touches of -0.7
+on one spot give -0.82, not -1.4). Conductivity increases (a > 0) combine
+by the same rule; `stimulus` refuses those whose resistance drops could together reach 100%.
+
+## Pressure
+A touch may be given by the pressure it applies (kPa) instead of its amplitude: `FoamStack`
+maps the pressure on a skin over soft foam to dsigma/sigma (`pressure_to_change`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import partial
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._arrays import concrete_floats, is_concrete
+from ..mesh import Mesh, element_sample_points
+from ._shapes import AbstractShape, check_level, covered_fraction, default_edge_width
+from ._time_courses import AbstractTimeCourse, ArrayLike, as_float, check_shape, float_array, reach
+
+# Sample points held in memory at once by `stimulus` (frames x elements x samples): frames are
+# mapped in batches of this size, so long scenes on fine meshes stay within a few hundred MB.
+_SAMPLES_PER_BATCH = 1 << 22
+# Points per segment of a moving centre checked to lie on the skin (between breakpoints).
+_CHECKS_PER_SEGMENT = 16
+# A point is on the skin when its barycentric coordinates in some triangle are all above this.
+_INSIDE_TOLERANCE = -1e-9
+
+
+class Touch(eqx.Module):
+    """One touch: a footprint, an amplitude and its time course.
+
+    - `shape`: the footprint (`Disc` or `Ellipse`; its parameters may move in time).
+    - `amplitude`: the relative conductivity change dsigma/sigma under the footprint at full
+      press (dimensionless, > -1: negative for a touch, about -0.2 at 2% strain to -0.7 at 25%).
+    - `envelope`: a time course in [0, 1] multiplying the amplitude (`Press`, or a `Ramp`/`Path`
+      of such values); None: pressed all the time.
+    - `edge_width`: the standard deviation (metres, > 0) of the footprint's Gaussian-blurred edge;
+      None: `default_edge_width` of the mesh.
+
+    Amplitude, edge width and every continuous parameter of the shape and courses are leaves
+    (jit, grad, vmap); the kinds of shape and course and their `smooth` flags are structure.
+    Concrete values are checked on construction, the position on the skin by `check_touches`
+    (called by `touch_field` and `stimulus`): `ValueError` names the field.
+    """
+
+    shape: AbstractShape
+    amplitude: ArrayLike = eqx.field(converter=float_array("Touch.amplitude"))
+    envelope: AbstractTimeCourse | None = None
+    edge_width: ArrayLike | None = eqx.field(default=None, converter=float_array("Touch.edge_width"))
+
+    def __check_init__(self) -> None:
+        if not isinstance(self.shape, AbstractShape):
+            raise ValueError(f"Touch.shape must be a Disc or an Ellipse; got {self.shape!r}")
+        amplitude = concrete_floats(self.amplitude, "Touch.amplitude")
+        if amplitude is not None:
+            check_shape(amplitude, "Touch.amplitude", (), "a number")
+            if amplitude <= -1:
+                raise ValueError(
+                    f"Touch.amplitude (dsigma/sigma) must be > -1: at -1 the conductivity vanishes; got {amplitude}"
+                )
+        if self.envelope is not None:
+            if not isinstance(self.envelope, AbstractTimeCourse):
+                raise ValueError(
+                    f"Touch.envelope must be a time course (Press, Ramp, Path) or None; got {self.envelope!r}"
+                )
+            values = reach(self.envelope, "Touch.envelope")
+            if values is not None and (values.shape[1:] != () or np.any((values < 0) | (values > 1))):
+                raise ValueError(f"Touch.envelope must take numbers in [0, 1]; got breakpoint values {values}")
+        if self.edge_width is not None:
+            width = concrete_floats(self.edge_width, "Touch.edge_width")
+            if width is not None and (width.shape != () or width <= 0):
+                raise ValueError(f"Touch.edge_width must be a positive number (metres) or None; got {width}")
+
+    def amplitude_at(self, t: ArrayLike) -> jax.Array:
+        """dsigma/sigma at full coverage at time `t` (seconds): amplitude x envelope(t)."""
+        amplitude = as_float(self.amplitude)
+        return amplitude if self.envelope is None else amplitude * self.envelope(t)
+
+
+# --- Fields on a mesh -----------------------------------------------------------------------
+
+
+def touch_field(mesh: Mesh, touch: Touch, t: ArrayLike, *, level: int = 8) -> jax.Array:
+    """(E,) the relative conductivity change dsigma/sigma (dimensionless) of one touch at time
+    `t` (seconds): amplitude(t) x the fraction of each element under its footprint at t.
+    Exactly 0 where the amplitude is 0. Checks concrete touches with `check_touches`."""
+    check_level(level)
+    check_touches(mesh, [touch])
+    return _jitted_touch_field(mesh, touch, as_float(t), level)
+
+
+@partial(jax.jit, static_argnames=("mesh", "level"))
+def _jitted_touch_field(mesh: Mesh, touch: Touch, t: jax.Array, level: int) -> jax.Array:
+    return _touch_field(element_sample_points(mesh, level), default_edge_width(mesh, level), touch, t)
+
+
+def _touch_field(points: np.ndarray, default_width: float, touch: Touch, t: jax.Array) -> jax.Array:
+    return touch.amplitude_at(t) * covered_fraction(points, default_width, touch.shape, touch.edge_width, t)
+
+
+def combine_changes(first: ArrayLike, second: ArrayLike) -> jax.Array:
+    """Two relative conductivity changes (dsigma/sigma, each > -1) of overlapping touches, combined
+    by adding their relative resistance changes (strains add; module docstring):
+    (a + b + 2 a b) / (1 - a b). Exactly `first` where `second` is 0 and vice versa; symmetric and
+    associative; above -1 whenever 1 - a b > 0 (always when neither is positive)."""
+    a, b = as_float(first), as_float(second)
+    product = a * b
+    return (a + b + 2 * product) / (1 - product)
+
+
+def stimulus(mesh: Mesh, touches: Sequence[Touch], times: ArrayLike, *, level: int = 8) -> jax.Array:
+    """(T, E) the relative conductivity change dsigma/sigma (dimensionless) per frame and element
+    of several touches at frame `times` (T,) seconds: each touch's `touch_field`, overlaps
+    combined by `combine_changes` in order (zeros without touches).
+
+    Pure JAX in the touches' parameters and the times (jit, grad and vmap work); frames are mapped
+    in batches (`jax.lax.map` with `batch_size`, vmap within a batch) so memory stays bounded on
+    long scenes. Checks concrete inputs: `check_touches`, finite 1D times, and conductivity
+    increases whose resistance drops sum to 100% or more (sum of a / (1 + a) over positive
+    amplitudes >= 1) are refused, since where they overlap the conductivity would not be positive.
+    """
+    check_level(level)
+    touches = tuple(touches)
+    check_touches(mesh, touches)
+    times = as_float(times)
+    if times.ndim != 1:
+        raise ValueError(f"times must be a 1D array of frame times (seconds); got shape {times.shape}")
+    if is_concrete(times) and not np.all(np.isfinite(np.asarray(times))):
+        raise ValueError("times must be finite (seconds)")
+    _check_increases(touches)
+    batch = max(1, min(times.shape[0], _SAMPLES_PER_BATCH // (mesh.n_elements * level**2)))
+    return _stimulus(mesh, touches, times, level, batch)
+
+
+@partial(jax.jit, static_argnames=("mesh", "level", "batch"))
+def _stimulus(mesh: Mesh, touches: tuple[Touch, ...], times: jax.Array, level: int, batch: int) -> jax.Array:
+    points, default_width = element_sample_points(mesh, level), default_edge_width(mesh, level)
+
+    def frame(t: jax.Array) -> jax.Array:
+        field = jnp.zeros(mesh.n_elements, dtype=jnp.result_type(float))
+        for index, touch in enumerate(touches):
+            change = _touch_field(points, default_width, touch, t)
+            field = change if index == 0 else combine_changes(field, change)
+        return field
+
+    return jax.lax.map(frame, times, batch_size=batch)
+
+
+def _check_increases(touches: tuple[Touch, ...]) -> None:
+    increases = [float(t.amplitude) for t in touches if is_concrete(t.amplitude) and float(t.amplitude) > 0]
+    drops = [a / (1 + a) for a in increases]  # each resistance drop, as a fraction
+    if len(drops) > 1 and sum(drops) >= 1:
+        raise ValueError(
+            f"touch amplitudes: the conductivity increases (positive Touch.amplitude) {increases} lower the "
+            f"resistance by {sum(drops):.0%} together (sum of a / (1 + a)); where they overlap the conductivity "
+            "would not stay positive; use smaller increases"
+        )
+
+
+def check_touches(mesh: Mesh, touches: Sequence[Touch]) -> None:
+    """ValueError unless every touch's centre lies on the skin at every time: the centre (or a
+    moving centre's breakpoints and points along the segments between them) inside some triangle
+    of `mesh`. A footprint may overhang the rim (a finger at the edge): the part off the skin
+    covers no element. Traced centres are not checked."""
+    for index, touch in enumerate(touches):
+        if not isinstance(touch, Touch):
+            raise ValueError(f"touches[{index}] must be a Touch; got {touch!r}")
+        centres = reach(touch.shape.centre, f"touches[{index}].shape.centre")
+        if centres is None:
+            continue
+        fractions = np.linspace(0.0, 1.0, _CHECKS_PER_SEGMENT + 1)[:-1, None, None]
+        along = (centres[:-1] + fractions * (centres[1:] - centres[:-1])).reshape(-1, 2)
+        points = np.concatenate([centres, along])
+        outside = ~_on_mesh(mesh, points)
+        if np.any(outside):
+            where = points[np.flatnonzero(outside)[0]]
+            moving = " (along its path)" if len(centres) > 1 else ""
+            raise ValueError(
+                f"touches[{index}].shape.centre{moving} lies outside the skin at ({where[0]:.6g}, {where[1]:.6g}) m; "
+                "a touch's centre must be on the mesh"
+            )
+
+
+def _on_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """(P,) whether each point (P, 2) lies in some triangle (boundary included, to rounding)."""
+    corners = mesh.nodes[mesh.triangles]  # (E, 3, 2)
+    origin, edge1, edge2 = corners[:, 0], corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    determinant = edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0]
+    inside = np.zeros(len(points), dtype=bool)
+    for start in range(0, len(points), 64):  # bounds the (points x elements) temporaries
+        offset = points[start : start + 64, None, :] - origin
+        u = (offset[..., 0] * edge2[:, 1] - offset[..., 1] * edge2[:, 0]) / determinant
+        v = (edge1[:, 0] * offset[..., 1] - edge1[:, 1] * offset[..., 0]) / determinant
+        coordinates = np.stack([1 - u - v, u, v])
+        inside[start : start + 64] = np.any(np.all(coordinates >= _INSIDE_TOLERANCE, axis=0), axis=1)
+    return inside
+
+
+# --- Pressure: the optional force mapping ---------------------------------------------------
+
+
+class FoamStack(eqx.Module):
+    """How a pressure on the skin over soft foam changes its conductivity (skin1 of the
+    multi-layer skin stack the tactile-skin dissertation builds on): the relative resistance
+    rises by `sensitivity` per kPa up to the `knee` (kPa), then by `sensitivity_above` per kPa.
+    Sensitivities are fractions per kPa (1.3 %/kPa = 0.013), each a leaf."""
+
+    sensitivity: ArrayLike = 0.013
+    knee: ArrayLike = 38.0
+    sensitivity_above: ArrayLike = 0.002
+
+    def __check_init__(self) -> None:
+        for name in ("sensitivity", "knee", "sensitivity_above"):
+            array = concrete_floats(getattr(self, name), f"FoamStack.{name}")
+            if array is not None and not np.all(array >= 0):
+                raise ValueError(f"FoamStack.{name} must be >= 0; got {array}")
+
+
+def pressure_to_change(pressure: ArrayLike, stack: FoamStack | None = None) -> jax.Array:
+    """dsigma/sigma (dimensionless, in (-1, 0]) under a pressure (kPa, >= 0) through the foam
+    stack: the bilinear relative resistance change x = s p for p <= knee, s knee + s_above
+    (p - knee) above; R = R0 (1 + x) gives dsigma/sigma = -x / (1 + x). With the defaults
+    20 kPa gives x = 0.26 (dsigma/sigma = -0.206), 38 kPa x = 0.494, 100 kPa x = 0.618."""
+    stack = FoamStack() if stack is None else stack
+    p = jnp.asarray(pressure, dtype=float)
+    if is_concrete(p) and not np.all(np.asarray(p) >= 0):
+        raise ValueError(f"pressure must be >= 0 (kPa); got {np.asarray(p)}")
+    below = stack.sensitivity * jnp.minimum(p, stack.knee)
+    above = stack.sensitivity_above * jnp.maximum(p - stack.knee, 0.0)
+    x = below + above
+    return -x / (1 + x)
