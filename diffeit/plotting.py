@@ -14,6 +14,7 @@ from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
 from .mesh import Mesh
+from .results import failed, messages
 
 if TYPE_CHECKING:
     from .inverse import HyperparameterSelection
@@ -122,7 +123,8 @@ def plot_hyperparameter_selection(selection: HyperparameterSelection, path: str 
     right.set_xlabel("residual norm ||J x - y||")
     right.set_ylabel("solution norm (prior)")
     right.set_title("L-curve")
-    figure.suptitle(f"hyperparameter by {selection.method}" + (f": {selection.note}" if selection.note else ""))
+    note = f": {messages(selection.result)[0]}" if failed(selection.result) else ""
+    figure.suptitle(f"hyperparameter by {selection.method}{note}")
     if path is not None:
         figure.savefig(path, dpi=120)
     return figure

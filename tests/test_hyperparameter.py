@@ -12,6 +12,7 @@ from pyeit.mesh import PyEITMesh
 import diffeit as de
 from diffeit.inverse import LinearisedProblem, Noser, OneStep, Tikhonov, select_hyperparameter
 from diffeit.plotting import plot_hyperparameter_selection
+from diffeit.results import RESULTS, SolverError
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +28,7 @@ def case():
 
 def _explicit(model, difference, hyperparameter):
     """Residual norm, prior norm and GCV from the explicit reconstruction matrix."""
-    problem = LinearisedProblem.at(model, "noser")
+    problem = LinearisedProblem(model, "noser")
     reconstruction = OneStep(model, "noser", hyperparameter)
     y = difference / problem.data_scale
     x = np.asarray(reconstruction.reconstruct(difference))  # dsigma = x at background 1
@@ -58,7 +59,7 @@ def test_discrepancy_lands_on_the_noise_norm(case):
     residual, _, _ = _explicit(model, difference, selection.value)
     expected = 1.1 * 0.01 * np.sqrt(model.n_measurements)  # 1% of RMS(V_ref) per reading, normalised
     assert residual == pytest.approx(expected, rel=1e-6)
-    assert selection.target == 1.0 and selection.note == ""
+    assert selection.target == 1.0 and selection.result == RESULTS.successful
 
 
 def test_noise_figure_lands_on_its_target(case):
@@ -67,7 +68,7 @@ def test_noise_figure_lands_on_its_target(case):
     model, difference = case
     selection = select_hyperparameter(model, difference, "noise_figure", noise_figure=0.7)
     mesh = model.mesh
-    problem = LinearisedProblem.at(model, "noser")
+    problem = LinearisedProblem(model, "noser")
     target = de.mesh.disc_fraction(mesh, mesh.element_areas @ mesh.element_centroids / mesh.element_areas.sum(), 0.1)
     data = problem.jacobian @ target
     matrix = np.asarray(OneStep(model, "noser", selection.value).matrix) * problem.data_scale  # y -> x
@@ -91,7 +92,7 @@ def test_selection_over_frames_and_its_plot(case, tmp_path):
     model, difference = case
     frames = np.stack([difference, 1.5 * difference])
     selection = select_hyperparameter(model, frames, "lcurve")
-    assert np.all(np.isfinite(selection.criterion)) and selection.note == ""
+    assert np.all(np.isfinite(selection.criterion)) and selection.result == RESULTS.successful
     figure = plot_hyperparameter_selection(selection, tmp_path / "curve.png")
     assert len(figure.axes) == 2
     assert matplotlib.image.imread(tmp_path / "curve.png").shape[1] > 1000
@@ -107,8 +108,11 @@ def test_selection_refuses_what_it_cannot_do(case):
         select_hyperparameter(model, difference, candidates=[0.1, -1.0, 2.0])
     with pytest.raises(ValueError, match=r"expected \(208,\)"):
         select_hyperparameter(model, difference[:-1])
-    tight = select_hyperparameter(model, difference, "discrepancy", noise=1.0, candidates=[1e-6, 1e-5, 1e-4])
-    assert "not reached" in tight.note and tight.value == 1e-4
+    options = {"noise": 1.0, "candidates": [1e-6, 1e-5, 1e-4]}
+    with pytest.raises(SolverError, match=r"hyperparameter selection by discrepancy: .*widen the candidates"):
+        select_hyperparameter(model, difference, "discrepancy", **options)
+    tight = select_hyperparameter(model, difference, "discrepancy", **options, throw=False)
+    assert tight.result == RESULTS.selection_at_boundary and tight.value == 1e-4
 
 
 @pytest.mark.parametrize(

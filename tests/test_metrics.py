@@ -217,11 +217,11 @@ def test_the_pixel_grid_is_greits():
     model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.15), de.protocol.adjacent(16), 0.01)
     greit = de.inverse.GREIT(model, grid=16, n_targets=20)
     grid = pixel_grid(model.mesh, 16)
-    np.testing.assert_array_equal(grid.mask, greit.mask)
-    np.testing.assert_allclose(grid.pixel_areas, greit.pixel_areas, rtol=1e-12)
-    np.testing.assert_allclose(grid.pixel_centres, greit.pixel_centres, rtol=1e-12)
+    np.testing.assert_array_equal(grid.mask, greit.grid.mask)
+    np.testing.assert_allclose(grid.pixel_areas, greit.grid.pixel_areas, rtol=1e-12)
+    np.testing.assert_allclose(grid.pixel_centres, greit.grid.pixel_centres, rtol=1e-12)
     values = np.random.default_rng(1).standard_normal(model.n_elements)
-    np.testing.assert_allclose(grid.render(values)[grid.mask], greit.to_pixels(values)[greit.mask], rtol=1e-12)
+    np.testing.assert_allclose(grid.render(values)[grid.mask], greit.grid.render(values)[grid.mask], rtol=1e-12)
 
 
 def test_bad_images_are_refused(mesh):

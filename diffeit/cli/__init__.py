@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -12,17 +11,16 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
+from ._model import ModelSettings, add_model_options
+
 if TYPE_CHECKING:
     from ..io import Recording
     from ..mesh import Mesh
 
 # Frames reconstructed per batch: one matrix product each, and one step of the progress bar.
 _BATCH = 256
-# The sheet of a file with neither mesh nor geometry (an EIDORS .mat file): a unit disc.
-_DEFAULT_H = 0.08
-# The model of a file that says nothing of its sheet: S/sq and ohm m.
-_DEFAULT_BACKGROUND = 1.0
-_DEFAULT_CONTACT_IMPEDANCE = 0.01
+# The hyperparameter selection methods `reconstruct` offers: those that need only the frames.
+_SELECTION_METHODS = ("gcv", "lcurve")
 
 
 def _demo(arguments: argparse.Namespace) -> int:
@@ -75,17 +73,10 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     if arguments.reference_frame is None and recording.reference is None:
         raise ValueError(f"{source} has no reference frame; choose one with --reference-frame K")
 
-    mesh = _mesh_of(recording, arguments.h)
-    background, contact_impedance = _model_settings(recording, arguments)
+    settings = ModelSettings.from_arguments(arguments, methods=_SELECTION_METHODS, **_scene_settings(recording))
+    mesh = _mesh_of(recording, settings)
     images, hyperparameter = reconstruct_recording(
-        recording,
-        mesh,
-        prior=arguments.prior,
-        hyperparameter=_hyperparameter_argument(arguments.hyperparameter),
-        background=background,
-        contact_impedance=contact_impedance,
-        reference_frame=arguments.reference_frame,
-        difference=arguments.difference,
+        recording, mesh, settings, reference_frame=arguments.reference_frame, difference=arguments.difference
     )
     reconstructed = io.Recording(
         frames=recording.frames,
@@ -102,11 +93,11 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
                 "variable": arguments.variable,
                 "reference_frame": arguments.reference_frame,
                 "reference_variable": arguments.reference_variable,
-                "prior": arguments.prior,
+                "prior": settings.prior,
                 "hyperparameter": hyperparameter,
-                "hyperparameter_choice": arguments.hyperparameter,
-                "background": background,
-                "contact_impedance": contact_impedance,
+                "hyperparameter_choice": settings.hyperparameter,
+                "background": settings.background,
+                "contact_impedance": settings.contact_impedance,
                 "difference": arguments.difference,
             },
         },
@@ -120,7 +111,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         images,
         times=recording.times,
         max_panels=arguments.panels,
-        title=f"{source.name}: one-step {arguments.prior}, hyperparameter {hyperparameter:.3g}",
+        title=f"{source.name}: one-step {settings.prior}, hyperparameter {hyperparameter:.3g}",
     )
     io.write_frames(outputs[1], reconstructed, overwrite=arguments.overwrite)
     peak = images.flat[np.argmax(np.abs(images))]
@@ -132,43 +123,36 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     return 0
 
 
-def _model_settings(recording: Recording, arguments: argparse.Namespace) -> tuple[float, float]:
-    """Background (S/sq) and contact impedance (ohm m) of the model: the options when given,
-    else a simulated file's scene (its uniform background, its skin's mean contact impedance),
-    else 1 S/sq and 0.01 ohm m."""
+def _scene_settings(recording: Recording) -> dict[str, float]:
+    """The model of a simulated file: its scene's uniform background (S/sq) and its skin's mean
+    contact impedance (ohm m), those the scene names."""
     scene = recording.provenance.get("metadata", {}).get("scene", {})
-    background = scene.get("background", {}).get("conductivity", _DEFAULT_BACKGROUND)
-    contact_impedance = float(np.mean(scene.get("skin", {}).get("contact_impedance", _DEFAULT_CONTACT_IMPEDANCE)))
-    if arguments.background is not None:
-        background = arguments.background
-    if arguments.contact_impedance is not None:
-        contact_impedance = arguments.contact_impedance
-    return float(background), contact_impedance
+    settings = {}
+    if "conductivity" in scene.get("background", {}):
+        settings["background"] = float(scene["background"]["conductivity"])
+    if "contact_impedance" in scene.get("skin", {}):
+        settings["contact_impedance"] = float(np.mean(scene["skin"]["contact_impedance"]))
+    return settings
 
 
-def _mesh_of(recording: Recording, h: float) -> Mesh:
+def _mesh_of(recording: Recording, settings: ModelSettings) -> Mesh:
     """The file's geometry (for a simulation: the reconstruction mesh, coarser than the mesh the
     data were simulated on), else its mesh; without either, a unit disc with the protocol's
     electrodes."""
     from .. import io
-    from .. import mesh as meshes
 
     if recording.geometry is not None:
         return io.mesh_from_geometry(recording.geometry)
     if recording.mesh is not None:
         return recording.mesh
-    n = recording.protocol.n_electrodes
-    return meshes.disc(n, electrode_width=min(0.2, math.pi / n), h=h)
+    return settings.unit_disc(recording.protocol.n_electrodes)
 
 
 def reconstruct_recording(
     recording: Recording,
     mesh: Mesh,
+    settings: ModelSettings | None = None,
     *,
-    prior: str = "noser",
-    hyperparameter: float | str = 0.1,
-    background: float = 1.0,
-    contact_impedance: float = 0.01,
     reference_frame: int | None = None,
     difference: str = "plain",
 ) -> tuple[np.ndarray, float]:
@@ -179,35 +163,43 @@ def reconstruct_recording(
 
     - "plain": dV = V - V_ref. Frames not in volts (`voltage_unit` other than "V", such as
       EIDORS files in device units) are scaled by RMS(V_model) / RMS(V_ref), V_model the
-      model's voltages at `background`: one gain that puts them on the model's scale.
+      model's voltages at the background conductivity: one gain that puts them on the model's scale.
     - "relative": normalised differences (V - V_ref) / V_ref, reading by reading
       (`OneStep(..., normalised=True)`): they cancel per-channel gains and restore the sign
       lost by devices that report magnitudes (the Montreal data).
 
-    `hyperparameter` is unit-free (see `diffeit.inverse.OneStep`), or a selection method of
-    `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve") applied to all the frames at once;
-    `background` in S/sq and `contact_impedance` in ohm m define the model.
+    `settings` (default `ModelSettings()`) name the model and the solver; a hyperparameter that
+    names a selection method of `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve") is
+    chosen from all the frames at once.
     """
     from tqdm import tqdm
 
-    from ..forward import ForwardModel
-    from ..inverse import OneStep, select_hyperparameter
+    from ..inverse import select_hyperparameter
 
+    settings = ModelSettings() if settings is None else settings
     if difference not in ("plain", "relative"):
         raise ValueError(f'difference must be "plain" or "relative"; got {difference!r}')
-    model = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
+    model = settings.model(mesh, recording.protocol)
     reference = recording.reference_values(reference_frame)
     dv = recording.difference(reference_frame=reference_frame)
     relative = difference == "relative"
     if not relative and recording.voltage_unit != "V":
-        model_reference = np.asarray(model.measure(np.full(mesh.n_elements, float(background))))
+        model_reference = np.asarray(model.measure(np.full(mesh.n_elements, settings.background)))
         dv = dv * _rms(model_reference) / _rms(reference)
     options = {"reference": reference} if relative else {}
+    hyperparameter = settings.hyperparameter
     if isinstance(hyperparameter, str):
         hyperparameter = select_hyperparameter(
-            model, dv, hyperparameter, prior=prior, background=background, normalised=relative, **options
+            model,
+            dv,
+            hyperparameter,
+            prior=settings.prior,
+            background=settings.background,
+            normalised=relative,
+            throw=False,  # a choice at an end of the candidates is still used, as before
+            **options,
         ).value
-    solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=background, normalised=relative)
+    solver = settings.solver(model, hyperparameter=hyperparameter, normalised=relative)
     batches = range(0, len(dv), _BATCH)
     # tqdm's disable=None: a bar on a terminal only, and only when there are several batches.
     progress = tqdm(batches, desc="reconstructing", unit="batch", disable=True if len(batches) < 2 else None)
@@ -215,16 +207,6 @@ def reconstruct_recording(
         [np.asarray(solver.reconstruct(dv[start : start + _BATCH], **options)) for start in progress]
     )
     return images, float(hyperparameter)
-
-
-def _hyperparameter_argument(value: str) -> float | str:
-    """--hyperparameter: a positive number, or the name of a selection method."""
-    if value in ("gcv", "lcurve"):
-        return value
-    try:
-        return float(value)
-    except ValueError:
-        raise ValueError(f"--hyperparameter must be a number or gcv or lcurve; got {value!r}") from None
 
 
 def _rms(values: np.ndarray) -> float:
@@ -246,31 +228,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         "reconstruct",
         help="image every frame of a frames file (or an EIDORS .mat file) against its reference",
         description="One-step difference reconstruction of every frame; writes OUT.png (an image strip) and "
-        "OUT.h5 (the images (T, E) with their mesh, a diffeit frames file).",
+        "OUT.h5 (the images (T, E) with their mesh, a diffeit frames file). A simulated file's scene sets the "
+        "defaults of --background and --contact-impedance.",
     )
     reconstruct.add_argument("frames", help="a diffeit frames file (.h5) or an EIDORS .mat file")
     reconstruct.add_argument("-o", "--output", required=True, help="output name: writes OUT.png and OUT.h5")
     reconstruct.add_argument("--reference-frame", type=int, help="use frame K as the reference (default: the file's)")
-    reconstruct.add_argument("--prior", default="noser", help="prior of diffeit.inverse.OneStep (default noser)")
-    reconstruct.add_argument(
-        "--hyperparameter",
-        default="0.1",
-        help="unit-free regularisation weight (default 0.1), or a method choosing it from the data: gcv, lcurve",
-    )
-    reconstruct.add_argument(
-        "--background", type=float, help="background conductivity, S/sq (default: a simulated file's scene's, else 1)"
-    )
-    reconstruct.add_argument(
-        "--contact-impedance", type=float, help="ohm m (default: a simulated file's scene's, else 0.01)"
-    )
+    add_model_options(reconstruct, methods=_SELECTION_METHODS)
     reconstruct.add_argument(
         "--difference",
         choices=("plain", "relative"),
         default="plain",
         help="plain V - V_ref, or relative (normalised) (V - V_ref) / V_ref times the model's reference",
-    )
-    reconstruct.add_argument(
-        "--h", type=float, default=_DEFAULT_H, help="element size of the unit disc used when the file has no mesh"
     )
     reconstruct.add_argument("--panels", type=int, default=12, help="most panels in the image strip (default 12)")
     reconstruct.add_argument("--variable", help=".mat files: the variable holding the frames")

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from ._model import ModelSettings, add_model_options
 
 if TYPE_CHECKING:
     import hw
@@ -43,11 +44,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     _source_arguments(live)
     live.add_argument("--reference-frames", type=int, default=1, help="frames averaged into the reference (1)")
     live.add_argument("--batch", type=int, default=8, help="frames reconstructed together (8)")
-    live.add_argument("--prior", default="noser", help="prior of diffeit.inverse.OneStep (noser)")
-    live.add_argument("--hyperparameter", type=float, default=0.1, help="unit-free regularisation weight (0.1)")
-    live.add_argument("--background", type=float, default=1.0, help="background conductivity, S/sq (1.0)")
-    live.add_argument("--contact-impedance", type=float, default=0.01, help="ohm m (0.01)")
-    live.add_argument("--h", type=float, default=0.08, help="element size of the unit-disc mesh (0.08)")
+    add_model_options(live)
     live.add_argument("--png", default="live.png", help="image written when there is no display (live.png)")
     live.set_defaults(run=_live)
 
@@ -189,6 +186,7 @@ def _live(arguments: argparse.Namespace) -> int:
         print("diffeit live: error: --batch and --reference-frames must be at least 1", file=sys.stderr)
         return 2
     try:
+        settings = ModelSettings.from_arguments(arguments)
         source = _open_source(arguments)
     except (ValueError, ConnectionError) as error:
         print(f"diffeit live: error: {error}", file=sys.stderr)
@@ -199,7 +197,7 @@ def _live(arguments: argparse.Namespace) -> int:
     try:
         for frame in source.frames(max_frames=arguments.frames, duration=arguments.duration):
             if viewer is None:
-                viewer = _LiveViewer(_frame_protocol(source, frame), arguments)
+                viewer = _LiveViewer(_frame_protocol(source, frame), settings, arguments.png)
             if len(reference_frames) < arguments.reference_frames:
                 reference_frames.append(frame.values)
                 continue
@@ -226,22 +224,14 @@ def _live(arguments: argparse.Namespace) -> int:
 class _LiveViewer:
     """One-step reconstruction of batches of frames, shown in a window or saved as a PNG."""
 
-    def __init__(self, protocol: Protocol, arguments: argparse.Namespace) -> None:
+    def __init__(self, protocol: Protocol, settings: ModelSettings, png: str) -> None:
         import matplotlib.pyplot as plt
 
-        from .. import mesh as meshes
-        from ..forward import ForwardModel
-        from ..inverse import OneStep
-
-        n = protocol.n_electrodes
-        self.mesh = meshes.disc(n, electrode_width=min(0.2, math.pi / n), h=arguments.h)
-        model = ForwardModel(self.mesh, protocol, contact_impedance=arguments.contact_impedance)
-        self.solver = OneStep(
-            model, prior=arguments.prior, hyperparameter=arguments.hyperparameter, background=arguments.background
-        )
+        self.mesh = settings.unit_disc(protocol.n_electrodes)
+        self.solver = settings.solver(settings.model(self.mesh, protocol))
         # Agg is what matplotlib falls back to without a display: then write PNGs instead.
         self.headless = plt.get_backend().lower() == "agg"
-        self.png = arguments.png
+        self.png = png
         self.figure, self.axes = plt.subplots(figsize=(5, 5))
         self.axes.set_aspect("equal")
         self.axes.set_axis_off()
@@ -281,7 +271,6 @@ def _emulate(arguments: argparse.Namespace) -> int:
 
 def _emulate_scene(arguments: argparse.Namespace) -> int:
     import hw
-    from hw.frame import LAYOUT_DECLARED
 
     from .. import Scene, simulate
 
@@ -299,7 +288,7 @@ def _emulate_scene(arguments: argparse.Namespace) -> int:
         faults=faults,
         port=arguments.port,
         layout=layout,
-        n_electrodes=protocol.n_electrodes if layout != LAYOUT_DECLARED else 0,
+        n_electrodes=protocol.n_electrodes if layout != hw.LAYOUT_DECLARED else 0,
         host_timeout=arguments.wait,
     )
     print(
@@ -330,8 +319,8 @@ def _fault_rates(text: str, seed: int) -> hw.FaultRates | None:
     rates = {}
     for item in text.split(","):
         name, equals, value = item.partition("=")
-        if not equals or name.strip() not in hw.emulator.FAULT_KINDS:
-            raise ValueError(f"--faults takes kind=rate items, kinds {hw.emulator.FAULT_KINDS}; got {item!r}")
+        if not equals or name.strip() not in hw.FAULT_KINDS:
+            raise ValueError(f"--faults takes kind=rate items, kinds {hw.FAULT_KINDS}; got {item!r}")
         try:
             rates[name.strip()] = float(value)
         except ValueError:

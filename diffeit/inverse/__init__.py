@@ -13,6 +13,5 @@ from .priors import Laplace as Laplace
 from .priors import Matern as Matern
 from .priors import Noser as Noser
 from .priors import Tikhonov as Tikhonov
-from .total_variation import ConvergenceWarning as ConvergenceWarning
 from .total_variation import TotalVariation as TotalVariation
 from .total_variation import TotalVariationSolution as TotalVariationSolution

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from functools import partial
+from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,6 +14,7 @@ import scipy.linalg
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
+from ..results import RESULTS, throw_if_failed
 from .linearised import check_frames
 from .priors import AbstractPrior, PriorOperator, prior_named
 
@@ -25,10 +27,9 @@ _MAX_LOG_STEP = 4.0
 _DAMPING_RETRIES = 6
 
 
-@dataclass(frozen=True)
-class GaussNewtonResult:
-    """What a Gauss-Newton reconstruction returns (for a batch, arrays gain a leading T axis and
-    `history`, `stop_reason`, `iterations` are tuples with one entry per frame).
+class GaussNewtonResult(eqx.Module):
+    """What a Gauss-Newton reconstruction returns (for a batch of T frames, arrays gain a
+    leading T axis and `history` is a tuple with one array per frame).
 
     - `conductivity`: (E,) the reconstructed sheet conductivity, S/sq (positive by construction).
     - `contact_impedance`: (L,) ohm m: estimated when asked, else the model's.
@@ -36,20 +37,24 @@ class GaussNewtonResult:
       (absolute) or the background (difference); `conductivity - reference` is the change.
     - `history`: the objective (data misfit plus prior, normalised, see `GaussNewton`) at every
       iterate, the start included: it never rises.
-    - `stop_reason`: "discrepancy" (misfit at the noise level), "stagnation" (the objective no
-      longer decreases by a relative `stagnation_tolerance`), "max_iterations", or "line_search_failed" (no step
-      decreased the objective, even damped).
     - `iterations`: accepted steps.
     - `misfit`: the final normalised data misfit ||V - v|| / s.
+    - `reached_discrepancy`: whether the misfit reached the noise level (the discrepancy
+      principle stopped the iteration; False without `noise`).
+    - `result`: `RESULTS.successful` when the discrepancy principle or stagnation (the
+      objective no longer decreases by a relative `stagnation_tolerance`) stopped the iteration;
+      `RESULTS.max_iterations_reached`; or `RESULTS.line_search_failed` when no step decreased
+      the objective, even damped. One code per frame for a batch.
     """
 
     conductivity: np.ndarray
     contact_impedance: np.ndarray
     reference: np.ndarray
     history: np.ndarray | tuple[np.ndarray, ...]
-    stop_reason: str | tuple[str, ...]
-    iterations: int | tuple[int, ...]
-    misfit: np.ndarray
+    iterations: int | np.ndarray
+    misfit: float | np.ndarray
+    reached_discrepancy: bool | np.ndarray
+    result: RESULTS
 
     @property
     def conductivity_change(self) -> np.ndarray:
@@ -57,13 +62,54 @@ class GaussNewtonResult:
         return self.conductivity - self.reference
 
 
-@dataclass(frozen=True, eq=False)
-class GaussNewton:
+class _Frame(NamedTuple):
+    """What stays fixed while one frame iterates."""
+
+    data: np.ndarray  # v (M,), volts
+    scale: float  # s_d, volts
+    operator: PriorOperator  # P, bound at the start
+    prior_scale: float  # c
+    log_reference: np.ndarray  # s_ref (E,)
+    log_z_reference: np.ndarray  # w_ref (L,)
+    noise_norm: float | None  # the discrepancy level of the normalised misfit
+
+
+class _Iterate(NamedTuple):
+    """Where one frame's iteration stands."""
+
+    log_conductivity: np.ndarray  # s (E,)
+    log_contact_impedance: np.ndarray  # w (L,)
+    residual: np.ndarray  # (V(e^s, e^w) - v) / s_d
+    objective: float
+    jacobian: np.ndarray  # J_n = dV/ds / s_d (M, E), at the last linearisation
+    z_jacobian: np.ndarray | None  # dV/dw / s_d (M, L) when the contact impedance is estimated
+    damping: float
+    history: tuple[float, ...]
+    reached_discrepancy: bool
+    result: RESULTS | None  # None while iterating
+
+
+class _Step(NamedTuple):
+    """A damped Gauss-Newton step and the objective's directional derivative along it."""
+
+    log_conductivity: np.ndarray
+    log_contact_impedance: np.ndarray
+    slope: float
+
+
+class _Trial(NamedTuple):
+    """A point the line search accepted: `length` times the step from the iterate."""
+
+    length: float
+    log_conductivity: np.ndarray
+    log_contact_impedance: np.ndarray
+    residual: np.ndarray
+    objective: float
+
+
+class GaussNewton(eqx.Module):
     """Regularised Gauss-Newton on s = ln(sigma), with Levenberg-Marquardt damping and a
     backtracking line search; every step is solved in measurement space (M x M).
-
-    `GaussNewton(model, prior="laplace", hyperparameter=1e-2, max_iterations=20, noise=None,
-    discrepancy_safety=1.05, contact_impedance_spread=1.0, stagnation_tolerance=1e-6)`
 
     The objective, with v the data, s_d = RMS(V(sigma_0)) the data scale at the start and
     s_ref the prior's centre (ln of the start for absolute imaging, of the background for
@@ -88,36 +134,57 @@ class GaussNewton:
     `max_iterations`. The prior's sparse factorisations are made once, at construction.
 
     `absolute(v)` and `difference(dv)` accept one frame (M,) or a batch (T, M): a batch runs
-    in one loop, every frame with its own step, damping and stop.
+    in one loop, every frame with its own step, damping and stop. Both take `throw=True` (the
+    default): a frame that stops at `max_iterations` or whose line search fails raises
+    `diffeit.results.SolverError`; with `throw=False` the result's `result` holds each frame's
+    `diffeit.results.RESULTS` code (a capped run, for instance, is
+    `RESULTS.max_iterations_reached`).
     """
 
     model: ForwardModel
-    prior: str | AbstractPrior = "laplace"
-    hyperparameter: float = 1e-2
-    max_iterations: int = 20
-    noise: float | None = None
-    discrepancy_safety: float = 1.05
-    contact_impedance_spread: float = 1.0
-    stagnation_tolerance: float = 1e-6
-    bound_prior: Callable[[np.ndarray], PriorOperator] = field(init=False, repr=False)
+    prior: AbstractPrior
+    hyperparameter: float = eqx.field(static=True)
+    max_iterations: int = eqx.field(static=True)
+    noise: float | None = eqx.field(static=True)
+    discrepancy_safety: float = eqx.field(static=True)
+    contact_impedance_spread: float = eqx.field(static=True)
+    stagnation_tolerance: float = eqx.field(static=True)
+    bound_prior: Callable[[np.ndarray], PriorOperator] = eqx.field(static=True, repr=False)
     """The prior on the model's mesh, factorised once (`AbstractPrior.bind`)."""
 
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.hyperparameter) and self.hyperparameter > 0):
-            raise ValueError(f"hyperparameter must be finite and positive; got {self.hyperparameter}")
-        if self.max_iterations < 0:
-            raise ValueError(f"max_iterations must be >= 0; got {self.max_iterations}")
-        if self.noise is not None and not self.noise > 0:
-            raise ValueError(f"noise is a percentage of RMS(v) and must be positive; got {self.noise}")
-        if not self.contact_impedance_spread > 0:
-            raise ValueError(f"contact_impedance_spread must be positive; got {self.contact_impedance_spread}")
-        prior = prior_named(self.prior) if isinstance(self.prior, str) else self.prior
-        if not isinstance(prior, AbstractPrior):
-            raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {self.prior!r}")
-        if not self.stagnation_tolerance >= 0:
-            raise ValueError(f"stagnation_tolerance must be >= 0; got {self.stagnation_tolerance}")
-        object.__setattr__(self, "prior", prior)
-        object.__setattr__(self, "bound_prior", prior.bind(self.model.mesh))
+    def __init__(
+        self,
+        model: ForwardModel,
+        prior: str | AbstractPrior = "laplace",
+        hyperparameter: float = 1e-2,
+        *,
+        max_iterations: int = 20,
+        noise: float | None = None,
+        discrepancy_safety: float = 1.05,
+        contact_impedance_spread: float = 1.0,
+        stagnation_tolerance: float = 1e-6,
+    ) -> None:
+        if not (np.isfinite(hyperparameter) and hyperparameter > 0):
+            raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
+        if max_iterations < 0:
+            raise ValueError(f"max_iterations must be >= 0; got {max_iterations}")
+        if noise is not None and not noise > 0:
+            raise ValueError(f"noise is a percentage of RMS(v) and must be positive; got {noise}")
+        if not contact_impedance_spread > 0:
+            raise ValueError(f"contact_impedance_spread must be positive; got {contact_impedance_spread}")
+        if not stagnation_tolerance >= 0:
+            raise ValueError(f"stagnation_tolerance must be >= 0; got {stagnation_tolerance}")
+        self.model = model
+        self.prior = prior_named(prior) if isinstance(prior, str) else prior
+        if not isinstance(self.prior, AbstractPrior):
+            raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
+        self.hyperparameter = float(hyperparameter)
+        self.max_iterations = int(max_iterations)
+        self.noise = None if noise is None else float(noise)
+        self.discrepancy_safety = float(discrepancy_safety)
+        self.contact_impedance_spread = float(contact_impedance_spread)
+        self.stagnation_tolerance = float(stagnation_tolerance)
+        self.bound_prior = self.prior.bind(model.mesh)
 
     @host_algebra
     def absolute(
@@ -126,31 +193,36 @@ class GaussNewton:
         *,
         initial: float | np.ndarray | None = None,
         estimate_contact_impedance: bool = False,
+        throw: bool = True,
     ) -> GaussNewtonResult:
         """Absolute imaging of measured voltages `voltages` (M,) or (T, M), volts.
 
         The start (and the prior's centre) is the best homogeneous conductivity, a closed-form
         least-squares fit v ~ V(1) / sigma refined by three scalar Newton steps, unless
         `initial` (S/sq, scalar or (E,)) is given. `estimate_contact_impedance` fits one
-        contact impedance per electrode jointly, starting from the model's.
+        contact impedance per electrode jointly, starting from the model's. `throw`: see the
+        class docstring.
         """
         frames, single, dtype = self._frames(voltages)
         if initial is None:
             start = np.log(self._homogeneous_fit(frames))[:, None] * np.ones(self.model.n_elements)
         else:
             start = np.log(_positive_map(initial, self.model.n_elements))[None] * np.ones((len(frames), 1))
-        return self._solve(frames, start, estimate_contact_impedance, single, dtype)
+        return self._solve(frames, start, estimate_contact_impedance, single, dtype, throw)
 
     @host_algebra
-    def difference(self, voltage_difference: jax.Array, *, background: float | np.ndarray = 1.0) -> GaussNewtonResult:
+    def difference(
+        self, voltage_difference: jax.Array, *, background: float | np.ndarray = 1.0, throw: bool = True
+    ) -> GaussNewtonResult:
         """Nonlinear difference imaging: the conductivity sigma with V(sigma) - V(background)
         = `voltage_difference` (M,) or (T, M) volts, starting from and regularised towards the
-        `background` (S/sq, scalar or (E,)); `conductivity_change` is the image."""
+        `background` (S/sq, scalar or (E,)); `conductivity_change` is the image. `throw`: see
+        the class docstring."""
         frames, single, dtype = self._frames(voltage_difference)
         background = _positive_map(background, self.model.n_elements)
         reference = np.asarray(self.model.measure(jnp.asarray(background)))
         start = np.log(background)[None] * np.ones((len(frames), 1))
-        return self._solve(frames + reference, start, False, single, dtype)
+        return self._solve(frames + reference, start, False, single, dtype, throw)
 
     def _frames(self, frames: jax.Array) -> tuple[np.ndarray, bool, np.dtype]:
         """(T, M) float64 frames, whether one frame was given, and its dtype: the iteration runs
@@ -180,115 +252,84 @@ class GaussNewton:
         return np.exp(level)
 
     def _solve(
-        self, frames: np.ndarray, start: np.ndarray, estimate_z: bool, single: bool, dtype: np.dtype
+        self, data: np.ndarray, start: np.ndarray, estimate_z: bool, single: bool, dtype: np.dtype, throw: bool
     ) -> GaussNewtonResult:
-        model, mesh = self.model, self.model.mesh
-        n_frames, n_electrodes = len(frames), mesh.n_electrodes
-        weight = self.hyperparameter**2
-        z_weight = weight / self.contact_impedance_spread**2
-        log_z_ref = np.broadcast_to(np.log(np.asarray(model.contact_impedance)), (n_frames, n_electrodes)).copy()
-        s, w, s_ref = start.copy(), log_z_ref.copy(), start.copy()
+        """Iterate every frame of `data` (T, M) from the log-conductivities `start` (T, E) until
+        each has stopped; the whole batch is evaluated at once (a fixed shape compiles once)."""
+        frames, iterates = self._start(data, start, estimate_z)
+        for _ in range(self.max_iterations):
+            steps = [
+                None if it.result is not None else self._step(f, it) for f, it in zip(frames, iterates, strict=True)
+            ]
+            if all(step is None for step in steps):
+                break
+            trials = self._line_search(frames, iterates, steps, estimate_z)
+            iterates = [
+                it if step is None else self._advance(f, it, trial)
+                for f, it, step, trial in zip(frames, iterates, steps, trials, strict=True)
+            ]
+            if any(it.result is None for it in iterates):
+                iterates = self._relinearise(frames, iterates, estimate_z)
+        iterates = [
+            it if it.result is not None else it._replace(result=RESULTS.max_iterations_reached) for it in iterates
+        ]
+        result = _result(frames, iterates, single, dtype)
+        return throw_if_failed(result, result.result, "Gauss-Newton") if throw else result
 
-        voltages, jacobian, z_jacobian = _evaluate(model, jnp.asarray(s), jnp.asarray(w), True, estimate_z)
-        voltages, jacobian = np.asarray(voltages), np.asarray(jacobian)
+    def _start(self, data: np.ndarray, start: np.ndarray, estimate_z: bool) -> tuple[list[_Frame], list[_Iterate]]:
+        """Each frame's fixed part (data scale, prior operator and scale at the start, noise
+        level) and its first iterate; a frame whose start fits within the noise has stopped."""
+        model = self.model
+        log_z = np.broadcast_to(np.log(np.asarray(model.contact_impedance)), (len(data), model.mesh.n_electrodes))
+        voltages, jacobian, z_jacobian = _evaluate(model, start, log_z, True, estimate_z)
         scale = np.sqrt(np.mean(voltages**2, axis=1))  # s_d per frame, fixed from here on
-        operators, prior_scale = [], np.empty(n_frames)
-        for k in range(n_frames):
+        frames, iterates = [], []
+        for k, frame_data in enumerate(data):
             normalised = jacobian[k] / scale[k]
             operator = self.bound_prior(normalised)
-            operators.append(operator)
-            prior_scale[k] = np.sum(operator.root_transpose(np.ascontiguousarray(normalised.T)) ** 2) / len(normalised)
-        noise_norm = None
-        if self.noise is not None:
-            rms_data = np.sqrt(np.mean(frames**2, axis=1))
-            noise_norm = self.discrepancy_safety * self.noise / 100 * rms_data / scale * np.sqrt(frames.shape[1])
-
-        def objective(k: int, residual: np.ndarray, s_k: np.ndarray, w_k: np.ndarray) -> float:
-            deviation = s_k - s_ref[k]
-            prior_term = prior_scale[k] * deviation @ operators[k].precision(deviation)
-            return float(residual @ residual + weight * prior_term + z_weight * np.sum((w_k - log_z_ref[k]) ** 2))
-
-        residual = (voltages - frames) / scale[:, None]
-        value = np.array([objective(k, residual[k], s[k], w[k]) for k in range(n_frames)])
-        history = [[v] for v in value]
-        stop = [""] * n_frames
-        iterations = [0] * n_frames
-        damping = np.zeros(n_frames)
-        active = np.ones(n_frames, dtype=bool)
-        if noise_norm is not None:
-            for k in np.flatnonzero(np.linalg.norm(residual, axis=1) <= noise_norm):
-                stop[k], active[k] = "discrepancy", False
-
-        for _ in range(self.max_iterations):
-            if not active.any():
-                break
-            steps, slopes = {}, {}
-            for k in np.flatnonzero(active):
-                steps[k], slopes[k] = self._step(
-                    jacobian[k] / scale[k],
-                    None if z_jacobian is None else np.asarray(z_jacobian[k]) / scale[k],
-                    residual[k],
-                    s[k] - s_ref[k],
-                    w[k] - log_z_ref[k],
-                    operators[k],
-                    prior_scale[k],
-                    damping[k],
-                    z_weight,
-                )
-            accepted = self._line_search(frames, scale, s, w, steps, slopes, value, objective, estimate_z)
-            for k in np.flatnonzero(active):
-                if k not in accepted:
-                    # No decrease along this step: damp harder (shorter, more regularised steps).
-                    damping[k] = max(10 * damping[k], weight)
-                    if damping[k] > weight * 10**_DAMPING_RETRIES:
-                        stop[k], active[k] = "line_search_failed", False
-                    continue
-                length, new_s, new_w, new_value, new_residual = accepted[k]
-                damping[k] = damping[k] / 3 if length == 1.0 else max(2 * damping[k], weight * 1e-3)
-                decrease = (value[k] - new_value) / max(value[k], np.finfo(float).tiny)
-                s[k], w[k], value[k], residual[k] = new_s, new_w, new_value, new_residual
-                history[k].append(new_value)
-                iterations[k] += 1
-                if noise_norm is not None and np.linalg.norm(new_residual) <= noise_norm[k]:
-                    stop[k], active[k] = "discrepancy", False
-                elif decrease < self.stagnation_tolerance:
-                    stop[k], active[k] = "stagnation", False
-            if active.any():
-                # The whole batch, always: a fixed shape compiles once.
-                _, jacobian, z_jacobian = _evaluate(model, jnp.asarray(s), jnp.asarray(w), True, estimate_z)
-                jacobian = np.asarray(jacobian)
-        for k in np.flatnonzero(active):
-            stop[k] = "max_iterations"
-
-        conductivity = np.exp(s).astype(dtype)
-        contact_impedance = np.exp(w).astype(dtype)
-        misfit = np.linalg.norm(residual, axis=1)
-        reference = np.exp(s_ref).astype(dtype)
-        histories = tuple(np.array(h) for h in history)
-        if single:
-            return GaussNewtonResult(
-                conductivity[0], contact_impedance[0], reference[0], histories[0], stop[0], iterations[0], misfit[0]
+            prior_scale = np.sum(operator.root_transpose(np.ascontiguousarray(normalised.T)) ** 2) / len(normalised)
+            noise_norm = None
+            if self.noise is not None:
+                rms_data = np.sqrt(np.mean(frame_data**2))
+                noise_norm = self.discrepancy_safety * self.noise / 100 * rms_data / scale[k] * np.sqrt(len(frame_data))
+            frame = _Frame(frame_data, scale[k], operator, prior_scale, start[k].copy(), log_z[k].copy(), noise_norm)
+            residual = (voltages[k] - frame_data) / scale[k]
+            objective = self._objective(frame, residual, frame.log_reference, frame.log_z_reference)
+            reached = noise_norm is not None and bool(np.linalg.norm(residual) <= noise_norm)
+            iterate = _Iterate(
+                log_conductivity=frame.log_reference,
+                log_contact_impedance=frame.log_z_reference,
+                residual=residual,
+                objective=objective,
+                jacobian=normalised,
+                z_jacobian=None if z_jacobian is None else z_jacobian[k] / scale[k],
+                damping=0.0,
+                history=(objective,),
+                reached_discrepancy=reached,
+                result=RESULTS.successful if reached else None,
             )
-        return GaussNewtonResult(
-            conductivity, contact_impedance, reference, histories, tuple(stop), tuple(iterations), misfit
-        )
+            frames.append(frame)
+            iterates.append(iterate)
+        return frames, iterates
 
-    def _step(
-        self,
-        jacobian: np.ndarray,
-        z_jacobian: np.ndarray | None,
-        residual: np.ndarray,
-        deviation: np.ndarray,
-        z_deviation: np.ndarray,
-        operator: PriorOperator,
-        prior_scale: float,
-        damping: float,
-        z_weight: float,
-    ) -> tuple[tuple[np.ndarray, np.ndarray], float]:
-        """The damped Gauss-Newton step (delta_s, delta_w) and the objective's directional
-        derivative along it (negative: a descent direction)."""
+    def _objective(self, frame: _Frame, residual: np.ndarray, s: np.ndarray, w: np.ndarray) -> float:
+        """Phi(s, w) (class docstring) for the normalised `residual` at (s, w)."""
+        deviation = s - frame.log_reference
+        prior_term = frame.prior_scale * deviation @ frame.operator.precision(deviation)
         weight = self.hyperparameter**2
-        alpha = weight + damping
+        z_term = weight / self.contact_impedance_spread**2 * np.sum((w - frame.log_z_reference) ** 2)
+        return float(residual @ residual + weight * prior_term + z_term)
+
+    def _step(self, frame: _Frame, iterate: _Iterate) -> _Step:
+        """The damped Gauss-Newton step from `iterate` (delta_s, delta_w) and the objective's
+        directional derivative along it (negative: a descent direction)."""
+        jacobian, z_jacobian, residual = iterate.jacobian, iterate.z_jacobian, iterate.residual
+        operator, prior_scale = frame.operator, frame.prior_scale
+        deviation = iterate.log_conductivity - frame.log_reference
+        z_deviation = iterate.log_contact_impedance - frame.log_z_reference
+        weight = self.hyperparameter**2
+        z_weight = weight / self.contact_impedance_spread**2
+        alpha = weight + iterate.damping
         shift = -weight * deviation / alpha
         # With P = S S^T, B = S^T J^T / sqrt(c): G = J (P/c) J^T = B^T B and (P/c) J^T xi = S B xi /
         # sqrt(c), one sparse solve with M right-hand sides per step.
@@ -299,7 +340,7 @@ class GaussNewton:
         gram = root_jt.T @ root_jt
         right = -residual - jacobian @ shift
         if z_jacobian is not None:
-            beta = z_weight * (1 + damping / weight)
+            beta = z_weight * (1 + iterate.damping / weight)
             z_shift = -z_weight * z_deviation / beta
             gram = gram + (alpha / beta) * z_jacobian @ z_jacobian.T
             right = right - z_jacobian @ z_shift
@@ -315,37 +356,108 @@ class GaussNewton:
             + weight * prior_scale * operator.precision(deviation) @ delta_s
             + z_weight * z_deviation @ delta_w
         )
-        return (delta_s, delta_w), float(slope)
+        return _Step(delta_s, delta_w, float(slope))
 
-    def _line_search(self, frames, scale, s, w, steps, slopes, value, objective, estimate_z) -> dict:
-        """Backtracking (Armijo) for every frame with a step at once: {frame: (length, s, w,
-        objective, residual)} for the frames whose objective decreased sufficiently. Each
-        halving evaluates the whole batch (a fixed shape compiles once); frames without a
-        pending trial stay where they are."""
-        accepted, lengths = {}, {}
-        for k, (delta_s, delta_w) in steps.items():
-            largest = max(np.abs(delta_s).max(), np.abs(delta_w).max(initial=0.0))
-            lengths[k] = min(1.0, _MAX_LOG_STEP / largest) if largest > 0 else 1.0
-        pending = [k for k in steps if slopes[k] < 0]
+    def _line_search(
+        self, frames: list[_Frame], iterates: list[_Iterate], steps: list[_Step | None], estimate_z: bool
+    ) -> list[_Trial | None]:
+        """Backtracking (Armijo) for every frame with a step at once: the accepted trial of each
+        frame whose objective decreased sufficiently, None for the others. Each halving
+        evaluates the whole batch (a fixed shape compiles once); frames without a pending trial
+        stay where they are."""
+        lengths = [0.0] * len(steps)
+        for k, step in enumerate(steps):
+            if step is not None:
+                largest = max(np.abs(step.log_conductivity).max(), np.abs(step.log_contact_impedance).max(initial=0.0))
+                lengths[k] = min(1.0, _MAX_LOG_STEP / largest) if largest > 0 else 1.0
+        pending = [k for k, step in enumerate(steps) if step is not None and step.slope < 0]
+        trials: list[_Trial | None] = [None] * len(steps)
         for _ in range(_HALVINGS):
             if not pending:
                 break
-            trial_s, trial_w = s.copy(), w.copy()
+            trial_s = np.stack([it.log_conductivity for it in iterates])
+            trial_w = np.stack([it.log_contact_impedance for it in iterates])
             for k in pending:
-                trial_s[k] = s[k] + lengths[k] * steps[k][0]
-                trial_w[k] = w[k] + lengths[k] * steps[k][1]
-            voltages, _, _ = _evaluate(self.model, jnp.asarray(trial_s), jnp.asarray(trial_w), False, estimate_z)
-            residual = (np.asarray(voltages) - frames) / scale[:, None]
+                trial_s[k] += lengths[k] * steps[k].log_conductivity
+                trial_w[k] += lengths[k] * steps[k].log_contact_impedance
+            voltages, _, _ = _evaluate(self.model, trial_s, trial_w, False, estimate_z)
             still = []
             for k in pending:
-                trial = objective(k, residual[k], trial_s[k], trial_w[k])
-                if np.isfinite(trial) and trial <= value[k] + _ARMIJO * lengths[k] * slopes[k]:
-                    accepted[k] = (lengths[k], trial_s[k], trial_w[k], trial, residual[k])
+                frame = frames[k]
+                residual = (voltages[k] - frame.data) / frame.scale
+                objective = self._objective(frame, residual, trial_s[k], trial_w[k])
+                if (
+                    np.isfinite(objective)
+                    and objective <= iterates[k].objective + _ARMIJO * lengths[k] * steps[k].slope
+                ):
+                    trials[k] = _Trial(lengths[k], trial_s[k], trial_w[k], residual, objective)
                 else:
                     lengths[k] /= 2
                     still.append(k)
             pending = still
-        return accepted
+        return trials
+
+    def _advance(self, frame: _Frame, iterate: _Iterate, trial: _Trial | None) -> _Iterate:
+        """The iterate after a line search: the trial taken and the damping eased, or, without
+        a trial, damped harder (shorter, more regularised steps) until the retries run out."""
+        weight = self.hyperparameter**2
+        if trial is None:
+            damping = max(10 * iterate.damping, weight)
+            failed = damping > weight * 10**_DAMPING_RETRIES
+            return iterate._replace(damping=damping, result=RESULTS.line_search_failed if failed else None)
+        damping = iterate.damping / 3 if trial.length == 1.0 else max(2 * iterate.damping, weight * 1e-3)
+        decrease = (iterate.objective - trial.objective) / max(iterate.objective, np.finfo(float).tiny)
+        reached = frame.noise_norm is not None and bool(np.linalg.norm(trial.residual) <= frame.noise_norm)
+        stopped = reached or decrease < self.stagnation_tolerance
+        return iterate._replace(
+            log_conductivity=trial.log_conductivity,
+            log_contact_impedance=trial.log_contact_impedance,
+            residual=trial.residual,
+            objective=trial.objective,
+            damping=damping,
+            history=(*iterate.history, trial.objective),
+            reached_discrepancy=reached,
+            result=RESULTS.successful if stopped else None,
+        )
+
+    def _relinearise(self, frames: list[_Frame], iterates: list[_Iterate], estimate_z: bool) -> list[_Iterate]:
+        """The iterates with their Jacobians at their current points: the whole batch, always
+        (a fixed shape compiles once)."""
+        s = np.stack([it.log_conductivity for it in iterates])
+        w = np.stack([it.log_contact_impedance for it in iterates])
+        _, jacobian, z_jacobian = _evaluate(self.model, s, w, True, estimate_z)
+        return [
+            it._replace(
+                jacobian=jacobian[k] / f.scale, z_jacobian=None if z_jacobian is None else z_jacobian[k] / f.scale
+            )
+            for k, (f, it) in enumerate(zip(frames, iterates, strict=True))
+        ]
+
+
+def _result(frames: list[_Frame], iterates: list[_Iterate], single: bool, dtype: np.dtype) -> GaussNewtonResult:
+    """The iterates as one result (the first frame's alone when one frame was given)."""
+    result = GaussNewtonResult(
+        conductivity=np.exp(np.stack([it.log_conductivity for it in iterates])).astype(dtype),
+        contact_impedance=np.exp(np.stack([it.log_contact_impedance for it in iterates])).astype(dtype),
+        reference=np.exp(np.stack([f.log_reference for f in frames])).astype(dtype),
+        history=tuple(np.array(it.history) for it in iterates),
+        iterations=np.array([len(it.history) - 1 for it in iterates]),
+        misfit=np.array([np.linalg.norm(it.residual) for it in iterates]),
+        reached_discrepancy=np.array([it.reached_discrepancy for it in iterates]),
+        result=jax.tree_util.tree_map(lambda *codes: np.stack(codes), *(it.result for it in iterates)),
+    )
+    if not single:
+        return result
+    return GaussNewtonResult(
+        conductivity=result.conductivity[0],
+        contact_impedance=result.contact_impedance[0],
+        reference=result.reference[0],
+        history=result.history[0],
+        iterations=int(result.iterations[0]),
+        misfit=float(result.misfit[0]),
+        reached_discrepancy=bool(result.reached_discrepancy[0]),
+        result=iterates[0].result,
+    )
 
 
 def _regularised_solve(gram: np.ndarray, alpha: float, right: np.ndarray) -> np.ndarray:
@@ -367,10 +479,18 @@ def _positive_map(value, n_elements: int) -> np.ndarray:
     return array
 
 
+def _evaluate(
+    model: ForwardModel, log_sigma: np.ndarray, log_z: np.ndarray, with_jacobian: bool, with_z: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Voltages (T, M), and dV/d ln(sigma) (T, M, E) and dV/d ln(z) (T, M, L) when asked (else
+    None), for a batch of log-conductivities and log contact impedances: one vmapped call."""
+    outputs = _evaluate_batch(model, jnp.asarray(log_sigma), jnp.asarray(log_z), with_jacobian, with_z)
+    return tuple(None if output is None else np.asarray(output) for output in outputs)
+
+
 @partial(jax.jit, static_argnums=(3, 4))
-def _evaluate(model: ForwardModel, log_sigma: jax.Array, log_z: jax.Array, with_jacobian: bool, with_z: bool):
-    """Voltages (T, M), and dV/d ln(sigma) (T, M, E) and dV/d ln(z) (T, M, L) when asked, for a
-    batch of log-conductivities and log contact impedances: one vmapped call."""
+def _evaluate_batch(model: ForwardModel, log_sigma: jax.Array, log_z: jax.Array, with_jacobian: bool, with_z: bool):
+    """`_evaluate` in JAX."""
 
     def one(log_sigma, log_z):
         sigma, z = jnp.exp(log_sigma), jnp.exp(log_z)

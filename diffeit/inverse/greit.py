@@ -11,9 +11,9 @@ the noise amplification in check.
 
 from __future__ import annotations
 
-from dataclasses import KW_ONLY, dataclass, field
 from typing import Literal
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib.tri
@@ -23,12 +23,12 @@ import scipy.sparse
 import scipy.special
 from scipy.spatial import cKDTree
 
-from .. import metrics
-from .._arrays import readonly
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..mesh import Mesh, distance_to_segments, element_sample_points, pixel_overlaps
-from .linearised import apply_matrix, check_frames
+from ..mesh import Mesh, distance_to_segments, element_sample_points
+from ..render import PixelGrid, pixel_grid
+from .linearised import IdentityModule, LinearisedProblem, apply_matrix, check_frames
+from .priors import Tikhonov
 
 DEFAULT_HYPERPARAMETER = 0.3
 _TRAININGS = ("linearised", "nonlinear")
@@ -40,19 +40,19 @@ _TARGET_SAMPLING_LEVEL = 8
 _NOISE_FIGURE_SCAN = np.logspace(-8, 4, 121)
 
 
-@dataclass(frozen=True, eq=False)
-class GREIT:
+class GREIT(IdentityModule):
     """GREIT-style linear difference reconstruction onto a fixed pixel grid.
 
-    `GREIT(model, *, grid=32, hyperparameter=None, noise_figure=None, target_radius=0.05,
-    n_targets=500, blur=0.15, background=1.0, training="linearised", contrast=0.1, seed=0)`
-
     **The grid.** `grid` x `grid` pixels (or `(n_rows, n_columns)`) tile the bounding box of the
-    mesh; `image[i, j]` is the pixel at x = `pixel_centres[i, j, 0]`, y = `pixel_centres[i, j, 1]`,
-    row 0 at the bottom (smallest y): `plt.imshow(image, origin="lower", extent=rec.extent)`.
-    A pixel is in the image (`mask`) when at least half of its area lies in the domain (exact
-    triangle-square overlap areas). Pixels outside are exactly 0 in every image: EIDORS makes
-    them NaN, but diffeit returns no NaN; use `mask` (e.g. `np.where(rec.mask, image, np.nan)`
+    mesh: after construction `grid` is that `diffeit.render.PixelGrid` (`pixel_grid(mesh, grid)`),
+    which gives the pixel centres, the mask, the pixel areas, the extent and the rendering of
+    element fields; `diffeit.metrics` (e.g. `position_error(rec.grid, image, centre)`) reads
+    GREIT images through it. `image[i, j]` is the pixel at x = `grid.pixel_centres[i, j, 0]`,
+    y = `grid.pixel_centres[i, j, 1]`, row 0 at the bottom (smallest y):
+    `plt.imshow(image, origin="lower", extent=rec.grid.extent)`. A pixel is in the image
+    (`grid.mask`) when at least half of its area lies in the domain (exact triangle-square
+    overlap areas). Pixels outside are exactly 0 in every image: EIDORS makes them NaN, but
+    diffeit returns no NaN; use `grid.mask` (e.g. `np.where(rec.grid.mask, image, np.nan)`
     for a figure).
 
     **Training.** `n_targets` discs of radius r = `target_radius` * R, where R is half the
@@ -60,9 +60,10 @@ class GREIT:
     (seeded by `seed`) among those whose disc lies wholly in the domain. Each target k is a
     relative conductivity change x_k = dsigma / background on the mesh (element fractions
     inside the disc), scaled to unit strength: the integral of x_k over the sheet equals the
-    sheet's area A. Its measurement is, in the normalised units of `OneStep`,
+    sheet's area A. Its measurement is, in the normalised units of `LinearisedProblem`
+    (absolute differences),
 
-        y_k = J_n x_k,  J_n = J diag(background) / s,  s = RMS(V(background))   ("linearised")
+        y_k = J_n x_k,  J_n = diag(1/s) J diag(background),  s = RMS(V(background))   ("linearised")
 
     (one Jacobian for all targets), or, with `training="nonlinear"`, the simulated difference
     (V(background (1 + contrast chi_k)) - V(background)) / s scaled by the same unit-strength
@@ -77,7 +78,7 @@ class GREIT:
         (1/K) sum_k ||d_k - R_n y_k||^2 + lambda^2 ||R_n||_F^2
             = E_k E_n ||d_k - R_n (y_k + n)||^2,  n ~ N(0, lambda^2 I),
 
-    summed over the pixels in `mask`, so that
+    summed over the pixels in the mask, so that
 
         R_n = D Y^T (Y Y^T + K lambda^2 I)^-1 = D Y^T U diag(1 / (m_i + K lambda^2)) U^T,
 
@@ -107,7 +108,7 @@ class GREIT:
 
         NF = SNR_in / SNR_out = mean_m |y_0m| sqrt(mean_p sum_m R_pm^2) / mean_p |(R_n y_0)_p|
 
-    over the measurements m and the pixels p in `mask`. Larger lambda, smaller NF. Either way,
+    over the measurements m and the pixels p in the mask. Larger lambda, smaller NF. Either way,
     both fields hold the values in effect after construction.
 
     **Units.** `reconstruct` gives dsigma in S/sq per pixel: the relative change times the
@@ -125,213 +126,188 @@ class GREIT:
     - `n_targets`: number of training targets K (default 500).
     - `blur`: standard deviation of the desired Gaussian point spread function, a fraction of
       R (default 0.15: half-amplitude diameter 2.35 * 0.15 = 0.35 R).
-    - `background`: reference conductivity, scalar or (E,), S/sq.
+    - `background`: reference conductivity, scalar or (E,), S/sq (held by `problem`).
     - `training`: "linearised" (default) or "nonlinear" (above).
     - `contrast`: relative conductivity change of the nonlinear training targets, > -1, not 0.
     - `seed`: seed of the target positions.
     """
 
-    model: ForwardModel
-    _: KW_ONLY
-    grid: int | tuple[int, int] = 32
-    hyperparameter: float | None = None
-    noise_figure: float | None = None
-    target_radius: float = 0.05
-    n_targets: int = 500
-    blur: float = 0.15
-    background: float | np.ndarray = 1.0
-    training: Literal["linearised", "nonlinear"] = "linearised"
-    contrast: float = 0.1
-    seed: int = 0
-    matrix: jax.Array = field(init=False, repr=False)
+    problem: LinearisedProblem = eqx.field(repr=False)
+    """The normalisation (J_n, s) at the background; its prior is not used."""
+    grid: PixelGrid = eqx.field(static=True, repr=False)
+    hyperparameter: float = eqx.field(static=True)
+    noise_figure: float = eqx.field(static=True)
+    target_radius: float = eqx.field(static=True)
+    n_targets: int = eqx.field(static=True)
+    blur: float = eqx.field(static=True)
+    training: Literal["linearised", "nonlinear"] = eqx.field(static=True)
+    contrast: float = eqx.field(static=True)
+    seed: int = eqx.field(static=True)
+    matrix: jax.Array = eqx.field(repr=False)
     """(n_rows * n_columns, n_meas) reconstruction matrix, S/sq per volt; rows of pixels
-    outside `mask` are zero. Pixels are in row-major (C) order of the image."""
-    pixel_centres: np.ndarray = field(init=False, repr=False)
-    """(n_rows, n_columns, 2) pixel centres, metres."""
-    mask: np.ndarray = field(init=False, repr=False)
-    """(n_rows, n_columns) boolean: the pixels of the image (at least half inside the domain)."""
-    pixel_areas: np.ndarray = field(init=False, repr=False)
-    """(n_rows, n_columns) area of each pixel in the domain, m^2; 0 outside `mask`."""
-    element_to_pixel: scipy.sparse.csr_array = field(init=False, repr=False)
-    """(n_rows * n_columns, E) sparse: `element_to_pixel @ values` is the area-weighted mean of
-    an element field over each pixel's part of the domain (rows outside `mask` are zero)."""
-    target_centres: np.ndarray = field(init=False, repr=False)
+    outside the mask are zero. Pixels are in row-major (C) order of the image."""
+    target_centres: np.ndarray = eqx.field(repr=False)
     """(K, 2) centres of the training targets, metres."""
 
     @host_algebra
-    def __post_init__(self) -> None:
-        mesh = self.model.mesh
-        shape = self._checked_parameters()
-        background = np.broadcast_to(np.asarray(self.background, dtype=float), (mesh.n_elements,))
-        set_field = object.__setattr__  # frozen: the derived fields are set once, here
-
-        low, high = mesh.nodes.min(axis=0), mesh.nodes.max(axis=0)
-        size = 0.5 * float(np.max(high - low))  # R: the lengths below are fractions of it
-        x_edges = np.linspace(low[0], high[0], shape[1] + 1)
-        y_edges = np.linspace(low[1], high[1], shape[0] + 1)
-        centres = np.stack(np.meshgrid(0.5 * (x_edges[1:] + x_edges[:-1]), 0.5 * (y_edges[1:] + y_edges[:-1])), -1)
-        overlap = pixel_overlaps(mesh, x_edges, y_edges)
-        covered = overlap.sum(axis=1)
-        pixel_area = (x_edges[1] - x_edges[0]) * (y_edges[1] - y_edges[0])
-        inside = covered >= _INSIDE_FRACTION * pixel_area
-        if not np.any(inside):
-            raise ValueError(f"no pixel of the {shape[0]} x {shape[1]} grid lies at least half in the domain")
-        weights = scipy.sparse.csr_array(
-            scipy.sparse.diags_array(np.divide(1.0, covered, out=np.zeros_like(covered), where=inside)) @ overlap
-        )
-
-        radius, width = self.target_radius * size, self.blur * size
-        rng = np.random.default_rng(self.seed)
-        target_centres = _target_positions(mesh, self.n_targets, radius, rng)
-        fractions, target_areas = _disc_fractions(mesh, target_centres, radius)  # (E, K) sparse, (K,)
-        domain_area = float(mesh.element_areas.sum())
-        strength = domain_area / target_areas  # unit strength: each x_k integrates to the sheet's area
-
-        reference = np.asarray(self.model.measure(jnp.asarray(background)))
-        scale = float(np.sqrt(np.mean(reference**2)))
-        if self.training == "linearised":
-            jacobian = np.asarray(self.model.jacobian(jnp.asarray(background))) * background / scale
-            training = np.asarray((fractions.T @ jacobian.T).T) * strength
-        else:
-            perturbed = background * (1 + self.contrast * fractions.T.toarray())  # (K, E)
-            voltages = np.asarray(jax.vmap(self.model.measure)(jnp.asarray(perturbed)))
-            training = (voltages - reference).T / scale * (strength / self.contrast)
-
-        desired = _desired_images(target_centres, np.sqrt(width**2 + radius**2 / 4), x_edges, y_edges)
-        desired = desired[inside] * domain_area  # (n_inside, K)
-        # M = Y Y^T = U diag(m_i) U^T: an n_meas x n_meas eigenproblem (an SVD of Y costs more and
-        # is slow under thread contention). Directions below rounding (reciprocal pairs of
-        # readings duplicate each other: M has rank 104 of 208 for the adjacent protocol) carry
-        # no information about the targets and are dropped, so lambda -> 0 is the pseudo-inverse.
-        eigenvalues, left = np.linalg.eigh(training @ training.T)
-        kept = eigenvalues > len(eigenvalues) * np.finfo(float).eps * eigenvalues.max()
-        eigenvalues, left = eigenvalues[kept], left[:, kept]
-        projected = (desired @ training.T) @ left  # D Y^T U, (n_inside, rank)
-
-        centroid = (mesh.element_centroids * mesh.element_areas[:, None]).sum(axis=0) / domain_area
-        signal = training[:, np.argmin(np.linalg.norm(target_centres - centroid, axis=1))]
-        figure = _NoiseFigure(projected, eigenvalues, left, signal, self.n_targets)
-        hyperparameter = self.hyperparameter
+    def __init__(
+        self,
+        model: ForwardModel,
+        *,
+        grid: int | tuple[int, int] = 32,
+        hyperparameter: float | None = None,
+        noise_figure: float | None = None,
+        target_radius: float = 0.05,
+        n_targets: int = 500,
+        blur: float = 0.15,
+        background: float | np.ndarray = 1.0,
+        training: Literal["linearised", "nonlinear"] = "linearised",
+        contrast: float = 0.1,
+        seed: int = 0,
+    ) -> None:
+        _check_settings(hyperparameter, noise_figure, target_radius, n_targets, blur, training, contrast)
+        self.target_radius, self.n_targets, self.blur = float(target_radius), int(n_targets), float(blur)
+        self.training, self.contrast, self.seed = training, float(contrast), seed
+        mesh = model.mesh
+        self.grid = _image_grid(mesh, grid)
+        self.problem = LinearisedProblem(model, Tikhonov(), background)
+        size = 0.5 * float(np.max(np.ptp(mesh.nodes, axis=0)))  # R: the lengths below are fractions of it
+        radius = self.target_radius * size
+        self.target_centres = _target_positions(mesh, self.n_targets, radius, np.random.default_rng(seed))
+        measurements = _training_measurements(self.problem, self.target_centres, radius, training, self.contrast)
+        desired = _desired_images(self.grid, mesh, self.target_centres, radius, self.blur * size)
+        fit = _RidgeFit(measurements, desired, _central_measurement(mesh, self.target_centres, measurements))
         if hyperparameter is None:
-            hyperparameter = DEFAULT_HYPERPARAMETER if self.noise_figure is None else figure.solve(self.noise_figure)
-        normalised = (projected * figure.filter(hyperparameter)) @ left.T  # R_n, (n_inside, n_meas)
+            hyperparameter = DEFAULT_HYPERPARAMETER if noise_figure is None else fit.solve(noise_figure)
+        self.hyperparameter = float(hyperparameter)
+        self.noise_figure = fit.noise_figure(self.hyperparameter)
+        self.matrix = jnp.asarray(_pixel_matrix(self.grid, self.problem, fit.matrix(self.hyperparameter)))
 
-        matrix = np.zeros((len(inside), len(reference)))
-        matrix[inside] = normalised * ((weights @ background)[inside] / scale)[:, None]
-        set_field(self, "hyperparameter", float(hyperparameter))
-        set_field(self, "noise_figure", figure(hyperparameter))
-        set_field(self, "matrix", jnp.asarray(matrix))
-        set_field(self, "pixel_centres", readonly(centres))
-        set_field(self, "mask", readonly(inside.reshape(shape)))
-        set_field(self, "pixel_areas", readonly(np.where(inside, covered, 0.0).reshape(shape)))
-        set_field(self, "element_to_pixel", weights)
-        set_field(self, "target_centres", readonly(target_centres))
+    @property
+    def model(self) -> ForwardModel:
+        """The forward model the targets are simulated on."""
+        return self.problem.model
 
     @property
     def shape(self) -> tuple[int, int]:
         """(n_rows, n_columns) of an image."""
-        return self.mask.shape
-
-    @property
-    def extent(self) -> tuple[float, float, float, float]:
-        """(x_min, x_max, y_min, y_max) of the grid, metres: matplotlib's `imshow(extent=...)`."""
-        nodes = self.model.mesh.nodes
-        return (float(nodes[:, 0].min()), float(nodes[:, 0].max()), float(nodes[:, 1].min()), float(nodes[:, 1].max()))
+        return self.grid.shape
 
     def reconstruct(self, voltage_difference: jax.Array) -> jax.Array:
         """Conductivity change dsigma (S/sq) per pixel for dV = V - V_reference (volts).
 
         `voltage_difference` is (n_meas,) or a batch (T, n_meas); the result is one image
-        (n_rows, n_columns) or (T, n_rows, n_columns), exactly 0 outside `mask`, in the input's
-        dtype. Works under jit and vmap, as `OneStep.reconstruct` does.
+        (n_rows, n_columns) or (T, n_rows, n_columns), exactly 0 outside the grid's mask, in the
+        input's dtype. Works under jit and vmap, as `OneStep.reconstruct` does.
         """
         dv = check_frames(voltage_difference, self.model.n_measurements, "voltage differences")
         return apply_matrix(self.matrix, dv).reshape(*dv.shape[:-1], *self.shape)
 
-    def to_pixels(self, values: np.ndarray) -> np.ndarray:
-        """An element field (E,) or batch (T, E) on the model's mesh as images (area-weighted
-        means over each pixel's part of the domain; 0 outside `mask`), e.g. to compare a true
-        dsigma with `reconstruct`'s image."""
-        values = np.asarray(values, dtype=float)
-        n = self.model.n_elements
-        if values.ndim not in (1, 2) or values.shape[-1] != n:
-            raise ValueError(f"element values have shape {values.shape}; expected ({n},) or (T, {n})")
-        return (self.element_to_pixel @ values.T).T.reshape(*values.shape[:-1], *self.shape)
 
-    def position_error(self, image: np.ndarray, centre: tuple[float, float]) -> float:
-        """Distance (m) from `centre` to the centroid of the half-amplitude set of one image
-        (pixels in `mask` at or beyond half the peak, on the peak's side; the README's definition
-        with pixels for elements, each weighted by its area in the domain)."""
-        image = np.asarray(image, dtype=float)
-        if image.shape != self.shape:
-            raise ValueError(f"image has shape {image.shape}; expected {self.shape}")
-        values = image[self.mask]
-        if not np.all(np.isfinite(values)) or not np.any(values):
-            raise ValueError("the image must be finite and not all zero inside the mask")
-        chosen = metrics.half_amplitude_set(values)
-        areas = self.pixel_areas[self.mask][chosen]
-        centroid = (self.pixel_centres[self.mask][chosen] * areas[:, None]).sum(axis=0) / areas.sum()
-        return float(np.linalg.norm(centroid - np.asarray(centre, dtype=float)))
-
-    def _checked_parameters(self) -> tuple[int, int]:
-        grid = self.grid
-        shape = (grid, grid) if np.ndim(grid) == 0 else tuple(grid)
-        if len(shape) != 2 or not all(isinstance(n, int | np.integer) and n >= 2 for n in shape):
-            raise ValueError(f"grid must be an integer >= 2 or a pair of them (n_rows, n_columns); got {grid!r}")
-        if self.hyperparameter is not None and self.noise_figure is not None:
-            raise ValueError(
-                "give hyperparameter or noise_figure, not both: the noise figure chooses the hyperparameter"
-            )
-        for name in ("hyperparameter", "noise_figure"):
-            value = getattr(self, name)
-            if value is not None and not (np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be finite and positive; got {value}")
-        for name in ("target_radius", "blur"):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and 0 < value < 1):
-                raise ValueError(f"{name} is a fraction of half the domain's size, in (0, 1); got {value}")
-        if not (isinstance(self.n_targets, int | np.integer) and self.n_targets >= 1):
-            raise ValueError(f"n_targets must be a positive integer; got {self.n_targets!r}")
-        if self.training not in _TRAININGS:
-            raise ValueError(f"training must be one of {_TRAININGS}; got {self.training!r}")
-        if not (np.isfinite(self.contrast) and self.contrast > -1 and self.contrast != 0):
-            raise ValueError(f"contrast (relative conductivity change) must be > -1 and not 0; got {self.contrast}")
-        background = np.asarray(self.background, dtype=float)
-        if background.shape not in ((), (self.model.n_elements,)):
-            raise ValueError(
-                f"background has shape {background.shape}; expected a scalar or ({self.model.n_elements},)"
-            )
-        if not np.all(np.isfinite(background) & (background > 0)):
-            raise ValueError("background conductivity must be finite and positive (S/sq)")
-        return shape
+def _check_settings(hyperparameter, noise_figure, target_radius, n_targets, blur, training, contrast) -> None:
+    """Refuse settings out of range, naming them (the grid and background are checked where
+    they are used)."""
+    if hyperparameter is not None and noise_figure is not None:
+        raise ValueError("give hyperparameter or noise_figure, not both: the noise figure chooses the hyperparameter")
+    for name, value in (("hyperparameter", hyperparameter), ("noise_figure", noise_figure)):
+        if value is not None and not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be finite and positive; got {value}")
+    for name, value in (("target_radius", target_radius), ("blur", blur)):
+        if not (np.isfinite(value) and 0 < value < 1):
+            raise ValueError(f"{name} is a fraction of half the domain's size, in (0, 1); got {value}")
+    if not (isinstance(n_targets, int | np.integer) and n_targets >= 1):
+        raise ValueError(f"n_targets must be a positive integer; got {n_targets!r}")
+    if training not in _TRAININGS:
+        raise ValueError(f"training must be one of {_TRAININGS}; got {training!r}")
+    if not (np.isfinite(contrast) and contrast > -1 and contrast != 0):
+        raise ValueError(f"contrast (relative conductivity change) must be > -1 and not 0; got {contrast}")
 
 
-class _NoiseFigure:
-    """The filter factors of R_n and its noise figure as functions of the hyperparameter, all
-    in the eigenbasis of Y Y^T (cheap: a scan costs no matrix products)."""
+def _image_grid(mesh: Mesh, grid: int | tuple[int, int]) -> PixelGrid:
+    """The pixel grid of the images: at least 2 x 2 pixels, at least one of them in the domain."""
+    shape = (grid, grid) if np.ndim(grid) == 0 else tuple(grid)
+    if len(shape) != 2 or not all(isinstance(n, int | np.integer) and n >= 2 for n in shape):
+        raise ValueError(f"grid must be an integer >= 2 or a pair of them (n_rows, n_columns); got {grid!r}")
+    pixels = pixel_grid(mesh, shape, _INSIDE_FRACTION)
+    if not np.any(pixels.mask):
+        raise ValueError(f"no pixel of the {shape[0]} x {shape[1]} grid lies at least half in the domain")
+    return pixels
 
-    def __init__(
-        self, projected: np.ndarray, eigenvalues: np.ndarray, left: np.ndarray, signal: np.ndarray, n_targets: int
-    ) -> None:
-        self.eigenvalues, self.n_targets = eigenvalues, n_targets
-        self.column_norms = np.sum(projected**2, axis=0)  # ||R_n||_F^2 = sum_i f_i^2 ||(D Y^T U)_i||^2
-        self.projected_signal = projected * (left.T @ signal)  # R_n y_0 = this @ f
+
+def _training_measurements(
+    problem: LinearisedProblem, centres: np.ndarray, radius: float, training: str, contrast: float
+) -> np.ndarray:
+    """Y (n_meas, K): the normalised measurements of the unit-strength targets (class docstring)."""
+    mesh, model = problem.model.mesh, problem.model
+    fractions, target_areas = _disc_fractions(mesh, centres, radius)  # (E, K) sparse, (K,)
+    strength = mesh.element_areas.sum() / target_areas  # unit strength: each x_k integrates to the sheet's area
+    if training == "linearised":
+        return np.asarray((fractions.T @ problem.jacobian.T).T) * strength
+    perturbed = problem.background * (1 + contrast * fractions.T.toarray())  # (K, E)
+    voltages = np.asarray(jax.vmap(model.measure)(jnp.asarray(perturbed)))
+    return (voltages - problem.reference).T / problem.data_scale[:, None] * (strength / contrast)
+
+
+def _desired_images(grid: PixelGrid, mesh: Mesh, centres: np.ndarray, radius: float, width: float) -> np.ndarray:
+    """D (pixels in the mask, K): each target disc of `radius` blurred by a Gaussian of standard
+    deviation `width` (m), scaled to integrate to the sheet's area as the targets do; the disc
+    enters as the Gaussian of equal second moments (class docstring)."""
+    images = _pixel_gaussians(centres, np.sqrt(width**2 + radius**2 / 4), grid.x_edges, grid.y_edges)
+    return images[grid.mask.ravel()] * mesh.element_areas.sum()
+
+
+def _central_measurement(mesh: Mesh, centres: np.ndarray, measurements: np.ndarray) -> np.ndarray:
+    """y_0 (n_meas,): the measurement of the training target nearest the domain's centroid."""
+    centroid = mesh.element_areas @ mesh.element_centroids / mesh.element_areas.sum()
+    return measurements[:, np.argmin(np.linalg.norm(centres - centroid, axis=1))]
+
+
+def _pixel_matrix(grid: PixelGrid, problem: LinearisedProblem, normalised: np.ndarray) -> np.ndarray:
+    """The (n_pixels, n_meas) matrix in S/sq per volt from R_n (mask pixels, unit-free): rows
+    times each pixel's background, columns over s, rows outside the mask zero."""
+    inside = grid.mask.ravel()
+    pixel_background = (grid.element_to_pixel @ problem.background)[inside]
+    matrix = np.zeros((len(inside), normalised.shape[1]))
+    matrix[inside] = normalised * pixel_background[:, None] / problem.data_scale
+    return matrix
+
+
+class _RidgeFit:
+    """R_n and its noise figure as functions of the hyperparameter, in the eigenbasis of
+    Y Y^T = U diag(m_i) U^T (an n_meas x n_meas eigenproblem: an SVD of Y costs more and is slow
+    under thread contention). Directions below rounding (reciprocal pairs of readings duplicate
+    each other: Y Y^T has rank 104 of 208 for the adjacent protocol) carry no information about
+    the targets and are dropped, so lambda -> 0 is the pseudo-inverse. A noise-figure scan
+    costs no matrix products."""
+
+    def __init__(self, measurements: np.ndarray, desired: np.ndarray, signal: np.ndarray) -> None:
+        eigenvalues, left = np.linalg.eigh(measurements @ measurements.T)
+        kept = eigenvalues > len(eigenvalues) * np.finfo(float).eps * eigenvalues.max()
+        self.eigenvalues, self.left = eigenvalues[kept], left[:, kept]
+        self.projected = (desired @ measurements.T) @ self.left  # D Y^T U, (n_pixels, rank)
+        self.n_targets = measurements.shape[1]
+        self.column_norms = np.sum(self.projected**2, axis=0)  # ||R_n||_F^2 = sum_i f_i^2 ||(D Y^T U)_i||^2
+        self.projected_signal = self.projected * (self.left.T @ signal)  # R_n y_0 = this @ f
         self.signal_amplitude = float(np.mean(np.abs(signal)))
-        self.n_pixels = len(projected)
 
     def filter(self, hyperparameter: float) -> np.ndarray:
         """f_i = 1 / (m_i + K lambda^2), so that R_n = D Y^T U diag(f) U^T; m_i > 0, so never inf."""
         return 1 / (self.eigenvalues + self.n_targets * hyperparameter**2)
 
-    def __call__(self, hyperparameter: float) -> float:
+    def matrix(self, hyperparameter: float) -> np.ndarray:
+        """R_n (pixels in the mask, n_meas), unit-free."""
+        return (self.projected * self.filter(hyperparameter)) @ self.left.T
+
+    def noise_figure(self, hyperparameter: float) -> float:
+        """NF of R_n (class docstring of GREIT)."""
         factors = self.filter(hyperparameter)
-        noise = np.sqrt(self.column_norms @ factors**2 / self.n_pixels)
+        noise = np.sqrt(self.column_norms @ factors**2 / len(self.projected))
         image = np.mean(np.abs(self.projected_signal @ factors))
         return float(self.signal_amplitude * noise / image)
 
     def solve(self, target: float) -> float:
         """The hyperparameter of noise figure `target`: the first crossing on a log scan, refined."""
-        figures = np.array([self(h) for h in _NOISE_FIGURE_SCAN])
+        figures = np.array([self.noise_figure(h) for h in _NOISE_FIGURE_SCAN])
         excess = figures - target
         crossing = np.flatnonzero(np.sign(excess[:-1]) != np.sign(excess[1:]))
         if len(crossing) == 0:
@@ -341,7 +317,9 @@ class _NoiseFigure:
             )
         i = crossing[0]
         log_root = scipy.optimize.brentq(
-            lambda t: self(10.0**t) - target, np.log10(_NOISE_FIGURE_SCAN[i]), np.log10(_NOISE_FIGURE_SCAN[i + 1])
+            lambda t: self.noise_figure(10.0**t) - target,
+            np.log10(_NOISE_FIGURE_SCAN[i]),
+            np.log10(_NOISE_FIGURE_SCAN[i + 1]),
         )
         return float(10.0**log_root)
 
@@ -386,7 +364,7 @@ def _disc_fractions(mesh: Mesh, centres: np.ndarray, radius: float) -> tuple[sci
     return fractions, areas
 
 
-def _desired_images(centres: np.ndarray, width: float, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
+def _pixel_gaussians(centres: np.ndarray, width: float, x_edges: np.ndarray, y_edges: np.ndarray) -> np.ndarray:
     """(n_rows * n_columns, K): the mean over each pixel of the unit-mass Gaussian of standard
     deviation `width` about each centre, 1/m^2 (exact: the Gaussian separates in x and y)."""
 

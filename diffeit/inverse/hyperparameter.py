@@ -22,19 +22,24 @@ filter factors f_i = g_i / (g_i + lambda^2),
   uses NF = 0.5. Larger lambda gives a smaller NF.
 
 With several frames (T, M) the norms add up over frames.
+
+A choice at an end of the candidates (or a discrepancy or noise-figure level not reached within
+them) is `RESULTS.selection_at_boundary`: `select_hyperparameter` raises for it unless called
+with `throw=False`, and the selection's `result` carries the code.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Literal
 
+import equinox as eqx
 import jax
 import numpy as np
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import disc_fraction
+from ..results import RESULTS, throw_if_failed
 from .linearised import LinearisedProblem, check_frames
 from .one_step import OneStep
 from .priors import AbstractPrior, Noser, Tikhonov
@@ -43,8 +48,7 @@ Method = Literal["gcv", "lcurve", "discrepancy", "noise_figure"]
 DEFAULT_CANDIDATES = np.logspace(-6, 2, 161)
 
 
-@dataclass(frozen=True)
-class HyperparameterSelection:
+class HyperparameterSelection(eqx.Module):
     """The chosen hyperparameter and the curve it was chosen from.
 
     - `value`: the chosen lambda (unit-free).
@@ -54,17 +58,19 @@ class HyperparameterSelection:
       curvature, the residual norm over the noise norm, or the noise figure.
     - `residual_norm`, `solution_norm` (K,): ||J_n x - y|| and the prior seminorm of x.
     - `target`: the level a discrepancy or noise-figure method aims at (None otherwise).
-    - `note`: why the value sits at the end of the candidates, if it does; else "".
+    - `result`: `RESULTS.successful`, or `RESULTS.selection_at_boundary` when the value is the
+      smallest or largest candidate (or the target level is not reached within the candidates,
+      and the nearest end is taken).
     """
 
     value: float
-    method: str
+    method: str = eqx.field(static=True)
     candidates: np.ndarray
     criterion: np.ndarray
     residual_norm: np.ndarray
     solution_norm: np.ndarray
-    target: float | None = None
-    note: str = ""
+    target: float | None
+    result: RESULTS
 
 
 @host_algebra
@@ -82,6 +88,7 @@ def select_hyperparameter(
     safety: float = 1.0,
     noise_figure: float = 0.5,
     target_radius: float | None = None,
+    throw: bool = True,
 ) -> HyperparameterSelection:
     """Choose the `OneStep` hyperparameter for data `voltage_difference` (M,) or (T, M), volts.
 
@@ -92,8 +99,12 @@ def select_hyperparameter(
     norm (Morozov's tau, 1 by default). `noise_figure` is the NF aimed at and
     `target_radius` (metres, default 5% of the mesh's diameter) the central target's radius.
     See the module docstring for the definitions.
+
+    `throw=True` (the default) raises `diffeit.results.SolverError` for a choice at an end of
+    the candidates (`RESULTS.selection_at_boundary`); with `throw=False` the selection carries
+    the code in `result` and its value is the nearest end.
     """
-    problem = LinearisedProblem.at(model, prior, background, normalised=normalised)
+    problem = LinearisedProblem(model, prior, background, normalised=normalised)
     dv = np.atleast_2d(np.asarray(check_frames(voltage_difference, model.n_measurements, "voltage differences")))
     if normalised and reference is None:
         raise ValueError("normalised differences need the measured reference voltages: pass reference=V_ref")
@@ -109,11 +120,11 @@ def select_hyperparameter(
         n = len(eigenvalues)
         dof = n - np.sum(eigenvalues / (eigenvalues + lambdas[:, None] ** 2), axis=1)
         criterion = n * residual**2 / len(y) / dof**2
-        return _at_index(lambdas, criterion, residual, solution, method, int(np.argmin(criterion)))
-    if method == "lcurve":
+        selection = _at_index(lambdas, criterion, residual, solution, method, int(np.argmin(criterion)))
+    elif method == "lcurve":
         criterion = _curvature(np.log(residual), np.log(solution), np.log(lambdas))
-        return _at_index(lambdas, criterion, residual, solution, method, int(np.argmax(criterion)))
-    if method == "discrepancy":
+        selection = _at_index(lambdas, criterion, residual, solution, method, int(np.argmax(criterion)))
+    elif method == "discrepancy":
         if noise is None or not noise > 0:
             raise ValueError("the discrepancy principle needs the noise level: noise=p for p% of RMS(V_ref)")
         volts = noise / 100 * np.sqrt(np.mean(problem.reference**2))
@@ -122,11 +133,13 @@ def select_hyperparameter(
         def level(lam: np.ndarray) -> np.ndarray:
             return _norms(eigenvalues, spectrum, lam)[0] / noise_norm
 
-        return _crossing(lambdas, level, 1.0, residual, solution, method, increasing=True)
-    if method == "noise_figure":
+        selection = _crossing(lambdas, level, 1.0, residual, solution, method, increasing=True)
+    elif method == "noise_figure":
         figure = _noise_figure_function(problem, eigenvalues, vectors, target_radius)
-        return _crossing(lambdas, figure, noise_figure, residual, solution, method, increasing=False)
-    raise ValueError(f"unknown method {method!r}; choose one of {Method.__args__}")
+        selection = _crossing(lambdas, figure, noise_figure, residual, solution, method, increasing=False)
+    else:
+        raise ValueError(f"unknown method {method!r}; choose one of {Method.__args__}")
+    return throw_if_failed(selection, selection.result, f"hyperparameter selection by {method}") if throw else selection
 
 
 def _norms(eigenvalues: np.ndarray, spectrum: np.ndarray, lambdas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,10 +156,11 @@ def _curvature(rho: np.ndarray, eta: np.ndarray, t: np.ndarray) -> np.ndarray:
     return (d_rho * dd_eta - dd_rho * d_eta) / np.maximum(d_rho**2 + d_eta**2, 1e-300) ** 1.5
 
 
-def _at_index(lambdas, criterion, residual, solution, method, index, target=None, note="") -> HyperparameterSelection:
-    if not note and index in (0, len(lambdas) - 1):
-        note = f"the {method} choice is the {'smallest' if index == 0 else 'largest'} candidate: widen the candidates"
-    return HyperparameterSelection(float(lambdas[index]), method, lambdas, criterion, residual, solution, target, note)
+def _at_index(lambdas, criterion, residual, solution, method, index, target=None) -> HyperparameterSelection:
+    """The selection of candidate `index`: at the boundary when it is the first or the last."""
+    result = RESULTS.selection_at_boundary if index in (0, len(lambdas) - 1) else RESULTS.successful
+    value = float(lambdas[index])
+    return HyperparameterSelection(value, method, lambdas, criterion, residual, solution, target, result)
 
 
 def _crossing(lambdas, function, target, residual, solution, method, *, increasing: bool) -> HyperparameterSelection:
@@ -156,8 +170,7 @@ def _crossing(lambdas, function, target, residual, solution, method, *, increasi
     above = values >= target if increasing else values <= target
     if above.all() or not above.any():
         index = 0 if above.all() else len(lambdas) - 1
-        note = f"the {method} level {target:g} is not reached within the candidates: the nearest end is taken"
-        return _at_index(lambdas, values, residual, solution, method, index, target, note)
+        return _at_index(lambdas, values, residual, solution, method, index, target)
     first = int(np.argmax(above))
     low, high = np.log(lambdas[max(first - 1, 0)]), np.log(lambdas[first])
     for _ in range(50):
@@ -168,7 +181,7 @@ def _crossing(lambdas, function, target, residual, solution, method, *, increasi
         else:
             low = middle
     value = float(np.exp(0.5 * (low + high)))
-    return HyperparameterSelection(value, method, lambdas, values, residual, solution, target, "")
+    return HyperparameterSelection(value, method, lambdas, values, residual, solution, target, RESULTS.successful)
 
 
 def _noise_figure_function(problem: LinearisedProblem, eigenvalues, vectors, target_radius):
@@ -235,7 +248,7 @@ def from_external_hyperparameter(
     if not value > 0:
         raise ValueError(f"the {tool} hyperparameter must be positive; got {value}")
     weight = value**2 if tool == "eidors" else value
-    problem = LinearisedProblem.at(model, prior, background)
+    problem = LinearisedProblem(model, prior, background)
     return float(np.sqrt(weight / _weight_factor(problem, tool)))
 
 

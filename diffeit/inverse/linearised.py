@@ -4,8 +4,7 @@ measurement-space eigendecomposition; with the checks of the frames a reconstruc
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,12 +17,21 @@ from ..forward import ForwardModel
 from .priors import AbstractPrior, prior_named
 
 
-@dataclass(frozen=True, eq=False)
-class LinearisedProblem:
+class IdentityModule(eqx.Module):
+    """An `equinox.Module` compared and hashed by identity, as functions are: `jax.jit(rec.reconstruct)`
+    hashes the bound method, and with it the reconstruction, whose fields hold arrays (which
+    have no hash). The reconstructions subclass it."""
+
+    def __eq__(self, other: object) -> bool:
+        return self is other
+
+    def __hash__(self) -> int:
+        return id(self)
+
+
+class LinearisedProblem(eqx.Module):
     """The linearisation of a model at a background, normalised so that hyperparameters are
     unit-free.
-
-    `LinearisedProblem.at(model, prior, background, normalised=False)`
 
     Unknowns: the relative change x = dsigma / background per element. Data: y = dV / s with
     s = RMS(V_0) on every reading (absolute differences), or y = dV / V_ref reading by reading
@@ -37,10 +45,13 @@ class LinearisedProblem:
     noise variance against the average signal a change drawn from the prior gives, whatever
     the prior, the mesh, the drive current or the background level.
 
-    Fields: `reference` (M,) V_0 in volts; `data_scale` (M,) s in volts (signed for
-    normalised differences); `jacobian` (M, E)
-    J_n; `prior_jacobian` (E, M) P J_n^T / c; `gram` (M, M); `prior_scale` c; `eigenvalues`
-    (M,) and `eigenvectors` (M, M) of G, ascending. Eigenvalues below M eps max(G) are set to
+    **Arguments:** `model`; `prior`, a name ("tikhonov", "noser", "laplace", "matern") or a
+    prior of `diffeit.inverse.priors`; `background`, S/sq, scalar or (E,); `normalised`.
+
+    **Fields** besides those: `background` (E,) S/sq; `reference` (M,) V_0 in volts;
+    `data_scale` (M,) s in volts (signed for normalised differences); `jacobian` (M, E) J_n;
+    `prior_jacobian` (E, M) P J_n^T / c; `gram` (M, M); `prior_scale` c; `eigenvalues` (M,)
+    and `eigenvectors` (M, M) of G, ascending. Eigenvalues below M eps max(G) are set to
     exactly 0: adjacent data are rank-deficient (reciprocity pairs readings), and in the null
     space of G no change x can explain the data (J^T u = 0 there), so the solvers leave those
     components out instead of dividing rounding errors by a tiny hyperparameter.
@@ -49,64 +60,44 @@ class LinearisedProblem:
     model: ForwardModel
     prior: AbstractPrior
     background: np.ndarray
-    normalised: bool
-    reference: np.ndarray = field(repr=False)
-    data_scale: np.ndarray = field(repr=False)
-    jacobian: np.ndarray = field(repr=False)
-    prior_jacobian: np.ndarray = field(repr=False)
-    gram: np.ndarray = field(repr=False)
-    prior_scale: float = field(repr=False)
-    eigenvalues: np.ndarray = field(repr=False)
-    eigenvectors: np.ndarray = field(repr=False)
+    normalised: bool = eqx.field(static=True)
+    reference: np.ndarray = eqx.field(repr=False)
+    data_scale: np.ndarray = eqx.field(repr=False)
+    jacobian: np.ndarray = eqx.field(repr=False)
+    prior_jacobian: np.ndarray = eqx.field(repr=False)
+    gram: np.ndarray = eqx.field(repr=False)
+    prior_scale: float = eqx.field(repr=False)
+    eigenvalues: np.ndarray = eqx.field(repr=False)
+    eigenvectors: np.ndarray = eqx.field(repr=False)
 
-    @classmethod
     @host_algebra
-    def at(
-        cls,
+    def __init__(
+        self,
         model: ForwardModel,
         prior: str | AbstractPrior = "noser",
         background: float | np.ndarray = 1.0,
         *,
         normalised: bool = False,
-    ) -> LinearisedProblem:
-        prior = prior_named(prior) if isinstance(prior, str) else prior
-        if not isinstance(prior, AbstractPrior):
+    ) -> None:
+        self.model = model
+        self.prior = prior_named(prior) if isinstance(prior, str) else prior
+        if not isinstance(self.prior, AbstractPrior):
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
-        background = np.broadcast_to(np.asarray(background, dtype=np.float64), (model.n_elements,)).copy()
-        if not np.all(np.isfinite(background) & (background > 0)):
-            raise ValueError("background conductivity must be finite and positive (S/sq), one value or one per element")
-        reference = np.asarray(model.measure(jnp.asarray(background)))
-        if normalised:
-            small = np.abs(reference) < 1e-6 * np.sqrt(np.mean(reference**2))
-            if np.any(small):
-                raise ValueError(
-                    f"normalised differences divide by the reference voltages, and readings "
-                    f"{name_indices(np.flatnonzero(small))} are near zero at this background: use absolute differences"
-                )
-            data_scale = reference  # signed: see the class docstring
-        else:
-            data_scale = np.full(len(reference), np.sqrt(np.mean(reference**2)))
-        jacobian = np.asarray(model.jacobian(jnp.asarray(background))) * background / data_scale[:, None]
-        prior_jacobian = prior.covariance_times_jacobian_transpose(model.mesh, jacobian)
-        gram = jacobian @ prior_jacobian
-        prior_scale = float(np.trace(gram) / len(gram))
-        gram = 0.5 * (gram + gram.T) / prior_scale  # symmetric up to rounding; make it exactly so
-        eigenvalues, eigenvectors = scipy.linalg.eigh(gram)
-        eigenvalues[eigenvalues < len(gram) * np.finfo(float).eps * eigenvalues[-1]] = 0.0
-        return cls(
-            model=model,
-            prior=prior,
-            background=background,
-            normalised=normalised,
-            reference=reference,
-            data_scale=data_scale,
-            jacobian=jacobian,
-            prior_jacobian=prior_jacobian / prior_scale,
-            gram=gram,
-            prior_scale=prior_scale,
-            eigenvalues=eigenvalues,
-            eigenvectors=eigenvectors,
+        self.background = _checked_background(background, model.n_elements)
+        self.normalised = bool(normalised)
+        self.reference = np.asarray(model.measure(jnp.asarray(self.background)))
+        self.data_scale = _data_scale(self.reference, self.normalised)
+        self.jacobian = (
+            np.asarray(model.jacobian(jnp.asarray(self.background))) * self.background / self.data_scale[:, None]
         )
+        prior_jacobian = self.prior.covariance_times_jacobian_transpose(model.mesh, self.jacobian)
+        gram = self.jacobian @ prior_jacobian
+        self.prior_scale = float(np.trace(gram) / len(gram))
+        self.prior_jacobian = prior_jacobian / self.prior_scale
+        self.gram = 0.5 * (gram + gram.T) / self.prior_scale  # symmetric up to rounding; make it exactly so
+        eigenvalues, self.eigenvectors = scipy.linalg.eigh(self.gram)
+        eigenvalues[eigenvalues < len(eigenvalues) * np.finfo(float).eps * eigenvalues[-1]] = 0.0
+        self.eigenvalues = eigenvalues
 
     def normalised_data(self, voltage_difference: jax.Array, reference: jax.Array | None = None) -> jax.Array:
         """y (..., M) from dV (..., M) in volts; normalised differences divide by the measured
@@ -114,6 +105,29 @@ class LinearisedProblem:
         if not self.normalised:
             return voltage_difference / self.data_scale
         return voltage_difference / (self.reference if reference is None else reference)
+
+
+def _checked_background(background: float | np.ndarray, n_elements: int) -> np.ndarray:
+    """(E,) float64 copy of a scalar or per-element background conductivity, S/sq."""
+    array = np.asarray(background, dtype=np.float64)
+    if array.shape not in ((), (n_elements,)):
+        raise ValueError(f"background has shape {array.shape}; expected a scalar or ({n_elements},)")
+    if not np.all(np.isfinite(array) & (array > 0)):
+        raise ValueError("background conductivity must be finite and positive (S/sq), one value or one per element")
+    return np.broadcast_to(array, (n_elements,)).copy()
+
+
+def _data_scale(reference: np.ndarray, normalised: bool) -> np.ndarray:
+    """s (M,) volts: RMS(V_0) on every reading, or V_0 itself (signed) for normalised differences."""
+    if not normalised:
+        return np.full(len(reference), np.sqrt(np.mean(reference**2)))
+    small = np.abs(reference) < 1e-6 * np.sqrt(np.mean(reference**2))
+    if np.any(small):
+        raise ValueError(
+            f"normalised differences divide by the reference voltages, and readings "
+            f"{name_indices(np.flatnonzero(small))} are near zero at this background: use absolute differences"
+        )
+    return reference
 
 
 @host_algebra

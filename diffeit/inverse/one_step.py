@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,15 +10,12 @@ import numpy as np
 from .._arrays import is_concrete
 from .._messages import name_indices
 from ..forward import ForwardModel
-from .linearised import LinearisedProblem, apply_matrix, check_frames, regularised_inverse
+from .linearised import IdentityModule, LinearisedProblem, apply_matrix, check_frames, regularised_inverse
 from .priors import AbstractPrior
 
 
-@dataclass(frozen=True, eq=False)
-class OneStep:
+class OneStep(IdentityModule):
     """Linearised difference reconstruction dsigma = R dV, with R built once.
-
-    `OneStep(model, prior="noser", hyperparameter=0.05, background=1.0, *, normalised=False)`
 
     With the normalisation of `LinearisedProblem` (x = dsigma / background, y = dV / s,
     J_n, P scaled to a unit-mean data-space covariance G = J_n P J_n^T):
@@ -42,27 +38,38 @@ class OneStep:
     - `background`: the reference conductivity, scalar or (E,), S/sq.
     - `normalised`: reconstruct from normalised differences dV / V_ref (pass the measured
       reference to `reconstruct`), which cancels per-channel gain errors of an instrument.
+
+    The model, prior, background and `normalised` are those of `problem`.
     """
 
-    model: ForwardModel
-    prior: str | AbstractPrior = "noser"
-    hyperparameter: float = 0.05
-    background: float | np.ndarray = 1.0
-    normalised: bool = False
-    problem: LinearisedProblem = field(init=False, repr=False)
-    matrix: jax.Array = field(init=False, repr=False)
+    problem: LinearisedProblem = eqx.field(repr=False)
+    hyperparameter: float = eqx.field(static=True)
+    matrix: jax.Array = eqx.field(repr=False)
     """(E, M) reconstruction matrix: dsigma (S/sq) = matrix @ y, y = dV in volts (absolute
     differences) or dV / V_ref (normalised differences)."""
 
-    def __post_init__(self) -> None:
-        if not (np.isfinite(self.hyperparameter) and self.hyperparameter > 0):
-            raise ValueError(f"hyperparameter must be finite and positive; got {self.hyperparameter}")
-        problem = LinearisedProblem.at(self.model, self.prior, self.background, normalised=self.normalised)
-        matrix = problem.background[:, None] * regularised_inverse(problem, self.hyperparameter)
-        if not self.normalised:
-            matrix = matrix / problem.data_scale  # volts in
-        object.__setattr__(self, "problem", problem)
-        object.__setattr__(self, "matrix", jnp.asarray(matrix))
+    def __init__(
+        self,
+        model: ForwardModel,
+        prior: str | AbstractPrior = "noser",
+        hyperparameter: float = 0.05,
+        background: float | np.ndarray = 1.0,
+        *,
+        normalised: bool = False,
+    ) -> None:
+        if not (np.isfinite(hyperparameter) and hyperparameter > 0):
+            raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
+        self.hyperparameter = float(hyperparameter)
+        self.problem = LinearisedProblem(model, prior, background, normalised=normalised)
+        matrix = self.problem.background[:, None] * regularised_inverse(self.problem, self.hyperparameter)
+        if not normalised:
+            matrix = matrix / self.problem.data_scale  # volts in
+        self.matrix = jnp.asarray(matrix)
+
+    @property
+    def model(self) -> ForwardModel:
+        """The forward model of the reconstruction mesh."""
+        return self.problem.model
 
     def reconstruct(self, voltage_difference: jax.Array, reference: jax.Array | None = None) -> jax.Array:
         """Conductivity change dsigma (S/sq) per element for dV = V - V_reference (volts).
@@ -73,7 +80,7 @@ class OneStep:
         """
         n_meas = self.model.n_measurements
         dv = check_frames(voltage_difference, n_meas, "voltage differences")
-        if self.normalised:
+        if self.problem.normalised:
             if reference is None:
                 raise ValueError("normalised reconstruction divides by the reference: pass reference=V_ref (volts)")
             reference = check_frames(reference, n_meas, "the reference")

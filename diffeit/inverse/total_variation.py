@@ -59,8 +59,7 @@ that majorises TV_beta: safe but linearly convergent). Here:
   from the minimiser's (found with the tolerance 1e-12), 1e-4 left up to 12%.
 
 L-BFGS, which this module used before, took about 700 to 2,500 steps on the same problem
-(unit-disc meshes of 700 to 8,000 triangles): 2 to 3 times this method's time on one core's
-worth of work (benchmarks/inverse.py, table 6).
+(unit-disc meshes of 700 to 8,000 triangles); benchmarks/inverse.py (table 6) compares the two.
 
 The linear system, without anything E x E. With A = lambda^2 D^T W K D + eps I (sparse, on the
 element-adjacency pattern plus the diagonal) and 2 J_n^T J_n replaced by 2 B^T B (B of shape
@@ -87,31 +86,21 @@ measurement-space formula).
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import dataclass, field
 from functools import partial
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import is_concrete
-from .._messages import name_indices
 from .._threads import one_blas_thread_in_xla
 from ..forward import ForwardModel
 from ..linear_solve import AbstractLinearSolver, SparsityPattern, solve_spd
 from ..mesh import element_adjacency
-from .linearised import LinearisedProblem, check_frames, regularised_inverse
+from ..results import RESULTS, throw_if_failed
+from .linearised import IdentityModule, LinearisedProblem, check_frames, regularised_inverse
 from .priors import Laplace, Tikhonov
-
-STOP_REASONS = ("converged", "max_iterations", "stalled", "failed")
-"""`TotalVariationSolution.stop_code` indexes this. "converged": `gradient_norm` <=
-`gradient_tolerance`. "max_iterations": the iteration limit came first. "stalled": no step
-along the Newton direction (down to 2^-40 of it) decreased f enough (the Armijo test, allowing
-for rounding in f) before the gradient test was met: the iteration has reached the rounding
-level of f. "failed": a non-finite step (a linear solve that failed); the image is the last
-finite iterate."""
 
 _RIDGE = 1e-8
 """eps of the module docstring: at least this times the mean diagonal of 2 J_n^T J_n ..."""
@@ -123,11 +112,7 @@ _ARMIJO = 1e-4
 _HALVINGS = 40
 
 
-class ConvergenceWarning(UserWarning):
-    """An iterative reconstruction stopped before its convergence test was met."""
-
-
-class TotalVariationSolution(NamedTuple):
+class TotalVariationSolution(eqx.Module):
     """What `TotalVariation.solve` returns; with a batch of T frames every field has a leading
     T axis.
 
@@ -139,8 +124,13 @@ class TotalVariationSolution(NamedTuple):
     - `gradient_norm`: max |grad f(x)| / max |grad f(0)| (max over elements), the convergence
       certificate (1 at x = 0, 0 at the minimiser).
     - `iterations`: primal-dual Newton iterations taken (linear systems solved).
-    - `converged`: bool, `gradient_norm` <= the reconstruction's `gradient_tolerance`.
-    - `stop_code`: int index into `STOP_REASONS`; `stop_reason` gives the words.
+    - `result`: `RESULTS.successful` when `gradient_norm` <= the reconstruction's
+      `gradient_tolerance`; `RESULTS.max_iterations_reached` when the iteration limit came
+      first; `RESULTS.stalled` when no step along the Newton direction (down to 2^-40 of it)
+      decreased f enough (the Armijo test, allowing for rounding in f) before the gradient
+      test was met: the iteration has reached the rounding level of f; `RESULTS.nonfinite`
+      for a non-finite step (a linear solve that failed), the image then being the last
+      finite iterate. One code per frame for a batch.
     """
 
     conductivity_change: jax.Array
@@ -149,17 +139,10 @@ class TotalVariationSolution(NamedTuple):
     total_variation: jax.Array
     gradient_norm: jax.Array
     iterations: jax.Array
-    converged: jax.Array
-    stop_code: jax.Array
-
-    @property
-    def stop_reason(self) -> str | list[str]:
-        """The words for `stop_code`: one string, or a list of one per frame."""
-        codes = np.asarray(self.stop_code)
-        return STOP_REASONS[int(codes)] if codes.ndim == 0 else [STOP_REASONS[int(c)] for c in codes]
+    result: RESULTS
 
 
-class _Operator(NamedTuple):
+class _Operator(eqx.Module):
     """The arrays of the objective and of the Newton matrix.
 
     `jacobian` J_n (M, E); `first`, `second` (n_edges,) the elements of each interior edge and
@@ -174,17 +157,13 @@ class _Operator(NamedTuple):
     second: jax.Array
     weights: jax.Array
     factor: jax.Array
-    pattern: SparsityPattern
+    pattern: SparsityPattern = eqx.field(static=True)
     slots: jax.Array
     ridge: jax.Array
 
 
-@dataclass(frozen=True, eq=False)
-class TotalVariation:
+class TotalVariation(IdentityModule):
     """Smoothed total-variation difference reconstruction on the linearised problem.
-
-    `TotalVariation(model, hyperparameter=0.05, smoothing=1e-3, background=1.0, *,
-    max_iterations=100, gradient_tolerance=1e-6, warm_start=True)`
 
     Minimises f(x) = ||J_n x - y||^2 + hyperparameter^2 TV_smoothing(x) over the relative
     change x = dsigma / background (see the module docstring for the normalisation, the edge
@@ -196,9 +175,12 @@ class TotalVariation:
     slowest has stopped, each keeping its own result). The sparse solves use the model's
     solver backend (`model.solver`): with the host backend each iteration sends the matrices
     of all frames of a batch to the host in one callback, which factorises them one after
-    the other, so on CPU a batch costs about as much per frame as single calls (measured:
-    0.19 s a frame in a batch of 10, 0.15 s alone, at 2,894 triangles: the batch runs as many
-    iterations as its slowest frame). Absolute differences only.
+    the other, so on CPU a batch costs about as much per frame as single calls (the batch
+    runs as many iterations as its slowest frame). Absolute differences only.
+
+    `solve` and `reconstruct` take `throw=True` (the default): a frame that does not converge
+    raises `diffeit.results.SolverError`; with `throw=False` the solution's `result` holds
+    each frame's `diffeit.results.RESULTS` code (see `TotalVariationSolution`).
 
     **Arguments:**
 
@@ -207,8 +189,8 @@ class TotalVariation:
       contrast (TV's known bias); smaller lets noise through and needs more iterations. For
       p% noise (README, Conventions) start near 2 to 5 times p/100 (see the module docstring).
     - `smoothing`: beta > 0, in units of the relative change (1e-3 = 0.1% of the background).
-    - `background`: the reference conductivity, scalar or (E,), S/sq.
-    - `max_iterations`: the iteration limit; frames that reach it report `converged=False`.
+    - `background`: the reference conductivity, scalar or (E,), S/sq (held by `problem`).
+    - `max_iterations`: the iteration limit (`RESULTS.max_iterations_reached` beyond it).
       The touch at the default settings takes 9 to 15 iterations on meshes of 400 to 8,000
       triangles; lambda = 0.01 (5 times below the advice for 1% noise) 15 to 25.
     - `gradient_tolerance`: the largest `gradient_norm` (see `TotalVariationSolution`) that
@@ -218,65 +200,53 @@ class TotalVariation:
       zero (False).
     """
 
-    model: ForwardModel
-    hyperparameter: float = 0.05
-    smoothing: float = 1e-3
-    background: float | np.ndarray = 1.0
-    max_iterations: int = 100
-    gradient_tolerance: float = 1e-6
-    warm_start: bool = True
-    problem: LinearisedProblem = field(init=False, repr=False)
-    operator: _Operator = field(init=False, repr=False)
-    initial_matrix: jax.Array = field(init=False, repr=False)
+    problem: LinearisedProblem = eqx.field(repr=False)
+    """J_n and the data scale; its Laplace prior serves only the warm start."""
+    hyperparameter: float = eqx.field(static=True)
+    smoothing: float = eqx.field(static=True)
+    max_iterations: int = eqx.field(static=True)
+    gradient_tolerance: float = eqx.field(static=True)
+    warm_start: bool = eqx.field(static=True)
+    operator: _Operator = eqx.field(repr=False)
+    initial_matrix: jax.Array = eqx.field(repr=False)
     """(E, M) maps y to the warm start x_0 (zeros without `warm_start`)."""
 
-    def __post_init__(self) -> None:
-        for name in ("hyperparameter", "smoothing", "gradient_tolerance"):
-            value = getattr(self, name)
+    def __init__(
+        self,
+        model: ForwardModel,
+        hyperparameter: float = 0.05,
+        smoothing: float = 1e-3,
+        background: float | np.ndarray = 1.0,
+        *,
+        max_iterations: int = 100,
+        gradient_tolerance: float = 1e-6,
+        warm_start: bool = True,
+    ) -> None:
+        for name, value in (
+            ("hyperparameter", hyperparameter),
+            ("smoothing", smoothing),
+            ("gradient_tolerance", gradient_tolerance),
+        ):
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be finite and positive; got {value}")
-        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be a positive integer; got {self.max_iterations}")
-        mesh = self.model.mesh
-        first, second, lengths = element_adjacency(mesh)
-        if len(first) == 0:
-            raise ValueError("the mesh has no interior edges: total variation is undefined")
+        if int(max_iterations) != max_iterations or max_iterations < 1:
+            raise ValueError(f"max_iterations must be a positive integer; got {max_iterations}")
+        self.hyperparameter, self.smoothing = float(hyperparameter), float(smoothing)
+        self.max_iterations, self.gradient_tolerance = int(max_iterations), float(gradient_tolerance)
+        self.warm_start = bool(warm_start)
         # J_n does not depend on the prior; Laplace's covariance serves only the warm start.
-        problem = LinearisedProblem.at(self.model, Laplace() if self.warm_start else Tikhonov(), self.background)
-        # l_ref = sqrt(A / pi): TV is a length ratio, independent of the mesh size (module docstring).
-        reference_length = np.sqrt(mesh.element_areas.sum() / np.pi)
-        n_elements = self.model.n_elements
-        jacobian = problem.jacobian
-        # B = Q^T J_n: B^T B = J_n^T Q Q^T J_n, J_n^T J_n without its smallest eigenvalues, but
-        # exact on constant images (module docstring).
-        eigenvalues, eigenvectors = np.linalg.eigh(jacobian @ jacobian.T)
-        floor = max(_RANK_FRACTION * self.hyperparameter**2, len(eigenvalues) * np.finfo(float).eps * eigenvalues[-1])
-        uniform = jacobian.sum(axis=1, keepdims=True)  # J_n 1
-        basis = np.linalg.qr(np.hstack([eigenvectors[:, eigenvalues >= floor], uniform]))[0]
-        factor = jacobian.T @ basis
-        diagonal = np.arange(n_elements)
-        pattern, slots = SparsityPattern.from_entries(
-            np.concatenate([diagonal, first, second, first, second]),
-            np.concatenate([diagonal, first, second, second, first]),
-            n_elements,
-        )
-        operator = _Operator(
-            jacobian=jnp.asarray(jacobian),
-            first=jnp.asarray(first),
-            second=jnp.asarray(second),
-            weights=jnp.asarray(lengths / reference_length),
-            factor=jnp.asarray(factor),
-            pattern=pattern,
-            slots=jnp.asarray(slots),
-            ridge=jnp.asarray(_RIDGE * 2 * np.sum(jacobian**2) / n_elements),
-        )
-        if self.warm_start:
-            initial = regularised_inverse(problem, self.hyperparameter)
+        self.problem = LinearisedProblem(model, Laplace() if warm_start else Tikhonov(), background)
+        self.operator = _newton_operator(self.problem, self.hyperparameter)
+        if warm_start:
+            initial = regularised_inverse(self.problem, self.hyperparameter)
         else:
-            initial = np.zeros((n_elements, self.model.n_measurements))
-        object.__setattr__(self, "problem", problem)
-        object.__setattr__(self, "operator", operator)
-        object.__setattr__(self, "initial_matrix", jnp.asarray(initial))
+            initial = np.zeros((model.n_elements, model.n_measurements))
+        self.initial_matrix = jnp.asarray(initial)
+
+    @property
+    def model(self) -> ForwardModel:
+        """The forward model of the reconstruction mesh."""
+        return self.problem.model
 
     def objective(self, conductivity_change: jax.Array, voltage_difference: jax.Array) -> jax.Array:
         """f(x) (unit-free) for dsigma (E,) in S/sq and dV (M,) in volts, x = dsigma /
@@ -285,11 +255,12 @@ class TotalVariation:
         y = jnp.asarray(voltage_difference) / self.problem.data_scale
         return _objective(x, (self.operator, y, self.hyperparameter, self.smoothing))
 
-    def solve(self, voltage_difference: jax.Array) -> TotalVariationSolution:
+    def solve(self, voltage_difference: jax.Array, *, throw: bool = True) -> TotalVariationSolution:
         """Reconstruct dV = V - V_reference (volts), (M,) or a batch (T, M), and report the
         solver's outcome per frame (see `TotalVariationSolution`). Non-finite or wrongly shaped
-        frames raise ValueError. The solve runs in float64; dsigma is returned in the input's
-        dtype."""
+        frames raise ValueError; with `throw=True` a frame that did not converge raises
+        `diffeit.results.SolverError` naming it. The solve runs in float64; dsigma is returned
+        in the input's dtype."""
         dv = check_frames(voltage_difference, self.model.n_measurements, "voltage differences")
         y = jnp.atleast_2d(dv).astype(jnp.float64) / self.problem.data_scale
         settings = jnp.asarray([self.hyperparameter, self.smoothing, self.gradient_tolerance], dtype=jnp.float64)
@@ -298,30 +269,54 @@ class TotalVariation:
             y,
             self.initial_matrix,
             settings,
-            max_iterations=int(self.max_iterations),
+            max_iterations=self.max_iterations,
             solver=self.model.solver,
         )
         change = (solution.conductivity_change * self.problem.background).astype(dv.dtype)
-        solution = solution._replace(conductivity_change=change)
-        return jax.tree_util.tree_map(lambda a: a[0], solution) if dv.ndim == 1 else solution
+        solution = eqx.tree_at(lambda s: s.conductivity_change, solution, change)
+        if dv.ndim == 1:
+            solution = jax.tree_util.tree_map(lambda a: a[0], solution)
+        return throw_if_failed(solution, solution.result, "total variation") if throw else solution
 
-    def reconstruct(self, voltage_difference: jax.Array) -> jax.Array:
+    def reconstruct(self, voltage_difference: jax.Array, *, throw: bool = True) -> jax.Array:
         """dsigma (S/sq): (E,) for dV (M,) in volts, (T, E) for a batch (T, M), in the input's
-        dtype. Warns (`ConvergenceWarning`) naming the frames that did not converge; `solve`
-        returns the details."""
-        solution = self.solve(voltage_difference)
-        if is_concrete(solution.converged):
-            failed = np.flatnonzero(~np.atleast_1d(np.asarray(solution.converged)))
-            if len(failed):
-                reasons = sorted({STOP_REASONS[int(c)] for c in np.atleast_1d(np.asarray(solution.stop_code))[failed]})
-                warnings.warn(
-                    f"total variation did not converge in frame(s) {name_indices(failed)} ({', '.join(reasons)}; "
-                    f"max_iterations={self.max_iterations}): raise max_iterations, loosen gradient_tolerance or "
-                    "change the hyperparameter; solve() reports each frame",
-                    ConvergenceWarning,
-                    stacklevel=2,
-                )
-        return solution.conductivity_change
+        dtype; `solve` returns the details, and `throw` is its."""
+        return self.solve(voltage_difference, throw=throw).conductivity_change
+
+
+def _newton_operator(problem: LinearisedProblem, hyperparameter: float) -> _Operator:
+    """The edges, their weights, the low-rank factor of J_n^T J_n and the sparsity pattern of
+    the Newton matrix (module docstring)."""
+    mesh = problem.model.mesh
+    first, second, lengths = element_adjacency(mesh)
+    if len(first) == 0:
+        raise ValueError("the mesh has no interior edges: total variation is undefined")
+    # l_ref = sqrt(A / pi): TV is a length ratio, independent of the mesh size (module docstring).
+    reference_length = np.sqrt(mesh.element_areas.sum() / np.pi)
+    n_elements = mesh.n_elements
+    jacobian = problem.jacobian
+    # B = Q^T J_n: B^T B = J_n^T Q Q^T J_n, J_n^T J_n without its smallest eigenvalues, but
+    # exact on constant images (module docstring).
+    eigenvalues, eigenvectors = np.linalg.eigh(jacobian @ jacobian.T)
+    floor = max(_RANK_FRACTION * hyperparameter**2, len(eigenvalues) * np.finfo(float).eps * eigenvalues[-1])
+    uniform = jacobian.sum(axis=1, keepdims=True)  # J_n 1
+    basis = np.linalg.qr(np.hstack([eigenvectors[:, eigenvalues >= floor], uniform]))[0]
+    diagonal = np.arange(n_elements)
+    pattern, slots = SparsityPattern.from_entries(
+        np.concatenate([diagonal, first, second, first, second]),
+        np.concatenate([diagonal, first, second, second, first]),
+        n_elements,
+    )
+    return _Operator(
+        jacobian=jnp.asarray(jacobian),
+        first=jnp.asarray(first),
+        second=jnp.asarray(second),
+        weights=jnp.asarray(lengths / reference_length),
+        factor=jnp.asarray(jacobian.T @ basis),
+        pattern=pattern,
+        slots=jnp.asarray(slots),
+        ridge=jnp.asarray(_RIDGE * 2 * np.sum(jacobian**2) / n_elements),
+    )
 
 
 def _total_variation(x: jax.Array, operator: _Operator, smoothing: jax.Array) -> jax.Array:
@@ -354,7 +349,7 @@ class _State(NamedTuple):
     gradient: jax.Array
     iterations: jax.Array
     blend: jax.Array  # omega, the weight of the lagged-diffusivity curvature
-    halt: jax.Array  # 0 while going on, else the stop code: 2 stalled, 3 failed
+    stop: RESULTS  # successful while going on, else why it stopped early: stalled or nonfinite
 
 
 @partial(jax.jit, static_argnames=("max_iterations", "solver"))
@@ -429,7 +424,9 @@ def _solve_frames(
         length, value, halvings = jax.lax.while_loop(too_high, halve, (jnp.ones(()), trial(jnp.ones(())), 0))
         accepted = (value <= state.value + _ARMIJO * length * slope + allowance) & (slope < 0)
         length = jnp.where(accepted, length, 0.0)
-        halt = jnp.where(jnp.all(jnp.isfinite(step)), jnp.where(accepted, 0, 2), 3).astype(jnp.int32)
+        stop = RESULTS.where(
+            jnp.all(jnp.isfinite(step)), RESULTS.where(accepted, RESULTS.successful, RESULTS.stalled), RESULTS.nonfinite
+        )
 
         # The dual step, edge by edge: the full Newton step, or 0.99 of the way to |u| = 1.
         dual_step = curvature * step_difference + difference / psi - dual
@@ -446,7 +443,7 @@ def _solve_frames(
             gradient=gradient(x, residual),
             iterations=state.iterations + 1,
             blend=jnp.minimum(1.0, jnp.where(halvings == 0, 0.5, 2.0) * state.blend),
-            halt=halt,
+            stop=stop,
         )
 
     def one(frame: jax.Array) -> TotalVariationSolution:
@@ -463,18 +460,27 @@ def _solve_frames(
             gradient=gradient(x, residual),
             iterations=jnp.zeros((), jnp.int32),
             blend=jnp.ones(()),
-            halt=jnp.zeros((), jnp.int32),
+            stop=RESULTS.successful,
         )
 
         def going_on(state: _State) -> jax.Array:
             norm = jnp.max(jnp.abs(state.gradient))
             # `norm > tolerance` is False for NaN: a non-finite gradient stops the iteration.
-            return (norm > gradient_tolerance * scale) & (state.iterations < max_iterations) & (state.halt == 0)
+            going = (norm > gradient_tolerance * scale) & (state.iterations < max_iterations)
+            return going & (state.stop == RESULTS.successful)
 
         state = jax.lax.while_loop(going_on, newton_step, start)
         gradient_norm = jnp.max(jnp.abs(state.gradient)) / scale
         finite = jnp.all(jnp.isfinite(state.x)) & jnp.isfinite(gradient_norm)
-        code = jnp.select([gradient_norm <= gradient_tolerance, ~finite, state.halt != 0], [0, 3, state.halt], 1)
+        result = RESULTS.where(
+            gradient_norm <= gradient_tolerance,
+            RESULTS.successful,
+            RESULTS.where(
+                finite,
+                RESULTS.where(state.stop == RESULTS.successful, RESULTS.max_iterations_reached, state.stop),
+                RESULTS.nonfinite,
+            ),
+        )
         # The figures afresh (the iteration updates the residual by increments).
         residual = jacobian @ state.x - frame
         total_variation = _total_variation(state.x, operator, smoothing)
@@ -485,8 +491,7 @@ def _solve_frames(
             total_variation=total_variation,
             gradient_norm=gradient_norm,
             iterations=state.iterations,
-            converged=code == 0,
-            stop_code=code,
+            result=result,
         )
 
     # The k x k Cholesky factorisations call LAPACK on CPU, the host solves SciPy: both on one
