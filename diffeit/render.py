@@ -17,17 +17,17 @@ and sum_p area_p x_p equals sum_e area_e x_e over the covered pixels. Pixels wit
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse
 
-from ._arrays import readonly
+from ._arrays import StaticData, fingerprint, readonly
 from .mesh import Mesh, pixel_overlaps
 
 
-@dataclass(frozen=True, eq=False)
-class PixelGrid:
+@dataclass(eq=False)
+class PixelGrid(StaticData):
     """A pixel grid over a mesh and the exact element-to-pixel averaging (module docstring).
 
     Build with `pixel_grid(mesh, grid, min_coverage)`. Fields:
@@ -38,14 +38,17 @@ class PixelGrid:
     - `element_to_pixel`: sparse (n_rows * n_columns, E), rows of `mask` pixels sum to 1, other
       rows are 0.
     - `n_elements`: the number of elements of the mesh it was built on.
+
+    Static data, compared and hashed by the mesh, shape and coverage it was built from.
     """
 
     x_edges: np.ndarray
     y_edges: np.ndarray
     mask: np.ndarray
     pixel_areas: np.ndarray
-    element_to_pixel: scipy.sparse.csr_array
+    element_to_pixel: scipy.sparse.csr_array = field(repr=False)
     n_elements: int
+    fingerprint: bytes = field(repr=False)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -104,6 +107,7 @@ def pixel_grid(mesh: Mesh, grid: int | tuple[int, int] = 64, min_coverage: float
         pixel_areas=readonly(np.where(inside, covered, 0.0).reshape(shape)),
         element_to_pixel=scipy.sparse.csr_array(weights),
         n_elements=mesh.n_elements,
+        fingerprint=fingerprint(mesh.fingerprint, np.asarray(shape), np.float64(min_coverage)),
     )
 
 

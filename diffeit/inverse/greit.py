@@ -23,11 +23,12 @@ import scipy.sparse
 import scipy.special
 from scipy.spatial import cKDTree
 
+from .._arrays import IdentityModule
 from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import Mesh, distance_to_segments, element_sample_points
 from ..render import PixelGrid, pixel_grid
-from .linearised import IdentityModule, LinearisedProblem, apply_matrix, check_frames
+from .linearised import LinearisedProblem, apply_matrix, check_frames
 from .priors import Tikhonov
 
 DEFAULT_HYPERPARAMETER = 0.3

@@ -17,18 +17,6 @@ from ..forward import ForwardModel
 from .priors import AbstractPrior, prior_named
 
 
-class IdentityModule(eqx.Module):
-    """An `equinox.Module` compared and hashed by identity, as functions are: `jax.jit(rec.reconstruct)`
-    hashes the bound method, and with it the reconstruction, whose fields hold arrays (which
-    have no hash). The reconstructions subclass it."""
-
-    def __eq__(self, other: object) -> bool:
-        return self is other
-
-    def __hash__(self) -> int:
-        return id(self)
-
-
 class LinearisedProblem(eqx.Module):
     """The linearisation of a model at a background, normalised so that hyperparameters are
     unit-free.

@@ -7,10 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import is_concrete
+from .._arrays import IdentityModule, is_concrete
 from .._messages import name_indices
 from ..forward import ForwardModel
-from .linearised import IdentityModule, LinearisedProblem, apply_matrix, check_frames, regularised_inverse
+from .linearised import LinearisedProblem, apply_matrix, check_frames, regularised_inverse
 from .priors import AbstractPrior
 
 

@@ -94,12 +94,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._arrays import IdentityModule
 from .._threads import one_blas_thread_in_xla
 from ..forward import ForwardModel
 from ..linear_solve import AbstractLinearSolver, SparsityPattern, solve_spd
 from ..mesh import element_adjacency
 from ..results import RESULTS, throw_if_failed
-from .linearised import IdentityModule, LinearisedProblem, check_frames, regularised_inverse
+from .linearised import LinearisedProblem, check_frames, regularised_inverse
 from .priors import Laplace, Tikhonov
 
 _RIDGE = 1e-8
