@@ -695,6 +695,20 @@ def _rate(flop: float, entry: dict) -> str:
 
 
 def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) -> None:
+    _print_setup(rows)
+    _print_one_frame(rows)
+    _print_batch(rows, machine, options)
+    _print_breakdown(rows)
+    _print_gauss_newton([row for row in rows if "gauss_newton" in row])
+    _print_total_variation([row for row in rows if "setup" in row.get("total_variation", {})])
+
+
+def _pair(ours: dict, theirs: dict | None, key: str, digits: int) -> str:
+    """The figure `key` as "ours / theirs", or ours alone when the peer did not run."""
+    return f"{ours[key]:.{digits}f}" + (f" / {theirs[key]:.{digits}f}" if theirs else "")
+
+
+def _print_setup(rows: list[dict]) -> None:
     print("set-up (diffeit OneStep NOSER against pyEIT JAC kotre p=0.5, the same lamb):")
     print()
     table = MarkdownTable(
@@ -731,6 +745,8 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
             ]
         )
 
+
+def _print_one_frame(rows: list[dict]) -> None:
     print()
     print(f"one frame (float64, medians of {PER_FRAME_CALLS} calls):")
     print()
@@ -762,6 +778,8 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
             ]
         )
 
+
+def _print_batch(rows: list[dict], machine: dict, options: argparse.Namespace) -> None:
     print()
     print(
         f"batch of {options.frames} frames (T, 208) -> (T, E) (NumPy matmul: {machine['blas']}, "
@@ -816,6 +834,8 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
             ]
         )
 
+
+def _print_breakdown(rows: list[dict]) -> None:
     print()
     print("where reconstruct's time goes (input checks; an eager matrix.T.astype(dtype), which its jitted product")
     print("avoids; the product with a transposed matrix made beforehand):")
@@ -838,132 +858,130 @@ def _print_tables(rows: list[dict], machine: dict, options: argparse.Namespace) 
                 ]
             )
 
-    gn_rows = [row for row in rows if "gauss_newton" in row]
-    if gn_rows:
-        print()
-        print(
-            f"absolute Gauss-Newton, {GN_ITERATIONS} iterations at most: ours GaussNewton({GN_PRIOR!r}, "
-            f"{GN_HYPERPARAMETER:g}, max_iterations={GN_ITERATIONS}), no noise level (so no discrepancy stop); pyEIT "
-            f"gn(maxiter={GN_ITERATIONS}, gtol=0, method={PYEIT_GN_METHOD!r}, p={PYEIT_GN_P:g}, "
-            f"lamb={PYEIT_GN_LAMB:g}) from our homogeneous start; a disc r {GN_RADIUS:g} at {GN_CENTRE}, "
-            f"{GN_CONTRAST:g}x a background of {GN_BACKGROUND:g} S/sq, simulated on the data mesh, "
-            f"{NOISE_PERCENT:g}% noise. per iteration: ours (total - start) / iterations, pyEIT total / iterations; "
-            f"at {GN_ITERATIONS} (projected): ours start + {GN_ITERATIONS} x per iteration, over pyEIT's total:"
-        )
-        print()
-        table = MarkdownTable(
+
+def _print_gauss_newton(gn_rows: list[dict]) -> None:
+    if not gn_rows:
+        return
+    print()
+    print(
+        f"absolute Gauss-Newton, {GN_ITERATIONS} iterations at most: ours GaussNewton({GN_PRIOR!r}, "
+        f"{GN_HYPERPARAMETER:g}, max_iterations={GN_ITERATIONS}), no noise level (so no discrepancy stop); pyEIT "
+        f"gn(maxiter={GN_ITERATIONS}, gtol=0, method={PYEIT_GN_METHOD!r}, p={PYEIT_GN_P:g}, "
+        f"lamb={PYEIT_GN_LAMB:g}) from our homogeneous start; a disc r {GN_RADIUS:g} at {GN_CENTRE}, "
+        f"{GN_CONTRAST:g}x a background of {GN_BACKGROUND:g} S/sq, simulated on the data mesh, "
+        f"{NOISE_PERCENT:g}% noise. per iteration: ours (total - start) / iterations, pyEIT total / iterations; "
+        f"at {GN_ITERATIONS} (projected): ours start + {GN_ITERATIONS} x per iteration, over pyEIT's total:"
+    )
+    print()
+    table = MarkdownTable(
+        [
+            "triangles",
+            "data triangles",
+            "iterations ours (stop) / pyEIT",
+            "ours",
+            "first call (compile)",
+            "ours start",
+            "ours per iteration",
+            "pyEIT",
+            "pyEIT per iteration",
+            "pyEIT runs",
+            "ratio",
+            "per-iteration ratio",
+            f"ratio at {GN_ITERATIONS} (projected)",
+            "position error ours / pyEIT",
+            "correlation ours / pyEIT",
+            "peak / true ours / pyEIT",
+            "background ours / pyEIT",
+        ]
+    )
+    for row in gn_rows:
+        gn = row["gauss_newton"]
+        figures = _gn_figures(gn)
+        pyeit, ours, theirs = gn.get("pyeit"), gn["quality"], gn.get("pyeit_quality")
+
+        iterations = f"{gn['iterations']} ({gn['stop_reason']})"
+        if pyeit:
+            iterations += f" / {gn['pyeit_iterations']}"
+        table.row(
             [
-                "triangles",
-                "data triangles",
-                "iterations ours (stop) / pyEIT",
-                "ours",
-                "first call (compile)",
-                "ours start",
-                "ours per iteration",
-                "pyEIT",
-                "pyEIT per iteration",
-                "pyEIT runs",
-                "ratio",
-                "per-iteration ratio",
-                f"ratio at {GN_ITERATIONS} (projected)",
-                "position error ours / pyEIT",
-                "correlation ours / pyEIT",
-                "peak / true ours / pyEIT",
-                "background ours / pyEIT",
+                str(row["triangles"]),
+                str(row["data_triangles"]),
+                iterations,
+                format_seconds(gn["ours"]["median"]),
+                format_seconds(gn["ours"]["first"]),
+                format_seconds(gn["start"]["median"]),
+                format_seconds(figures["ours_per_iteration"]),
+                format_seconds(_median(pyeit)),
+                format_seconds(figures.get("pyeit_per_iteration")),
+                str(pyeit["runs"]) if pyeit else "-",
+                fraction(gn["ours"]["median"], _median(pyeit)),
+                fraction(figures["ours_per_iteration"], figures.get("pyeit_per_iteration")),
+                fraction(figures["ours_projected"], _median(pyeit)),
+                _pair(ours, theirs, "position_error", 3) + " m",
+                _pair(ours, theirs, "correlation", 2),
+                _pair(ours, theirs, "peak", 2),
+                _pair(ours, theirs, "background", 2) + " S/sq",
             ]
         )
-        for row in gn_rows:
-            gn = row["gauss_newton"]
-            figures = _gn_figures(gn)
-            pyeit, ours, theirs = gn.get("pyeit"), gn["quality"], gn.get("pyeit_quality")
 
-            def pair(key: str, digits: int, ours=ours, theirs=theirs) -> str:
-                return f"{ours[key]:.{digits}f}" + (f" / {theirs[key]:.{digits}f}" if theirs else "")
 
-            iterations = f"{gn['iterations']} ({gn['stop_reason']})"
-            if pyeit:
-                iterations += f" / {gn['pyeit_iterations']}"
-            table.row(
-                [
-                    str(row["triangles"]),
-                    str(row["data_triangles"]),
-                    iterations,
-                    format_seconds(gn["ours"]["median"]),
-                    format_seconds(gn["ours"]["first"]),
-                    format_seconds(gn["start"]["median"]),
-                    format_seconds(figures["ours_per_iteration"]),
-                    format_seconds(_median(pyeit)),
-                    format_seconds(figures.get("pyeit_per_iteration")),
-                    str(pyeit["runs"]) if pyeit else "-",
-                    fraction(gn["ours"]["median"], _median(pyeit)),
-                    fraction(figures["ours_per_iteration"], figures.get("pyeit_per_iteration")),
-                    fraction(figures["ours_projected"], _median(pyeit)),
-                    pair("position_error", 3) + " m",
-                    pair("correlation", 2),
-                    pair("peak", 2),
-                    pair("background", 2) + " S/sq",
-                ]
-            )
+def _print_total_variation(tv_rows: list[dict]) -> None:
+    if not tv_rows:
+        return
+    print()
+    print(
+        f"total variation (diffeit only: pyEIT has none): TotalVariation(model, {TV_HYPERPARAMETER:g}), "
+        "primal-dual Newton, against L-BFGS (optimistix, "
+        f"rtol {TV_LBFGS_RTOL:g}, atol {TV_LBFGS_ATOL:g}, max_steps {TV_LBFGS_MAX_STEPS}, "
+        f"history {TV_LBFGS_HISTORY}: the previous method) on the same objective from the same warm start; "
+        f"one frame of the touch ({TOUCH_CHANGE:+.0%} in a disc r {TOUCH_RADIUS:g} at {TOUCH_CENTRE}) "
+        f"simulated on the data mesh, {NOISE_PERCENT:g}% noise, and a batch of {TV_BATCH} such frames "
+        "(noise of their own) in one call; gradient: max |grad f| / max |grad f(0)|; edge width: 10-90% "
+        "transition area over the true edge length (truth: the interpolated true image's):"
+    )
+    print()
+    table = MarkdownTable(
+        [
+            "triangles",
+            "set-up",
+            "first set-up",
+            "reconstruct",
+            "first reconstruct (compile)",
+            f"batch of {TV_BATCH}, per frame",
+            "L-BFGS",
+            "ours / L-BFGS",
+            "runs",
+            "iterations (stop) / L-BFGS steps (stop)",
+            "gradient ours / L-BFGS",
+            "position error ours / L-BFGS",
+            "correlation ours / L-BFGS",
+            "peak / true ours / L-BFGS",
+            "edge width ours / L-BFGS (truth)",
+        ]
+    )
+    for row in tv_rows:
+        tv = row["total_variation"]
+        ours, theirs = tv["ours_quality"], tv["lbfgs_quality"]
 
-    tv_rows = [row for row in rows if "setup" in row.get("total_variation", {})]
-    if tv_rows:
-        print()
-        print(
-            f"total variation (diffeit only: pyEIT has none): TotalVariation(model, {TV_HYPERPARAMETER:g}), "
-            "primal-dual Newton, against L-BFGS (optimistix, "
-            f"rtol {TV_LBFGS_RTOL:g}, atol {TV_LBFGS_ATOL:g}, max_steps {TV_LBFGS_MAX_STEPS}, "
-            f"history {TV_LBFGS_HISTORY}: the previous method) on the same objective from the same warm start; "
-            f"one frame of the touch ({TOUCH_CHANGE:+.0%} in a disc r {TOUCH_RADIUS:g} at {TOUCH_CENTRE}) "
-            f"simulated on the data mesh, {NOISE_PERCENT:g}% noise, and a batch of {TV_BATCH} such frames "
-            "(noise of their own) in one call; gradient: max |grad f| / max |grad f(0)|; edge width: 10-90% "
-            "transition area over the true edge length (truth: the interpolated true image's):"
-        )
-        print()
-        table = MarkdownTable(
+        table.row(
             [
-                "triangles",
-                "set-up",
-                "first set-up",
-                "reconstruct",
-                "first reconstruct (compile)",
-                f"batch of {TV_BATCH}, per frame",
-                "L-BFGS",
-                "ours / L-BFGS",
-                "runs",
-                "iterations (stop) / L-BFGS steps (stop)",
-                "gradient ours / L-BFGS",
-                "position error ours / L-BFGS",
-                "correlation ours / L-BFGS",
-                "peak / true ours / L-BFGS",
-                "edge width ours / L-BFGS (truth)",
+                str(row["triangles"]),
+                format_seconds(tv["setup"]["median"]),
+                format_seconds(tv["setup"]["first"]),
+                format_seconds(tv["frame"]["median"]),
+                format_seconds(tv["frame"]["first"]),
+                format_seconds(tv["batch"]["median"] / TV_BATCH),
+                format_seconds(tv["lbfgs"]["median"]),
+                fraction(tv["frame"]["median"], tv["lbfgs"]["median"]),
+                str(tv["frame"]["runs"]),
+                f"{tv['iterations']} ({tv['stop_reason']}) / {tv['lbfgs_steps']} ({tv['lbfgs_stop']})",
+                f"{ours['gradient']:.0e} / {theirs['gradient']:.0e}",
+                _pair(ours, theirs, "position_error", 3) + " m",
+                _pair(ours, theirs, "correlation", 3),
+                _pair(ours, theirs, "peak", 3),
+                _pair(ours, theirs, "edge_width", 3) + f" ({tv['truth_edge_width']:.3f}) m",
             ]
         )
-        for row in tv_rows:
-            tv = row["total_variation"]
-            ours, theirs = tv["ours_quality"], tv["lbfgs_quality"]
-
-            def pair(key: str, digits: int, ours=ours, theirs=theirs) -> str:
-                return f"{ours[key]:.{digits}f} / {theirs[key]:.{digits}f}"
-
-            table.row(
-                [
-                    str(row["triangles"]),
-                    format_seconds(tv["setup"]["median"]),
-                    format_seconds(tv["setup"]["first"]),
-                    format_seconds(tv["frame"]["median"]),
-                    format_seconds(tv["frame"]["first"]),
-                    format_seconds(tv["batch"]["median"] / TV_BATCH),
-                    format_seconds(tv["lbfgs"]["median"]),
-                    fraction(tv["frame"]["median"], tv["lbfgs"]["median"]),
-                    str(tv["frame"]["runs"]),
-                    f"{tv['iterations']} ({tv['stop_reason']}) / {tv['lbfgs_steps']} ({tv['lbfgs_stop']})",
-                    f"{ours['gradient']:.0e} / {theirs['gradient']:.0e}",
-                    pair("position_error", 3) + " m",
-                    pair("correlation", 3),
-                    pair("peak", 3),
-                    pair("edge_width", 3) + f" ({tv['truth_edge_width']:.3f}) m",
-                ]
-            )
 
 
 def _gn_figures(gn: dict) -> dict:
