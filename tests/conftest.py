@@ -8,6 +8,19 @@ jax.config.update("jax_enable_x64", True)
 
 import diffeit as de
 
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Compiled XLA programs persist between runs in pytest's cache folder (`make clean` removes
+    it): most of a quick run's time went to compiling the same small programs again. A folder
+    named by JAX_COMPILATION_CACHE_DIR is used instead; with -p no:cacheprovider nothing persists."""
+    cache = getattr(config, "cache", None)
+    if cache is None or jax.config.jax_compilation_cache_dir:
+        return
+    jax.config.update("jax_compilation_cache_dir", str(cache.mkdir("jax-compilation-cache")))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
 # An L-shaped sheet (metres) whose electrodes sit every 0.5 m from vertex 0: six of them straddle
 # corners (the reflex one included) and electrode 0 wraps around vertex 0.
 L_SHAPE = np.array([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
@@ -34,7 +47,7 @@ def _rough_conductivity(mesh: de.Mesh) -> jnp.ndarray:
     return jnp.asarray(np.exp(rng.normal(0.0, 0.5, mesh.n_elements)))
 
 
-@pytest.fixture(scope="session", params=["disc", "rectangle", "l_shape"])
+@pytest.fixture(scope="session", params=["disc", pytest.param("rectangle", marks=pytest.mark.slow), "l_shape"])
 def sheet(request, small_disc) -> de.Mesh:
     """Small 16-electrode sheets of each generator, for identities that must hold on any shape."""
     if request.param == "disc":

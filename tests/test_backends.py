@@ -86,7 +86,7 @@ def _pyeit_forward(mesh: de.Mesh, electrode_nodes: np.ndarray, conductivity: np.
     return forward.solve_eit(perm=conductivity)
 
 
-@pytest.mark.parametrize("solver", ["host_sparse", "dense_cholesky"])
+@pytest.mark.parametrize("solver", ["host_sparse", pytest.param("dense_cholesky", marks=pytest.mark.slow)])
 def test_point_electrodes_agree_with_pyeit_on_the_same_mesh(small_disc, rough_conductivity, solver):
     """pyEIT's adjacent frames equal diffeit's value for value (its drive and reading signs
     are both flipped, see `diffeit.protocol.from_pyeit`); pyEIT drives 1 A."""
@@ -107,6 +107,7 @@ def test_point_electrode_jacobians(small_disc, rough_conductivity):
     np.testing.assert_array_equal(model.measure(rough_conductivity, 5.0), model.measure(rough_conductivity))
 
 
+@pytest.mark.slow
 def test_point_and_complete_electrodes_converge_as_electrodes_shrink():
     """Narrow electrodes with a small contact impedance behave like points, away from the
     driven electrodes (whose readings the adjacent protocol skips): the complete model's

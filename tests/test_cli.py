@@ -94,6 +94,7 @@ def test_bad_inputs_exit_with_a_clear_message(tmp_path, simulated, capsys):
     assert "--hyperparameter must be a number or gcv or lcurve; got 'large'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_reconstruct_an_eidors_mat_file(tmp_path):
     arguments = ["reconstruct", str(MONTREAL), "-o", str(tmp_path / "rod.png"), "--variable", "zc_demo3"]
     arguments += ["--reference-variable", "zc_h_demo3", "--difference", "relative", "--h", "0.15", "--frame-rate", "7"]

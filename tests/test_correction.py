@@ -84,6 +84,7 @@ def test_off_centre_targets_match_the_centre_after_correction(models, calibratio
     assert np.all(np.abs(peak_after[1:] - 1) < 0.1) and np.all(np.abs(size_after[1:] - 1) < 0.1), report
 
 
+@pytest.mark.slow
 def test_factors_are_one_at_the_reference_and_interpolate(calibration):
     positions = calibration.positions
     assert len(positions) == 34 and np.allclose(positions[0], 0, atol=1e-3)
@@ -151,6 +152,7 @@ def test_the_background_does_not_change_the_factors(models):
     assert np.ptp(calibration.intensity_table[0, 0, 0]) > 0.3  # while the positions differ by 20-33%
 
 
+@pytest.mark.slow
 def test_a_calibration_round_trips_through_a_file(calibration, tmp_path):
     path = calibration.save(tmp_path / "calibration.npz")
     loaded = correction.load(path)
@@ -175,6 +177,7 @@ def test_a_calibration_round_trips_through_a_file(calibration, tmp_path):
     np.testing.assert_array_equal(correction.load(tmp_path / "version1.npz").image_positions, calibration.positions)
 
 
+@pytest.mark.slow
 def test_bad_input_is_refused(models, calibration):
     model, data_model = models
     mesh = model.mesh

@@ -44,8 +44,8 @@ def test_float32_holds_1e_4_at_3000_triangles(disc_3000, solver):
     ("solver", "contact_impedance", "contrast"),
     [
         ("host_sparse", 1e-9, 1.0),  # 1/z swamps the stiffness in float32 assembly
-        ("dense_cholesky", 0.01, 1e6),
-        ("conjugate_gradient", 1e3, 1e6),
+        pytest.param("dense_cholesky", 0.01, 1e6, marks=pytest.mark.slow),
+        pytest.param("conjugate_gradient", 1e3, 1e6, marks=pytest.mark.slow),
     ],
 )
 def test_a_case_float32_cannot_hold_warns_and_the_warning_is_true(small_disc, solver, contact_impedance, contrast):

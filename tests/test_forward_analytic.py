@@ -39,6 +39,7 @@ def _rates(errors: list[float]) -> np.ndarray:
     return np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
 
 
+@pytest.mark.slow
 def test_homogeneous_disc_converges_to_the_series_solution():
     """Errors of the 208 voltages fall as h^p with p -> 2 (the voltages are linear functionals
     of a solution whose gradient is only mildly singular at the electrode edges when z > 0;
@@ -62,7 +63,7 @@ def test_homogeneous_disc_converges_for_small_contact_impedance():
     assert fine < 1.5e-3
 
 
-@pytest.mark.parametrize("inclusion_conductivity", [5.0, 0.2])
+@pytest.mark.parametrize("inclusion_conductivity", [5.0, pytest.param(0.2, marks=pytest.mark.slow)])
 def test_concentric_inclusion_matches_its_series_solution(inclusion_conductivity):
     """Inclusion of radius 0.5 on a mesh aligned to it. Measured: the inclusion moves the
     voltages by 16% (5x) and 23% (0.2x); the model errs by 1.3e-2, 4.4e-3, 1.1e-3 at

@@ -36,6 +36,7 @@ def scene():
     return de.ForwardModel(mesh, protocol), voltages, de.mesh.interpolate(inclusion, fine, mesh)
 
 
+@pytest.mark.slow
 def test_absolute_gauss_newton_finds_the_inclusion_and_the_background(scene):
     """pyEIT 1.2.4's 20-iteration gn() on this scene (the issue): position error 0.016,
     correlation 0.82, peak 3.8-4.7 of a true 10 (38-47%). Measured here: 0.007, 0.92, 62% of
@@ -57,7 +58,9 @@ def test_absolute_gauss_newton_finds_the_inclusion_and_the_background(scene):
 
 
 @pytest.mark.parametrize("contrast", [1e-3, 1e3])
-@pytest.mark.parametrize("hyperparameter", [1e-8, 1e-2, 1e3])
+@pytest.mark.parametrize(
+    "hyperparameter", [pytest.param(1e-8, marks=pytest.mark.slow), 1e-2, pytest.param(1e3, marks=pytest.mark.slow)]
+)
 def test_hard_contrasts_and_hyperparameters(contrast, hyperparameter):
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
     fine = de.mesh.disc(16, electrode_width=0.2, h=0.07)
@@ -80,6 +83,7 @@ def test_float32_data_give_float32_results():
     assert result.conductivity.dtype == np.float32
 
 
+@pytest.mark.slow
 def test_a_batch_runs_every_frame_on_its_own_schedule():
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
     model = de.ForwardModel(mesh, de.protocol.adjacent(16))
@@ -119,6 +123,7 @@ def test_one_difference_step_is_the_one_step_reconstruction():
     np.testing.assert_allclose(np.log(step.conductivity / background), linear, atol=1e-8 * np.abs(linear).max())
 
 
+@pytest.mark.slow
 def test_difference_imaging_of_a_strong_touch(scene):
     model, _, _ = scene
     mesh = model.mesh
@@ -137,6 +142,7 @@ def test_difference_imaging_of_a_strong_touch(scene):
     assert -0.8 < change.min() < -0.5
 
 
+@pytest.mark.slow
 def test_joint_contact_impedance_estimation():
     """With readings on driven electrodes (which depend on z most), per-electrode contact
     impedances spread by a factor e^0.4 are recovered alongside the conductivity."""

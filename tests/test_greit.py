@@ -184,6 +184,7 @@ def test_noise_figure_chooses_the_hyperparameter(model, rec):
         GREIT(model, noise_figure=0.1)  # the smallest on this disc is about 0.28
 
 
+@pytest.mark.slow
 def test_unit_free_in_the_drive_current(model, simulate):
     """Voltages scale with the drive current; the normalised problem, hence the image, does not."""
     strong = de.ForwardModel(model.mesh, model.protocol, 0.01, drive_current=1.0)
@@ -193,6 +194,7 @@ def test_unit_free_in_the_drive_current(model, simulate):
     np.testing.assert_allclose(scaled, image, rtol=1e-8, atol=1e-10 * np.abs(image).max())
 
 
+@pytest.mark.slow
 def test_nonlinear_training_matches_linearised_for_small_contrast(small_model):
     options = {"n_targets": 50, "grid": 12}
     linearised = np.asarray(GREIT(small_model, **options).matrix)

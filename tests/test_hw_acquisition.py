@@ -71,6 +71,7 @@ def _check_run(frames: np.ndarray, emulator: hw.Emulator, arrived: list[hw.Frame
     assert np.all(np.diff(host_times) >= 0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seconds", [pytest.param(3, id="3s"), pytest.param(30, id="30s", marks=pytest.mark.slow)])
 def test_every_frame_is_accounted_for_and_recorded(tmp_path, seconds):
     """100 frames/s with faults: intact frames arrive in order, damaged ones are rejected and

@@ -116,7 +116,12 @@ def test_selection_refuses_what_it_cannot_do(case):
 
 
 @pytest.mark.parametrize(
-    ("prior", "method", "exponent"), [(Noser(0.5), "kotre", 0.5), (Noser(0.2), "kotre", 0.2), (Tikhonov(), "dgn", 0.5)]
+    ("prior", "method", "exponent"),
+    [
+        (Noser(0.5), "kotre", 0.5),
+        pytest.param(Noser(0.2), "kotre", 0.2, marks=pytest.mark.slow),
+        pytest.param(Tikhonov(), "dgn", 0.5, marks=pytest.mark.slow),
+    ],
 )
 def test_converted_hyperparameter_reproduces_pyeit_exactly(prior, method, exponent):
     """With point electrodes on the same mesh, pyEIT's JAC with the converted `lamb` gives

@@ -100,6 +100,7 @@ def test_contact_drift_formulas():
     np.testing.assert_allclose(linear[:, 3], 0.01 * (1 + 0.05 * np.asarray(TIMES)), rtol=1e-14)
 
 
+@pytest.mark.slow
 def test_contact_drift_feeds_forward_model(model):
     sigma = jnp.ones(model.n_elements)
     z = contact_impedance(jnp.full(16, 0.01), TIMES[:3], ContactDrift(jnp.linspace(0.0, 0.5, 16)))

@@ -70,6 +70,7 @@ def test_jacobian_works_under_jit_and_vmap(small_model, rough_conductivity):
     assert _relative(batched[1], small_model.jacobian(3 * rough_conductivity)) < 1e-12
 
 
+@pytest.mark.slow
 def test_derivatives_with_respect_to_contact_impedance(small_model, rough_conductivity):
     z = jnp.linspace(0.005, 0.05, 16)
 

@@ -323,6 +323,7 @@ def test_bad_fraction_sum_and_bad_frames():
     assert jax.jit(lambda tau: MemoryParameters(fast_time=tau).fast_time)(-1.0) == -1.0
 
 
+@pytest.mark.slow
 def test_gradient_is_finite_for_the_tiny_tails_of_smooth_edges():
     """A smooth-edged touch leaves stimuli of 1e-200 far from it; the loading weight a_prev / a_k
     must not overflow its derivative there (it did: NaN gradients through the simulator)."""

@@ -53,6 +53,7 @@ def test_rod_positions_lie_on_a_circle_and_go_round_one_way(example, result):
     print(f"Montreal: median distance / radius {ratio:.4f}, same direction {same_way:.3f}, turn {turn:.3f} rad")
 
 
+@pytest.mark.slow
 def test_example_writes_an_image_strip(example, tmp_path, capsys):
     output = tmp_path / "rod.png"
     example.main(["-o", str(output)])

@@ -48,6 +48,7 @@ def _pyeit_jac(model: de.ForwardModel, difference: np.ndarray, lamb: float, expo
     return np.real(solver.solve(v1=volts_per_amp, v0=np.zeros_like(volts_per_amp), normalize=False))
 
 
+@pytest.mark.slow
 def test_the_issue_scene_beats_pyeit_with_a_selected_hyperparameter(scene):
     """NOSER, hyperparameter by GCV (from the data, never from the truth). pyEIT's JAC gave
     position error 0.023 and correlation 0.80 at about 2,800 triangles in the issue; run here
@@ -67,7 +68,15 @@ def test_the_issue_scene_beats_pyeit_with_a_selected_hyperparameter(scene):
 
 
 @pytest.mark.parametrize("prior", [Tikhonov(), Noser(), Laplace(), Matern(0.2)], ids=lambda p: type(p).__name__)
-@pytest.mark.parametrize("method", ["gcv", "lcurve", "discrepancy", "noise_figure"])
+@pytest.mark.parametrize(
+    "method",
+    [
+        "gcv",
+        pytest.param("lcurve", marks=pytest.mark.slow),
+        "discrepancy",
+        pytest.param("noise_figure", marks=pytest.mark.slow),
+    ],
+)
 def test_every_prior_with_every_selection_method_finds_the_inclusion(scene, prior, method):
     """Measured position errors 0.001-0.052, correlations 0.74-0.88 over the 16 pairs."""
     model, difference, truth, _ = scene

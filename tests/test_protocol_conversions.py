@@ -196,6 +196,7 @@ def test_converted_simulations_equal_direct_ones(small_disc, rough_conductivity)
     )
 
 
+@pytest.mark.slow
 def test_pyeit_protocols_simulated_in_diffeit_convert_exactly(small_disc, rough_conductivity):
     """diffeit simulating pyEIT's protocols as pyEIT defines them: converted, they equal diffeit's."""
     for pyeit_protocol, target in _pyeit_protocols()[4:]:  # skip 3 and opposite: both sign paths

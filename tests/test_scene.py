@@ -129,6 +129,7 @@ def test_units_convert_to_si():
     assert float(scene.effect("common_mode_drift").rate) == pytest.approx(1e-3)
 
 
+@pytest.mark.slow
 def test_per_element_memory_parameters_round_trip_and_simulate():
     """A memory parameter per element of the simulation mesh reads back as one array leaf."""
     scene = Scene(skin=SKIN, touches=(Touch(Disc([0.3, 0.0], 0.3), -0.3, Press(0.1, hold=0.2)),), duration=0.5)

@@ -74,6 +74,7 @@ def test_objective_gradient_matches_central_differences(scene, reconstruction):
             np.testing.assert_allclose(float(central), float(exact @ direction), rtol=1e-6)
 
 
+@pytest.mark.slow
 def test_sharper_than_one_step_laplace_at_the_same_data_fit(scene, solution):
     """One-step Laplace's hyperparameter is chosen so that its data misfit ||J_n x - y|| equals
     TV's (the discrepancy principle aimed at TV's residual, 0.123; one-step lambda 0.026).
@@ -203,6 +204,7 @@ def test_the_backends_agree(small_disc, small_model, small_frames):
     np.testing.assert_allclose(dense.conductivity_change, host.conductivity_change, rtol=0, atol=1e-5 * scale)
 
 
+@pytest.mark.slow
 def test_the_hyperparameter_is_unit_free(small_model, small_frames):
     """A 50x background and a 7x drive current give the same relative image."""
     base = TotalVariation(small_model, 0.05).reconstruct(small_frames[0])
@@ -213,6 +215,7 @@ def test_the_hyperparameter_is_unit_free(small_model, small_frames):
     np.testing.assert_allclose(scaled / 50, base, rtol=0, atol=1e-4 * float(jnp.abs(base).max()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("hyperparameter", [1e-8, 1e3])
 def test_extreme_hyperparameters_give_finite_images(small_model, small_frames, hyperparameter):
     """1e-8 is a least-squares fit (noise blown up, still finite; one iteration, the problem
