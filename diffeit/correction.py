@@ -94,7 +94,7 @@ class CalibrationSettings:
     - `prior`, `hyperparameter`: the one-step reconstruction (hyperparameter unit-free).
     - `backgrounds` (S/sq), `intensities` (dsigma/sigma under the touch, > -1), `radii` (m): the
       simulated settings, every combination.
-    - `noise_percent`: Gaussian noise, percent of RMS(V_ref) (README, Conventions); `noise_draws` per
+    - `noise_percent`: Gaussian noise, percent of RMS(V_ref) (docs/science.md#noise); `noise_draws` per
       touch; `seed` of the draws.
     - `n_elements`, `n_data_elements`: the reconstruction and simulation meshes' sizes.
     """

@@ -21,7 +21,7 @@ CONTACT_IMPEDANCE = 0.01  # ohm m
 TOUCH_CENTRE = (0.5, 0.0)  # m, on the unit disc
 TOUCH_RADIUS = 0.1  # m
 TOUCH_CHANGE = -0.3  # dsigma / sigma: a touch strains the skin and lowers its conductivity
-NOISE_PERCENT = 1.0  # of RMS(V_reference), the README's noise convention
+NOISE_PERCENT = 1.0  # of RMS(V_reference) (docs/science.md#noise)
 DATA_H, RECONSTRUCTION_H = 0.03, 0.06  # element sizes: data on a finer mesh
 
 

@@ -14,9 +14,9 @@ element centroid or pixel centre) and value x_k.
 
 - Peak: p = x_k* with k* = argmax_k |x_k|, signed (a touch's conductivity drop gives p < 0).
 - Amplitude set at fraction f, "on the peak's side": S_f = {k : sign(p) x_k >= f |p|}; the
-  half-amplitude set is S = S_(1/2) (README, Conventions).
+  half-amplitude set is S = S_(1/2) (docs/science.md#figures-of-merit).
 - Reconstructed size: area A = sum_(k in S) a_k (m^2) and equivalent radius r = sqrt(A / pi) (m).
-- Centroid c = sum_(k in S) a_k c_k / A; position error |c - c_true| (m) (README, Conventions).
+- Centroid c = sum_(k in S) a_k c_k / A; position error |c - c_true| (m) (docs/science.md#figures-of-merit).
 - Shape deformation SD = sum_(k in S) a_k (1 - phi_k) / A, phi_k the fraction of cell k inside
   the disc of radius r about c (for a pixel: of the whole pixel, also where it leaves the domain;
   weighted by a_k, its area inside): the part of S outside the circle of equal area centred on it
@@ -27,7 +27,7 @@ element centroid or pixel centre) and value x_k.
   assignment (Hungarian, `scipy.optimize.linear_sum_assignment`) that, among those with the
   most pairs at most `max_distance` apart, minimises the sum of distances target centre -
   component centroid; farther pairs are left unmatched; every unmatched component is an artifact.
-- Correlation: Pearson, area-weighted (README, Conventions).
+- Correlation: Pearson, area-weighted (docs/science.md#figures-of-merit).
 
 GREIT's figures (Adler et al. 2009, "GREIT: a unified approach to 2D linear EIT reconstruction
 of lung images", Physiol. Meas. 30 S35) use the quarter-amplitude set by default: see
@@ -487,7 +487,7 @@ def _locate(geometry: Geometry, points: np.ndarray) -> np.ndarray:
 
 
 def correlation(geometry: Geometry, truth: np.ndarray, image: np.ndarray) -> float:
-    """Area-weighted Pearson correlation of two images on `geometry` (README, Conventions):
+    """Area-weighted Pearson correlation of two images on `geometry` (docs/science.md#figures-of-merit):
     cov_w(truth, image) / sqrt(var_w(truth) var_w(image)), weights a_k / sum a_k."""
     truth_cells = _cells(geometry, truth, "truth")
     cells = _cells(geometry, image)

@@ -91,7 +91,7 @@ class GREIT(IdentityModule):
     R_n, and dividing by K makes lambda independent of the number of targets.
 
     **The hyperparameter** lambda is unit-free: it is the standard deviation of independent
-    measurement noise, as a fraction of RMS(V_reference) (the README's "p%" is lambda = p/100),
+    measurement noise, as a fraction of RMS(V_reference) ("p%" noise, docs/science.md#noise, is lambda = p/100),
     per unit target strength. An object whose relative change integrates to S times the sheet's
     area (S = 9 * 0.04 = 0.36 for a disc of radius 0.2 and 10x conductivity on the unit disc,
     linearised; its true response is weaker, about 1.6 / 9 of that) seen with p% noise is

@@ -14,7 +14,7 @@ filter factors f_i = g_i / (g_i + lambda^2),
 - "lcurve": the corner of the L-curve (log residual norm, log solution norm) (Hansen 1992), the
   candidate of largest curvature, no noise level needed.
 - "discrepancy": Morozov's principle: the lambda whose residual norm equals `safety` times the
-  expected noise norm; needs `noise` (percent of RMS(V_ref), as in the README's Conventions).
+  expected noise norm; needs `noise` (percent of RMS(V_ref), docs/science.md#noise).
 - "noise_figure": the lambda whose noise figure NF = SNR_data / SNR_image equals
   `noise_figure` (Adler and Guardo 1996, as EIDORS's `choose_noise_figure`: SNR_data =
   ||y_t||^2 / trace(Sigma), SNR_image = ||A x_t||^2 / trace(A R Sigma R^T A), for a small

@@ -34,7 +34,7 @@ class OneStep(IdentityModule):
       `diffeit.inverse.priors` (e.g. `Matern(correlation_length=0.1)`).
     - `hyperparameter`: lambda > 0, unit-free (see `diffeit.inverse.select_hyperparameter`, and
       `diffeit.inverse.to_external_hyperparameter` for EIDORS's and pyEIT's values). With noise
-      of p% (README, Conventions), lambda near p/100 balances noise and signal.
+      of p% (docs/science.md#noise), lambda near p/100 balances noise and signal.
     - `background`: the reference conductivity, scalar or (E,), S/sq.
     - `normalised`: reconstruct from normalised differences dV / V_ref (pass the measured
       reference to `reconstruct`), which cancels per-channel gain errors of an instrument.

@@ -188,7 +188,7 @@ class TotalVariation(IdentityModule):
     - `model`: the forward model of the reconstruction mesh.
     - `hyperparameter`: lambda > 0, unit-free. Larger flattens the image and lowers its
       contrast (TV's known bias); smaller lets noise through and needs more iterations. For
-      p% noise (README, Conventions) start near 2 to 5 times p/100 (see the module docstring).
+      p% noise (docs/science.md#noise) start near 2 to 5 times p/100 (see the module docstring).
     - `smoothing`: beta > 0, in units of the relative change (1e-3 = 0.1% of the background).
     - `background`: the reference conductivity, scalar or (E,), S/sq (held by `problem`).
     - `max_iterations`: the iteration limit (`RESULTS.max_iterations_reached` beyond it).

@@ -8,7 +8,7 @@ contact impedances and their rates) is a leaf, so `jax.grad` differentiates thro
 voltages in volts, times in seconds, contact impedance in ohm m (as `diffeit.ForwardModel`),
 rates per second.
 
-## Measurement noise (the README's convention)
+## Measurement noise (docs/science.md#noise)
 "p%" noise is independent Gaussian noise of standard deviation sigma = p/100 x RMS(V_ref) on
 every reading, RMS(V_ref) = sqrt(mean(V_ref^2)) over the reference frame's readings. A `Noise`
 is given as a percentage, an SNR in dB (SNR = 20 log10(RMS(V_ref) / sigma), so
