@@ -15,3 +15,5 @@ Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RES
 `throw=`.
 """
 
+from ._background import BackgroundFit as BackgroundFit
+from ._background import background as background

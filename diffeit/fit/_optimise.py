@@ -16,6 +16,14 @@ from tqdm.auto import tqdm
 from ..results import RESULTS
 
 
+class History(eqx.Module):
+    """An optimisation's progress: `objective` and `gradient_norm` (max |gradient| over the
+    unknowns), NumPy arrays with one entry for the start and one per accepted step."""
+
+    objective: np.ndarray
+    gradient_norm: np.ndarray
+
+
 class Minimum(NamedTuple):
     """What `minimise` found.
 
@@ -62,7 +70,7 @@ def minimise(
     state = solver.init(function, initial, None, {}, jax.ShapeDtypeStruct((), dtype), None, tags)
     step = eqx.filter_jit(lambda y, state: solver.step(function, y, None, {}, state, tags))
     terminate = eqx.filter_jit(lambda y, state: solver.terminate(function, y, None, {}, state, tags))
-    value_and_gradient = eqx.filter_jit(jax.value_and_grad(objective))
+    value_and_gradient = eqx.filter_jit(eqx.filter_value_and_grad(objective))
 
     def record(value, gradient) -> None:
         objectives.append(float(value))

@@ -1,0 +1,436 @@
+"""The background conductivity map of a skin (with its contact impedances and an instrument's
+per-reading gains), fitted to untouched reference frames."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm.auto import tqdm
+
+from .._threads import host_algebra
+from ..forward import ForwardModel
+from ..inverse import GaussNewton, GaussNewtonResult, LinearisedProblem
+from ..inverse.linearised import check_frames
+from ..inverse.priors import AbstractPrior, prior_named
+from ..protocol import Protocol
+from ..results import RESULTS, throw_if_failed
+from ._optimise import History, minimise
+
+# The hyperparameters tried, largest first (half a decade apart), and the bisections in
+# log(lambda) between the last candidate above the noise level and the first at or below it.
+_CANDIDATES = 10.0 ** (-0.5 * np.arange(13))
+_BISECTIONS = 3
+# The misfit has levelled off (at the model's own error, above the noise) when half a decade
+# smaller lambda lowers it by less than this factor.
+_LEVELLED = 0.95
+# Readings a single frame must hold beyond what a reciprocal sensor determines, to estimate
+# the noise from them.
+_MIN_REDUNDANT = 8
+# L-BFGS's tolerances for the gain fit, on the objective and on ln(sigma), ln(z), ln(g)
+# (relative and absolute: ln(g) starts at 0).
+_GAIN_RTOL, _GAIN_ATOL = 1e-6, 1e-5
+
+
+class BackgroundFit(eqx.Module):
+    """What `background` found (symbols as there).
+
+    - `conductivity`: (E,) the background sheet conductivity sigma, S/sq (positive).
+    - `contact_impedance`: (L,) z, ohm m: fitted when asked, else the model's.
+    - `gain`: (M,) the gain g per reading (dimensionless, near 1), or None when not fitted.
+    - `homogeneous`: sigma_h, the best homogeneous conductivity, S/sq: the start and the
+      prior's centre (and the uniform background to compare with).
+    - `misfit`: ||g V(sigma, z) - v|| / ||v||, v the mean of the frames.
+    - `hyperparameter`: the lambda used (chosen, or given).
+    - `noise`: sigma_n, the standard deviation of one reading of one frame, volts (given,
+      estimated from the frames' spread or from the redundant readings of one frame); NaN when
+      neither needed nor estimable.
+    - `candidates`: (K,) the lambdas fitted, in order; `discrepancy`: (K,) each fit's
+      ||V - v|| / (sqrt(M) sigma_v) (NaN without a noise level).
+    - `history`: `History`: Phi at the start and after every accepted step (the Gauss-Newton
+      steps at the chosen lambda, then the L-BFGS steps of the gain fit; it never rises), and
+      max |dPhi/dy| there, y = (s, w when fitted, gamma when fitted): NaN at the Gauss-Newton
+      steps but their last (GaussNewton does not report its iterates).
+    - `result`: `RESULTS.successful`; `RESULTS.selection_at_boundary` when the misfit levelled
+      off above the noise level or did not reach it within the candidates (without
+      `estimate_gain`); or the first code other than successful of the Gauss-Newton fit
+      (`max_iterations_reached`, `line_search_failed`) and of the gain fit
+      (`max_iterations_reached`, `stalled`, `nonfinite`).
+    """
+
+    conductivity: np.ndarray
+    contact_impedance: np.ndarray
+    gain: np.ndarray | None
+    homogeneous: float
+    misfit: float
+    hyperparameter: float
+    noise: float
+    candidates: np.ndarray
+    discrepancy: np.ndarray
+    history: History
+    result: RESULTS
+
+
+@host_algebra
+def background(
+    model: ForwardModel,
+    reference: jax.Array | np.ndarray,
+    *,
+    prior: str | AbstractPrior = "laplace",
+    hyperparameter: float | None = None,
+    noise: float | None = None,
+    estimate_contact_impedance: bool = False,
+    contact_impedance_spread: float = 1.0,
+    estimate_gain: bool = False,
+    gain_spread: float = 0.01,
+    discrepancy_safety: float = 1.0,
+    max_iterations: int = 30,
+    max_gain_steps: int = 2000,
+    progress: bool = True,
+    throw: bool = True,
+) -> BackgroundFit:
+    """Fit the background conductivity map of `model`'s mesh to untouched reference frames.
+
+    `reference`: one frame (M,) or several untouched frames (T, M), volts, in the model's
+    protocol order and sign. T frames of one state fit as their mean v (the sum of the frames'
+    squared misfits is T times the mean's plus a constant).
+
+    **Model.** v ~ g V(sigma, z), with V the model's voltages, sigma = e^s (E,) the sheet
+    conductivity (S/sq), z = e^w (L,) the contact impedances (ohm m) and g = e^gamma (M,) one
+    gain per reading (1 unless `estimate_gain`). The fit minimises
+
+        Phi = ||g V(e^s, e^w) - v||^2 / s_d^2 + lambda^2 c (s - s_h)^T P^-1 (s - s_h)
+              + (lambda / contact_impedance_spread)^2 ||w - w_0||^2
+              + (sigma_v / (s_d gain_spread))^2 ||gamma||^2
+
+    the objective of `diffeit.inverse.GaussNewton` plus the gain's prior: sigma_h = e^s_h the
+    best homogeneous conductivity (the start, and the prior's centre), s_d = RMS(V(sigma_h)),
+    P the `prior` covariance (default "laplace", a smoothness prior: neighbours'
+    log-conductivities alike), scaled by c as in `diffeit.inverse.LinearisedProblem` so that
+    lambda is unit-free, w_0 the model's contact impedance, sigma_v the noise of v (volts, see
+    below). ln g is a Gaussian of standard deviation `gain_spread` around 0; ln z one of about
+    `contact_impedance_spread` around ln z_0, weighed by lambda as in GaussNewton.
+
+    **Engine.** Gauss-Newton on (s, w) in measurement space (`GaussNewton.absolute`: an M x M
+    solve per step, the adjoint Jacobian) reaches the minimum in about ten steps; L-BFGS on the
+    same Phi needs hundreds of gradient steps (with a forward and an adjoint solve each) to the
+    same objective and map. GaussNewton has no gain block: with `estimate_gain`, L-BFGS
+    (`minimise` of `diffeit.fit`) then fits s, w and gamma jointly, from the Gauss-Newton fit
+    and gamma = 0; the gains trade off with the map (below), so it takes hundreds of steps.
+
+    **Hyperparameter.** `hyperparameter`, or (None, the default) the discrepancy principle on
+    the nonlinear fits: the largest lambda whose fit has ||V - v|| <= `discrepancy_safety`
+    sqrt(M) sigma_v. Candidates 1, 10^-0.5, ..., 10^-6 are fitted in turn until one meets the
+    level; three bisections in log(lambda) then refine it. `candidates` and `discrepancy` record
+    them. sigma_v, the noise of one reading of v, is sigma_n / sqrt(T), and sigma_n, that of one
+    reading of one frame (the result's `noise`):
+
+    - `noise` percent of RMS(v) when given;
+    - else, with several frames, their pooled frame-to-frame standard deviation;
+    - else the part of the one frame that no reciprocal sensor produces: the complete electrode
+      model is reciprocal, so every V(sigma, z) lies in the span of the readings of symmetric
+      transfer matrices, and what lies off it is noise (adjacent drives on 16 electrodes: 104 of
+      208 readings). A protocol without such redundancy needs several frames or `noise` (or,
+      without `estimate_gain`, `hyperparameter`).
+
+    That part of the noise no map can fit: the misfit of an adjacent protocol does not fall
+    below about 0.7 of the noise level, so a safety of 1 is safe. When the misfit levels off
+    above the noise (half a decade smaller lambda lowers it by less than 5%), the model's own
+    error (a coarse mesh, misplaced electrodes, gains) dominates: the fit is the last candidate
+    before it levelled off, and `result` is `RESULTS.selection_at_boundary`; with
+    `estimate_gain` that is expected (the gains take the rest) and successful. Not GCV or the
+    L-curve of the linearisation at sigma_h (`diffeit.inverse.select_hyperparameter`): the
+    background's contrast is far from linear, and they choose lambda one to three decades below
+    the discrepancy's, where the map breaks up.
+
+    **Identifiability.** z_l trades off with the conductivity next to electrode l (both set the
+    voltage drop there), and readings that leave out the driven electrodes (adjacent) see z
+    little: the map absorbs a wrong z near the electrodes, and a fitted z stays near the
+    model's. `estimate_contact_impedance` is therefore off by default, and its prior holds z
+    near the model's; readings on driven electrodes determine it better.
+
+    A free gain per reading explains any frame (M gains for M readings), and more untouched
+    frames do not change that: they repeat one state and differ by noise only. The gains are
+    therefore determined by their prior together with reciprocity (a pair of reciprocal
+    readings sees the same V, so their ratio measures the ratio of their gains): the fit gives
+    the gains what the smooth map cannot explain, shrunk by `gain_spread`. A common gain trades
+    off exactly with the level of sigma (V scales as 1 / sigma); the prior on ln g settles it
+    at g ~ 1.
+
+    **Options.** `prior`: a name ("laplace", "matern", "noser", "tikhonov") or a prior of
+    `diffeit.inverse.priors`. `max_iterations`: Gauss-Newton steps per fit; `max_gain_steps`:
+    L-BFGS steps of the gain fit. `progress`: progress bars. `throw`: a result other than
+    `RESULTS.successful` raises `diffeit.results.SolverError` (with False, see `result`).
+
+    Raises ValueError for a reference of the wrong shape or with non-finite values, a frame
+    that does not correlate positively with the model's voltages, invalid options, and, when
+    the noise is needed, identical frames or one frame of a protocol without redundant
+    readings.
+    """
+    frames = np.atleast_2d(np.asarray(check_frames(reference, model.n_measurements, "reference frames"), np.float64))
+    _check_options(hyperparameter, noise, contact_impedance_spread, gain_spread, discrepancy_safety, max_iterations)
+    prior = prior_named(prior) if isinstance(prior, str) else prior
+    data = frames.mean(axis=0)
+    noise_std = _noise_std(frames, model.protocol, noise, needed=hyperparameter is None or estimate_gain)
+    expected = noise_std * np.sqrt(model.n_measurements / len(frames))
+
+    def solve(value: float) -> GaussNewtonResult:
+        solver = GaussNewton(
+            model,
+            prior,
+            value,
+            max_iterations=max_iterations,
+            contact_impedance_spread=contact_impedance_spread,
+        )
+        return solver.absolute(data, estimate_contact_impedance=estimate_contact_impedance, throw=False)
+
+    fit = solve(hyperparameter if hyperparameter is not None else _CANDIDATES[0])
+    objective = _Objective(model, prior, data, fit.reference, contact_impedance_spread)
+    # GaussNewton's normalised misfit ||V - v|| / s_d in units of the expected noise norm.
+    scale = objective.data_scale / expected
+    if hyperparameter is None:
+        selection = _select(solve, lambda f: f.misfit * scale, fit, discrepancy_safety, estimate_gain, progress)
+    else:
+        selection = _Selection(hyperparameter, fit, [hyperparameter], [fit.misfit * scale], RESULTS.successful)
+    fit = selection.fit
+    unknowns = {"s": np.log(fit.conductivity)}
+    if estimate_contact_impedance:
+        unknowns["w"] = np.log(fit.contact_impedance)
+    objectives, result = np.asarray(fit.history), _first_failure(selection.result, fit.result)
+    norms = np.full(len(objectives), np.nan)
+    # The gain's prior against the data term: the noise variance of v over s_d^2, per unit of
+    # (ln g / gain_spread)^2.
+    gain_weight = noise_std**2 / len(frames) / (objective.data_scale * gain_spread) ** 2 if estimate_gain else 0.0
+    function = objective.bind(selection.value, gain_weight)
+    if estimate_gain:
+        unknowns["gamma"] = np.zeros(model.n_measurements)
+        minimum = minimise(
+            function,
+            jax.tree_util.tree_map(jnp.asarray, unknowns),
+            max_steps=max_gain_steps,
+            rtol=_GAIN_RTOL,
+            atol=_GAIN_ATOL,
+            progress=progress,
+            description="background: gain",
+        )
+        unknowns = jax.tree_util.tree_map(np.asarray, minimum.value)
+        norms[-1] = minimum.gradient_norm[0]
+        objectives = np.concatenate([objectives, minimum.objective[1:]])
+        norms = np.concatenate([norms, minimum.gradient_norm[1:]])
+        result = _first_failure(result, minimum.result)
+    else:
+        gradient = jax.grad(function)(jax.tree_util.tree_map(jnp.asarray, unknowns))
+        norms[-1] = max(float(jnp.max(jnp.abs(g))) for g in jax.tree_util.tree_leaves(gradient))
+    conductivity = np.exp(unknowns["s"])
+    contact_impedance = np.exp(unknowns["w"]) if "w" in unknowns else np.asarray(model.contact_impedance)
+    gain = np.exp(unknowns["gamma"]) if "gamma" in unknowns else None
+    voltages = np.asarray(model.measure(jnp.asarray(conductivity), jnp.asarray(contact_impedance)))
+    voltages = voltages if gain is None else gain * voltages
+    outcome = BackgroundFit(
+        conductivity=conductivity,
+        contact_impedance=contact_impedance,
+        gain=gain,
+        homogeneous=float(fit.reference[0]),
+        misfit=float(np.linalg.norm(voltages - data) / np.linalg.norm(data)),
+        hyperparameter=float(selection.value),
+        noise=float(noise_std),
+        candidates=np.asarray(selection.candidates, dtype=float),
+        discrepancy=np.asarray(selection.discrepancy, dtype=float),
+        history=History(objectives, norms),
+        result=result,
+    )
+    return throw_if_failed(outcome, outcome.result, "background fit") if throw else outcome
+
+
+def _check_options(hyperparameter, noise, contact_impedance_spread, gain_spread, safety, max_iterations) -> None:
+    if hyperparameter is not None and not (np.isfinite(hyperparameter) and hyperparameter > 0):
+        raise ValueError(f"hyperparameter must be finite and positive, or None to choose it; got {hyperparameter}")
+    if noise is not None and not (np.isfinite(noise) and noise > 0):
+        raise ValueError(f"noise is a percentage of RMS(reference) and must be positive; got {noise}")
+    for name, value in (
+        ("contact_impedance_spread", contact_impedance_spread),
+        ("gain_spread", gain_spread),
+        ("discrepancy_safety", safety),
+    ):
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be finite and positive; got {value}")
+    if max_iterations < 1:
+        raise ValueError(f"max_iterations must be >= 1; got {max_iterations}")
+
+
+def _noise_std(frames: np.ndarray, protocol: Protocol, noise: float | None, *, needed: bool) -> float:
+    """The standard deviation of one reading of one frame, volts (see `background`)."""
+    if noise is not None:
+        return noise / 100 * float(np.sqrt(np.mean(frames.mean(axis=0) ** 2)))
+    if len(frames) > 1:
+        spread = float(np.sqrt(np.mean(np.var(frames, axis=0, ddof=1))))
+        if spread == 0 and needed:
+            raise ValueError(
+                "the reference frames are identical: their spread gives no noise level; pass one of them, "
+                "noise= (percent) or hyperparameter="
+            )
+        return spread
+    basis = _reciprocal_span(protocol)
+    redundant = protocol.n_measurements - basis.shape[1]
+    if redundant < _MIN_REDUNDANT:
+        if not needed:
+            return float("nan")
+        raise ValueError(
+            f"one frame of this protocol has {redundant} readings beyond what reciprocity determines, too few "
+            "to estimate the noise from: give several untouched frames or noise= (percent), or "
+            "hyperparameter= (without estimate_gain)"
+        )
+    off_span = frames[0] - basis @ (basis.T @ frames[0])
+    return float(np.sqrt(off_span @ off_span / redundant))
+
+
+def _reciprocal_span(protocol: Protocol) -> np.ndarray:
+    """(M, r) orthonormal basis of the readings any reciprocal sensor can produce.
+
+    Electrode potentials U = R I for the drive I, R symmetric with zero row sums (potentials
+    sum to zero): R is a combination of (e_i - e_j)(e_i - e_j)^T, i < j, under which reading k
+    (weights m_k, drive d_k) is (m_k,i - m_k,j)(d_k,i - d_k,j)."""
+    first, second = np.triu_indices(protocol.n_electrodes, k=1)
+    weights = protocol.measure
+    drives = protocol.drive[protocol.drive_index]
+    design = (weights[:, first] - weights[:, second]) * (drives[:, first] - drives[:, second])
+    vectors, values, _ = np.linalg.svd(design, full_matrices=False)
+    rank = int(np.sum(values > max(design.shape) * np.finfo(float).eps * values[0]))
+    return vectors[:, :rank]
+
+
+class _Selection(eqx.Module):
+    """The chosen hyperparameter, its fit, and every candidate's discrepancy ratio."""
+
+    value: float
+    fit: GaussNewtonResult
+    candidates: list[float]
+    discrepancy: list[float]
+    result: RESULTS
+
+
+def _select(
+    solve: Callable[[float], GaussNewtonResult],
+    ratio: Callable[[GaussNewtonResult], float],
+    first: GaussNewtonResult,
+    safety: float,
+    levelling_expected: bool,
+    progress: bool,
+) -> _Selection:
+    """The discrepancy principle over `_CANDIDATES` (`first` is the fit at the largest), refined
+    by bisection in log(lambda); or, when the misfit levels off above the noise, the last
+    candidate before it did (see `background`)."""
+    candidates, ratios, fits = [], [], []
+    with tqdm(total=len(_CANDIDATES), desc="background: hyperparameter", disable=not progress, leave=False) as bar:
+        for value in _CANDIDATES:
+            fit = first if not fits else solve(value)
+            candidates.append(float(value))
+            ratios.append(ratio(fit))
+            fits.append(fit)
+            bar.set_postfix(hyperparameter=f"{value:.3g}", discrepancy=f"{ratios[-1]:.3g}")
+            bar.update()
+            if ratios[-1] <= safety:
+                break
+            if len(ratios) > 1 and not ratios[-1] < _LEVELLED * ratios[-2]:
+                result = RESULTS.successful if levelling_expected else RESULTS.selection_at_boundary
+                return _Selection(candidates[-2], fits[-2], candidates, ratios, result)
+        else:
+            return _Selection(candidates[-1], fits[-1], candidates, ratios, RESULTS.selection_at_boundary)
+        chosen = _Selection(candidates[-1], fits[-1], candidates, ratios, RESULTS.successful)
+        if len(fits) == 1:
+            return chosen
+        low, high = np.log(candidates[-1]), np.log(candidates[-2])  # at, above the level
+        bar.reset(total=_BISECTIONS)
+        for _ in range(_BISECTIONS):
+            value = float(np.exp(0.5 * (low + high)))
+            fit = solve(value)
+            candidates.append(value)
+            ratios.append(ratio(fit))
+            if ratios[-1] <= safety:
+                low, chosen = np.log(value), _Selection(value, fit, candidates, ratios, RESULTS.successful)
+            else:
+                high = np.log(value)
+            bar.set_postfix(hyperparameter=f"{value:.3g}", discrepancy=f"{ratios[-1]:.3g}")
+            bar.update()
+    return _Selection(chosen.value, chosen.fit, candidates, ratios, chosen.result)
+
+
+def _first_failure(*results: RESULTS) -> RESULTS:
+    return next((result for result in results if result != RESULTS.successful), RESULTS.successful)
+
+
+class _Objective(eqx.Module):
+    """Phi of `background`, with Gauss-Newton's normalisation at the homogeneous start
+    `sigma_h`: `bind(lambda, gain_weight)` is a JAX function of the unknowns {"s", and "w",
+    "gamma" when fitted}."""
+
+    model: ForwardModel
+    data: jax.Array
+    data_scale: float
+    prior_scale: float
+    log_reference: jax.Array
+    log_contact_impedance: jax.Array
+    contact_impedance_spread: float
+    precision: Callable[[np.ndarray], np.ndarray] = eqx.field(static=True)
+
+    def __init__(
+        self,
+        model: ForwardModel,
+        prior: AbstractPrior,
+        data: np.ndarray,
+        homogeneous: float | np.ndarray,
+        contact_impedance_spread: float,
+    ) -> None:
+        problem = LinearisedProblem(model, prior, homogeneous)
+        self.model = model
+        self.data = jnp.asarray(data)
+        self.data_scale = float(problem.data_scale[0])
+        self.prior_scale = problem.prior_scale
+        self.log_reference = jnp.log(jnp.asarray(problem.background))
+        self.log_contact_impedance = jnp.log(model.contact_impedance)
+        self.contact_impedance_spread = float(contact_impedance_spread)
+        self.precision = prior.bind(model.mesh)(problem.jacobian).precision
+
+    def bind(self, hyperparameter: float, gain_weight: float) -> Callable[[dict], jax.Array]:
+        weight = hyperparameter**2
+        quadratic = _quadratic_form(self.precision)
+
+        def objective(unknowns: dict) -> jax.Array:
+            s = unknowns["s"]
+            w = unknowns.get("w", self.log_contact_impedance)
+            voltages = self.model.measure(jnp.exp(s), jnp.exp(w))
+            value = weight * self.prior_scale * quadratic(s - self.log_reference)
+            if "w" in unknowns:
+                deviation = w - self.log_contact_impedance
+                value = value + weight / self.contact_impedance_spread**2 * jnp.sum(deviation**2)
+            if "gamma" in unknowns:
+                voltages = jnp.exp(unknowns["gamma"]) * voltages
+                value = value + gain_weight * jnp.sum(unknowns["gamma"] ** 2)
+            return jnp.sum((voltages - self.data) ** 2) / self.data_scale**2 + value
+
+        return objective
+
+
+def _quadratic_form(precision: Callable[[np.ndarray], np.ndarray]) -> Callable[[jax.Array], jax.Array]:
+    """x -> x^T Q x in JAX for the symmetric operator `precision` (Q, applied on the host by the
+    prior's sparse factors), with its derivative 2 Q x."""
+
+    def apply(x: jax.Array) -> jax.Array:
+        return jax.pure_callback(
+            lambda v: np.asarray(precision(np.asarray(v)), dtype=v.dtype), jax.ShapeDtypeStruct(x.shape, x.dtype), x
+        )
+
+    @jax.custom_jvp
+    def quadratic(x: jax.Array) -> jax.Array:
+        return x @ apply(x)
+
+    @quadratic.defjvp
+    def _(primals, tangents):
+        (x,), (dx,) = primals, tangents
+        product = apply(x)
+        return x @ product, 2 * product @ dx
+
+    return quadratic
