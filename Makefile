@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/forward_jacobian.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/inverse.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/scene.py $(BENCH_FLAGS)
+	$(BIN)/python benchmarks/fit.py $(BENCH_FLAGS)
 
 clean:
 	rm -rf $(VENV) demo.png .pytest_cache

@@ -270,10 +270,7 @@ def _host_solve(
     else:
         right = np.broadcast_to(rhs, (*batch, n, k)).reshape(-1, n, k)
         solution = np.stack(
-            [
-                _solve_columns(_factorise(pattern, m, cache_size, cache), b)
-                for m, b in zip(matrices, right, strict=True)
-            ]
+            [_solve_columns(_factorise(pattern, m, cache_size, cache), b) for m, b in zip(matrices, right, strict=True)]
         )
     return solution.reshape((*batch, n, k)).astype(rhs.dtype, copy=False)
 

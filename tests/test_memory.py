@@ -10,11 +10,14 @@ import pytest
 import diffeit  # noqa: F401  (turns on float64)
 from diffeit.scene._memory import (
     MemoryParameters,
+    advance,
+    apply_stimulus,
     bare_skin,
     initial_state,
     integrate_memory,
     memory_response,
     over_foam,
+    read_response,
 )
 
 # Parameters away from the presets, so that no term hides behind a round default.
@@ -335,3 +338,22 @@ def test_gradient_is_finite_for_the_tiny_tails_of_smooth_edges():
 
     gradient = float(jax.grad(total)(-0.3))
     assert np.isfinite(gradient) and abs(gradient) < 1e-190
+
+
+@pytest.mark.parametrize("previous", [-0.3, 0.2])
+def test_the_response_is_continuous_in_the_new_stimulus_across_zero(previous):
+    """After a held load a_prev, the response to the next frame's stimulus a_k has no jump: not at
+    zero and not at -a_prev (a load of the other sign starts afresh from zero), on a fatigued,
+    first-cycled skin. A jump would stall every gradient fit of noisy stimuli."""
+    parameters = MemoryParameters()
+    # A deeper first press, then a_prev held: the largest stimulus seen is beyond +-a_prev.
+    state = advance(apply_stimulus(initial_state(1), jnp.array([2 * previous])), parameters, 1.0)
+    state = advance(apply_stimulus(state, jnp.array([previous])), parameters, 2.5)
+    assert float(state.fatigue[0]) > 0.05
+    # Stay below the largest stimulus seen: a new extreme of the other sign moves the offset.
+    stimuli = jnp.linspace(-1.9 * abs(previous), 1.9 * abs(previous), 4001)
+    responses = jax.vmap(lambda a: read_response(apply_stimulus(state, a[None]), parameters)[0])(stimuli)
+    steps = np.abs(np.diff(np.asarray(responses)))
+    slope = float(parameters.gain) + float(parameters.first_cycle_offset)
+    assert steps.max() <= 1.01 * slope * float(stimuli[1] - stimuli[0])
+    assert np.all(np.diff(np.asarray(responses)) > 0)  # increasing: the correction inverts it

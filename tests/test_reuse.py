@@ -104,9 +104,7 @@ def test_host_factorisations_belong_to_their_solver(monkeypatch):
         linear_solve.solve_spd(pattern, jnp.asarray(scale * values), rhs, trimmer)
     factorisations = []
     original = scipy.sparse.linalg.splu
-    monkeypatch.setattr(
-        scipy.sparse.linalg, "splu", lambda *a, **k: factorisations.append(1) or original(*a, **k)
-    )
+    monkeypatch.setattr(scipy.sparse.linalg, "splu", lambda *a, **k: factorisations.append(1) or original(*a, **k))
     linear_solve.solve_spd(pattern, jnp.asarray(values), rhs, keeper)
     assert factorisations == []  # still in the keeper's cache
     keeper.clear_cache()

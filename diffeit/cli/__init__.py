@@ -52,12 +52,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     from ..plotting import plot_image_strip
 
     source = Path(arguments.frames)
-    base = Path(arguments.output)
-    base = base.with_suffix("") if base.suffix in (".png", ".h5") else base
-    outputs = base.with_name(base.name + ".png"), base.with_name(base.name + ".h5")
-    for output in outputs:
-        if output.exists() and not arguments.overwrite:
-            raise FileExistsError(f"{output} exists; pass --overwrite to replace it")
+    outputs = _output_paths(arguments.output, (".png", ".h5"), arguments.overwrite)
     if source.suffix.lower() == ".mat":
         if arguments.variable is None:
             raise ValueError(f"{source} is a .mat file: name the frames with --variable (and --reference-variable)")
@@ -121,6 +116,18 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         f"wrote {outputs[0]} ({len(shown)} panels) and {outputs[1]} (images {images.shape})"
     )
     return 0
+
+
+def _output_paths(output: str, suffixes: tuple[str, ...], overwrite: bool) -> list[Path]:
+    """The files of -o OUT: OUT with each of `suffixes` (a .png or .h5 ending of OUT is dropped
+    first). Raises FileExistsError for one that exists, unless `overwrite`."""
+    base = Path(output)
+    base = base.with_suffix("") if base.suffix in (".png", ".h5") else base
+    paths = [base.with_name(base.name + suffix) for suffix in suffixes]
+    for path in paths:
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
+    return paths
 
 
 def _scene_settings(recording: Recording) -> dict[str, float]:
@@ -250,6 +257,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._simulate import add_command as add_simulate
 
     add_simulate(commands)
+    from ._fit import add_command as add_fit
+
+    add_fit(commands)
     from ._hardware import add_commands
 
     add_commands(commands)

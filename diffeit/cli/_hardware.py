@@ -16,9 +16,15 @@ from ._model import ModelSettings, add_model_options
 if TYPE_CHECKING:
     import hw
 
+    from ..fit import JointFit
+    from ..inverse import OneStep
     from ..protocol import Protocol
 
 _PROTOCOLS = ("adjacent", "opposite", "full")
+# The dead band of the live memory correction, in standard deviations of the image noise: under it
+# a held press stays held (noise read as a chattering load would pump the skin's hysteretic modes
+# and make a long press fade), above it a real change passes.
+DEAD_BAND = 3.0
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
@@ -45,6 +51,19 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     live.add_argument("--reference-frames", type=int, default=1, help="frames averaged into the reference (1)")
     live.add_argument("--batch", type=int, default=8, help="frames reconstructed together (8)")
     add_model_options(live)
+    live.add_argument(
+        "--memory",
+        metavar="FIT",
+        help="a saved joint fit (OUT.fit.h5 of diffeit fit): image on its background and contact impedances and "
+        "show the memoryless stimulus dsigma/sigma, the skin's memory corrected frame by frame (causally)",
+    )
+    live.add_argument(
+        "--dead-band",
+        type=float,
+        default=DEAD_BAND,
+        help="--memory: image changes below this many noise standard deviations (at the fit's noise level) "
+        f"keep the stimulus ({DEAD_BAND:g}; 0: the exact inverse, whose long presses fade in noise)",
+    )
     live.add_argument("--png", default="live.png", help="image written when there is no display (live.png)")
     live.set_defaults(run=_live)
 
@@ -185,10 +204,14 @@ def _live(arguments: argparse.Namespace) -> int:
     if arguments.batch < 1 or arguments.reference_frames < 1:
         print("diffeit live: error: --batch and --reference-frames must be at least 1", file=sys.stderr)
         return 2
+    if not arguments.dead_band >= 0:
+        print(f"diffeit live: error: --dead-band must be >= 0; got {arguments.dead_band}", file=sys.stderr)
+        return 2
     try:
         settings = ModelSettings.from_arguments(arguments)
+        fit = _memory_fit(arguments.memory)
         source = _open_source(arguments)
-    except (ValueError, ConnectionError) as error:
+    except (ValueError, ConnectionError, FileNotFoundError) as error:
         print(f"diffeit live: error: {error}", file=sys.stderr)
         return 2
     viewer, shown, ending = None, 0, "done"
@@ -197,7 +220,8 @@ def _live(arguments: argparse.Namespace) -> int:
     try:
         for frame in source.frames(max_frames=arguments.frames, duration=arguments.duration):
             if viewer is None:
-                viewer = _LiveViewer(_frame_protocol(source, frame), settings, arguments.png)
+                protocol = _frame_protocol(source, frame)
+                viewer = _LiveViewer(protocol, settings, arguments.png, fit, dead_band=arguments.dead_band)
             if len(reference_frames) < arguments.reference_frames:
                 reference_frames.append(frame.values)
                 continue
@@ -217,18 +241,54 @@ def _live(arguments: argparse.Namespace) -> int:
     if batch:  # the last, partial batch: also when the device went away
         shown += viewer.show(batch, np.mean(reference_frames, axis=0))
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
-    print(f"{ending}: {shown} frames reconstructed, {source.statistics.rejected} rejected{where}")
+    corrected = " and corrected for memory" if fit is not None else ""
+    print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}")
     return 0 if shown else 1
 
 
-class _LiveViewer:
-    """One-step reconstruction of batches of frames, shown in a window or saved as a PNG."""
+def _memory_fit(path: str | None) -> JointFit | None:
+    """The joint fit `--memory` names, or None."""
+    if path is None:
+        return None
+    from ..fit import load
 
-    def __init__(self, protocol: Protocol, settings: ModelSettings, png: str) -> None:
+    return load(path)
+
+
+class _LiveViewer:
+    """One-step reconstruction of batches of frames, shown in a window or saved as a PNG.
+
+    With a joint fit (`--memory`): the images are linearised at the fit's background and contact
+    impedances, taken relative to the background, and corrected for the skin's memory frame by
+    frame (`diffeit.fit.correct_memory_step`, from a rested skin at the first imaged frame, the
+    state kept between batches, a dead band of `dead_band` standard deviations of the image noise,
+    `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma."""
+
+    def __init__(
+        self,
+        protocol: Protocol,
+        settings: ModelSettings,
+        png: str,
+        fit: JointFit | None = None,
+        *,
+        dead_band: float = DEAD_BAND,
+    ) -> None:
         import matplotlib.pyplot as plt
 
         self.mesh = settings.unit_disc(protocol.n_electrodes)
-        self.solver = settings.solver(settings.model(self.mesh, protocol))
+        self.fit = fit
+        if fit is None:
+            self.solver = settings.solver(settings.model(self.mesh, protocol))
+        else:
+            import equinox as eqx
+
+            from ..fit import correct_memory_step
+            from ._fit import fitted_one_step
+
+            self.solver = fitted_one_step(fit, self.mesh, protocol, settings)
+            self.tolerance = dead_band * image_noise(fit, self.solver)
+            self.step = eqx.filter_jit(correct_memory_step)
+            self.state = None
         # Agg is what matplotlib falls back to without a display: then write PNGs instead.
         self.headless = plt.get_backend().lower() == "agg"
         self.png = png
@@ -245,6 +305,8 @@ class _LiveViewer:
 
         differences = np.array([frame.values for frame in batch]) - reference
         images = np.asarray(self.solver.reconstruct(differences))
+        if self.fit is not None:
+            images = self._corrected(images / np.asarray(self.fit.background), batch)
         image = images[-1]
         limit = float(np.max(np.abs(image))) or 1.0
         self.axes.clear()
@@ -253,12 +315,47 @@ class _LiveViewer:
             *self.mesh.nodes.T, self.mesh.triangles, facecolors=image, cmap="RdBu_r", vmin=-limit, vmax=limit
         )
         counter = batch[-1].counter
-        self.axes.set_title(f"frame {counter if counter is not None else ''}: dsigma, S/sq (peak {limit:.3g})")
+        quantity = "dsigma, S/sq" if self.fit is None else "memoryless stimulus dsigma/sigma"
+        self.axes.set_title(f"frame {counter if counter is not None else ''}: {quantity} (peak {limit:.3g})")
         if self.headless:
             self.figure.savefig(self.png, dpi=100)
         else:
             plt.pause(0.001)
         return len(batch)
+
+    def _corrected(self, images: np.ndarray, batch: list[hw.Frame]) -> np.ndarray:
+        """The memoryless stimulus of the relative images (B, E) of `batch`, frame by frame."""
+        from ..scene import initial_state
+
+        stimuli = []
+        for image, frame in zip(images, batch, strict=True):
+            now = _frame_time(frame)
+            if self.state is None:
+                self.state = initial_state(self.mesh.n_elements, time=now)
+            # A clock that steps back (a device reset) holds the memory still rather than rewinding it.
+            now = max(now, float(self.state.time))
+            # An array, not a Python float: filter_jit would compile anew for every static time.
+            time = np.float64(now)
+            stimulus, self.state = self.step(self.state, image, time, self.fit.memory, self.tolerance)
+            stimuli.append(np.asarray(stimulus))
+        return np.array(stimuli)
+
+
+def image_noise(fit: JointFit, solver: OneStep) -> np.ndarray:
+    """(E,) the standard deviation of each element's relative image (dsigma/sigma) that white
+    reading noise at the fit's data scale (volts) causes through `solver`."""
+    rows = np.linalg.norm(np.asarray(solver.matrix), axis=1)
+    return fit.settings.data_scale * rows / np.asarray(fit.background)
+
+
+def _frame_time(frame: hw.Frame) -> float:
+    """A frame's time in seconds: the host's clock (every frame from a SerialSource has it), else
+    the device's."""
+    if frame.host_time is not None:
+        return frame.host_time
+    if frame.device_time is not None:
+        return frame.device_time
+    raise ValueError("the memory correction needs frame times; the frames carry neither a host nor a device time")
 
 
 def _emulate(arguments: argparse.Namespace) -> int:

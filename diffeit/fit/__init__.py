@@ -9,7 +9,8 @@ recorded frames:
   relative-change images, per element, in image space;
 - `correct_memory`: the causal correction of images with known memory parameters (live use);
 - `joint`: background, contact impedances, memory parameters and per-frame stimulus images
-  together, with every frame's misfit through the forward model.
+  together, with every frame's misfit through the forward model; `JointFit.save` and `load`
+  keep a fit, and `joint(..., initial=fit)` resumes it.
 
 Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RESULTS`) and takes
 `throw=`.
@@ -17,3 +18,14 @@ Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RES
 
 from ._background import BackgroundFit as BackgroundFit
 from ._background import background as background
+from ._joint import JointFit as JointFit
+from ._joint import JointParameters as JointParameters
+from ._joint import JointPriors as JointPriors
+from ._joint import JointProblem as JointProblem
+from ._joint import JointSettings as JointSettings
+from ._joint import joint as joint
+from ._joint import load as load
+from ._memory import MemoryFit as MemoryFit
+from ._memory import correct_memory as correct_memory
+from ._memory import correct_memory_step as correct_memory_step
+from ._memory import memory as memory

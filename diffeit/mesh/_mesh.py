@@ -167,8 +167,6 @@ class Mesh(StaticData):
         return f"Mesh(n_nodes={self.n_nodes}, n_elements={self.n_elements}, n_electrodes={self.n_electrodes})"
 
 
-
-
 def _checked_triangles(triangles: np.ndarray, n_nodes: int) -> np.ndarray:
     triangles = np.asarray(triangles)
     if triangles.ndim != 2 or triangles.shape[1] != 3:

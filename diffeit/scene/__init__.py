@@ -36,10 +36,14 @@ from ._instrument import open_contact_impedance as open_contact_impedance
 from ._instrument import open_electrodes as open_electrodes
 from ._memory import MemoryParameters as MemoryParameters
 from ._memory import MemoryState as MemoryState
+from ._memory import advance as advance
+from ._memory import apply_stimulus as apply_stimulus
 from ._memory import bare_skin as bare_skin
+from ._memory import initial_state as initial_state
 from ._memory import integrate_memory as integrate_memory
 from ._memory import memory_response as memory_response
 from ._memory import over_foam as over_foam
+from ._memory import read_response as read_response
 from ._scene import EXAMPLES as EXAMPLES
 from ._scene import Scene as Scene
 from ._scene import example as example

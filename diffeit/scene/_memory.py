@@ -22,11 +22,14 @@ a_max, the stimulus of largest magnitude seen so far (the running maximum of |a|
 the fatigue phi (fractional loss of sensitivity, 0 when rested). Mode i has the fraction f_i and
 the time constant tau_i (s); rho is the relaxed fraction; F = f_fast + f_slow; s = 1 - phi.
 
-- At a frame, instantly. Loading (|a_k| > |a_prev|) enters at the present sensitivity:
-  kappa <- s + (kappa - s) w, w = clip(a_prev / a_k, 0, 1) (kappa a is the load weighted by the
+- At a frame, instantly. Loading (|a_k| > |a_prev| on a_prev's side) enters at the present
+  sensitivity: kappa <- s + (kappa - s) w, w = a_prev / a_k (kappa a is the load weighted by the
   sensitivity each part of it was applied with), and every mode takes the increment of kappa a:
-  b_i <- b_i + kappa' a_k - kappa a_prev. Unloading keeps kappa (the load eases in proportion)
-  and moves no mode: paths break at once but re-form slowly. a_max <- a_k when |a_k| > |a_max|.
+  b_i <- b_i + kappa' a_k - kappa a_prev. Unloading (|a_k| <= |a_prev|, same side) keeps kappa
+  (the load eases in proportion) and moves no mode: paths break at once but re-form slowly. A
+  stimulus of the other sign than a_prev is a fresh load in the other direction: kappa <- s and
+  b_i <- b_i + s a_k; the old load leaves the modes slowly, as after a release. The response is
+  then continuous in a_k everywhere, zero included. a_max <- a_k when |a_k| > |a_max|.
 - Between frames, a held: db_i/dt = ((1 - rho) kappa a - b_i) / tau_i, that is
   b_i(t + dt) = b_i(t) e^(-dt/tau_i) + (1 - rho) kappa a (1 - e^(-dt/tau_i)): under a held touch a
   fraction rho of each mode relaxes (the network partly re-forms under strain); after release
@@ -242,11 +245,13 @@ def apply_stimulus(state: MemoryState, stimulus: ArrayLike) -> MemoryState:
     s + (kappa - s) w with w = a_prev / a_k (clipped to [0, 1]; kappa a is then the
     sensitivity-weighted load), and every mode takes the increment of kappa a at once.
     Unloading keeps kappa (the load eases proportionally) and moves no mode: the modes follow it
-    through `advance`. The running extreme a_max follows |a|.
+    through `advance`. A stimulus of the other sign loads afresh (w = 0) from zero: the modes take
+    s a_k, and the old load leaves them through `advance`. The running extreme a_max follows |a|.
     """
     previous = state.stimulus
     stimulus = jnp.broadcast_to(jnp.asarray(stimulus, previous.dtype), previous.shape)
-    loading = jnp.abs(stimulus) > jnp.abs(previous)
+    reversed_ = stimulus * previous < 0
+    loading = (jnp.abs(stimulus) > jnp.abs(previous)) | reversed_
     # Safe denominator: where() differentiates both branches, and 0/0 would poison the gradient;
     # so would the derivative -a_prev / a_k^2, which overflows for the 1e-200 tails of a
     # smooth-edged touch: below _TINY a load enters at the present sensitivity (w = 1).
@@ -255,7 +260,9 @@ def apply_stimulus(state: MemoryState, stimulus: ArrayLike) -> MemoryState:
     fresh = 1 - state.fatigue
     # Written as s + (kappa - s) w so that kappa stays exactly 1 on a skin that never fatigues.
     sensitivity = jnp.where(loading, fresh + (state.sensitivity - fresh) * weight, state.sensitivity)
-    increment = jnp.where(loading, sensitivity * stimulus - state.sensitivity * previous, 0)
+    # A reversed load starts from zero: the old one is not taken out of the modes at once, so the
+    # response does not jump where the stimulus crosses zero.
+    increment = jnp.where(loading, sensitivity * stimulus - jnp.where(reversed_, 0, state.sensitivity * previous), 0)
     extreme = jnp.where(jnp.abs(stimulus) > jnp.abs(state.extreme), stimulus, state.extreme)
     return dataclasses.replace(
         state,

@@ -1,0 +1,311 @@
+"""`diffeit fit FRAMES.h5 -o OUT`: the joint fit of a frames file (background map, contact
+impedances, memory parameters and the memoryless stimulus), its corrected images and a figure."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from . import _mesh_of, _output_paths
+from ._model import ModelSettings, add_model_options
+
+if TYPE_CHECKING:
+    from ..fit import JointFit
+    from ..inverse import OneStep
+    from ..mesh import Mesh
+    from ..protocol import Protocol
+
+# What the images of OUT.h5 hold: the io schema's "conductivity change" is in S/sq, these are
+# relative and free of the skin's memory.
+IMAGE_QUANTITY = "relative conductivity change dsigma/sigma, memoryless stimulus (diffeit fit)"
+# Exit statuses: 0 converged, 1 the fit ran but did not converge (its files are written), 2 bad input.
+NOT_CONVERGED = 1
+
+
+def add_command(commands: argparse._SubParsersAction) -> None:
+    """Add `fit` to the subcommands `commands` of the `diffeit` parser."""
+    fit = commands.add_parser(
+        "fit",
+        help="fit background, contact impedances, memory and the memoryless stimulus to a frames file",
+        description="The joint fit (diffeit.fit.joint) of every frame of a frames file: the background "
+        "conductivity map, the contact impedances, the skin's memory parameters and the memoryless stimulus "
+        "(dsigma/sigma) of every frame, through the forward model with the memory model in the loop. The first "
+        "--reference-frames frames must be untouched (the file's separate reference frame is not used). Writes "
+        "OUT.h5 (a frames file whose images are the stimulus), OUT.fit.h5 (the fit: diffeit.fit.load reads it, "
+        "diffeit live --memory applies it) and OUT.png (the background map, the parameters, and the images "
+        "before and after the memory correction). Exit status 0 when the fit converged, 1 when it did not "
+        "(the files hold the last iterate: raise --max-steps or --resume from OUT.fit.h5), 2 for bad input. "
+        "--background and --contact-impedance, when given, are the fit's starting values (fixed when their "
+        "group is not --free; a simulated file's scene does not set them: the fit finds its own); --prior and "
+        "--hyperparameter set the one-step images shown before correction.",
+    )
+    fit.add_argument("frames", help="a diffeit frames file (.h5), frames in volts")
+    fit.add_argument("-o", "--output", required=True, help="output name: writes OUT.h5, OUT.fit.h5 and OUT.png")
+    fit.add_argument(
+        "--reference-frames", type=int, default=1, help="the first K frames are untouched: the reference (default 1)"
+    )
+    fit.add_argument("--max-steps", type=int, help="L-BFGS steps at most (default: diffeit.fit.joint's)")
+    fit.add_argument(
+        "--noise",
+        type=float,
+        help="the readings' noise, percent of the reference's RMS: balances misfit and priors (default 0.5)",
+    )
+    fit.add_argument(
+        "--free",
+        nargs="+",
+        metavar="GROUP",
+        help="the groups fitted, of background, contact_impedance, memory, stimulus (default all); the others "
+        "keep their starting values",
+    )
+    fit.add_argument("--resume", metavar="FIT", help="continue from a saved fit (OUT.fit.h5 of an earlier run)")
+    add_model_options(fit)
+    fit.add_argument("--panels", type=int, default=8, help="most frames shown before and after (default 8)")
+    fit.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    fit.set_defaults(run=_fit)
+
+
+def _fit(arguments: argparse.Namespace) -> int:
+    try:
+        return _fit_file(arguments)
+    except (ValueError, FileNotFoundError, FileExistsError) as error:
+        print(f"diffeit fit: error: {error}", file=sys.stderr)
+        return 2
+
+
+def _fit_file(arguments: argparse.Namespace) -> int:
+    from .. import io
+    from ..fit import joint, load
+    from ..results import RESULTS, messages
+
+    source = Path(arguments.frames)
+    png, images_file, fit_file = _output_paths(arguments.output, (".png", ".h5", ".fit.h5"), arguments.overwrite)
+    if arguments.panels < 1:
+        raise ValueError(f"--panels must be at least 1; got {arguments.panels}")
+    recording = io.read_frames(source)
+    if recording.n_frames < 3:
+        raise ValueError(f"{source} holds {recording.n_frames} frames; the joint fit needs at least 3")
+    if recording.voltage_unit != "V":
+        raise ValueError(
+            f"{source} holds frames in {recording.voltage_unit!r} units: the fit is absolute and needs volts"
+        )
+    # No fallbacks from a simulated file's scene: its true values would give the fit a head start.
+    settings = ModelSettings.from_arguments(arguments)
+    mesh = _mesh_of(recording, settings)
+    model = settings.model(mesh, recording.protocol)
+    initial: dict | JointFit = {}
+    if arguments.resume:
+        initial = load(arguments.resume)
+    else:
+        if arguments.background is not None:
+            initial["background"] = settings.background
+        if arguments.contact_impedance is not None:
+            initial["contact_impedance"] = settings.contact_impedance
+    options = {
+        name: value
+        for name, value in (("max_steps", arguments.max_steps), ("noise", arguments.noise))
+        if value is not None
+    }
+    if arguments.free is not None:
+        options["free"] = [name.replace("-", "_") for item in arguments.free for name in item.split(",") if name]
+
+    start = time.perf_counter()
+    fit = joint(
+        model,
+        recording.frames,
+        recording.times,
+        reference_frames=arguments.reference_frames,
+        initial=initial or None,
+        progress=sys.stderr.isatty(),
+        throw=False,
+        **options,
+    )
+    seconds = time.perf_counter() - start
+    converged = bool(fit.result == RESULTS.successful)
+    steps = len(fit.history.objective) - 1
+
+    reference = np.mean(recording.frames[: arguments.reference_frames], axis=0)
+    solver = fitted_one_step(fit, mesh, recording.protocol, settings)
+    before = np.asarray(solver.reconstruct(recording.frames - reference)) / np.asarray(fit.background)
+    stimulus = np.asarray(fit.stimulus)
+
+    fit.save(fit_file, overwrite=arguments.overwrite)
+    corrected = io.Recording(
+        frames=recording.frames,
+        times=recording.times,
+        protocol=recording.protocol,
+        reference=recording.reference,
+        mesh=mesh,
+        geometry=recording.geometry,
+        provenance={
+            "source": f"diffeit fit {source.name}",
+            "metadata": {
+                "input": str(source),
+                "input_source": recording.provenance.get("source", ""),
+                "fit": str(fit_file),
+                "reference_frames": arguments.reference_frames,
+                "free": list(fit.settings.free),
+                "result": "converged" if converged else messages(fit.result)[0],
+                "steps": steps,
+                "misfit": fit.misfit,
+                "seconds": seconds,
+                "memory": _memory_values(fit),
+            },
+        },
+        images=stimulus,
+        image_quantity=IMAGE_QUANTITY,
+        voltage_unit=recording.voltage_unit,
+    )
+    io.write_frames(images_file, corrected, overwrite=arguments.overwrite)
+    shown = plot_fit(
+        png,
+        mesh,
+        fit,
+        before,
+        times=recording.times,
+        max_panels=arguments.panels,
+        title=f"{source.name}: joint fit, {steps} steps, {'converged' if converged else 'NOT converged'}",
+        seconds=seconds,
+    )
+    peak = stimulus.flat[np.argmax(np.abs(stimulus))]
+    print(
+        f"{recording.n_frames} frames, {mesh.n_elements} triangles; joint fit: {steps} steps in {seconds:.1f} s, "
+        f"{'converged' if converged else 'did not converge'}\n"
+        f"misfit {fit.misfit:.3g} (relative); background {float(np.median(fit.background)):.3g} S/sq (median); "
+        f"peak stimulus {peak:.3g} dsigma/sigma\n"
+        f"memory: {_memory_line(fit)}\n"
+        f"wrote {png} ({len(shown)} frames before and after), {images_file} (stimulus {stimulus.shape}) and {fit_file}"
+    )
+    if not converged:
+        print(
+            f"diffeit fit: the joint fit did not converge ({messages(fit.result)[0]}); the files hold its last "
+            f"iterate: raise --max-steps, or continue with --resume {fit_file}",
+            file=sys.stderr,
+        )
+        return NOT_CONVERGED
+    return 0
+
+
+def fitted_one_step(fit: JointFit, mesh: Mesh, protocol: Protocol, settings: ModelSettings) -> OneStep:
+    """The one-step solver linearised at the fit's background and contact impedances (prior and
+    hyperparameter from `settings`): its images over `fit.background` are relative changes
+    dsigma/sigma, what the memory correction takes. ValueError when the fit was made on
+    another mesh."""
+    from ..forward import ForwardModel
+    from ..inverse import OneStep
+
+    background = np.asarray(fit.background)
+    z = np.asarray(fit.contact_impedance)
+    if background.shape != (mesh.n_elements,) or z.shape != (mesh.n_electrodes,):
+        raise ValueError(
+            f"the fit was made on a mesh of {background.size} elements and {z.size} electrodes; this mesh has "
+            f"{mesh.n_elements} and {mesh.n_electrodes} (give the --h of the fit's mesh)"
+        )
+    model = ForwardModel(mesh, protocol, contact_impedance=z)
+    return OneStep(model, prior=settings.prior, hyperparameter=float(settings.hyperparameter), background=background)
+
+
+def plot_fit(
+    path: str | Path,
+    mesh: Mesh,
+    fit: JointFit,
+    before: np.ndarray,
+    *,
+    times: np.ndarray,
+    max_panels: int = 8,
+    title: str = "",
+    seconds: float | None = None,
+) -> np.ndarray:
+    """Save the fit's figure as a PNG: the background map and a table of the parameters above,
+    the plain one-step images `before` (T, E) dsigma/sigma and the fitted stimulus below, the
+    same frames (every k-th, at most `max_panels`) on one colour scale; returns the frames shown."""
+    from matplotlib.figure import Figure
+
+    from ..plotting import plot_elements
+    from ..results import RESULTS, messages
+
+    stimulus = np.asarray(fit.stimulus)
+    shown = np.arange(0, len(stimulus), math.ceil(len(stimulus) / max_panels))
+    limit = float(max(np.max(np.abs(before[shown])), np.max(np.abs(stimulus[shown])))) or 1.0
+    columns = max(len(shown), 4)
+    figure = Figure(figsize=(1.6 * columns + 1.0, 9.0), layout="constrained")
+    top, *strips = figure.subfigures(3, 1, height_ratios=[1.7, 1.0, 1.0])
+    map_axes, table_axes = top.subplots(1, 2, width_ratios=[1.0, 1.6])
+    plot_elements(map_axes, mesh, np.asarray(fit.background), cmap="viridis", symmetric=False, label="S/sq")
+    map_axes.set_title("background conductivity", fontsize=9)
+    table_axes.set_axis_off()
+    table = table_axes.table(
+        cellText=_parameter_rows(fit, seconds), colWidths=[0.42, 0.58], cellLoc="left", loc="center"
+    )
+    table.auto_set_font_size(False)
+    table.set_fontsize(7.5)
+    table.scale(1.0, 1.15)
+    if not bool(fit.result == RESULTS.successful):
+        message = textwrap.fill(messages(fit.result)[0], 70)
+        table_axes.text(
+            0.5, -0.02, message, ha="center", va="top", fontsize=7.5, color="C3", transform=table_axes.transAxes
+        )
+    if title:
+        top.suptitle(title, fontsize=10)
+    names = ("before: plain one-step images against the reference", "after: the fitted stimulus")
+    for strip, images, name in zip(strips, (before, stimulus), names, strict=True):
+        axes = np.atleast_1d(strip.subplots(1, columns, squeeze=False)).ravel()
+        for ax, frame in zip(axes, shown, strict=False):
+            artist = plot_elements(ax, mesh, images[frame], label=None)
+            artist.set_clim(-limit, limit)
+            artist.colorbar.remove()  # one colour bar per strip
+            ax.set_title(f"frame {frame}, {times[frame]:.2f} s", fontsize=7)
+        for ax in axes[len(shown) :]:
+            ax.set_axis_off()
+        strip.colorbar(artist, ax=list(axes), shrink=0.8, label="dsigma/sigma")
+        strip.suptitle(name, fontsize=9)
+    figure.savefig(path, dpi=100)
+    return shown
+
+
+def _parameter_rows(fit: JointFit, seconds: float | None) -> list[list[str]]:
+    from ..results import RESULTS
+
+    z = np.asarray(fit.contact_impedance)
+    b = np.asarray(fit.background)
+    objective = fit.history.objective
+    free = fit.settings.memory_fitted
+    rows = [
+        ["result", "converged" if bool(fit.result == RESULTS.successful) else "NOT converged (below)"],
+        ["steps; objective", f"{len(objective) - 1}; {objective[0]:.4g} -> {objective[-1]:.4g}"],
+        ["misfit (relative)", f"{fit.misfit:.3g}"],
+        ["background, S/sq", f"{b.min():.3g} .. {np.median(b):.3g} .. {b.max():.3g}"],
+        ["contact impedance, ohm m", f"{z.min():.3g} .. {np.mean(z):.3g} .. {z.max():.3g}"],
+    ]
+    for name, value in _memory_values(fit).items():
+        rows.append([f"memory {name}", f"{_number(value)}" + ("" if name in free else " (fixed)")])
+    if seconds is not None:
+        rows.append(["time", f"{seconds:.1f} s"])
+    return rows
+
+
+def _memory_values(fit: JointFit) -> dict[str, float | list]:
+    """The fitted memory parameters by field name, as plain numbers (lists when per element)."""
+    memory = fit.memory
+    return {field.name: np.asarray(getattr(memory, field.name)).tolist() for field in dataclasses.fields(memory)}
+
+
+def _memory_line(fit: JointFit) -> str:
+    free = fit.settings.memory_fitted
+    values = _memory_values(fit)
+    fitted = [f"{name} {_number(values[name])}" for name in values if name in free]
+    return ", ".join(fitted) if fitted else "fixed (not fitted)"
+
+
+def _number(value: float | list) -> str:
+    if isinstance(value, list):
+        array = np.asarray(value)
+        return f"{array.min():.3g} .. {array.max():.3g}"
+    return f"{value:.3g}"

@@ -1,0 +1,819 @@
+"""The joint fit: background map, contact impedances, memory parameters and per-frame stimulus
+images together, every frame's misfit through the forward model with the memory model in the loop.
+
+## The model
+Frame k (time t_k, seconds) of T frames is measured from the sheet conductivity (S/sq)
+
+    sigma_k = b * (1 + r_k),   r = memory_response(a, times, p)
+
+with b the background map (E,), a the memoryless stimulus and r the skin's response (both
+dsigma/sigma, (T, E); `diffeit.scene.memory_response` integrates the memory model with
+parameters p from a rested skin at t_0), and one contact impedance z_l per electrode (ohm m)
+shared by all frames. The fit minimises
+
+    J = sum_k || (V(sigma_k, z) - v_k) / s ||^2 / M                         misfit
+      + w_b  sum_(i~j) (l_ij / d_ij) (ln b_i - ln b_j)^2                   smooth background
+      + w_a  sum_k sum_e (A_e / A) phi(a_ke)                               sparse in space
+      + w_v  sum_k sum_(i~j) (l_ij / sqrt(A)) phi(a_ki - a_kj)             compact touches
+      + w_t  sum_k sum_e (A_e / A) psi(phi(a_ke - a_(k-1)e)),  a_(-1) = 0  few changes in time
+      + w_p  sum_q mean (theta_q - theta_q0)^2                             memory near its start
+      + w_z  mean_l (ln z_l - ln z_l0)^2                                   contact near its start
+
+(the weights are the fields of `JointPriors`):
+
+- s, the data scale (volts): the readings' noise standard deviation. The misfit is about T at the
+  noise level, and every weight is in its units: one unit is one frame's misfit at the noise.
+- Elements i ~ j share an edge of length l_ij, their centroids d_ij apart; A_e is an element's
+  area and A the sheet's. The background term is the Dirichlet energy of ln b (a graph Laplacian
+  over the element adjacency): it does not depend on the mesh size or on the background's level.
+- phi(x) = sqrt(x^2 + eps^2) - eps is a smoothed |x| (eps = `JointPriors.smoothing`). The
+  spatial sparsity term is per unit of area (a weight is the cost per frame of a unit stimulus
+  over the whole sheet), the compactness term the stimulus' total variation in space (its jumps
+  times the length of the edges they cross, per unit of sqrt(A)): it makes a touch a compact
+  patch with an edge rather than a few spikes (L1 alone is indifferent to that, and the memory
+  model's fatigue is not: a spike fatigues its elements differently from a patch). The temporal
+  term charges every change of the stimulus from frame to frame through psi(x) = c ln(1 + x / c)
+  (c = `JointPriors.change_scale`): like |x| for small changes and only logarithmically more for
+  large ones, so one large change (a press, a release) costs less than the same change made in
+  several steps. Touches hold between presses and releases.
+- theta: the free memory parameters (`memory_free`) in the unconstrained space of
+  `diffeit.fit.memory`: ln of the time constants (and gain, fatigue rate), logits of fractions,
+  and a multinomial logit of (fast_fraction, slow_fraction, 1 - both). theta_0 and ln z_0 are
+  the starting values (the initialisation's; a resumed fit keeps its own).
+
+The unknowns are ln b (E,), ln z (L,), theta and a (T, E), the stimulus left free in sign:
+touches lower the conductivity (a <= 0), but a sign constraint through a = -softplus(u) stalls
+elements at zero, where its gradient vanishes (tried: the fit went astray); the sparsity priors
+hold untouched elements near zero instead. `free` chooses the groups fitted; the others
+stay at their initial values. Every trial step of the optimiser is solvable: 1 + r enters
+through a smooth floor at 0.01 (exact to rounding above 0.2, far below any touch), and a
+conductivity is held within a factor e^15 of the median background.
+
+L-BFGS (optimistix, through the one optimisation loop of `diffeit.fit`) works in units of 1 / sqrt of the
+objective's curvature in each unknown at the start (the misfit's Gauss-Newton diagonal from
+the Jacobian at the mean conductivity, plus the priors' curvature): a diagonal preconditioner,
+without which the first step is as large as the gradient (millions) and weakly seen elements
+barely move. The memory model switches between loading and unloading where a stimulus holds
+(a_k = a_(k-1)), so the objective has kinks exactly where the temporal prior puts the minimum:
+the fit converges to a point where the steps no longer change it, which depends on the start.
+
+## Initialisation
+By default: the background map from the first `reference_frames` frames, which must be
+untouched (`diffeit.fit.background`; contact impedance the model's); one-step relative-change
+images of every frame against the mean reference frame (`diffeit.inverse.OneStep`, NOSER prior,
+hyperparameter 20 noise/100: calm images, not sharp ones); the memory parameters and the
+stimulus from these images (`diffeit.fit.memory`; over_foam and the images' `correct_memory`
+when no element of the images rises above their noise). Image-derived stimuli start
+soft-thresholded at 3 times their median |a|, positive parts dropped: a start with noise in
+every frame sits on the memory model's kinks. `initial=` gives any of these parts instead, or a
+`JointFit` to resume from.
+
+## Identifiability
+- **Memory gain against stimulus amplitude.** r is g times the rest: only g a is seen. The gain
+  is never free (`memory_free` refuses it): the stimulus carries the amplitude.
+- **First-cycle offset and fatigue against the touches' depths.** A second press that reads
+  less is a fatigued skin or a lighter press; a baseline that stays shifted after the first
+  touch is the first-cycle offset or a faint held touch. Both are held at their start by
+  default (`memory_free` is `diffeit.fit.memory`'s default: the fractions, time constants and
+  relaxation). Free them with care: the memory prior is then all that holds them.
+- **Slow recovery against a faint held touch.** After a release the response decays over
+  seconds: a slower memory, or a stimulus that lingers. The spatial sparsity prior charges a
+  lingering stimulus in every frame while the memory explains the decay for free; the temporal
+  prior is concave in the size of a change, so a staircase of small steps mimicking a decay
+  costs more than one release. The data still leave the fast mode's fraction, its time
+  constant and the relaxation trading with each other at frame rates of a few per fast time
+  constant (README, Fitting: what the benchmark measures).
+- **Background level against contact impedance.** Near an electrode a lower conductivity and a
+  higher contact impedance change the readings alike, and readings that leave out the driven
+  electrodes (adjacent drives) see z little. The untouched frames fix the background's level
+  where the data see it, the smoothness prior carries it to the electrodes, and the contact
+  prior keeps ln z near its start: a fitted z is where the data and both priors balance, not an
+  independent measurement.
+- **Background against a permanent stimulus.** b (1 + r) is all the data see: a stimulus
+  present in every frame would be absorbed by the background. The reference frames are
+  untouched and the stimulus is sparse, so the background takes what does not change.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Collection, Mapping
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._arrays import concrete_floats
+from ..forward import ForwardModel
+from ..inverse import OneStep
+from ..inverse.linearised import check_frames
+from ..mesh import element_adjacency
+from ..results import RESULTS, throw_if_failed
+from ..scene import MemoryParameters, memory_response, over_foam
+from ._background import background as fit_background
+from ._memory import (
+    DEFAULT_FREE,
+    MEMORY_FIELDS,
+    check_times,
+    correct_memory,
+    memory_from_unconstrained,
+    memory_to_unconstrained,
+)
+from ._memory import memory as fit_memory
+from ._optimise import History, minimise
+
+GROUPS = ("background", "contact_impedance", "memory", "stimulus")
+# The noise, percent of the RMS of the reference, when neither the caller nor the background fit
+# gives it: diffeit's "medium", the order of a skin readout's noise at rest.
+DEFAULT_NOISE = 0.5
+# The smooth floor of 1 + response, and how far (in ln) a trial step may take a conductivity
+# from the median background or a contact impedance from 1 ohm m (module docstring).
+_FLOOR = 0.01
+_CONTRAST = 15.0
+_CONTRAST_Z = 30.0
+# Added to every curvature of `JointProblem.scales`: an unknown the objective does not see at all
+# keeps a finite unit.
+_TINY_CURVATURE = 1e-12
+# The initial one-step images' hyperparameter per unit of noise fraction, and the soft threshold
+# of image-derived stimuli in units of their median |a| (module docstring).
+_IMAGE_REGULARISATION = 20.0
+_THRESHOLD = 3.0
+_SCHEMA = "diffeit.joint_fit"
+_SCHEMA_VERSION = 1
+
+
+class JointPriors(eqx.Module):
+    """The weights of the joint fit's priors (module docstring), in units of one frame's misfit
+    at the noise level.
+
+    - `background`: w_b, smoothness of ln b (its Dirichlet energy, dimensionless).
+    - `stimulus`: w_a, spatial sparsity: the cost per frame of a unit stimulus over the sheet.
+    - `stimulus_variation`: w_v, the stimulus' total variation in space (compact touches).
+    - `stimulus_change`: w_t, temporal sparsity: the cost of a unit change over the sheet.
+    - `memory`: w_p, the pull of each free memory parameter (unconstrained) to its start: a
+      deviation of 1/sqrt(w_p) costs one frame's misfit.
+    - `contact_impedance`: w_z, the pull of ln z to its start, likewise.
+    - `smoothing`: eps of the smoothed |x| (dsigma/sigma, > 0): the sparsity terms are quadratic
+      below it, which keeps the objective smooth for L-BFGS.
+    - `change_scale`: c of the temporal term's psi (dsigma/sigma, >= 0; 0 makes it the total
+      variation in time): changes larger than c cost only logarithmically more.
+    """
+
+    background: float = eqx.field(default=0.1, static=True)
+    stimulus: float = eqx.field(default=20.0, static=True)
+    stimulus_variation: float = eqx.field(default=2.0, static=True)
+    stimulus_change: float = eqx.field(default=20.0, static=True)
+    memory: float = eqx.field(default=0.1, static=True)
+    contact_impedance: float = eqx.field(default=1.0, static=True)
+    smoothing: float = eqx.field(default=0.005, static=True)
+    change_scale: float = eqx.field(default=0.02, static=True)
+
+    def __check_init__(self) -> None:
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, bool) or not (isinstance(value, int | float) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"JointPriors.{field.name} must be a finite number >= 0; got {value!r}")
+        if self.smoothing <= 0:
+            raise ValueError(f"JointPriors.smoothing must be positive (dsigma/sigma); got {self.smoothing}")
+
+
+class JointParameters(eqx.Module):
+    """The joint fit's unknowns in the unconstrained space the optimiser works in.
+
+    - `log_background`: (E,) ln of the background conductivity in S/sq.
+    - `log_contact_impedance`: (L,) ln of the contact impedance in ohm m.
+    - `memory`: the free memory parameters, unconstrained (`diffeit.fit.memory`'s transform),
+      by field name.
+    - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma (unconstrained as it is).
+    """
+
+    log_background: jax.Array
+    log_contact_impedance: jax.Array
+    memory: dict[str, jax.Array]
+    stimulus: jax.Array
+
+    def group(self, name: str) -> Any:
+        """The unknowns of one group of `GROUPS`."""
+        return getattr(self, _FIELDS[name])
+
+    def with_groups(self, groups: Mapping[str, Any]) -> JointParameters:
+        """These parameters with the groups of `groups` replaced."""
+        return dataclasses.replace(self, **{_FIELDS[name]: value for name, value in groups.items()})
+
+
+_FIELDS = {
+    "background": "log_background",
+    "contact_impedance": "log_contact_impedance",
+    "memory": "memory",
+    "stimulus": "stimulus",
+}
+
+
+class JointSettings(eqx.Module):
+    """What defines the joint fit's objective besides the data, kept to resume a fit.
+
+    - `free`: the groups of `GROUPS` fitted.
+    - `memory_free`: the memory fields fitted when "memory" is free.
+    - `priors`: `JointPriors`.
+    - `data_scale`: s, volts (the noise standard deviation the misfit is measured in).
+    - `memory_centre`: the memory prior's centre (`MemoryParameters`; the fixed fields' values).
+    - `log_contact_impedance_centre`: (L,) the contact prior's centre, ln(ohm m).
+    """
+
+    free: tuple[str, ...] = eqx.field(static=True)
+    memory_free: tuple[str, ...] = eqx.field(static=True)
+    priors: JointPriors
+    data_scale: float = eqx.field(static=True)
+    memory_centre: MemoryParameters
+    log_contact_impedance_centre: jax.Array
+
+    @property
+    def memory_fitted(self) -> tuple[str, ...]:
+        """The memory fields the fit moves: `memory_free`, or none when "memory" is not free."""
+        return self.memory_free if "memory" in self.free else ()
+
+
+class JointFit(eqx.Module):
+    """The result of `joint`.
+
+    - `background`: (E,) background conductivity b, S/sq.
+    - `contact_impedance`: (L,) contact impedance per electrode, ohm m.
+    - `memory`: the memory parameters (`diffeit.scene.MemoryParameters`).
+    - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma per frame (touches < 0).
+    - `response`: (T, E) the skin's response dsigma/sigma, the memory model applied to the
+      stimulus: frame k's conductivity is background * (1 + response[k]).
+    - `times`: (T,) the frame times, seconds.
+    - `misfit`: the relative misfit ||V - v|| / ||v|| over all frames and readings.
+    - `history`: `History` (objective and gradient norm per accepted step; a resumed fit
+      continues the history of the fit it started from).
+    - `result`: `RESULTS.successful`, `max_iterations_reached`, `stalled` or `nonfinite`.
+    - `parameters` (`JointParameters`, the unconstrained unknowns) and `settings`
+      (`JointSettings`): what `joint(..., initial=fit)` resumes from.
+
+    `save(path)` writes the fit to an HDF5 file; `diffeit.fit.load(path)` reads it back.
+    """
+
+    background: jax.Array
+    contact_impedance: jax.Array
+    memory: MemoryParameters
+    stimulus: jax.Array
+    response: jax.Array
+    times: jax.Array
+    misfit: float
+    history: History
+    result: RESULTS
+    parameters: JointParameters
+    settings: JointSettings
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
+        """Write the fit to `path` (HDF5, schema "diffeit.joint_fit") and return the path.
+
+        Refuses an existing file (`FileExistsError`) unless `overwrite=True`. Datasets:
+        `background`, `contact_impedance`, `stimulus`, `response`, `times`, `memory/<field>`,
+        `history/objective`, `history/gradient_norm`, and what resuming needs:
+        `parameters/...` (the unconstrained unknowns), `settings/memory_centre/<field>` and
+        `settings/log_contact_impedance_centre`. Attributes: schema, schema_version, result
+        (its name), misfit, free, memory_free, priors (JSON), data_scale (volts).
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+        settings, parameters = self.settings, self.parameters
+        with h5py.File(path, "w") as file:
+            file.attrs.update(
+                {
+                    "schema": _SCHEMA,
+                    "schema_version": _SCHEMA_VERSION,
+                    "result": _result_name(self.result),
+                    "misfit": self.misfit,
+                    "free": json.dumps(list(settings.free)),
+                    "memory_free": json.dumps(list(settings.memory_free)),
+                    "priors": json.dumps(dataclasses.asdict(settings.priors)),
+                    "data_scale": settings.data_scale,
+                }
+            )
+            for name in ("background", "contact_impedance", "stimulus", "response", "times"):
+                file[name] = np.asarray(getattr(self, name))
+            _write_memory(file.create_group("memory"), self.memory)
+            file["history/objective"] = self.history.objective
+            file["history/gradient_norm"] = self.history.gradient_norm
+            for name in ("log_background", "log_contact_impedance", "stimulus"):
+                file[f"parameters/{name}"] = np.asarray(getattr(parameters, name))
+            group = file.create_group("parameters/memory")
+            for name, value in parameters.memory.items():
+                group[name] = np.asarray(value)
+            _write_memory(file.create_group("settings/memory_centre"), settings.memory_centre)
+            file["settings/log_contact_impedance_centre"] = np.asarray(settings.log_contact_impedance_centre)
+        return path
+
+
+def load(path: str | os.PathLike) -> JointFit:
+    """A `JointFit` written by `JointFit.save`, read back (to inspect, or to resume with
+    `joint(..., initial=fit)`). `FileNotFoundError` for a missing file, `ValueError` naming the
+    file for anything but a joint fit."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist")
+    try:
+        file = h5py.File(path, "r")
+    except OSError:
+        raise ValueError(f"{path} is not an HDF5 file") from None
+    with file:
+        schema = file.attrs.get("schema")
+        if schema != _SCHEMA:
+            raise ValueError(f"{path} is not a joint fit (schema {schema!r}, not {_SCHEMA!r})")
+        if int(file.attrs["schema_version"]) > _SCHEMA_VERSION:
+            raise ValueError(
+                f"{path} has schema version {int(file.attrs['schema_version'])}; this diffeit reads {_SCHEMA_VERSION}"
+            )
+
+        def array(name: str) -> jax.Array:
+            return jnp.asarray(file[name][()])
+
+        settings = JointSettings(
+            free=tuple(json.loads(file.attrs["free"])),
+            memory_free=tuple(json.loads(file.attrs["memory_free"])),
+            priors=JointPriors(**json.loads(file.attrs["priors"])),
+            data_scale=float(file.attrs["data_scale"]),
+            memory_centre=_read_memory(file["settings/memory_centre"]),
+            log_contact_impedance_centre=array("settings/log_contact_impedance_centre"),
+        )
+        parameters = JointParameters(
+            log_background=array("parameters/log_background"),
+            log_contact_impedance=array("parameters/log_contact_impedance"),
+            memory={name: array(f"parameters/memory/{name}") for name in file["parameters/memory"]},
+            stimulus=array("parameters/stimulus"),
+        )
+        return JointFit(
+            background=array("background"),
+            contact_impedance=array("contact_impedance"),
+            memory=_read_memory(file["memory"]),
+            stimulus=array("stimulus"),
+            response=array("response"),
+            times=array("times"),
+            misfit=float(file.attrs["misfit"]),
+            history=History(file["history/objective"][()], file["history/gradient_norm"][()]),
+            result=getattr(RESULTS, str(file.attrs["result"])),
+            parameters=parameters,
+            settings=settings,
+        )
+
+
+def _write_memory(group: h5py.Group, memory: MemoryParameters) -> None:
+    for name in MEMORY_FIELDS:
+        group[name] = np.asarray(getattr(memory, name), dtype=float)
+
+
+def _read_memory(group: h5py.Group) -> MemoryParameters:
+    values = {name: group[name][()] for name in MEMORY_FIELDS}
+    return MemoryParameters(**{name: float(v) if np.ndim(v) == 0 else jnp.asarray(v) for name, v in values.items()})
+
+
+def _result_name(result: RESULTS) -> str:
+    return next(name for name, item in RESULTS._name_to_item.items() if bool(item == result))
+
+
+# --- The objective --------------------------------------------------------------------------------
+
+
+def _log_floored(x: jax.Array) -> jax.Array:
+    """ln f(x) for the smooth floor f(x) = _FLOOR softplus(x / _FLOOR): ln x to rounding above
+    x = 0.2, ln _FLOOR + x / _FLOOR far below 0; finite and differentiable everywhere."""
+    u = x / _FLOOR
+    # softplus(u) underflows below u = -745; below -30, ln softplus(u) = u to rounding.
+    return jnp.log(_FLOOR) + jnp.where(u > -30.0, jnp.log(jax.nn.softplus(jnp.maximum(u, -30.0))), u)
+
+
+def _few_changes(size: jax.Array, scale: float) -> jax.Array:
+    """scale ln(1 + size / scale): |x| for small changes, growing only logarithmically beyond
+    `scale`, so that one large change costs less than the same change in several steps (0: |x|)."""
+    return size if scale == 0 else scale * jnp.log1p(size / scale)
+
+
+def _smoothed_abs(x: jax.Array, eps: float) -> jax.Array:
+    return jnp.sqrt(x * x + eps * eps) - eps
+
+
+class JointProblem(eqx.Module):
+    """The joint fit's objective J (module docstring) as a function of `JointParameters`.
+
+    `problem(parameters)` is J; `problem.terms(parameters)` its parts by name (the misfit and
+    each prior); `problem.state(parameters)` the background, contact impedance, memory and
+    response; `problem.voltages(parameters)` the frames' readings. All are pure JAX (jit, grad).
+
+    - `model`: the forward model; `frames`: (T, M) volts; `times`: (T,) seconds;
+      `settings`: `JointSettings`.
+    """
+
+    model: ForwardModel
+    frames: jax.Array
+    times: jax.Array
+    settings: JointSettings
+    area_fractions: jax.Array
+    neighbours: tuple[jax.Array, jax.Array]
+    edge_weights: jax.Array
+    edge_lengths: jax.Array
+
+    def __init__(self, model: ForwardModel, frames: jax.Array, times: jax.Array, settings: JointSettings) -> None:
+        self.model = model
+        self.frames = jnp.asarray(frames)
+        self.times = jnp.asarray(times)
+        self.settings = settings
+        mesh = model.mesh
+        area = mesh.element_areas.sum()
+        self.area_fractions = jnp.asarray(mesh.element_areas / area)
+        first, second, lengths = element_adjacency(mesh)
+        centroids = mesh.element_centroids
+        self.neighbours = (jnp.asarray(first), jnp.asarray(second))
+        self.edge_weights = jnp.asarray(lengths / np.linalg.norm(centroids[first] - centroids[second], axis=1))
+        self.edge_lengths = jnp.asarray(lengths / np.sqrt(area))
+
+    def _response(self, parameters: JointParameters) -> tuple[MemoryParameters, jax.Array]:
+        memory = memory_from_unconstrained(parameters.memory, self.settings.memory_centre)
+        return memory, memory_response(parameters.stimulus, self.times, memory)
+
+    def state(self, parameters: JointParameters) -> tuple[jax.Array, jax.Array, MemoryParameters, jax.Array]:
+        """(background (E,) S/sq, contact impedance (L,) ohm m, memory, response (T, E))."""
+        memory, response = self._response(parameters)
+        return jnp.exp(parameters.log_background), jnp.exp(parameters.log_contact_impedance), memory, response
+
+    def log_conductivity(self, parameters: JointParameters) -> jax.Array:
+        """(T, E) ln of every frame's conductivity, ln(S/sq): ln b + ln(1 + r) through the smooth
+        floor, held within e^15 of the median background (module docstring)."""
+        log_sigma = parameters.log_background + _log_floored(1 + self._response(parameters)[1])
+        middle = jax.lax.stop_gradient(jnp.median(parameters.log_background))
+        return jnp.clip(log_sigma, middle - _CONTRAST, middle + _CONTRAST)
+
+    def voltages(self, parameters: JointParameters) -> jax.Array:
+        """(T, M) the readings of every frame, volts."""
+        sigma = jnp.exp(self.log_conductivity(parameters))
+        z = jnp.exp(jnp.clip(parameters.log_contact_impedance, -_CONTRAST_Z, _CONTRAST_Z))
+        return jax.vmap(self.model.measure, in_axes=(0, None))(sigma, z)
+
+    def terms(self, parameters: JointParameters) -> dict[str, jax.Array]:
+        """The misfit and each prior term of J, by name (their sum is J)."""
+        settings, priors = self.settings, self.settings.priors
+        residual = (self.voltages(parameters) - self.frames) / settings.data_scale
+        first, second = self.neighbours
+        log_b = parameters.log_background
+        stimulus = parameters.stimulus
+        change = jnp.diff(stimulus, axis=0, prepend=jnp.zeros_like(stimulus[:1]))
+        jumps = stimulus[:, first] - stimulus[:, second]
+        centre = memory_to_unconstrained(settings.memory_centre, parameters.memory)
+        memory = [jnp.mean((value - centre[name]) ** 2) for name, value in parameters.memory.items()]
+        contact = jnp.mean((parameters.log_contact_impedance - settings.log_contact_impedance_centre) ** 2)
+        eps = priors.smoothing
+        return {
+            "misfit": jnp.sum(residual**2) / self.frames.shape[1],
+            "background": priors.background * jnp.sum(self.edge_weights * (log_b[first] - log_b[second]) ** 2),
+            "stimulus": priors.stimulus * jnp.sum(self.area_fractions * _smoothed_abs(stimulus, eps)),
+            "stimulus_variation": priors.stimulus_variation * jnp.sum(self.edge_lengths * _smoothed_abs(jumps, eps)),
+            "stimulus_change": priors.stimulus_change
+            * jnp.sum(self.area_fractions * _few_changes(_smoothed_abs(change, eps), priors.change_scale)),
+            "memory": priors.memory * sum(memory, start=jnp.zeros(())),
+            "contact_impedance": priors.contact_impedance * contact,
+        }
+
+    def __call__(self, parameters: JointParameters) -> jax.Array:
+        return sum(self.terms(parameters).values(), start=jnp.zeros(()))
+
+    def scales(self, parameters: JointParameters) -> JointParameters:
+        """The optimiser's unit of each unknown: 1 / sqrt of the objective's curvature there at
+        `parameters` (module docstring): the misfit's Gauss-Newton diagonal from the Jacobian at
+        the frames' mean conductivity, plus the priors' curvature (the sparsity terms' largest,
+        at zero)."""
+        settings, priors = self.settings, self.settings.priors
+        n_frames, n_readings = self.frames.shape
+        weight = 2 / (n_readings * settings.data_scale**2)
+        log_sigma = self.log_conductivity(parameters)
+        sigma = jnp.exp(jnp.mean(log_sigma, axis=0))
+        z = jnp.exp(parameters.log_contact_impedance)
+        jacobian = self.model.jacobian(sigma, z, wrt="log_conductivity")  # (M, E)
+        sensitivity = weight * jnp.sum(jacobian**2, axis=0)  # (E,), per frame
+        background = n_frames * sensitivity + 2 * priors.background * self._per_element(self.edge_weights)
+        sparsity = (priors.stimulus + 2 * priors.stimulus_change) * self.area_fractions
+        sparsity = (sparsity + 2 * priors.stimulus_variation * self._per_element(self.edge_lengths)) / priors.smoothing
+        stimulus = jnp.broadcast_to(sensitivity + sparsity, parameters.stimulus.shape)
+        contact_jacobian = self.model.jacobian(sigma, z, wrt="contact_impedance") * z  # (M, L)
+        contact = n_frames * weight * jnp.sum(contact_jacobian**2, axis=0) + 2 * priors.contact_impedance / len(z)
+        memory = {}
+        for name, value in parameters.memory.items():
+            # Elements are independent in the memory model: a tangent of ones gives every
+            # element's derivative of ln sigma, for a shared field and for a per-element one.
+            tangent = {other: jnp.zeros_like(v) for other, v in parameters.memory.items()}
+            tangent[name] = jnp.ones_like(value)
+            _, derivative = jax.jvp(
+                lambda values: self.log_conductivity(dataclasses.replace(parameters, memory=values)),
+                (dict(parameters.memory),),
+                (tangent,),
+            )  # (T, E)
+            if jnp.size(value) == 1:
+                curvature = weight * jnp.sum((derivative @ jacobian.T) ** 2)
+            else:
+                curvature = jnp.sum(derivative**2, axis=0) * sensitivity
+            memory[name] = jnp.broadcast_to(curvature + 2 * priors.memory / jnp.size(value), jnp.shape(value))
+        curvatures = JointParameters(background, contact, memory, stimulus)
+        return jax.tree_util.tree_map(lambda c: 1 / jnp.sqrt(c + _TINY_CURVATURE), curvatures)
+
+    def _per_element(self, edge_values: jax.Array) -> jax.Array:
+        """(E,) the sum of `edge_values` over each element's edges shared with a neighbour."""
+        first, second = self.neighbours
+        return jnp.zeros(self.area_fractions.shape).at[first].add(edge_values).at[second].add(edge_values)
+
+
+# --- The fit ----------------------------------------------------------------------------------------
+
+
+def joint(
+    model: ForwardModel,
+    frames: jax.Array | np.ndarray,
+    times: jax.Array | np.ndarray,
+    *,
+    reference_frames: int = 1,
+    free: Collection[str] | None = None,
+    memory_free: Collection[str] | None = None,
+    priors: JointPriors | None = None,
+    noise: float | None = None,
+    initial: JointFit | Mapping[str, Any] | None = None,
+    max_steps: int = 500,
+    rtol: float = 1e-4,
+    atol: float = 1e-2,
+    progress: bool = True,
+    throw: bool = True,
+) -> JointFit:
+    """Fit background, contact impedances, memory parameters and stimulus to `frames` jointly.
+
+    Minimises the objective of the module docstring (every frame's misfit through `model` with
+    the memory model in the loop, plus the priors) by L-BFGS, jitted, with a progress bar.
+
+    - `model`: the forward model of the fit's mesh; its contact impedance is the start unless
+      `initial` gives one.
+    - `frames`: (T, M) readings, volts; the first `reference_frames` (>= 1) are untouched.
+    - `times`: (T,) frame times, seconds, increasing.
+    - `free`: the groups fitted, of "background", "contact_impedance", "memory", "stimulus"
+      (default all); the others stay at their initial values.
+    - `memory_free`: the memory fields fitted when "memory" is free (default
+      `diffeit.fit.memory`'s: the fractions, the time constants and the relaxation; module
+      docstring, Identifiability). Never the gain; the two fractions together or not at all.
+    - `priors`: `JointPriors` (default `JointPriors()`).
+    - `noise`: the readings' noise standard deviation, percent of the RMS of the mean reference
+      frame: the data scale s of the misfit, which sets the balance of misfit and priors.
+      Default: the background fit's estimate when it runs, else 0.5 (diffeit's "medium").
+    - `initial`: the start. None: from the data (module docstring, Initialisation); a mapping
+      with any of "background" (E,) S/sq, "contact_impedance" (L,) or scalar ohm m, "memory"
+      (`MemoryParameters`) and "stimulus" (T, E) (the parts not given come from the data); or
+      a `JointFit` of the same frames and times, to resume from (L-BFGS starts afresh there).
+    - `max_steps`: L-BFGS steps (rejected trial steps included); `rtol`, `atol`: it stops when
+      three accepted steps in a row each lower the objective by less than atol + rtol |J| (by
+      default 1% of a frame's misfit at the noise level, about 1e-4 of J).
+    - `progress`: a tqdm progress bar; `throw`: a result other than `RESULTS.successful` raises
+      `diffeit.results.SolverError` (with False, see `result`).
+
+    `free`, `memory_free`, `priors` and `noise` left None take a resumed fit's settings, else
+    the defaults above; a resumed fit keeps its prior centres. Returns a `JointFit`.
+
+    Raises ValueError for frames that are not finite or not (T, M), times that do not increase
+    or are not one per frame, `reference_frames` out of range, unknown groups or fields, initial
+    values of the wrong shape or out of range, and invalid memory parameters.
+    """
+    frames = check_frames(frames, model.n_measurements, "frames")
+    if frames.ndim != 2:
+        raise ValueError(f"frames must have shape (T, {model.n_measurements}), one row per frame; got {frames.shape}")
+    times = check_times(times, frames.shape[0])
+    if isinstance(reference_frames, bool) or not (
+        isinstance(reference_frames, int) and 1 <= reference_frames <= frames.shape[0]
+    ):
+        raise ValueError(f"reference_frames must be an integer in 1..{frames.shape[0]}; got {reference_frames!r}")
+    if initial is not None and not isinstance(initial, JointFit | Mapping):
+        raise ValueError(f"initial must be a JointFit, a mapping of its parts or None; got {type(initial).__name__}")
+    resumed = initial if isinstance(initial, JointFit) else None
+    before = None if resumed is None else resumed.settings
+    free = _checked_names(_setting(free, before, "free", GROUPS), GROUPS, "free")
+    memory_free = _checked_memory_free(_setting(memory_free, before, "memory_free", DEFAULT_FREE))
+    priors = _setting(priors, before, "priors", JointPriors())
+    if not isinstance(priors, JointPriors):
+        raise ValueError(f"priors must be a JointPriors; got {type(priors).__name__}")
+    if noise is not None and (isinstance(noise, bool) or not (isinstance(noise, int | float) and noise > 0)):
+        raise ValueError(f"noise must be a positive number (percent of the RMS of the reference); got {noise!r}")
+    rms = float(jnp.sqrt(jnp.mean(jnp.mean(frames[:reference_frames], axis=0) ** 2)))
+
+    if resumed is not None:
+        start = _resumed_start(resumed, model, times)
+        data_scale = before.data_scale if noise is None else noise / 100 * rms
+        centres = (before.memory_centre, before.log_contact_impedance_centre)
+        memory_start = resumed.memory
+    else:
+        values = _initial_values(model, frames, times, reference_frames, initial or {}, noise, rms, progress)
+        background, z, memory, stimulus, data_scale = values
+        start = JointParameters(jnp.log(background), jnp.log(z), {}, stimulus)
+        centres = (memory, jnp.log(z))
+        memory_start = memory
+    settings = JointSettings(free, memory_free, priors, data_scale, *centres)
+    unconstrained = memory_to_unconstrained(memory_start, settings.memory_fitted)
+    if resumed is not None:
+        unconstrained |= {name: v for name, v in resumed.parameters.memory.items() if name in unconstrained}
+    start = dataclasses.replace(start, memory=unconstrained)
+
+    problem = JointProblem(model, frames, times, settings)
+    scales = eqx.filter_jit(problem.scales)(start)
+    minimum = minimise(
+        lambda groups: problem(start.with_groups(groups)),
+        {name: start.group(name) for name in free},
+        units={name: scales.group(name) for name in free},
+        max_steps=max_steps,
+        rtol=rtol,
+        atol=atol,
+        progress=progress,
+        description="joint fit",
+    )
+    parameters = start.with_groups(minimum.value)
+    history = History(minimum.objective, minimum.gradient_norm)
+    if resumed is not None:
+        history = History(
+            np.concatenate([resumed.history.objective, history.objective[1:]]),
+            np.concatenate([resumed.history.gradient_norm, history.gradient_norm[1:]]),
+        )
+    background, z, memory, response = problem.state(parameters)
+    voltages = problem.voltages(parameters)
+    fit = JointFit(
+        background=background,
+        contact_impedance=z,
+        memory=MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}),
+        stimulus=parameters.stimulus,
+        response=response,
+        times=times,
+        misfit=float(jnp.linalg.norm(voltages - frames) / jnp.linalg.norm(frames)),
+        history=history,
+        result=minimum.result,
+        parameters=parameters,
+        settings=settings,
+    )
+    return throw_if_failed(fit, fit.result, "joint fit") if throw else fit
+
+
+def _setting(value: Any, before: JointSettings | None, name: str, default: Any) -> Any:
+    """`value`, or when None the resumed fit's setting `name`, or `default`."""
+    if value is not None:
+        return value
+    return default if before is None else getattr(before, name)
+
+
+def _checked_names(names: Collection[str], known: tuple[str, ...], what: str) -> tuple[str, ...]:
+    names = (names,) if isinstance(names, str) else tuple(names)
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        raise ValueError(f"{what}: unknown names {unknown}; known: {list(known)}")
+    return tuple(name for name in known if name in names)
+
+
+def _checked_memory_free(names: Collection[str]) -> tuple[str, ...]:
+    names = _checked_names(names, MEMORY_FIELDS, "memory_free")
+    if "gain" in names:
+        raise ValueError("memory_free: the gain trades exactly with the stimulus' amplitude; it cannot be fitted")
+    if ("fast_fraction" in names) != ("slow_fraction" in names):
+        raise ValueError(
+            "memory_free: fast_fraction and slow_fraction are fitted together (their sum stays below 1): "
+            "free both or neither"
+        )
+    return names
+
+
+def _checked_memory(memory: Any, n_elements: int) -> MemoryParameters:
+    """`memory` built again, so that its checks run (a Module changed by `eqx.tree_at` skipped
+    them), with every field a number or one value per element."""
+    if not isinstance(memory, MemoryParameters):
+        raise ValueError(f"the initial memory must be a MemoryParameters; got {type(memory).__name__}")
+    values = {}
+    for name in MEMORY_FIELDS:
+        array = concrete_floats(getattr(memory, name), f"MemoryParameters.{name}")
+        if array is None:
+            raise ValueError(f"the initial memory must hold values, not traced arrays (MemoryParameters.{name})")
+        if array.shape not in ((), (1,), (n_elements,)):
+            raise ValueError(
+                f"MemoryParameters.{name} has shape {array.shape}: give a number or one value per element "
+                f"({n_elements},)"
+            )
+        values[name] = float(array) if array.shape == () else jnp.asarray(array)
+    return MemoryParameters(**values)
+
+
+def _initial_values(
+    model: ForwardModel,
+    frames: jax.Array,
+    times: jax.Array,
+    reference_frames: int,
+    initial: Mapping[str, Any],
+    noise: float | None,
+    rms: float,
+    progress: bool,
+) -> tuple[jax.Array, jax.Array, MemoryParameters, jax.Array, float]:
+    """(background, contact impedance, memory, stimulus, data scale): the parts `initial` gives,
+    checked, and the others from the data (module docstring, Initialisation)."""
+    unknown = sorted(set(initial) - set(GROUPS))
+    if unknown:
+        raise ValueError(f"initial: unknown parts {unknown}; parts are {list(GROUPS)}")
+    n_frames, n_elements = frames.shape[0], model.n_elements
+    given = initial.get("memory")
+    memory = None if given is None else _checked_memory(given, n_elements)
+    stimulus = initial.get("stimulus")
+    if stimulus is not None:
+        stimulus = np.asarray(stimulus, dtype=float)
+        if stimulus.shape != (n_frames, n_elements):
+            raise ValueError(f"initial stimulus has shape {stimulus.shape}; expected ({n_frames}, {n_elements})")
+        if not np.all(np.isfinite(stimulus)):
+            raise ValueError("initial stimulus must be finite (dsigma/sigma)")
+    z = _positive(
+        initial.get("contact_impedance", model.contact_impedance),
+        (model.mesh.n_electrodes,),
+        "initial contact_impedance",
+        "ohm m",
+    )
+    background = initial.get("background")
+    estimated_noise = None
+    if background is None:
+        found = fit_background(
+            eqx.tree_at(lambda m: m.contact_impedance, model, z),
+            frames[:reference_frames],
+            noise=noise,
+            progress=progress,
+            throw=False,
+        )
+        background = found.conductivity
+        if np.isfinite(found.noise) and found.noise > 0:
+            estimated_noise = found.noise
+    background = _positive(background, (n_elements,), "initial background", "S/sq")
+    if noise is not None:
+        data_scale = noise / 100 * rms
+    else:
+        data_scale = DEFAULT_NOISE / 100 * rms if estimated_noise is None else float(estimated_noise)
+    if memory is None or stimulus is None:
+        images, image_noise = _one_step_images(model, frames, reference_frames, background, z, data_scale, rms)
+        if memory is None:
+            try:
+                found = fit_memory(images, times, noise=image_noise, progress=progress, throw=False)
+                memory, derived = found.memory, found.stimulus
+            except ValueError:  # no element rises above the images' noise: nothing to fit p to
+                memory = over_foam()
+                derived = correct_memory(images, times, memory)
+        else:
+            derived = correct_memory(images, times, memory)
+        if stimulus is None:
+            threshold = _THRESHOLD * float(jnp.median(jnp.abs(derived)))
+            stimulus = jnp.minimum(derived + threshold, 0.0)
+    return background, z, memory, jnp.asarray(stimulus), data_scale
+
+
+def _positive(value: Any, shape: tuple[int, ...], what: str, unit: str) -> jax.Array:
+    array = np.asarray(value, dtype=float)
+    if array.shape not in ((), shape):
+        raise ValueError(f"{what} has shape {array.shape}; expected {shape} or a scalar")
+    if not np.all(np.isfinite(array) & (array > 0)):
+        raise ValueError(f"{what} must be finite and positive ({unit})")
+    return jnp.asarray(np.broadcast_to(array, shape))
+
+
+def _one_step_images(
+    model: ForwardModel,
+    frames: jax.Array,
+    reference_frames: int,
+    background: jax.Array,
+    z: jax.Array,
+    data_scale: float,
+    rms: float,
+) -> tuple[jax.Array, np.ndarray]:
+    """(T, E) relative-change images dsigma/sigma of every frame against the mean reference frame,
+    and (E,) their noise standard deviation: readings' noise `data_scale` (volts; relative to
+    `rms` it sets the hyperparameter) through the reconstruction matrix, the reference's
+    included."""
+    fitted = eqx.tree_at(lambda m: m.contact_impedance, model, z)
+    one_step = OneStep(fitted, "noser", _IMAGE_REGULARISATION * data_scale / rms, np.asarray(background))
+    reference = jnp.mean(frames[:reference_frames], axis=0)
+    images = one_step.reconstruct(frames - reference) / background
+    gain = np.linalg.norm(np.asarray(one_step.matrix), axis=1) / np.asarray(background)
+    return images, data_scale * np.sqrt(1 + 1 / reference_frames) * gain
+
+
+def _resumed_start(fit: JointFit, model: ForwardModel, times: jax.Array) -> JointParameters:
+    """The unknowns of `fit` (memory filled in by the caller), checked against this model and
+    these frames."""
+    parameters = fit.parameters
+    expected = {
+        "log_background": (model.n_elements,),
+        "log_contact_impedance": (model.mesh.n_electrodes,),
+        "stimulus": (len(times), model.n_elements),
+    }
+    for name, shape in expected.items():
+        if getattr(parameters, name).shape != shape:
+            raise ValueError(
+                f"the fit to resume has {name} of shape {getattr(parameters, name).shape}; this model and "
+                f"these frames need {shape}"
+            )
+    if not np.array_equal(np.asarray(fit.times), np.asarray(times)):
+        raise ValueError("the fit to resume was made with other frame times")
+    return dataclasses.replace(parameters, memory={})

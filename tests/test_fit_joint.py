@@ -1,0 +1,223 @@
+"""diffeit.fit.joint: the joint fit of background, contact impedances, memory and stimulus."""
+
+import dataclasses
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import noisy
+
+import diffeit as de
+from diffeit import fit
+from diffeit import scene as sc
+from diffeit.fit._memory import MEMORY_FIELDS, memory_to_unconstrained
+from diffeit.results import RESULTS, SolverError
+
+TIMES = np.array([0.0, 0.5, 1.0, 1.5, 2.5])
+
+
+@pytest.fixture(scope="module")
+def coarse_model() -> de.ForwardModel:
+    return de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.3), de.protocol.adjacent(16), 0.01)
+
+
+@pytest.fixture(scope="module")
+def coarse_frames(coarse_model):
+    """Five frames: untouched, then a press held two frames, released, and a ghost (volts)."""
+    mesh = coarse_model.mesh
+    near = np.linalg.norm(mesh.element_centroids - np.array([0.3, 0.2]), axis=1) < 0.35
+    change = np.outer([0.0, -0.3, -0.28, -0.05, -0.02], near)
+    clean = jax.vmap(coarse_model.measure)(jnp.asarray(0.01 * (1 + change)))
+    return noisy(np.asarray(clean), 0.2, seed=5, reference=np.asarray(clean[0]))
+
+
+def _start(model: de.ForwardModel, n_frames: int = len(TIMES)) -> dict:
+    return {
+        "background": np.full(model.n_elements, 0.011),
+        "contact_impedance": 0.012,
+        "memory": sc.over_foam(),
+        "stimulus": np.zeros((n_frames, model.n_elements)),
+    }
+
+
+@pytest.fixture(scope="module")
+def capped(coarse_model, coarse_frames) -> fit.JointFit:
+    return fit.joint(
+        coarse_model,
+        coarse_frames,
+        TIMES,
+        initial=_start(coarse_model),
+        noise=0.2,
+        max_steps=10,
+        throw=False,
+        progress=False,
+    )
+
+
+def test_gradient_matches_central_differences_in_every_group(coarse_model, coarse_frames):
+    model = coarse_model
+    rng = np.random.default_rng(11)
+    n_elements, n_frames = model.n_elements, len(TIMES)
+    memory_free = tuple(name for name in MEMORY_FIELDS if name != "gain")
+    settings = fit.JointSettings(
+        free=("background", "contact_impedance", "memory", "stimulus"),
+        memory_free=memory_free,
+        priors=fit.JointPriors(),
+        data_scale=1e-4,
+        memory_centre=sc.bare_skin(),
+        log_contact_impedance_centre=jnp.log(jnp.full(16, 0.01)),
+    )
+    problem = fit.JointProblem(model, jnp.asarray(coarse_frames), jnp.asarray(TIMES), settings)
+    # Stimuli of distinct depths in every frame (no two within the differences' step of each
+    # other, nor of zero): the memory model's kinks lie elsewhere.
+    depths = rng.uniform(0.05, 0.4, (n_frames, n_elements)) * rng.choice([-1.0, 1.0], (n_frames, n_elements))
+    parameters = fit.JointParameters(
+        log_background=jnp.log(0.01 * (1 + 0.1 * rng.standard_normal(n_elements))),
+        log_contact_impedance=jnp.log(0.01 * (1 + 0.1 * rng.standard_normal(16))),
+        memory=memory_to_unconstrained(sc.over_foam(), memory_free),
+        stimulus=jnp.asarray(depths),
+    )
+    gradient = jax.grad(problem)(parameters)
+    step = 1e-6
+
+    def directional(direction: fit.JointParameters) -> tuple[float, float]:
+        def shifted(sign: float) -> float:
+            moved = jax.tree_util.tree_map(lambda x, d: x + sign * step * d, parameters, direction)
+            return float(problem(moved))
+
+        exact = sum(
+            float(jnp.vdot(g, d))
+            for g, d in zip(jax.tree_util.tree_leaves(gradient), jax.tree_util.tree_leaves(direction), strict=True)
+        )
+        return exact, (shifted(1.0) - shifted(-1.0)) / (2 * step)
+
+    zeros = jax.tree_util.tree_map(jnp.zeros_like, parameters)
+    directions = {
+        "background": dataclasses.replace(zeros, log_background=jnp.asarray(rng.standard_normal(n_elements))),
+        "contact_impedance": dataclasses.replace(zeros, log_contact_impedance=jnp.asarray(rng.standard_normal(16))),
+        "stimulus": dataclasses.replace(zeros, stimulus=jnp.asarray(rng.standard_normal((n_frames, n_elements)))),
+    }
+    for name in memory_free:
+        directions[f"memory.{name}"] = dataclasses.replace(zeros, memory=zeros.memory | {name: jnp.ones(())})
+    for name, direction in directions.items():
+        exact, estimate = directional(direction)
+        assert exact == pytest.approx(estimate, rel=1e-5, abs=1e-6 * abs(float(problem(parameters)))), name
+
+
+def test_a_capped_fit_says_so_and_round_trips_through_a_file(coarse_model, coarse_frames, capped, tmp_path):
+    assert capped.result == RESULTS.max_iterations_reached
+    assert capped.history.objective[-1] < capped.history.objective[0]
+    path = capped.save(tmp_path / "joint.h5")
+    with pytest.raises(FileExistsError):
+        capped.save(path)
+    loaded = fit.load(path)
+    for name in ("background", "contact_impedance", "stimulus", "response", "times"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(capped, name))
+    for name in MEMORY_FIELDS:
+        np.testing.assert_array_equal(getattr(loaded.memory, name), getattr(capped.memory, name))
+    np.testing.assert_array_equal(loaded.history.objective, capped.history.objective)
+    assert loaded.result == capped.result and loaded.misfit == capped.misfit
+    assert loaded.settings.free == capped.settings.free and loaded.settings.priors == capped.settings.priors
+    # The saved state reproduces the objective the fit reached (to the rounding of another compilation).
+    problem = fit.JointProblem(coarse_model, jnp.asarray(coarse_frames), jnp.asarray(TIMES), loaded.settings)
+    assert float(problem(loaded.parameters)) == pytest.approx(capped.history.objective[-1], rel=1e-9)
+    with pytest.raises(ValueError, match="other frame times"):
+        fit.joint(coarse_model, coarse_frames, TIMES + 0.1, initial=loaded, max_steps=1, progress=False)
+    with pytest.raises(ValueError, match="not a joint fit"):
+        fit.load(_frames_file(tmp_path, coarse_model, coarse_frames))
+
+
+def _frames_file(tmp_path, model, frames):
+    recording = de.io.Recording(frames=frames, times=TIMES, protocol=model.protocol)
+    return de.io.write_frames(tmp_path / "frames.h5", recording)
+
+
+@pytest.mark.slow
+def test_a_resumed_fit_continues_and_a_capped_one_raises(coarse_model, coarse_frames, capped, tmp_path):
+    loaded = fit.load(capped.save(tmp_path / "joint.h5"))
+    resumed = fit.joint(coarse_model, coarse_frames, TIMES, initial=loaded, max_steps=10, throw=False, progress=False)
+    n_before = len(capped.history.objective)
+    np.testing.assert_array_equal(resumed.history.objective[:n_before], capped.history.objective)
+    assert len(resumed.history.objective) > n_before
+    assert resumed.history.objective[-1] < capped.history.objective[-1]
+    assert resumed.settings.data_scale == capped.settings.data_scale
+    with pytest.raises(SolverError, match="joint fit"):
+        fit.joint(coarse_model, coarse_frames, TIMES, initial=loaded, max_steps=2, progress=False)
+
+
+def test_bad_input_raises_naming_the_problem(coarse_model, coarse_frames):
+    model, frames, start = coarse_model, coarse_frames, _start(coarse_model)
+
+    def run(frames=frames, times=TIMES, **options):
+        fit.joint(model, frames, times, **({"initial": start, "noise": 0.2, "progress": False} | options))
+
+    broken = frames.copy()
+    broken[2, 7] = np.nan
+    with pytest.raises(ValueError, match=r"not finite .* frame\(s\) \[2\]"):
+        run(frames=broken)
+    with pytest.raises(ValueError, match=r"times must increase: times\[3\]"):
+        run(times=np.array([0.0, 0.5, 1.0, 1.0, 2.0]))
+    with pytest.raises(ValueError, match="same length"):
+        run(times=TIMES[:4])
+    with pytest.raises(ValueError, match="fast_time is a time constant"):
+        run(initial=start | {"memory": eqx.tree_at(lambda p: p.fast_time, sc.over_foam(), -1.0)})
+    with pytest.raises(ValueError, match=r"fast_fraction \+ MemoryParameters\.slow_fraction"):
+        run(initial=start | {"memory": eqx.tree_at(lambda p: p.slow_fraction, sc.over_foam(), 0.9)})
+    with pytest.raises(ValueError, match="one value per element"):
+        run(initial=start | {"memory": sc.MemoryParameters(relaxation=jnp.full(7, 0.2))})
+    with pytest.raises(ValueError, match="initial background"):
+        run(initial=start | {"background": np.full(5, 0.01)})
+    with pytest.raises(ValueError, match="unknown names"):
+        run(free=("background", "touches"))
+    with pytest.raises(ValueError, match="gain"):
+        run(memory_free=("gain",))
+    with pytest.raises(ValueError, match="reference_frames"):
+        run(reference_frames=0)
+
+
+@pytest.mark.slow
+def test_three_presses_at_one_place_read_alike_without_ghosts():
+    """Three presses at the same place on a skin with memory (simulated on a mesh twice as fine,
+    0.5% noise): after the joint fit the touches' stimuli agree within 10%, and between the
+    presses the stimulus holds at least 5 times less energy than plain difference images."""
+    centre, radius, hold, starts = np.array([-0.3, 0.35]), 0.25, 1.0, (1.0, 4.0, 7.0)
+    touches = tuple(sc.Touch(sc.Disc(centre, radius), -0.3, sc.Press(start=s, hold=hold)) for s in starts)
+    truth = sc.MemoryParameters(fast_fraction=0.25, fast_time=0.8, slow_fraction=0.3, slow_time=6.0, relaxation=0.2)
+    scene = sc.Scene(
+        skin=sc.Skin(h=0.15, simulation_h=0.075),
+        background=sc.Background(0.01),
+        touches=touches,
+        frame_rate=2.0,
+        duration=10.0,
+        effects=(truth, sc.MeasurementNoise(sc.Noise.percent(0.5), seed=2)),
+    )
+    simulation = sc.simulate(scene, progress=False)
+    mesh = scene.skin.mesh()
+    model = de.ForwardModel(mesh, scene.skin.make_protocol(), 0.01)
+    frames, times = np.asarray(simulation.frames), np.asarray(simulation.times)
+    # The memory starts from the preset, not the truth.
+    result = fit.joint(model, frames, times, initial={"memory": sc.over_foam()}, progress=False)
+
+    areas = mesh.element_areas
+    inside = np.linalg.norm(mesh.element_centroids - centre, axis=1) < radius
+
+    def touch_levels(images: np.ndarray) -> np.ndarray:
+        """Each press's mean level over its footprint and hold."""
+        held = [images[(times >= s) & (times < s + hold)][:, inside].mean(axis=0) for s in starts]
+        return np.array([np.sum(level * areas[inside]) / areas[inside].sum() for level in held])
+
+    between = np.zeros(len(times), dtype=bool)
+    for s in starts:
+        between |= (times >= s + hold) & (times < s + 3.0)
+
+    def ghost_energy(images: np.ndarray) -> float:
+        return float(np.sum(images[between] ** 2 * areas))
+
+    stimulus = np.asarray(result.stimulus)
+    levels = touch_levels(stimulus)
+    np.testing.assert_allclose(levels[1:] / levels[0], 1.0, atol=0.1)
+    plain = np.asarray(de.inverse.OneStep(model, "noser", 0.1, 0.01).reconstruct(frames - frames[0])) / 0.01
+    assert ghost_energy(plain) >= 5 * ghost_energy(stimulus)
+    assert result.misfit < 0.006
