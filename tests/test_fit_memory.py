@@ -122,7 +122,7 @@ def test_correct_memory_with_per_element_parameters(random_scene):
 
 def test_the_response_of_the_correction_is_the_image_or_its_nearest_reachable_value(random_scene):
     """memory_response(correct_memory(r)) == r wherever the model can produce r; inside the jump of
-    a load across zero (or of a new extreme of the other sign) the stimulus is the knot."""
+    a new extreme of the other sign the stimulus is the knot."""
     times, truth = random_scene
     images = np.asarray(memory_response(truth, times, over_foam()))
     images = images + 0.01 * np.random.default_rng(5).standard_normal(images.shape)
@@ -277,6 +277,20 @@ def test_memory_fit_noise_free(small_scene):
     assert fit.memory.gain == 1.0 and fit.memory.fatigue_rate == over_foam().fatigue_rate
     assert fit.history.objective.shape == fit.history.gradient_norm.shape
     assert fit.elements.sum() > 20 and not fit.elements[truth.min(axis=0) == 0].any()
+
+
+def test_memory_fit_uses_the_strongest_elements_up_to_max_elements(small_scene):
+    times, _, clean = small_scene
+    images = clean + 0.02 * abs(DEPTH) * np.random.default_rng(11).standard_normal(clean.shape)
+    fit = memory(images, times, rounds=1, max_elements=8, progress=False)
+    assert fit.elements.sum() <= 8
+    strength = np.abs(images).max(axis=0) / fit.noise
+    weakest_used = strength[fit.elements].min()
+    # Only the strongest are candidates (a few may be left out as outliers after the round).
+    assert np.sum(strength > weakest_used) < 8
+    assert all(abs(e) < 0.3 for e in relative_errors(fit.memory).values())
+    with pytest.raises(ValueError, match="max_elements"):
+        memory(images, times, max_elements=0, progress=False)
 
 
 def test_memory_fit_with_medium_noise(small_scene):
