@@ -516,7 +516,7 @@ def memory(
             found = minimise(
                 objective,
                 start,
-                units=eqx.filter_jit(objective.units)(start),
+                units=_units(objective, start),
                 max_steps=max_steps,
                 # J is about 1/2 at the noise level: 1e-8 of that is far below any real change.
                 atol=1e-8,
@@ -556,6 +556,11 @@ def memory(
         result=found.result,
     )
     return throw_if_failed(fit, found.result, "memory fit") if throw else fit
+
+
+@eqx.filter_jit
+def _units(objective: MemoryObjective, start: tuple[dict[str, jax.Array], jax.Array]):
+    return objective.units(start)
 
 
 def noise_level(images: np.ndarray) -> np.ndarray:

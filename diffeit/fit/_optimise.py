@@ -11,7 +11,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jax.flatten_util import ravel_pytree
 from tqdm.auto import tqdm
 
 from ..results import RESULTS
@@ -82,21 +81,9 @@ def minimise(
     solver = optx.LBFGS(rtol=0.0, atol=0.0)
 
     units = jax.tree_util.tree_map(jnp.ones_like, initial) if units is None else units
-    flat, unravel = ravel_pytree(jax.tree_util.tree_map(jnp.zeros_like, initial))
-
-    def unscaled(w: jax.Array) -> Any:
-        return jax.tree_util.tree_map(lambda y, unit, step: y + unit * step, initial, units, unravel(w))
-
-    def scaled(w: jax.Array) -> jax.Array:
-        return objective(unscaled(w))
-
-    def function(w, _args):
-        return scaled(w), None
-
-    tags = frozenset()
-    state = solver.init(function, flat, None, {}, jax.ShapeDtypeStruct((), flat.dtype), None, tags)
-    step = eqx.filter_jit(lambda y, state: solver.step(function, y, None, {}, state, tags))
-    value_and_gradient = eqx.filter_jit(eqx.filter_value_and_grad(scaled))
+    scaled = _Scaled(objective, initial, units)
+    flat = jnp.zeros(sum(jnp.size(leaf) for leaf in jax.tree_util.tree_leaves(initial)), _dtype(initial))
+    state = solver.init(scaled, flat, None, {}, jax.ShapeDtypeStruct((), flat.dtype), None, frozenset())
 
     def record(value, gradient) -> None:
         objectives.append(float(value))
@@ -104,14 +91,14 @@ def minimise(
 
     objectives: list[float] = []
     norms: list[float] = []
-    record(*value_and_gradient(flat))
+    record(*_value_and_gradient(scaled, flat))
     y, accepted, result = flat, 0, RESULTS.max_iterations_reached
     small, rejected, finite = 0, 0, flat
     if not np.isfinite(objectives[0]) or not np.isfinite(norms[0]):
-        return Minimum(unscaled(y), np.asarray(objectives), np.asarray(norms), RESULTS.nonfinite)
+        return Minimum(scaled.unscaled(y), np.asarray(objectives), np.asarray(norms), RESULTS.nonfinite)
     with tqdm(total=max_steps, desc=description, disable=not progress, leave=False) as bar:
         for _ in range(max_steps):
-            y, state, _ = step(y, state)
+            y, state, _ = _step(solver, scaled, y, state)
             bar.update()
             if not bool(state.result == optx.RESULTS.successful):
                 result = RESULTS.stalled
@@ -138,4 +125,43 @@ def minimise(
                     result = RESULTS.stalled
                     break
             accepted = int(state.num_accepted_steps)
-    return Minimum(unscaled(y), np.asarray(objectives), np.asarray(norms), result)
+    return Minimum(scaled.unscaled(y), np.asarray(objectives), np.asarray(norms), result)
+
+
+class _Scaled(eqx.Module):
+    """The objective as optimistix calls it, on the flat scaled unknowns w: a Module, so that the
+    jitted step below is compiled once per objective type and shapes, not once per call (an
+    objective that is itself a Module, such as the memory fit's, is then reused across rounds)."""
+
+    objective: Callable[[Any], jax.Array]
+    initial: Any
+    units: Any
+
+    def unscaled(self, w: jax.Array) -> Any:
+        """The unknowns y = initial + units * w, w split and shaped like `initial`'s leaves."""
+        leaves, treedef = jax.tree_util.tree_flatten(self.initial)
+        bounds = np.cumsum([0] + [int(np.size(leaf)) for leaf in leaves])
+        steps = [w[a:b].reshape(jnp.shape(leaf)) for a, b, leaf in zip(bounds[:-1], bounds[1:], leaves, strict=True)]
+        step = jax.tree_util.tree_unflatten(treedef, steps)
+        return jax.tree_util.tree_map(lambda y, unit, dy: y + unit * dy, self.initial, self.units, step)
+
+    def value(self, w: jax.Array) -> jax.Array:
+        return self.objective(self.unscaled(w))
+
+    def __call__(self, w: jax.Array, _args: Any) -> tuple[jax.Array, None]:
+        return self.value(w), None
+
+
+def _dtype(tree: Any):
+    leaves = jax.tree_util.tree_leaves(tree)
+    return jnp.result_type(*leaves) if leaves else jnp.result_type(float)
+
+
+@eqx.filter_jit
+def _step(solver: optx.LBFGS, scaled: _Scaled, w: jax.Array, state: Any) -> tuple[jax.Array, Any, Any]:
+    return solver.step(scaled, w, None, {}, state, frozenset())
+
+
+@eqx.filter_jit
+def _value_and_gradient(scaled: _Scaled, w: jax.Array) -> tuple[jax.Array, jax.Array]:
+    return jax.value_and_grad(scaled.value)(w)
