@@ -415,8 +415,11 @@ def memory(
     changes the response smoothly (relaxation under a held press, ghosts after a release). The
     fit therefore takes the stimulus as constant within segments of frames, per element, and
     fits p and the segment levels together by least squares (`MemoryObjective`, L-BFGS via
-    `minimise`): a ghost or a relaxation cannot be a constant level, so only the memory explains
-    them. The segments start where the stimulus changes: where `correct_memory` of the images
+    `minimise`, preconditioned by the Gauss-Newton diagonal): a ghost or a relaxation cannot be
+    a constant level, so only the memory explains them. A segment whose starting level is
+    smaller than `jump` / 2 of the element's largest, or of the other sign than its touch, is a
+    rest: its stimulus is exactly 0, so that no faint level lingers to trade with a slow
+    recovery. The segments start where the stimulus changes: where `correct_memory` of the images
     (with a dead band of one noise level, using the current p) changes by more than
     `jump` times the element's largest |stimulus|; after a fit, neighbouring segments whose
     levels differ by less than `jump` / 2 of it are joined (noise, not a touch) and the fit runs

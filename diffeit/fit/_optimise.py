@@ -67,7 +67,8 @@ def minimise(
     at most `atol + rtol |J|`. Not optimistix's own test, which also stops where the line
     search has shrunk its step to nothing: that is a stall, not a minimum, and is reported as
     `RESULTS.stalled`. `max_steps` counts trial steps, rejected ones included. The step is
-    jitted once per call; the loop runs in Python, one step at a time, with a tqdm progress bar
+    jitted (compiled again only for another objective: a new function, or a Module of another
+    type or shapes); the loop runs in Python, one step at a time, with a tqdm progress bar
     (`progress=False` hides it).
 
     `units`: a pytree like `initial` (leaves broadcasting against its leaves), the scale of each
