@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import jax
 import numpy as np
 
+from ._errors import reporting_user_errors
 from ._model import ModelSettings, add_model_options
 
 if TYPE_CHECKING:
@@ -36,15 +37,6 @@ def _demo(arguments: argparse.Namespace) -> int:
         f"wrote {result.figure}"
     )
     return 0
-
-
-def _reconstruct(arguments: argparse.Namespace) -> int:
-    try:
-        return _reconstruct_file(arguments)
-    except (ValueError, FileNotFoundError, FileExistsError) as error:
-        # Bad input files and options are the user's to fix: one line, no traceback.
-        print(f"diffeit reconstruct: error: {error}", file=sys.stderr)
-        return 2
 
 
 def _reconstruct_file(arguments: argparse.Namespace) -> int:
@@ -253,7 +245,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct.add_argument("--reference-variable", help=".mat files: the variable holding the reference frame")
     reconstruct.add_argument("--frame-rate", type=float, default=1.0, help=".mat files: frames per second")
     reconstruct.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    reconstruct.set_defaults(run=_reconstruct)
+    reconstruct.set_defaults(run=reporting_user_errors("reconstruct", _reconstruct_file))
     from ._simulate import add_command as add_simulate
 
     add_simulate(commands)

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import _mesh_of, _output_paths
+from ._errors import reporting_user_errors
 from ._model import ModelSettings, add_model_options
 
 if TYPE_CHECKING:
@@ -69,15 +70,7 @@ def add_command(commands: argparse._SubParsersAction) -> None:
     add_model_options(fit)
     fit.add_argument("--panels", type=int, default=8, help="most frames shown before and after (default 8)")
     fit.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    fit.set_defaults(run=_fit)
-
-
-def _fit(arguments: argparse.Namespace) -> int:
-    try:
-        return _fit_file(arguments)
-    except (ValueError, FileNotFoundError, FileExistsError) as error:
-        print(f"diffeit fit: error: {error}", file=sys.stderr)
-        return 2
+    fit.set_defaults(run=reporting_user_errors("fit", _fit_file))
 
 
 def _fit_file(arguments: argparse.Namespace) -> int:

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ._errors import reporting_user_errors
 from ._model import ModelSettings, add_model_options
 
 if TYPE_CHECKING:
@@ -86,7 +87,7 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     emulate.add_argument("--seed", type=int, default=0, help="seed of the faults (0)")
     emulate.add_argument("--wait", type=float, default=60.0, help="seconds to wait for a client (60)")
     emulate.add_argument("--log", help="write the ground-truth fault log here (JSON)")
-    emulate.set_defaults(run=_emulate)
+    emulate.set_defaults(run=reporting_user_errors("emulate", _emulate_scene, (ValueError, FileNotFoundError)))
 
 
 def _source_arguments(parser: argparse.ArgumentParser) -> None:
@@ -356,14 +357,6 @@ def _frame_time(frame: hw.Frame) -> float:
     if frame.device_time is not None:
         return frame.device_time
     raise ValueError("the memory correction needs frame times; the frames carry neither a host nor a device time")
-
-
-def _emulate(arguments: argparse.Namespace) -> int:
-    try:
-        return _emulate_scene(arguments)
-    except (ValueError, FileNotFoundError) as error:
-        print(f"diffeit emulate: error: {error}", file=sys.stderr)
-        return 2
 
 
 def _emulate_scene(arguments: argparse.Namespace) -> int:

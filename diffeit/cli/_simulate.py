@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
+
+from ._errors import reporting_user_errors
 
 
 def add_command(commands: argparse._SubParsersAction) -> None:
@@ -24,15 +25,7 @@ def add_command(commands: argparse._SubParsersAction) -> None:
     simulate.add_argument("-o", "--output", required=True, help="frames file to write (.h5)")
     simulate.add_argument("--plot", help="also save the true conductivity change of some frames as this PNG")
     simulate.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    simulate.set_defaults(run=_simulate)
-
-
-def _simulate(arguments: argparse.Namespace) -> int:
-    try:
-        return _simulate_scene(arguments)
-    except (ValueError, FileNotFoundError, FileExistsError) as error:
-        print(f"diffeit simulate: error: {error}", file=sys.stderr)
-        return 2
+    simulate.set_defaults(run=reporting_user_errors("simulate", _simulate_scene))
 
 
 def _simulate_scene(arguments: argparse.Namespace) -> int:
