@@ -221,3 +221,19 @@ def test_three_presses_at_one_place_read_alike_without_ghosts():
     plain = np.asarray(de.inverse.OneStep(model, "noser", 0.1, 0.01).reconstruct(frames - frames[0])) / 0.01
     assert ghost_energy(plain) >= 5 * ghost_energy(stimulus)
     assert result.misfit < 0.006
+
+
+def test_merged_time_constants_start_apart_and_distinct_ones_are_kept():
+    """Two time constants within a factor 2 start the joint fit apart by the preset's ratio
+    around their geometric mean (a merged pair is a saddle of the objective); others are kept."""
+    from diffeit.fit._joint import _modes_apart
+
+    preset = sc.over_foam()
+    merged = _modes_apart(sc.MemoryParameters(fast_time=3.0, slow_time=4.0, fast_fraction=0.2), preset)
+    assert float(merged.slow_time) / float(merged.fast_time) == pytest.approx(preset.slow_time / preset.fast_time)
+    assert float(merged.fast_time) * float(merged.slow_time) == pytest.approx(12.0)
+    assert float(merged.fast_fraction) == 0.2
+    swapped = _modes_apart(sc.MemoryParameters(fast_time=4.0, slow_time=3.0), preset)
+    assert float(swapped.fast_time) < float(swapped.slow_time)
+    apart = sc.MemoryParameters(fast_time=1.5, slow_time=5.0)
+    assert _modes_apart(apart, preset) is apart
