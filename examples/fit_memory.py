@@ -56,16 +56,24 @@ COMPARED = ("fast_fraction", "fast_time", "slow_fraction", "slow_time")  # the m
 TRUTH = MemoryParameters(fast_fraction=0.25, fast_time=1.5, slow_fraction=0.35, slow_time=5.0, relaxation=0.2)
 
 
-def memory_scene(h: float = 0.15, *, noise: str = "medium", seed: int = 0) -> Scene:
-    """The three presses on a skin with memory; reconstruction mesh h (m), simulated at h / 2."""
-    touches = tuple(Touch(Disc(CENTRE, RADIUS), AMPLITUDE, Press(start=s, hold=hold)) for s, hold in PRESSES)
+def memory_scene(
+    h: float = 0.15,
+    *,
+    noise: str = "medium",
+    seed: int = 0,
+    presses: tuple[tuple[float, float], ...] = PRESSES,
+    duration: float = DURATION,
+) -> Scene:
+    """Presses ((start, hold), seconds; default the three of `PRESSES`) at one place on a skin
+    with memory, `duration` seconds at 2 Hz; reconstruction mesh h (m), simulated at h / 2."""
+    touches = tuple(Touch(Disc(CENTRE, RADIUS), AMPLITUDE, Press(start=s, hold=hold)) for s, hold in presses)
     return Scene(
-        name="three presses with memory",
+        name=f"{len(presses)} presses with memory",
         skin=Skin(h=h),
         background=Background(BACKGROUND),
         touches=touches,
         frame_rate=FRAME_RATE,
-        duration=DURATION,
+        duration=duration,
         effects=(TRUTH, MeasurementNoise(Noise.level(noise), seed=seed)),
     )
 
@@ -108,7 +116,8 @@ def figures(scene: Scene, found: fit.JointFit, plain: np.ndarray, *, mesh: de.Me
     def energy(images: np.ndarray) -> float:
         return float(np.sum(images[gaps] ** 2 @ mesh.element_areas))
 
-    presses = [touched & (scene.times >= start) & (scene.times <= start + hold) for start, hold in PRESSES]
+    held = [(float(touch.envelope.start), float(touch.envelope.hold)) for touch in scene.touches]
+    presses = [touched & (scene.times >= start) & (scene.times <= start + hold) for start, hold in held]
 
     def ratios(images: np.ndarray) -> tuple[float, ...]:
         peaks = [float(images[press].min()) for press in presses]
