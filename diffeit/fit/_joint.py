@@ -66,14 +66,15 @@ images (`diffeit.fit.memory`; over_foam when no element of the images rises abov
 the stimulus from the images' exact `correct_memory` with those parameters, soft-thresholded at
 3 times its median |a|, positive parts dropped (a start with noise in every frame sits on the
 memory model's kinks). The memory fit's own stimulus, corrected with a dead band of 3 noise
-levels, was a worse start: 2.5 times as many steps, and the presses' peaks 5-7% further apart.
+levels, was a worse start (the worked example's scene at 960 triangles: 2.4 times as many steps,
+and the presses' peaks 5-10% further apart).
 
 When the memory fit's two time constants come out within a factor 2 of each other, the images
 did not tell the modes apart, and the joint fit starts them apart instead, by over_foam's ratio
 (7.7) around their geometric mean. Two equal time constants are a saddle of the joint objective:
 the model is symmetric in the two modes, so its gradient cannot part them, and a fit started
-there stays there (measured on the worked example: both came out at 3.3-4 s for a truth of
-1.5 s and 5 s, in 330 steps; started apart, 140 steps and peaks within 3%).
+there stays there (the worked example's scene at 960 triangles: both came out at 3.3-4 s for a
+truth of 1.5 s and 5 s, in 330 steps; started apart, 140 steps and peaks within 3%).
 
 `initial=` gives any of these parts instead, or a `JointFit` to resume from.
 
