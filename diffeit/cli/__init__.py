@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import jax
 import numpy as np
@@ -65,32 +66,25 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     images, hyperparameter = reconstruct_recording(
         recording, mesh, settings, reference_frame=arguments.reference_frame, difference=arguments.difference
     )
-    reconstructed = io.Recording(
-        frames=recording.frames,
-        times=recording.times,
-        protocol=recording.protocol,
+    reconstructed = _with_images(
+        recording,
+        source,
+        "diffeit reconstruct",
         reference=recording.reference_values(arguments.reference_frame),
         mesh=mesh,
-        geometry=recording.geometry,
-        provenance={
-            "source": f"diffeit reconstruct {source.name}",
-            "metadata": {
-                "input": str(source),
-                "input_source": recording.provenance.get("source", ""),
-                "variable": arguments.variable,
-                "reference_frame": arguments.reference_frame,
-                "reference_variable": arguments.reference_variable,
-                "prior": settings.prior,
-                "hyperparameter": hyperparameter,
-                "hyperparameter_choice": settings.hyperparameter,
-                "background": settings.background,
-                "contact_impedance": settings.contact_impedance,
-                "difference": arguments.difference,
-            },
-        },
         images=images,
         image_quantity="conductivity change",
-        voltage_unit=recording.voltage_unit,
+        metadata={
+            "variable": arguments.variable,
+            "reference_frame": arguments.reference_frame,
+            "reference_variable": arguments.reference_variable,
+            "prior": settings.prior,
+            "hyperparameter": hyperparameter,
+            "hyperparameter_choice": settings.hyperparameter,
+            "background": settings.background,
+            "contact_impedance": settings.contact_impedance,
+            "difference": arguments.difference,
+        },
     )
     shown = plot_image_strip(
         outputs[0],
@@ -120,6 +114,34 @@ def _output_paths(output: str, suffixes: tuple[str, ...], overwrite: bool) -> li
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
     return paths
+
+
+def _with_images(
+    recording: Recording,
+    source: Path,
+    command: str,
+    *,
+    reference: np.ndarray | None,
+    mesh: Mesh,
+    images: np.ndarray,
+    image_quantity: str,
+    metadata: dict[str, Any],
+) -> Recording:
+    """`recording` (read from `source`) with the `images` on `mesh` that `command` made, and
+    provenance naming the input and the command's choices (`metadata`); frames, times, protocol,
+    geometry and voltage unit kept."""
+    provenance = {
+        "source": f"{command} {source.name}",
+        "metadata": {"input": str(source), "input_source": recording.provenance.get("source", ""), **metadata},
+    }
+    return dataclasses.replace(
+        recording,
+        reference=reference,
+        mesh=mesh,
+        provenance=provenance,
+        images=images,
+        image_quantity=image_quantity,
+    )
 
 
 def _scene_settings(recording: Recording) -> dict[str, float]:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import _mesh_of, _output_paths
+from . import _mesh_of, _output_paths, _with_images
 from ._errors import reporting_user_errors
 from ._model import ModelSettings, add_model_options
 
@@ -130,31 +130,24 @@ def _fit_file(arguments: argparse.Namespace) -> int:
     stimulus = np.asarray(fit.stimulus)
 
     fit.save(fit_file, overwrite=arguments.overwrite)
-    corrected = io.Recording(
-        frames=recording.frames,
-        times=recording.times,
-        protocol=recording.protocol,
+    corrected = _with_images(
+        recording,
+        source,
+        "diffeit fit",
         reference=recording.reference,
         mesh=mesh,
-        geometry=recording.geometry,
-        provenance={
-            "source": f"diffeit fit {source.name}",
-            "metadata": {
-                "input": str(source),
-                "input_source": recording.provenance.get("source", ""),
-                "fit": str(fit_file),
-                "reference_frames": arguments.reference_frames,
-                "free": list(fit.settings.free),
-                "result": "converged" if converged else messages(fit.result)[0],
-                "steps": steps,
-                "misfit": fit.misfit,
-                "seconds": seconds,
-                "memory": _memory_values(fit),
-            },
-        },
         images=stimulus,
         image_quantity=IMAGE_QUANTITY,
-        voltage_unit=recording.voltage_unit,
+        metadata={
+            "fit": str(fit_file),
+            "reference_frames": arguments.reference_frames,
+            "free": list(fit.settings.free),
+            "result": "converged" if converged else messages(fit.result)[0],
+            "steps": steps,
+            "misfit": fit.misfit,
+            "seconds": seconds,
+            "memory": _memory_values(fit),
+        },
     )
     io.write_frames(images_file, corrected, overwrite=arguments.overwrite)
     shown = plot_fit(
