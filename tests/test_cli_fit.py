@@ -79,6 +79,11 @@ def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, tmp_pa
     assert saved.background.shape == (mesh.n_elements,) and saved.contact_impedance.shape == (16,)
     assert abs(np.median(saved.background) / 0.01 - 1) < 0.1  # the scene's uniform 0.01 S/sq
     assert corrected.provenance["metadata"]["misfit"] == pytest.approx(saved.misfit)
+    # The memory parameters' standard errors: printed, and kept in the provenance.
+    errors = corrected.provenance["metadata"]["memory_relative_error"]
+    assert set(errors) == set(saved.settings.memory_fitted)
+    assert all(0 < value < np.inf for value in errors.values())
+    assert f"slow_time {float(saved.memory.slow_time):.3g} +- {errors['slow_time']:.0%}" in printed
 
     # Between the presses the stimulus is near zero: the memory explains the recovering skin.
     gaps, pressed = _gaps(scene, mesh)

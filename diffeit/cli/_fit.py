@@ -19,7 +19,7 @@ from ._errors import reporting_user_errors
 from ._model import ModelSettings, add_model_options
 
 if TYPE_CHECKING:
-    from ..fit import JointFit
+    from ..fit import JointFit, MemoryUncertainty
     from ..inverse import OneStep
     from ..mesh import Mesh
     from ..protocol import Protocol
@@ -75,7 +75,7 @@ def add_command(commands: argparse._SubParsersAction) -> None:
 
 def _fit_file(arguments: argparse.Namespace) -> int:
     from .. import io
-    from ..fit import joint, load
+    from ..fit import joint, load, memory_uncertainty
     from ..results import RESULTS, messages
 
     source = Path(arguments.frames)
@@ -122,6 +122,7 @@ def _fit_file(arguments: argparse.Namespace) -> int:
     )
     seconds = time.perf_counter() - start
     converged = bool(fit.result == RESULTS.successful)
+    uncertainty = memory_uncertainty(model, recording.frames, fit) if _shared_memory_fitted(fit) else None
     steps = len(fit.history.objective) - 1
 
     reference = np.mean(recording.frames[: arguments.reference_frames], axis=0)
@@ -147,6 +148,9 @@ def _fit_file(arguments: argparse.Namespace) -> int:
             "misfit": fit.misfit,
             "seconds": seconds,
             "memory": _memory_values(fit),
+            "memory_relative_error": {}
+            if uncertainty is None
+            else dict(zip(uncertainty.names, uncertainty.relative_error.tolist(), strict=True)),
         },
     )
     io.write_frames(images_file, corrected, overwrite=arguments.overwrite)
@@ -159,6 +163,7 @@ def _fit_file(arguments: argparse.Namespace) -> int:
         max_panels=arguments.panels,
         title=f"{source.name}: joint fit, {steps} steps, {'converged' if converged else 'NOT converged'}",
         seconds=seconds,
+        uncertainty=uncertainty,
     )
     peak = stimulus.flat[np.argmax(np.abs(stimulus))]
     print(
@@ -166,7 +171,7 @@ def _fit_file(arguments: argparse.Namespace) -> int:
         f"{'converged' if converged else 'did not converge'}\n"
         f"misfit {fit.misfit:.3g} (relative); background {float(np.median(fit.background)):.3g} S/sq (median); "
         f"peak stimulus {peak:.3g} dsigma/sigma\n"
-        f"memory: {_memory_line(fit)}\n"
+        f"memory: {_memory_line(fit, uncertainty)}\n"
         f"wrote {png} ({len(shown)} frames before and after), {images_file} (stimulus {stimulus.shape}) and {fit_file}"
     )
     if not converged:
@@ -208,8 +213,10 @@ def plot_fit(
     max_panels: int = 8,
     title: str = "",
     seconds: float | None = None,
+    uncertainty: MemoryUncertainty | None = None,
 ) -> np.ndarray:
-    """Save the fit's figure as a PNG: the background map and a table of the parameters above,
+    """Save the fit's figure as a PNG: the background map and a table of the parameters (with the
+    memory parameters' relative standard errors when `uncertainty` gives them) above,
     the plain one-step images `before` (T, E) dsigma/sigma and the fitted stimulus below, the
     same frames (every k-th, at most `max_panels`) on one colour scale; returns the frames shown."""
     from matplotlib.figure import Figure
@@ -228,7 +235,7 @@ def plot_fit(
     map_axes.set_title("background conductivity", fontsize=9)
     table_axes.set_axis_off()
     table = table_axes.table(
-        cellText=_parameter_rows(fit, seconds), colWidths=[0.42, 0.58], cellLoc="left", loc="center"
+        cellText=_parameter_rows(fit, seconds, uncertainty), colWidths=[0.42, 0.58], cellLoc="left", loc="center"
     )
     table.auto_set_font_size(False)
     table.set_fontsize(7.5)
@@ -256,7 +263,9 @@ def plot_fit(
     return shown
 
 
-def _parameter_rows(fit: JointFit, seconds: float | None) -> list[list[str]]:
+def _parameter_rows(
+    fit: JointFit, seconds: float | None, uncertainty: MemoryUncertainty | None = None
+) -> list[list[str]]:
     from ..results import RESULTS
 
     z = np.asarray(fit.contact_impedance)
@@ -271,7 +280,7 @@ def _parameter_rows(fit: JointFit, seconds: float | None) -> list[list[str]]:
         ["contact impedance, ohm m", f"{z.min():.3g} .. {np.mean(z):.3g} .. {z.max():.3g}"],
     ]
     for name, value in _memory_values(fit).items():
-        rows.append([f"memory {name}", f"{_number(value)}" + ("" if name in free else " (fixed)")])
+        rows.append([f"memory {name}", _memory_value(name, value, free, uncertainty)])
     if seconds is not None:
         rows.append(["time", f"{seconds:.1f} s"])
     return rows
@@ -283,11 +292,31 @@ def _memory_values(fit: JointFit) -> dict[str, float | list]:
     return {field.name: np.asarray(getattr(memory, field.name)).tolist() for field in dataclasses.fields(memory)}
 
 
-def _memory_line(fit: JointFit) -> str:
+def _shared_memory_fitted(fit: JointFit) -> bool:
+    """Whether the fit fitted memory parameters shared by all elements (what
+    `diffeit.fit.memory_uncertainty` reports on)."""
+    names = fit.settings.memory_fitted
+    return bool(names) and all(np.size(getattr(fit.memory, name)) == 1 for name in names)
+
+
+def _memory_value(name: str, value: float | list, free: tuple[str, ...], uncertainty: MemoryUncertainty | None) -> str:
+    """A memory parameter's value, "(fixed)" when not fitted, and its relative standard error when known."""
+    if name not in free:
+        return f"{_number(value)} (fixed)"
+    if uncertainty is None:
+        return _number(value)
+    return f"{_number(value)} {uncertainty.error_text(name)}"
+
+
+def _memory_line(fit: JointFit, uncertainty: MemoryUncertainty | None) -> str:
     free = fit.settings.memory_fitted
     values = _memory_values(fit)
-    fitted = [f"{name} {_number(values[name])}" for name in values if name in free]
-    return ", ".join(fitted) if fitted else "fixed (not fitted)"
+    fitted = [f"{name} {_memory_value(name, values[name], free, uncertainty)}" for name in values if name in free]
+    if not fitted:
+        return "fixed (not fitted)"
+    return ", ".join(fitted) + (
+        "" if uncertainty is None else " (+-: relative standard error, the data's Cramer-Rao bound)"
+    )
 
 
 def _number(value: float | list) -> str:

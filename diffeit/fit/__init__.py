@@ -10,7 +10,9 @@ recorded frames:
 - `correct_memory`: the causal correction of images with known memory parameters (live use);
 - `joint`: background, contact impedances, memory parameters and per-frame stimulus images
   together, with every frame's misfit through the forward model; `JointFit.save` and `load`
-  keep a fit, and `joint(..., initial=fit)` resumes it.
+  keep a fit, and `joint(..., initial=fit)` resumes it;
+- `memory_uncertainty`: how well the frames determine a joint fit's memory parameters (standard
+  errors and correlations, the Cramer-Rao bound at the fit).
 
 Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RESULTS`) and takes
 `throw=`.
@@ -29,3 +31,5 @@ from ._memory import MemoryFit as MemoryFit
 from ._memory import correct_memory as correct_memory
 from ._memory import correct_memory_step as correct_memory_step
 from ._memory import memory as memory
+from ._uncertainty import MemoryUncertainty as MemoryUncertainty
+from ._uncertainty import memory_uncertainty as memory_uncertainty

@@ -61,9 +61,10 @@ the fit converges to a point where the steps no longer change it, which depends 
 By default: the background map from the first `reference_frames` frames, which must be
 untouched (`diffeit.fit.background`; contact impedance the model's); one-step relative-change
 images of every frame against the mean reference frame (`diffeit.inverse.OneStep`, NOSER prior,
-hyperparameter 20 noise/100: calm images, not sharp ones); the memory parameters from these
-images (`diffeit.fit.memory`; over_foam when no element of the images rises above their noise);
-the stimulus from the images' exact `correct_memory` with those parameters, soft-thresholded at
+hyperparameter 20 noise/100: calm images, not sharp ones); the memory parameters from images
+calmer still, of hyperparameter at least 0.3 (`diffeit.fit.memory`; over_foam when no element of
+the images rises above their noise); the stimulus from the first images' exact `correct_memory`
+with those parameters, soft-thresholded at
 3 times its median |a|, positive parts dropped (a start with noise in every frame sits on the
 memory model's kinks). The memory fit's own stimulus, corrected with a dead band of 3 noise
 levels, was a worse start (the worked example's scene at 960 triangles: 2.4 times as many steps,
@@ -75,6 +76,14 @@ did not tell the modes apart, and the joint fit starts them apart instead, by ov
 the model is symmetric in the two modes, so its gradient cannot part them, and a fit started
 there stays there (the worked example's scene at 960 triangles: both came out at 3.3-4 s for a
 truth of 1.5 s and 5 s, in 330 steps; started apart, 140 steps and peaks within 3%).
+
+The memory fit reads time courses element by element, and an element's noise in sharp images
+misleads it, while their blur does not: every element under a touch follows the same time
+course. On the varied-holds scene of `benchmarks/fit.py` at 960 triangles and 0.1% noise, five
+noise seeds, the memory fit's RMS errors (fast fraction, fast time, slow fraction, slow time,
+relaxation) were 61/97/22/44/94% from the images of hyperparameter 0.02 (20 noise/100), and
+15/13/12/13/26% at 0.3; at 0.5% noise, 50/35/24/24/19% at 0.3, the Cramer-Rao bound's size
+(`diffeit.fit.memory_uncertainty`; README, Fitting).
 
 `initial=` gives any of these parts instead, or a `JointFit` to resume from.
 
@@ -150,9 +159,11 @@ _CONTRAST_Z = 30.0
 # Added to every curvature of `JointProblem.scales`: an unknown the objective does not see at all
 # keeps a finite unit.
 _TINY_CURVATURE = 1e-12
-# The initial one-step images' hyperparameter per unit of noise fraction, and the soft threshold
-# of image-derived stimuli in units of their median |a| (module docstring).
+# The initial one-step images' hyperparameter per unit of noise fraction, the least
+# hyperparameter of the images the memory parameters start from, and the soft threshold of
+# image-derived stimuli in units of their median |a| (module docstring).
 _IMAGE_REGULARISATION = 20.0
+_MEMORY_IMAGE_REGULARISATION = 0.3
 _THRESHOLD = 3.0
 # Time constants within this factor of each other are one mode split in two (Initialisation).
 _MERGED = 2.0
@@ -765,10 +776,13 @@ def _initial_values(
     else:
         data_scale = DEFAULT_NOISE / 100 * rms if estimated_noise is None else float(estimated_noise)
     if memory is None or stimulus is None:
-        images, image_noise = _one_step_images(model, frames, reference_frames, background, z, data_scale, rms)
+        sharp = _IMAGE_REGULARISATION * data_scale / rms
+        images, _ = _one_step_images(model, frames, reference_frames, background, z, data_scale, sharp)
         if memory is None:
+            calm = max(sharp, _MEMORY_IMAGE_REGULARISATION)
+            calm, calm_noise = _one_step_images(model, frames, reference_frames, background, z, data_scale, calm)
             try:
-                found = fit_memory(images, times, noise=image_noise, progress=progress, throw=False)
+                found = fit_memory(calm, times, noise=calm_noise, progress=progress, throw=False)
                 memory = _modes_apart(found.memory, over_foam())
             except ValueError:  # no element rises above the images' noise: nothing to fit p to
                 memory = over_foam()
@@ -805,14 +819,14 @@ def _one_step_images(
     background: jax.Array,
     z: jax.Array,
     data_scale: float,
-    rms: float,
+    hyperparameter: float,
 ) -> tuple[jax.Array, np.ndarray]:
-    """(T, E) relative-change images dsigma/sigma of every frame against the mean reference frame,
-    and (E,) their noise standard deviation: readings' noise `data_scale` (volts; relative to
-    `rms` it sets the hyperparameter) through the reconstruction matrix, the reference's
+    """(T, E) relative-change images dsigma/sigma of every frame against the mean reference frame
+    (`OneStep`, NOSER prior, `hyperparameter`), and (E,) their noise standard deviation: the
+    readings' noise `data_scale` (volts) through the reconstruction matrix, the reference's
     included."""
     fitted = eqx.tree_at(lambda m: m.contact_impedance, model, z)
-    one_step = OneStep(fitted, "noser", _IMAGE_REGULARISATION * data_scale / rms, np.asarray(background))
+    one_step = OneStep(fitted, "noser", hyperparameter, np.asarray(background))
     reference = jnp.mean(frames[:reference_frames], axis=0)
     images = one_step.reconstruct(frames - reference) / background
     gain = np.linalg.norm(np.asarray(one_step.matrix), axis=1) / np.asarray(background)
