@@ -30,6 +30,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/inverse.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/scene.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/fit.py $(BENCH_FLAGS)
+	$(BIN)/python benchmarks/memory_bound.py
 
 clean:
 	rm -rf $(VENV) demo.png .pytest_cache
