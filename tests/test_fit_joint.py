@@ -237,3 +237,31 @@ def test_merged_time_constants_start_apart_and_distinct_ones_are_kept():
     assert float(swapped.fast_time) < float(swapped.slow_time)
     apart = sc.MemoryParameters(fast_time=1.5, slow_time=5.0)
     assert _modes_apart(apart, preset) is apart
+
+
+@pytest.mark.slow
+def test_at_low_noise_the_memory_start_is_near_the_truth():
+    """Holds and gaps that show both recoveries, at 0.1% noise (simulated on a mesh twice as
+    fine): the joint fit's start (max_steps=0), the memory fit of calm one-step images, is within
+    25% of the truth in the fractions and time constants (sharp images, hyperparameter 0.02, were
+    40-100% off on such scenes; the relaxation, about 25% off, is refined by the fit)."""
+    truth = sc.MemoryParameters(fast_fraction=0.3, fast_time=1.2, slow_fraction=0.3, slow_time=6.0, relaxation=0.2)
+    presses = ((1.0, 3.0), (9.0, 0.5), (11.5, 1.5))
+    touches = tuple(
+        sc.Touch(sc.Disc((-0.2, 0.3), 0.3), -0.25, sc.Press(start=start, hold=hold)) for start, hold in presses
+    )
+    scene = sc.Scene(
+        skin=sc.Skin(h=0.12, simulation_h=0.06),
+        background=sc.Background(0.01),
+        touches=touches,
+        frame_rate=2.0,
+        duration=15.0,
+        effects=(truth, sc.MeasurementNoise(sc.Noise.percent(0.1), seed=4)),
+    )
+    simulation = sc.simulate(scene, progress=False)
+    model = de.ForwardModel(scene.skin.mesh(), scene.skin.make_protocol(), 0.01)
+    start = fit.joint(
+        model, np.asarray(simulation.frames), np.asarray(simulation.times), max_steps=0, progress=False, throw=False
+    )
+    for name in ("fast_fraction", "fast_time", "slow_fraction", "slow_time"):
+        assert float(getattr(start.memory, name)) == pytest.approx(float(getattr(truth, name)), rel=0.25), name

@@ -70,6 +70,12 @@ memory model's kinks). The memory fit's own stimulus, corrected with a dead band
 levels, was a worse start (the worked example's scene at 960 triangles: 2.4 times as many steps,
 and the presses' peaks 5-10% further apart).
 
+When the memory fit gives a mode that carries less than 5% of the response, or one that decays
+slower than the recording lasts, the images did not determine it (frames that never see a mode
+decay cannot tell it from a permanent offset), and the joint fit starts from over_foam instead:
+from such a start it stays near it (the worked example's scene at 960 triangles: slow fraction
+0.03 and slow time 480 s for a truth of 0.35 and 5 s, and the third press read 12% strong).
+
 When the memory fit's two time constants come out within a factor 2 of each other, the images
 did not tell the modes apart, and the joint fit starts them apart instead, by over_foam's ratio
 (7.7) around their geometric mean. Two equal time constants are a saddle of the joint objective:
@@ -165,8 +171,10 @@ _TINY_CURVATURE = 1e-12
 _IMAGE_REGULARISATION = 20.0
 _MEMORY_IMAGE_REGULARISATION = 0.3
 _THRESHOLD = 3.0
-# Time constants within this factor of each other are one mode split in two (Initialisation).
+# Time constants within this factor of each other are one mode split in two; a mode with a
+# smaller fraction is one the images did not show (Initialisation).
 _MERGED = 2.0
+_LEAST_FRACTION = 0.05
 _SCHEMA = "diffeit.joint_fit"
 _SCHEMA_VERSION = 1
 
@@ -783,7 +791,7 @@ def _initial_values(
             calm, calm_noise = _one_step_images(model, frames, reference_frames, background, z, data_scale, calm)
             try:
                 found = fit_memory(calm, times, noise=calm_noise, progress=progress, throw=False)
-                memory = _modes_apart(found.memory, over_foam())
+                memory = _modes_apart(_determined(found.memory, float(times[-1] - times[0])), over_foam())
             except ValueError:  # no element rises above the images' noise: nothing to fit p to
                 memory = over_foam()
         if stimulus is None:
@@ -791,6 +799,17 @@ def _initial_values(
             threshold = _THRESHOLD * float(jnp.median(jnp.abs(derived)))
             stimulus = jnp.minimum(derived + threshold, 0.0)
     return background, z, memory, jnp.asarray(stimulus), data_scale
+
+
+def _determined(memory: MemoryParameters, duration: float) -> MemoryParameters:
+    """`memory`, or over_foam when a mode carries less than `_LEAST_FRACTION` of the response or
+    decays slower than the recording's `duration` (seconds) lasts (module docstring,
+    Initialisation)."""
+    fractions = (float(memory.fast_fraction), float(memory.slow_fraction))
+    times = (float(memory.fast_time), float(memory.slow_time))
+    if min(fractions) < _LEAST_FRACTION or max(times) > duration:
+        return over_foam()
+    return memory
 
 
 def _modes_apart(memory: MemoryParameters, preset: MemoryParameters) -> MemoryParameters:
