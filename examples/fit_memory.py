@@ -182,10 +182,13 @@ def main() -> None:
     plain = plain_images(found, model, frames)
     merit = figures(scene, found, plain)
     truth = scene.effect("memory")
-    print("memory parameter     truth    fitted   error")
+    bound = fit.memory_uncertainty(model, frames, found)
+    print("memory parameter     truth    fitted   error   reported standard error (what the data determine)")
     for name in COMPARED:
         fitted = float(getattr(found.memory, name))
-        print(f"  {name:18s} {float(getattr(truth, name)):7.3f}  {fitted:7.3f}  {merit.memory_errors[name]:+6.1%}")
+        error = merit.memory_errors[name]
+        true = float(getattr(truth, name))
+        print(f"  {name:18s} {true:7.3f}  {fitted:7.3f}  {error:+6.1%}  {bound.error_text(name)}")
     print(f"background: median {float(np.median(found.background)):.4g} S/sq (truth {BACKGROUND})")
     z = np.asarray(found.contact_impedance)
     print(f"contact impedance: {z.min():.3g} .. {z.max():.3g} ohm m (truth {float(np.mean(skin.contact_impedance))})")
