@@ -64,11 +64,10 @@ images of every frame against the mean reference frame (`diffeit.inverse.OneStep
 hyperparameter 20 noise/100: calm images, not sharp ones); the memory parameters from images
 calmer still, of hyperparameter at least 0.3 (`diffeit.fit.memory`; over_foam when no element of
 the images rises above their noise); the stimulus from the first images' exact `correct_memory`
-with those parameters, soft-thresholded at
-3 times its median |a|, positive parts dropped (a start with noise in every frame sits on the
-memory model's kinks). The memory fit's own stimulus, corrected with a dead band of 3 noise
-levels, was a worse start (the worked example's scene at 960 triangles: 2.4 times as many steps,
-and the presses' peaks 5-10% further apart).
+with those parameters, soft-thresholded at 3 times its median |a|, positive parts dropped (a
+start with noise in every frame sits on the memory model's kinks). The memory fit's own
+stimulus, corrected with a dead band of 3 noise levels, was a worse start (the worked example's
+scene at 960 triangles: 2.4 times as many steps, and the presses' peaks 5-10% further apart).
 
 When the memory fit gives a mode that carries less than 5% of the response, or one that decays
 slower than the recording lasts, the images did not determine it (frames that never see a mode

@@ -19,10 +19,10 @@ taken as known. Freed, each only widens the errors.
 ## Reading it
 A relative error of 0.3 means the frames cannot tell the parameter from 30% more or less, at one
 standard deviation. Correlations near +-1 name trade-offs: the two mode fractions trade almost
-exactly with each other (their sum is determined better than either), and each fraction with its
-time constant (a slower mode of smaller share decays alike over the frames seen). More frames, a
-lower noise, and holds and gaps that span both time constants narrow them; the noise widens them
-in proportion.
+exactly with each other (their sum is determined better than either), and the fractions with the
+time constants (a share moved from one mode to the other is made up by their decay times). More
+frames, a lower noise, and holds and gaps that span both time constants narrow them; the noise
+widens them in proportion.
 """
 
 from __future__ import annotations
