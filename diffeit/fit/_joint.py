@@ -784,10 +784,14 @@ def _initial_values(
         data_scale = DEFAULT_NOISE / 100 * rms if estimated_noise is None else float(estimated_noise)
     if memory is None or stimulus is None:
         sharp = _IMAGE_REGULARISATION * data_scale / rms
-        images, _ = _one_step_images(model, frames, reference_frames, background, z, data_scale, sharp)
+        images, image_noise = _one_step_images(model, frames, reference_frames, background, z, data_scale, sharp)
         if memory is None:
-            calm = max(sharp, _MEMORY_IMAGE_REGULARISATION)
-            calm, calm_noise = _one_step_images(model, frames, reference_frames, background, z, data_scale, calm)
+            if sharp >= _MEMORY_IMAGE_REGULARISATION:  # the images are calm enough already
+                calm, calm_noise = images, image_noise
+            else:
+                calm, calm_noise = _one_step_images(
+                    model, frames, reference_frames, background, z, data_scale, _MEMORY_IMAGE_REGULARISATION
+                )
             try:
                 found = fit_memory(calm, times, noise=calm_noise, progress=progress, throw=False)
                 memory = _modes_apart(_determined(found.memory, float(times[-1] - times[0])), over_foam())
