@@ -14,6 +14,7 @@ from . import linear_solve as linear_solve
 from . import mesh as mesh
 from . import metrics as metrics
 from . import protocol as protocol
+from . import reconstruction as reconstruction
 from . import render as render
 from . import results as results
 from . import scene as scene
@@ -25,6 +26,7 @@ from .linear_solve import DenseCholesky as DenseCholesky
 from .linear_solve import HostSparse as HostSparse
 from .mesh import Mesh as Mesh
 from .protocol import Protocol as Protocol
+from .reconstruction import reconstruct as reconstruct
 from .scene import Scene as Scene
 from .scene import simulate as simulate
 

@@ -115,6 +115,36 @@ class Protocol(StaticData):
             f"n_measurements={self.n_measurements})"
         )
 
+    def select(self, readings: ArrayLike) -> Protocol:
+        """The protocol of the readings `readings` (a boolean mask (n_measurements,) or
+        indices, kept in this protocol's order): masking broken channels. Drives keep their
+        index; a drive left without readings keeps its pattern and reads nothing."""
+        keep = np.zeros(self.n_measurements, dtype=bool)
+        chosen = np.asarray(readings)
+        if chosen.dtype == bool:
+            if chosen.shape != keep.shape:
+                raise ValueError(f"a reading mask has shape ({self.n_measurements},); got {chosen.shape}")
+            keep = chosen
+        else:
+            if chosen.size and (chosen.min() < 0 or chosen.max() >= self.n_measurements):
+                raise ValueError(f"reading indices must be in 0..{self.n_measurements - 1}")
+            keep[chosen.astype(int)] = True
+        if not keep.any():
+            raise ValueError("no readings are left: a protocol needs at least one")
+        return Protocol(self.drive, [self.measure[keep & (self.drive_index == k)] for k in range(self.n_drives)])
+
+    def relabel(self, position: ArrayLike) -> Protocol:
+        """The same readings with electrode l of this protocol placed at electrode
+        `position[l]` of the sheet (a permutation of 0..L-1): an instrument whose electrodes
+        are numbered the other way round (`position[l] = -l mod L`) or from another first
+        electrode (`position[l] = l + 1 mod L`). Order and sign of the readings are kept."""
+        position = np.asarray(position)
+        if sorted(position.tolist()) != list(range(self.n_electrodes)):
+            raise ValueError(f"position must be a permutation of 0..{self.n_electrodes - 1}; got {position}")
+        order = np.argsort(position)  # sheet electrode j is this protocol's electrode order[j]
+        per_drive = [self.measure[self.drive_index == k][:, order] for k in range(self.n_drives)]
+        return Protocol(self.drive[:, order], per_drive)
+
 
 # ---------------------------------------------------------------------------------------------
 # Pair protocols (EIDORS's mk_stim_patterns conventions)

@@ -42,30 +42,61 @@ def _centroid(mesh: de.Mesh, image: np.ndarray) -> np.ndarray:
 def test_reconstruct_images_every_frame_of_a_frames_file(tmp_path, simulated, capsys):
     frames = write_frames(tmp_path / "touches.h5", simulated)
     assert main(["reconstruct", str(frames), "-o", str(tmp_path / "out"), "--background", "1.0"]) == 0
-    assert "wrote" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "3 frames" in printed and "wrote" in printed
+    assert "correlation 1.000" in printed and "calibrated differences" in printed
     strip = matplotlib.image.imread(tmp_path / "out.png")
     assert strip.shape[1] > 3 * strip.shape[0] / 2  # three panels side by side
     out = read_frames(tmp_path / "out.h5")
     mesh = out.mesh
     assert mesh.n_elements == de.mesh.disc(16, electrode_width=0.2, h=0.15).n_elements  # built from the geometry
-    assert out.images.shape == (3, mesh.n_elements) and out.image_quantity == "conductivity change"
+    assert out.images.shape == (3, mesh.n_elements) and out.image_quantity == "conductivity change"  # volts
     np.testing.assert_array_equal(out.frames, simulated.frames)
     np.testing.assert_array_equal(out.reference, simulated.reference)
-    assert out.provenance["metadata"]["hyperparameter"] == 0.1
+    metadata = out.provenance["metadata"]
+    assert metadata["input"] == str(frames) and metadata["method"] == "one_step" and metadata["prior"] == "noser"
+    # The defaults of diffeit.reconstruct: calibrated to the reference, the hyperparameter chosen from the frames.
+    assert metadata["calibrated"] and metadata["difference"] == "calibrated"
+    assert metadata["calibration"]["correlation"] > 0.999 and metadata["calibration"]["misfit"] < 1e-6
+    assert metadata["calibration"]["orientation"] == "as recorded"
+    assert metadata["calibration"]["conductivity"] == pytest.approx(BACKGROUND)
+    assert metadata["hyperparameter_choice"]["method"] in ("lcurve", "noise_figure")
+    assert f"hyperparameter {metadata['hyperparameter']:.3g} (auto: " in printed
     for image, touch in zip(out.images, TOUCHES, strict=True):
         assert image[np.argmax(np.abs(image))] < 0  # a touch lowers the conductivity
         error = np.linalg.norm(_centroid(mesh, image) - touch)
         assert error < 0.1, f"touch at {touch} imaged {error:.3f} m away"  # half the touch radius
+    peak = out.images.flat[np.argmax(np.abs(out.images))]
+    assert f"conductivity change: peak {peak:.3e} S/sq" in printed
+
+
+def test_options_reach_reconstruct(tmp_path, simulated, capsys):
+    frames = write_frames(tmp_path / "touches.h5", simulated)
+    arguments = ["reconstruct", str(frames), "-o", str(tmp_path / "out"), "--hyperparameter", "0.3"]
+    arguments += ["--no-calibrate", "--difference", "normalised", "--prior", "laplace", "--h", "0.2"]
+    arguments += ["--contact-impedance", "0.02", "--driven-readings", "drop"]
+    assert main(arguments) == 0
+    assert "hyperparameter 0.3 (given)" in capsys.readouterr().out
+    out = read_frames(tmp_path / "out.h5")
+    metadata = out.provenance["metadata"]
+    assert metadata["hyperparameter"] == 0.3 and metadata["hyperparameter_choice"] == {"rule": "given"}
+    assert not metadata["calibrated"] and metadata["difference"] == "normalised" and metadata["prior"] == "laplace"
+    assert metadata["contact_impedance"] == 0.02 and metadata["background"] == 1.0
+    assert out.mesh.n_elements == de.mesh.disc(16, electrode_width=0.2, h=0.2).n_elements  # the geometry at --h
 
 
 def test_reference_frame_option_and_a_file_without_reference(tmp_path, simulated, capsys):
     without = write_frames(tmp_path / "plain.h5", Recording(**{**_fields(simulated), "reference": None}))
-    assert main(["reconstruct", str(without), "-o", str(tmp_path / "a")]) == 2
-    assert "has no reference frame; choose one with --reference-frame K" in capsys.readouterr().err
+    assert main(["reconstruct", str(without), "-o", str(tmp_path / "a")]) == 0
+    # Without a reference, the mean of the first frames is one.
+    metadata = read_frames(tmp_path / "a.h5").provenance["metadata"]
+    assert metadata["reference"] == "mean of the first 3 frames"
+    np.testing.assert_allclose(read_frames(tmp_path / "a.h5").reference, simulated.frames.mean(axis=0))
     assert main(["reconstruct", str(without), "-o", str(tmp_path / "b"), "--reference-frame", "0"]) == 0
-    images = read_frames(tmp_path / "b.h5").images
-    np.testing.assert_array_equal(images[0], 0.0)  # frame 0 against itself
-    assert np.abs(images[1]).max() > 0
+    out = read_frames(tmp_path / "b.h5")
+    assert out.provenance["metadata"]["reference"] == "frame 0"
+    np.testing.assert_array_equal(out.images[0], 0.0)  # frame 0 against itself
+    assert np.abs(out.images[1]).max() > 0
 
 
 def _fields(recording: Recording) -> dict:
@@ -91,19 +122,36 @@ def test_bad_inputs_exit_with_a_clear_message(tmp_path, simulated, capsys):
     assert main(["reconstruct", str(frames), "-o", str(tmp_path / "y"), "--prior", "magic"]) == 2
     assert "unknown prior 'magic'" in capsys.readouterr().err
     assert main(["reconstruct", str(frames), "-o", str(tmp_path / "z"), "--hyperparameter", "large"]) == 2
-    assert "--hyperparameter must be a number or gcv or lcurve; got 'large'" in capsys.readouterr().err
+    message = "--hyperparameter must be a number or auto or gcv or lcurve or noise_figure; got 'large'"
+    assert message in capsys.readouterr().err
+    assert main(["reconstruct", str(frames), "-o", str(tmp_path / "z"), "--hyperparameter", "-1"]) == 2
+    assert "hyperparameter must be finite and positive" in capsys.readouterr().err
+    assert main(["reconstruct", str(frames), "-o", str(tmp_path / "z"), "--reference-frame", "7"]) == 2
+    assert capsys.readouterr().err.startswith("diffeit reconstruct: error:")
+    assert not (tmp_path / "z.png").exists() and not (tmp_path / "z.h5").exists()
 
 
-@pytest.mark.slow
-def test_reconstruct_an_eidors_mat_file(tmp_path):
+def test_reconstruct_an_eidors_mat_file_with_the_defaults(tmp_path, capsys):
     arguments = ["reconstruct", str(MONTREAL), "-o", str(tmp_path / "rod.png"), "--variable", "zc_demo3"]
-    arguments += ["--reference-variable", "zc_h_demo3", "--difference", "relative", "--h", "0.15", "--frame-rate", "7"]
-    arguments += ["--hyperparameter", "lcurve"]  # chosen from the data (about 1 here; 0.1 breaks the rod up)
+    arguments += ["--reference-variable", "zc_h_demo3", "--h", "0.15", "--frame-rate", "7"]
     assert main(arguments) == 0
+    printed = capsys.readouterr().out
+    # The Montreal reference does not look like the model's (gains per channel): the user is told.
+    assert "warning: the model does not reproduce the reference (correlation -0.48" in printed
+    assert "correlation -0.479" in printed.split("calibration:")[1] and "normalised differences" in printed
     out = read_frames(tmp_path / "rod.h5")
     assert out.images.shape == (99, out.mesh.n_elements) and out.voltage_unit == "arbitrary"
+    assert out.mesh.n_elements == de.mesh.disc(16, electrode_width=np.pi / 16, h=0.15).n_elements  # default disc
+    assert out.image_quantity == "relative conductivity change" and out.readings == "magnitude"
     assert out.times[-1] == pytest.approx(98 / 7)
+    peak = out.images.flat[np.argmax(np.abs(out.images))]
+    assert f"relative conductivity change: peak {peak:.3e}\n" in printed
     # The rod is non-conductive: every frame's strongest change is a decrease.
     assert np.all(out.images.min(axis=1) < -out.images.max(axis=1))
     metadata = out.provenance["metadata"]
-    assert metadata["hyperparameter_choice"] == "lcurve" and 0.3 < metadata["hyperparameter"] < 3
+    assert metadata["hyperparameter_choice"]["method"] in ("lcurve", "noise_figure")
+    assert metadata["difference"] == "normalised" and metadata["input"] == str(MONTREAL)
+    assert metadata["variable"] == "zc_demo3" and metadata["reference_variable"] == "zc_h_demo3"
+    assert metadata["calibration"]["correlation"] == pytest.approx(-0.48, abs=0.01)
+    assert any("does not reproduce the reference" in note for note in metadata["warnings"])
+    assert metadata["calibration"]["warnings"]  # the calibration's own record

@@ -40,7 +40,11 @@ def test_simulate_then_reconstruct(tmp_path, capsys):
     images = de.io.read_frames(tmp_path / "images.h5")
     # Reconstructed on the coarse mesh of the scene's skin, with its background of 0.01 S/sq.
     assert images.mesh.n_elements == simulation.scene.reconstruction_mesh().n_elements < simulation.mesh.n_elements
-    assert images.provenance["metadata"]["background"] == 0.01
+    metadata = images.provenance["metadata"]
+    assert metadata["background"] == 0.01 and metadata["input"] == str(frames)
+    assert metadata["calibration"]["correlation"] > 0.99 and metadata["difference"] == "calibrated"
+    assert metadata["calibration"]["conductivity"] == pytest.approx(0.01, rel=0.05)  # the scene's level
+    assert images.image_quantity == "conductivity change"
     pressed = images.images[3]
     peak = pressed[np.argmax(np.abs(pressed))]
     assert -0.01 < peak < -0.001  # a conductivity drop of the order of 0.4 x 0.01 S/sq

@@ -277,8 +277,11 @@ def test_montreal_frames_are_columns_with_zeros_on_driven_pairs():
     assert recording.reference[:3].tolist() == [4752.0, 5768.0, 14738.0]
     np.testing.assert_allclose(recording.times[:3], [0.0, 1 / 7, 2 / 7])
     assert recording.protocol.n_measurements == 208 and recording.voltage_unit == "arbitrary"
+    # ADC magnitudes, never negative (the readme: "absolute value of measured signal").
+    assert recording.readings == "magnitude"
     metadata = recording.provenance["metadata"]
     assert metadata["orientation"] == "columns are frames" and metadata["driven_pair_values"] == "zero"
+    assert metadata["driven_readings"] == "dropped" and metadata["complex_part"] is None
 
 
 def test_montreal_every_variable_and_the_driven_pair_decision():
@@ -295,13 +298,23 @@ def test_montreal_every_variable_and_the_driven_pair_decision():
         "zc_breathhold": 34,
         "zc_stomach_0_5_60min": 13,
     }
-    # The stomach frames record a value on the driven pairs: dropped, and said so; strict refuses.
-    stomach = recordings["zc_stomach_0_5_60min"]
-    assert stomach.provenance["metadata"]["driven_pair_values"] == "non-zero, dropped"
+    assert {r.readings for r in recordings.values()} == {"magnitude"}
+    # The stomach frames record a value on every driven pair: kept (256 readings); dropped when
+    # asked, and said so; strict refuses dropping them.
     raw = scipy.io.loadmat(MONTREAL)["zc_stomach_0_5_60min"]
-    np.testing.assert_array_equal(stomach.frames, raw[np.setdiff1d(np.arange(256), _driven_positions())].T)
-    with pytest.raises(ValueError, match="strict=True refuses them"):
-        read_eidors_mat(MONTREAL, "zc_stomach_0_5_60min", strict=True)
+    stomach = recordings["zc_stomach_0_5_60min"]
+    assert stomach.provenance["metadata"]["driven_pair_values"] == "non-zero"
+    assert stomach.provenance["metadata"]["driven_readings"] == "kept"
+    np.testing.assert_array_equal(stomach.frames, raw.T)
+    assert stomach.protocol.n_measurements == 256
+    dropped = read_eidors_mat(MONTREAL, "zc_stomach_0_5_60min", driven_readings="drop")
+    assert dropped.provenance["metadata"]["driven_readings"] == "dropped"
+    np.testing.assert_array_equal(dropped.frames, raw[np.setdiff1d(np.arange(256), _driven_positions())].T)
+    with pytest.raises(ValueError, match=r"in frames \[0, 1, .* \(strict=True refuses them"):
+        read_eidors_mat(MONTREAL, "zc_stomach_0_5_60min", driven_readings="drop", strict=True)
+    # Against a reference with zeros on the driven pairs, the frames drop theirs too: one protocol.
+    against = read_eidors_mat(MONTREAL, "zc_stomach_0_5_60min", reference="zc_h_demo3")
+    assert against.protocol.n_measurements == 208 and against.reference.shape == (208,)
 
 
 def test_eidors_orientations_and_208_value_frames(tmp_path):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -13,16 +15,11 @@ import jax
 import numpy as np
 
 from ._errors import reporting_user_errors
-from ._model import ModelSettings, add_model_options
+from ._model import ModelSettings, _hyperparameter
 
 if TYPE_CHECKING:
     from ..io import Recording
     from ..mesh import Mesh
-
-# Frames reconstructed per batch: one matrix product each, and one step of the progress bar.
-_BATCH = 256
-# The hyperparameter selection methods `reconstruct` offers: those that need only the frames.
-_SELECTION_METHODS = ("gcv", "lcurve")
 
 
 def _demo(arguments: argparse.Namespace) -> int:
@@ -41,11 +38,16 @@ def _demo(arguments: argparse.Namespace) -> int:
 
 
 def _reconstruct_file(arguments: argparse.Namespace) -> int:
+    """`diffeit reconstruct FILE -o OUT`: `diffeit.reconstruct` on the file's recording, with its
+    defaults for every option not given."""
     from .. import io
     from ..plotting import plot_image_strip
+    from ..reconstruction import SELECTION_METHODS, CalibrationWarning, reconstruct
 
+    start = time.perf_counter()
     source = Path(arguments.frames)
     outputs = _output_paths(arguments.output, (".png", ".h5"), arguments.overwrite)
+    hyperparameter = _hyperparameter(arguments.hyperparameter, SELECTION_METHODS)
     if source.suffix.lower() == ".mat":
         if arguments.variable is None:
             raise ValueError(f"{source} is a .mat file: name the frames with --variable (and --reference-variable)")
@@ -58,47 +60,66 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         recording = io.read_frames(source)
     if recording.n_frames == 0:
         raise ValueError(f"{source} holds no frames")
-    if arguments.reference_frame is None and recording.reference is None:
-        raise ValueError(f"{source} has no reference frame; choose one with --reference-frame K")
 
-    settings = ModelSettings.from_arguments(arguments, methods=_SELECTION_METHODS, **_scene_settings(recording))
-    mesh = _mesh_of(recording, settings)
-    images, hyperparameter = reconstruct_recording(
-        recording, mesh, settings, reference_frame=arguments.reference_frame, difference=arguments.difference
+    # A simulated file's scene names its background and contact impedance; the options win.
+    given = {"background": arguments.background, "contact_impedance": arguments.contact_impedance}
+    model = {**_scene_settings(recording), **{name: value for name, value in given.items() if value is not None}}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CalibrationWarning)
+        reconstructed = reconstruct(
+            recording,
+            method=arguments.method,
+            prior=arguments.prior,
+            hyperparameter=hyperparameter,
+            calibrate=arguments.calibrate,
+            h=arguments.h,
+            reference_frame=arguments.reference_frame,
+            difference=arguments.difference,
+            driven_readings=arguments.driven_readings,
+            progress=True,
+            **model,
+        )
+    notes = []
+    for warning in caught:
+        if issubclass(warning.category, CalibrationWarning):
+            notes.append(str(warning.message))
+            print(f"warning: {warning.message}")
+        else:  # not ours to report: pass it on as it came
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+
+    metadata = reconstructed.provenance["metadata"]
+    extra = {"input": str(source), "reference_frame": arguments.reference_frame, "warnings": notes}
+    if source.suffix.lower() == ".mat":
+        extra |= {"variable": arguments.variable, "reference_variable": arguments.reference_variable}
+    reconstructed = dataclasses.replace(
+        reconstructed, provenance={**reconstructed.provenance, "metadata": {**metadata, **extra}}
     )
-    reconstructed = _with_images(
-        recording,
-        source,
-        "diffeit reconstruct",
-        reference=recording.reference_values(arguments.reference_frame),
-        mesh=mesh,
-        images=images,
-        image_quantity="conductivity change",
-        metadata={
-            "variable": arguments.variable,
-            "reference_frame": arguments.reference_frame,
-            "reference_variable": arguments.reference_variable,
-            "prior": settings.prior,
-            "hyperparameter": hyperparameter,
-            "hyperparameter_choice": settings.hyperparameter,
-            "background": settings.background,
-            "contact_impedance": settings.contact_impedance,
-            "difference": arguments.difference,
-        },
-    )
+    mesh, images, quantity = reconstructed.mesh, reconstructed.images, reconstructed.image_quantity
+    relative = quantity == "relative conductivity change"
+    value, choice = metadata["hyperparameter"], metadata["hyperparameter_choice"]
+    chosen = "given" if isinstance(hyperparameter, float) else choice["method"]
+    chosen = f"auto: {chosen}" if hyperparameter == "auto" else chosen
+    prior = "" if arguments.method == "total_variation" else f" {arguments.prior}"  # total variation has none
+    described = arguments.method.replace("_", " ") + prior
     shown = plot_image_strip(
         outputs[0],
         mesh,
         images,
-        times=recording.times,
+        times=reconstructed.times,
         max_panels=arguments.panels,
-        title=f"{source.name}: one-step {settings.prior}, hyperparameter {hyperparameter:.3g}",
+        title=f"{source.name}: {described}, hyperparameter {value:.3g}; {quantity}",
+        label="dsigma / sigma" if relative else "dsigma (S/sq)",
     )
     io.write_frames(outputs[1], reconstructed, overwrite=arguments.overwrite)
+    calibration = metadata["calibration"]
     peak = images.flat[np.argmax(np.abs(images))]
     print(
-        f"{recording.n_frames} frames, {mesh.n_elements} triangles; hyperparameter {hyperparameter:.3g}; "
-        f"peak dsigma {peak:.3e} S/sq\n"
+        f"{reconstructed.n_frames} frames, {mesh.n_elements} triangles; "
+        f"hyperparameter {value:.3g} ({chosen})\n"
+        f"calibration: misfit {calibration['misfit']:.3g}, correlation {calibration['correlation']:.3f}, "
+        f"orientation {calibration['orientation']}; {metadata['difference']} differences\n"
+        f"{quantity}: peak {peak:.3e}{'' if relative else ' S/sq'}\n"
+        f"reconstructed in {time.perf_counter() - start:.1f} s; "
         f"wrote {outputs[0]} ({len(shown)} panels) and {outputs[1]} (images {images.shape})"
     )
     return 0
@@ -169,71 +190,6 @@ def _mesh_of(recording: Recording, settings: ModelSettings) -> Mesh:
     return settings.unit_disc(recording.protocol.n_electrodes)
 
 
-def reconstruct_recording(
-    recording: Recording,
-    mesh: Mesh,
-    settings: ModelSettings | None = None,
-    *,
-    reference_frame: int | None = None,
-    difference: str = "plain",
-) -> tuple[np.ndarray, float]:
-    """(T, E) conductivity changes (S/sq) of every frame of `recording` on `mesh`, one-step, and
-    the hyperparameter used.
-
-    The reference is the recording's, or its frame `reference_frame`. `difference`:
-
-    - "plain": dV = V - V_ref. Frames not in volts (`voltage_unit` other than "V", such as
-      EIDORS files in device units) are scaled by RMS(V_model) / RMS(V_ref), V_model the
-      model's voltages at the background conductivity: one gain that puts them on the model's scale.
-    - "relative": normalised differences (V - V_ref) / V_ref, reading by reading
-      (`OneStep(..., normalised=True)`): they cancel per-channel gains and restore the sign
-      lost by devices that report magnitudes (the Montreal data).
-
-    `settings` (default `ModelSettings()`) name the model and the solver; a hyperparameter that
-    names a selection method of `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve") is
-    chosen from all the frames at once.
-    """
-    from tqdm import tqdm
-
-    from ..inverse import select_hyperparameter
-
-    settings = ModelSettings() if settings is None else settings
-    if difference not in ("plain", "relative"):
-        raise ValueError(f'difference must be "plain" or "relative"; got {difference!r}')
-    model = settings.model(mesh, recording.protocol)
-    reference = recording.reference_values(reference_frame)
-    dv = recording.difference(reference_frame=reference_frame)
-    relative = difference == "relative"
-    if not relative and recording.voltage_unit != "V":
-        model_reference = np.asarray(model.measure(np.full(mesh.n_elements, settings.background)))
-        dv = dv * _rms(model_reference) / _rms(reference)
-    options = {"reference": reference} if relative else {}
-    hyperparameter = settings.hyperparameter
-    if isinstance(hyperparameter, str):
-        hyperparameter = select_hyperparameter(
-            model,
-            dv,
-            hyperparameter,
-            prior=settings.prior,
-            background=settings.background,
-            normalised=relative,
-            throw=False,  # a choice at an end of the candidates is still used, as before
-            **options,
-        ).value
-    solver = settings.solver(model, hyperparameter=hyperparameter, normalised=relative)
-    batches = range(0, len(dv), _BATCH)
-    # tqdm's disable=None: a bar on a terminal only, and only when there are several batches.
-    progress = tqdm(batches, desc="reconstructing", unit="batch", disable=True if len(batches) < 2 else None)
-    images = np.concatenate(
-        [np.asarray(solver.reconstruct(dv[start : start + _BATCH], **options)) for start in progress]
-    )
-    return images, float(hyperparameter)
-
-
-def _rms(values: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(values))))
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the `diffeit` command with `argv` (default: the process's arguments); returns the
     exit status."""
@@ -248,20 +204,58 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct = commands.add_parser(
         "reconstruct",
         help="image every frame of a frames file (or an EIDORS .mat file) against its reference",
-        description="One-step difference reconstruction of every frame; writes OUT.png (an image strip) and "
-        "OUT.h5 (the images (T, E) with their mesh, a diffeit frames file). A simulated file's scene sets the "
-        "defaults of --background and --contact-impedance.",
+        description="diffeit.reconstruct on a file's recording, with its defaults for every option not given: "
+        "the model is calibrated to the reference (the file's, frame K with --reference-frame, else the mean of "
+        "the first frames; level, orientation, signs of magnitudes, broken readings), then every frame is imaged. "
+        "Writes OUT.png (an image strip) and OUT.h5 (a diffeit frames file with the images (T, E), their mesh and "
+        "the calibration in its provenance). Images are conductivity changes (S/sq) for frames in volts, else "
+        "relative conductivity changes. The sheet: the file's geometry, else its mesh, else a unit disc. A "
+        "simulated file's scene sets the defaults of --background and --contact-impedance.",
     )
     reconstruct.add_argument("frames", help="a diffeit frames file (.h5) or an EIDORS .mat file")
     reconstruct.add_argument("-o", "--output", required=True, help="output name: writes OUT.png and OUT.h5")
-    reconstruct.add_argument("--reference-frame", type=int, help="use frame K as the reference (default: the file's)")
-    add_model_options(reconstruct, methods=_SELECTION_METHODS)
+    reconstruct.add_argument(
+        "--method",
+        choices=("one_step", "gauss_newton", "total_variation"),
+        default="one_step",
+        help="the reconstruction (default one_step)",
+    )
+    reconstruct.add_argument("--prior", default="noser", help="prior of one_step and gauss_newton (default noser)")
+    reconstruct.add_argument(
+        "--hyperparameter",
+        default="auto",
+        help="unit-free regularisation weight, or a rule choosing it from all the frames: auto (the L-curve's "
+        "corner, else the noise figure), gcv, lcurve, noise_figure (default auto)",
+    )
+    reconstruct.add_argument(
+        "--no-calibrate",
+        dest="calibrate",
+        action="store_false",
+        help="image with the nominal model as it is: no fit of level, orientation or readings",
+    )
     reconstruct.add_argument(
         "--difference",
-        choices=("plain", "relative"),
-        default="plain",
-        help="plain V - V_ref, or relative (normalised) (V - V_ref) / V_ref times the model's reference",
+        choices=("auto", "calibrated", "normalised"),
+        default="auto",
+        help="calibrated V - V_ref, or normalised (V - V_ref) / V_ref times the model's voltages (gains per "
+        "reading); auto: calibrated when the calibrated model reproduces the reference (default auto)",
     )
+    reconstruct.add_argument(
+        "--driven-readings",
+        choices=("auto", "keep", "drop"),
+        default="auto",
+        help="readings on driven electrodes: kept when the model reproduces them (auto, default), or forced",
+    )
+    reconstruct.add_argument(
+        "--reference-frame",
+        type=int,
+        help="use frame K as the reference (default: the file's, else the mean of its first frames)",
+    )
+    reconstruct.add_argument(
+        "--h", type=float, help="element size (m) of the mesh built from the file's geometry or the default disc"
+    )
+    reconstruct.add_argument("--background", type=float, help="nominal background conductivity, S/sq (default 1)")
+    reconstruct.add_argument("--contact-impedance", type=float, help="nominal contact impedance, ohm m (default 0.01)")
     reconstruct.add_argument("--panels", type=int, default=12, help="most panels in the image strip (default 12)")
     reconstruct.add_argument("--variable", help=".mat files: the variable holding the frames")
     reconstruct.add_argument("--reference-variable", help=".mat files: the variable holding the reference frame")

@@ -6,12 +6,13 @@ of other formats (EIDORS .mat files).
 on it alone.
 
 In memory a data set is a `Recording` (frames, times, protocol, reference, mesh or geometry,
-provenance, images). `write_frames(path, recording)` writes one file (refusing to replace an
-existing file unless `overwrite=True`), `append_frames(path, frames, times)` grows it (a
-recorder), `read_frames(path)` reads and validates it. Readers of other recordings, each
-mapping the frames to a diffeit protocol: `read_eidors_mat(path, variable)` (EIDORS-style
-MATLAB frames), `read_openeit(path)` (OpenEIT text logs, its opposition layout), `read_csv(path)`
-(one frame a row).
+provenance, images, and what a reading is: signed, or a magnitude). `write_frames(path,
+recording)` writes one file (refusing to replace an existing file unless `overwrite=True`),
+`append_frames(path, frames, times)` grows it (a recorder), `read_frames(path)` reads and
+validates it. Readers of other recordings, each mapping the frames to a diffeit protocol:
+`read_eidors_mat(path, variable)` (EIDORS-style MATLAB frames, real or complex, with or
+without the readings on driven electrodes), `read_openeit(path)` (OpenEIT text logs, its
+opposition layout, magnitudes), `read_csv(path)` (one frame a row).
 
 The frames file (HDF5, schema "diffeit.frames", version 1):
 
@@ -20,10 +21,12 @@ The frames file (HDF5, schema "diffeit.frames", version 1):
                        schema = "diffeit.frames", schema_version = 1 (int)
                        diffeit_version (str), created_utc (ISO 8601, UTC), source (str)
                        metadata (str): free-form user metadata as JSON
-/frames              (T, n_meas) float64, attribute units: "V" (or "arbitrary": device units);
+/frames              (T, n_meas) float64, attributes units: "V" (or "arbitrary": device units)
+                     and readings: "signed" (the protocol's sign; read as such when absent) or
+                     "magnitude" (|V|, never negative: the instrument loses the sign);
                      resizable along T (maxshape (None, n_meas)), chunked by 64 frames
 /times               (T,) float64, attribute units = "s"; resizable like frames
-/reference           (n_meas,) float64, units as frames                      [optional]
+/reference           (n_meas,) float64, units and readings as frames         [optional]
 /protocol/drive      (n_drives, L) float64: current into each electrode per drive, in multiples
                      of the model's drive current (positive into the sheet)
 /protocol/measure    (n_meas, L) float64: the weights of each reading, sum_l w_l U_l

@@ -12,7 +12,10 @@ import scipy.io
 
 from .._messages import name_indices
 from ..protocol import adjacent, from_full_layout, to_full_layout
-from ._recording import Recording
+from ._recording import READINGS, Recording
+
+COMPLEX_PARTS = ("real", "magnitude")
+DRIVEN_READINGS = ("auto", "keep", "drop")
 
 
 def read_eidors_mat(
@@ -23,29 +26,48 @@ def read_eidors_mat(
     n_electrodes: int = 16,
     frame_rate: float = 1.0,
     strict: bool = False,
+    complex_part: str = "real",
+    driven_readings: str = "auto",
+    readings: str | None = None,
 ) -> Recording | dict[str, Recording]:
     """Adjacent-drive frames from a MATLAB .mat file as EIDORS data sets store them.
 
-    Each variable holds frames of either layout, which are read into `adjacent(n_electrodes)`
-    (16 electrodes: 208 readings, EIDORS's `mk_stim_patterns(16,1,'{ad}','{ad}',
-    {'no_meas_current'},1)` order):
+    Each variable holds frames of either layout:
 
-    - the full n x n layout (256 values): value n * k + m is drive k, pair (m, m+1), with zeros
-      where the pair touches electrode k or k+1 (see `diffeit.protocol.to_full_layout`);
-    - n(n-3) values (208), already in adjacent order.
+    - the full n x n layout (256 values for 16 electrodes): value n * k + m is drive k (in at
+      k+1, out at k), pair (m, m+1), U_m - U_(m+1), for every m, with zeros where the pair
+      touches electrode k or k+1 unless the system measured there (EIDORS 'meas_current'). This
+      is `adjacent(n, measure_driven=True)`'s order and sign (see
+      `diffeit.protocol.to_full_layout`);
+    - n(n-3) values (208), `adjacent(n)`'s order and sign (EIDORS's `mk_stim_patterns(16, 1,
+      '{ad}', '{ad}', {'no_meas_current'}, 1)`).
 
     Orientation: EIDORS stores one frame per matrix column (the Montreal set: (256, T)), so
     a matrix whose first dimension has a frame's length is read column by column; otherwise
     one whose second dimension has it is read row by row (a (256, 256) matrix is taken as
     columns). A vector is one frame.
 
-    Driven pairs: the 3n values on pairs that touch a driven electrode are dropped. EIDORS
-    data hold zeros there, but some sets record a reading (the Montreal stomach frames hold
-    values of the order of the largest readings: the voltage across the contact impedance). So
-    non-zero driven-pair values are accepted and dropped (`provenance["metadata"]
-    ["driven_pair_values"]` says which), unless `strict=True`, which refuses them. What is
-    refused always: non-zero driven pairs together with readings that are zero in every frame,
-    as that means zeros sit elsewhere: a different layout (rotated measurements, another drive).
+    Complex values (EIDORS files hold complex voltages, e.g. the IIRC 2006 set): by default the
+    real, in-phase part is read. diffeit's model is resistive, so the in-phase part is what a
+    conductivity model predicts; the magnitude adds the quadrature (capacitive) part and loses
+    the sign. `complex_part="magnitude"` reads |V| all the same, as `readings="magnitude"`.
+
+    Driven pairs, the 3n readings on pairs that touch a driven electrode: EIDORS files hold
+    zeros there, unless the system measured them ('meas_current': the IIRC 2006 set; the
+    Montreal stomach frames), where they are dominated by the contact impedance.
+    `driven_readings="auto"` keeps them (protocol `adjacent(n, measure_driven=True)`, n * n
+    readings) when every one of them is non-zero in every frame of the variable and of the
+    reference, and drops them otherwise (protocol `adjacent(n)`); "keep" keeps them (refusing
+    a variable or reference that holds none: n(n-3) values or zeros throughout); "drop" drops
+    them, and then accepts non-zero values there unless `strict=True`. What is refused always:
+    non-zero driven pairs together with readings that are zero in every frame, as that means
+    zeros sit elsewhere: a different layout (rotated measurements, another drive).
+
+    Readings (see `Recording`): `readings=None` decides from the values: "magnitude" when
+    complex values are read as magnitudes, or when every value of the variable and the
+    reference, as read, is >= 0 (signed adjacent-drive frames always hold negative readings:
+    U_m - U_(m+1) changes sign round the boundary); "signed" otherwise. "signed" or
+    "magnitude" overrides.
 
     **Arguments:**
 
@@ -56,19 +78,33 @@ def read_eidors_mat(
     - `n_electrodes`: electrodes of the adjacent protocol.
     - `frame_rate`: frames per second; the files carry no times, so frame t is at
       t / frame_rate seconds (the Montreal sets: 7 frames/s).
-    - `strict`: refuse frames whose driven-pair values are not zero.
+    - `strict`: with the driven pairs dropped, refuse frames whose driven-pair values are not zero.
+    - `complex_part`: "real" (default) or "magnitude", how complex values are read.
+    - `driven_readings`: "auto" (default), "keep" or "drop".
+    - `readings`: None (default: from the values), "signed" or "magnitude".
 
     **Returns:** a `Recording` (float64 frames, no mesh, `voltage_unit="arbitrary"`: EIDORS
     files store device units, the Montreal sets ADC magnitudes), or with `variable=None` a dict
-    of them by variable name.
+    of them by variable name. `provenance["metadata"]` records the layout, orientation,
+    `complex_part` (None for real values), `driven_pair_values` ("zero", "non-zero" or "some
+    zero"; absent for n(n-3) values) and `driven_readings` ("kept", "dropped", or "absent" for
+    n(n-3) values).
 
     **Raises:** `FileNotFoundError` for a missing file; `ValueError` naming the file and the
     problem for an unreadable file, an unknown variable, a shape of neither layout, non-finite
-    or complex values, a misplaced layout, a reference of more than one frame.
+    values, a misplaced layout, a reference of more than one frame, driven readings to keep
+    that are not there, negative values read as magnitudes.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:
         raise ValueError(f"frame_rate must be positive (frames per second); got {frame_rate}")
+    for name, value, allowed in (
+        ("complex_part", complex_part, COMPLEX_PARTS),
+        ("driven_readings", driven_readings, DRIVEN_READINGS),
+        ("readings", readings, (None, *READINGS)),
+    ):
+        if value not in allowed:
+            raise ValueError(f"{name} must be one of {allowed}; got {value!r}")
     if not path.exists():
         raise FileNotFoundError(f"no such .mat file: {path}")
     try:
@@ -76,24 +112,24 @@ def read_eidors_mat(
     except (ValueError, TypeError, NotImplementedError, OSError) as error:
         raise ValueError(f"{path} is not a MATLAB file scipy can read (v7.3 files are HDF5): {error}") from None
     arrays = {name: value for name, value in contents.items() if not name.startswith("__")}
-    sizes = (n_electrodes * n_electrodes, n_electrodes * (n_electrodes - 3))
+    n = n_electrodes
+    sizes = (n * n, n * (n - 3))
 
-    def load(name: str) -> tuple[np.ndarray, dict[str, Any]]:
+    def load(name: str) -> tuple[np.ndarray, bool, dict[str, Any]]:
         if name not in arrays:
             raise ValueError(f"{path} has no variable {name!r}; it has {_describe(arrays)}")
         try:
-            return _adjacent_frames(arrays[name], n_electrodes, strict)
+            return _file_frames(arrays[name], n, complex_part)
         except ValueError as error:
             raise ValueError(f"{path}, variable {name!r}: {error}") from None
 
-    reference_frame = None
+    reference_values, reference_complex = None, False
     if reference is not None:
-        reference_frames, _ = load(reference)
-        if len(reference_frames) != 1:
+        reference_values, reference_complex, _ = load(reference)
+        if len(reference_values) != 1:
             raise ValueError(
-                f"{path}, variable {reference!r} holds {len(reference_frames)} frames; a reference is one frame"
+                f"{path}, variable {reference!r} holds {len(reference_values)} frames; a reference is one frame"
             )
-        reference_frame = reference_frames[0]
     if variable is None:
         names = [name for name, value in arrays.items() if _holds_frames(value, sizes)]
         if not names:
@@ -102,36 +138,55 @@ def read_eidors_mat(
         names = [variable]
     recordings = {}
     for name in names:
-        frames, details = load(name)
-        recordings[name] = Recording(
-            frames=frames,
-            times=np.arange(len(frames)) / frame_rate,
-            protocol=adjacent(n_electrodes),
-            reference=reference_frame,
-            provenance={
-                "source": f"EIDORS .mat file {path.name}, variable {name}",
-                "metadata": {
-                    "file": str(path),
-                    "variable": name,
-                    "reference_variable": reference,
-                    "frame_rate": frame_rate,
-                    **details,
+        values, is_complex, details = load(name)
+        parts = {"the frames": values}  # what a message calls each array: values
+        if reference_values is not None:
+            parts[f"the reference {reference!r}"] = reference_values
+            is_complex = is_complex or reference_complex
+        try:
+            keep = _keep_driven(parts, n, driven_readings)
+            if strict and not keep:
+                _refuse_driven_values(parts, n)
+        except ValueError as error:
+            raise ValueError(f"{path}, variable {name!r}: {error}") from None
+        frames, reference_frame = (_in_protocol(v, n, keep) for v in (values, reference_values))
+        chosen = readings
+        if chosen is None:
+            magnitudes = is_complex and complex_part == "magnitude"
+            chosen = "magnitude" if magnitudes or all(np.all(v >= 0) for v in parts.values()) else "signed"
+        try:
+            recordings[name] = Recording(
+                frames=frames,
+                times=np.arange(len(frames)) / frame_rate,
+                protocol=adjacent(n, measure_driven=keep),
+                reference=None if reference_frame is None else reference_frame[0],
+                provenance={
+                    "source": f"EIDORS .mat file {path.name}, variable {name}",
+                    "metadata": {
+                        "file": str(path),
+                        "variable": name,
+                        "reference_variable": reference,
+                        "frame_rate": frame_rate,
+                        **details,
+                        "complex_part": complex_part if is_complex else None,
+                        "driven_readings": "kept" if keep else "dropped" if values.shape[1] == n * n else "absent",
+                    },
                 },
-            },
-            voltage_unit="arbitrary",
-        )
+                voltage_unit="arbitrary",
+                readings=chosen,
+            )
+        except ValueError as error:
+            raise ValueError(f"{path}, variable {name!r}: {error}") from None
     return recordings if variable is None else recordings[variable]
 
 
-def _adjacent_frames(value: Any, n: int, strict: bool) -> tuple[np.ndarray, dict[str, Any]]:
-    """(T, n(n-3)) adjacent frames of a variable, and how they were laid out."""
+def _file_frames(value: Any, n: int, complex_part: str) -> tuple[np.ndarray, bool, dict[str, Any]]:
+    """(T, n * n or n(n-3)) real frames of a variable in the file's layout, whether the file
+    held complex values, and how the frames were laid out."""
     full, short = n * n, n * (n - 3)
     array = np.asarray(value)
-    if np.iscomplexobj(array):
-        raise ValueError("holds complex values; take the magnitude or the real part first")
     if not np.issubdtype(array.dtype, np.number):
         raise ValueError(f"holds {array.dtype} values, not numbers")
-    array = array.astype(np.float64)
     if array.ndim == 1 or (array.ndim == 2 and 1 in array.shape):
         array, orientation = array.reshape(1, -1), "one frame"
     elif array.ndim == 2 and array.shape[0] in (full, short):
@@ -140,14 +195,18 @@ def _adjacent_frames(value: Any, n: int, strict: bool) -> tuple[np.ndarray, dict
         orientation = "rows are frames"
     if array.ndim != 2 or array.shape[1] not in (full, short):
         raise ValueError(f"has shape {np.shape(value)}; frames of {n} electrodes have {full} or {short} values")
-    if not np.all(np.isfinite(array)):
+    if not np.all(np.isfinite(array)):  # complex: either part, also the one not read
         bad = np.flatnonzero(~np.all(np.isfinite(array), axis=1))
         raise ValueError(f"frames {name_indices(bad)} hold non-finite values")
+    is_complex = np.iscomplexobj(array)
+    if is_complex:
+        array = np.abs(array) if complex_part == "magnitude" else array.real
+    array = array.astype(np.float64)
     if array.shape[1] == short:
-        return array, {"layout": f"adjacent, {short} values", "orientation": orientation}
-    driven = to_full_layout(np.ones(short), n) == 0  # the 3n places of pairs touching a driven electrode
-    zero_driven = not np.any(array[:, driven])
-    if not zero_driven:
+        return array, is_complex, {"layout": f"adjacent, {short} values", "orientation": orientation}
+    driven = _driven(n)
+    driven_values = array[:, driven]
+    if np.any(driven_values):
         silent = np.flatnonzero(~np.any(array, axis=0) & ~driven)
         if len(silent):
             raise ValueError(
@@ -155,18 +214,61 @@ def _adjacent_frames(value: Any, n: int, strict: bool) -> tuple[np.ndarray, dict
                 f"(values {name_indices(np.flatnonzero(driven))}) are not: these frames are not in the "
                 f"{n} x {n} adjacent layout (value {n} * drive + m, pair (m, m+1), measurements from m = 0)"
             )
-        if strict:
-            frames = np.flatnonzero(np.any(array[:, driven], axis=1))
+        described = "non-zero" if np.all(driven_values) else "some zero"
+    else:
+        described = "zero"
+    details = {
+        "layout": f"{n} x {n}, value {n} * drive + m is pair (m, m+1) (EIDORS)",
+        "orientation": orientation,
+        "driven_pair_values": described,
+    }
+    return array, is_complex, details
+
+
+def _driven(n: int) -> np.ndarray:
+    """(n * n,) bool: the 3n places of the full layout on pairs that touch a driven electrode."""
+    return np.asarray(to_full_layout(np.ones(n * (n - 3)), n)) == 0
+
+
+def _keep_driven(parts: dict[str, np.ndarray], n: int, driven_readings: str) -> bool:
+    """Whether to keep the driven-pair readings of the frames and the reference (`parts`, by
+    what a message calls them)."""
+    if driven_readings == "drop":
+        return False
+    if driven_readings == "auto":
+        return all(array.shape[1] == n * n and np.all(array[:, _driven(n)]) for array in parts.values())
+    for what, array in parts.items():
+        if array.shape[1] != n * n:
             raise ValueError(
-                f"frames {name_indices(frames)} hold non-zero values on pairs touching driven electrodes "
+                f'{what} hold {array.shape[1]} values, no driven-pair readings to keep (driven_readings="keep")'
+            )
+        if not np.any(array[:, _driven(n)]):
+            raise ValueError(
+                f'{what} hold zeros on every driven pair: nothing was measured there to keep (driven_readings="keep"); '
+                'use driven_readings="drop"'
+            )
+    return True
+
+
+def _refuse_driven_values(parts: dict[str, np.ndarray], n: int) -> None:
+    """strict: refuse non-zero values on the driven pairs that are dropped."""
+    for what, array in parts.items():
+        if array.shape[1] != n * n:
+            continue
+        frames = np.flatnonzero(np.any(array[:, _driven(n)], axis=1))
+        if len(frames):
+            raise ValueError(
+                f"{what} hold non-zero values on pairs touching driven electrodes in frames {name_indices(frames)} "
                 "(strict=True refuses them; without it they are dropped)"
             )
-    details = {
-        "layout": f"{n} x {n} with zeros at pairs touching driven electrodes (EIDORS)",
-        "orientation": orientation,
-        "driven_pair_values": "zero" if zero_driven else "non-zero, dropped",
-    }
-    return np.asarray(from_full_layout(array, n)), details
+
+
+def _in_protocol(array: np.ndarray | None, n: int, keep: bool) -> np.ndarray | None:
+    """Frames in the file's layout in the order of `adjacent(n, measure_driven=keep)`: the full
+    layout is already `adjacent(n, measure_driven=True)`'s order and sign."""
+    if array is None or keep or array.shape[1] == n * (n - 3):
+        return array
+    return np.asarray(from_full_layout(array, n))
 
 
 def _holds_frames(value: Any, sizes: tuple[int, int]) -> bool:

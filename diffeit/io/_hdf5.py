@@ -84,7 +84,8 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
     the frames file at `path`; returns the number of frames the file now holds.
 
     The file must hold no images (they would no longer match the frames). Frames and times
-    are checked for shape and finiteness first (`ValueError`); the file is unchanged then.
+    are checked for shape and finiteness, and frames of a file of magnitudes (frames attribute
+    readings = "magnitude") for negative values, first (`ValueError`); the file is unchanged then.
     """
     path = Path(path)
     frames = np.array(frames, dtype=np.float64)
@@ -105,6 +106,10 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
             raise ValueError(f"times have shape {times.shape}; expected ({len(frames)},), one per appended frame")
         if not (np.all(np.isfinite(frames)) and np.all(np.isfinite(times))):
             raise ValueError("frames or times to append hold non-finite values (NaN or inf)")
+        if stored.attrs.get("readings") == "magnitude" and np.any(frames < 0):
+            raise ValueError(
+                f'{path} holds magnitudes (readings="magnitude"); the frames to append hold negative values'
+            )
         if stored_times.shape != (n_old,):
             raise ValueError(f"{path}: times have shape {stored_times.shape}; frames {stored.shape}")
         committed = _committed_frames(file)
@@ -138,6 +143,7 @@ def _write(file: h5py.File, recording: Recording, metadata: str) -> None:
     n_meas = recording.n_measurements
     frames = file.create_dataset("frames", data=recording.frames, maxshape=(None, n_meas), chunks=(_CHUNK_ROWS, n_meas))
     frames.attrs["units"] = recording.voltage_unit
+    frames.attrs["readings"] = recording.readings
     times = file.create_dataset("times", data=recording.times, maxshape=(None,), chunks=(_CHUNK_ROWS,))
     times.attrs["units"] = "s"
     if recording.reference is not None:
@@ -241,6 +247,7 @@ def _read(file: h5py.File) -> Recording:
         images=images,
         image_quantity=quantity,
         voltage_unit=str(frames_dataset.attrs.get("units", "V")),
+        readings=str(frames_dataset.attrs.get("readings", "signed")),  # files written before the attribute: signed
     )
 
 

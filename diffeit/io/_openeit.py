@@ -35,9 +35,9 @@ def read_openeit(
     reading U_m - U_(m+1)), so the frames are `opposite(n)`'s readings value for value.
 
     The board prints magnitudes (impedance magnitudes in its own units, never negative), so the
-    sign of each reading is lost: the Recording has `voltage_unit="arbitrary"`, and difference
-    images should use relative differences ((V - V_ref) / V_ref, `diffeit reconstruct
-    --difference relative`), which do not depend on the sign.
+    sign of each reading is lost: the Recording has `readings="magnitude"` (a reconstruction
+    restores the signs from the calibrated model's predicted readings) and
+    `voltage_unit="arbitrary"`.
 
     **Arguments:** `n_electrodes` (8, 16 or 32; default: from the number of values per line),
     `frame_rate` in frames per second (logs carry no times: frame t is at t / frame_rate s),
@@ -47,7 +47,7 @@ def read_openeit(
     skipped.
 
     **Raises:** `FileNotFoundError`; `ValueError` naming the file and the lines for an empty
-    log, malformed lines (unless skipped), non-finite values, an unknown layout.
+    log, malformed lines (unless skipped), non-finite or negative values, an unknown layout.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:
@@ -93,6 +93,11 @@ def read_openeit(
     if not np.all(np.isfinite(frames)):
         lines = [number for (number, _), row in zip(kept, frames, strict=True) if not np.all(np.isfinite(row))]
         raise ValueError(f"{path}: lines {name_indices(np.array(lines))} hold non-finite values")
+    if np.any(frames < 0):
+        lines = [number for (number, _), row in zip(kept, frames, strict=True) if np.any(row < 0)]
+        raise ValueError(
+            f"{path}: lines {name_indices(np.array(lines))} hold negative values; OpenEIT prints magnitudes"
+        )
     return Recording(
         frames=frames,
         times=np.arange(len(frames)) / frame_rate,
@@ -108,4 +113,5 @@ def read_openeit(
             },
         },
         voltage_unit="arbitrary",
+        readings="magnitude",
     )

@@ -18,6 +18,8 @@ PROVENANCE_KEYS = ("source", "created_utc", "diffeit_version", "metadata")
 # The generators a geometry description may name; their keyword arguments are its other entries.
 _GENERATORS = {"disc": disc, "rectangle": rectangle, "polygon": polygon}
 GEOMETRY_KINDS = tuple(_GENERATORS)
+# What a reading is: a signed voltage, or its magnitude |V| from instruments that lose the sign.
+READINGS = ("signed", "magnitude")
 
 
 class Recording(eqx.Module):
@@ -48,9 +50,14 @@ class Recording(eqx.Module):
       the reference) or "conductivity"; None without images.
     - `voltage_unit`: unit of `frames` and `reference`: "V" (volts) for diffeit's simulations
       and calibrated hardware, "arbitrary" for data in device units (EIDORS files, ADC counts).
+    - `readings`: what a value of `frames` and `reference` is: "signed" (default), the reading
+      in `protocol`'s sign; or "magnitude", its absolute value |V|, from instruments that report
+      magnitudes and lose the sign (OpenEIT-class boards, the Montreal 1995 EIDORS set). A
+      reconstruction restores the signs from a calibrated model. Magnitudes are never negative:
+      a negative value raises `ValueError`.
 
     A recording is an `equinox.Module`: the arrays, geometry and provenance are its leaves;
-    protocol, mesh, image_quantity and voltage_unit are static fields.
+    protocol, mesh, image_quantity, voltage_unit and readings are static fields.
     """
 
     frames: np.ndarray
@@ -63,6 +70,7 @@ class Recording(eqx.Module):
     images: np.ndarray | None
     image_quantity: str | None = eqx.field(static=True)
     voltage_unit: str = eqx.field(static=True)
+    readings: str = eqx.field(static=True)
 
     def __init__(
         self,
@@ -77,6 +85,7 @@ class Recording(eqx.Module):
         images: ArrayLike | None = None,
         image_quantity: str | None = None,
         voltage_unit: str = "V",
+        readings: str = "signed",
     ) -> None:
         if not isinstance(protocol, Protocol):
             raise ValueError(f"protocol must be a diffeit.protocol.Protocol; got {type(protocol).__name__}")
@@ -106,6 +115,12 @@ class Recording(eqx.Module):
             raise ValueError("image_quantity is given without images")
         if not isinstance(voltage_unit, str) or not voltage_unit:
             raise ValueError(f'voltage_unit must be a non-empty string such as "V"; got {voltage_unit!r}')
+        if not isinstance(readings, str) or readings not in READINGS:
+            raise ValueError(f"readings must be one of {READINGS}; got {readings!r}")
+        if readings == "magnitude":
+            _check_magnitudes("frames", frames)
+            if reference is not None:
+                _check_magnitudes("reference", reference)
         self.frames = frames
         self.times = times
         self.protocol = protocol
@@ -116,6 +131,7 @@ class Recording(eqx.Module):
         self.images = images
         self.image_quantity = image_quantity
         self.voltage_unit = voltage_unit
+        self.readings = readings
 
     @property
     def n_frames(self) -> int:
@@ -188,6 +204,21 @@ def _finite_array(name: str, values: Any, shape: tuple[int | None, ...], expecte
         where = f"frame(s) {name_indices(rows)}" if array.ndim == 2 else f"entries {name_indices(rows)}"
         raise ValueError(f"{name} hold non-finite values (NaN or inf) in {where}")
     return readonly(array)
+
+
+def _check_magnitudes(name: str, values: np.ndarray) -> None:
+    """Refuse negative values in frames or a reference of magnitudes."""
+    negative = values < 0
+    if np.any(negative):
+        where = (
+            f"frame(s) {name_indices(np.flatnonzero(negative.any(axis=1)))}"
+            if values.ndim == 2
+            else f"entries {name_indices(np.flatnonzero(negative))}"
+        )
+        raise ValueError(
+            f'{name} hold negative values in {where} but readings="magnitude" (|V|, never negative); '
+            'signed readings need readings="signed"'
+        )
 
 
 def _checked_geometry(geometry: Mapping[str, Any]) -> dict[str, Any]:

@@ -1,0 +1,313 @@
+"""`diffeit.reconstruct`: calibration to the reference (level, orientation, magnitudes, driven
+readings, broken channels), the automatic hyperparameter, and what it returns."""
+
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+import diffeit as de
+from diffeit.reconstruction import CalibrationWarning, calibrate_to_reference
+
+jax.config.update("jax_enable_x64", True)
+
+CENTRE = np.array([0.4, 0.25])
+RADIUS = 0.25
+# Electrodes off their even spacing: no rotation or mirror maps the sheet onto itself.
+ANGLES = 2 * np.pi * np.arange(16) / 16 + np.random.default_rng(3).uniform(-0.08, 0.08, 16)
+
+
+def _opposite_skip_three() -> de.Protocol:
+    """Opposite drive, pairs (m, m+4) read: the pairs mirrored across the drive's axis read zero
+    on a uniform disc."""
+    drive = np.zeros((16, 16))
+    readings = []
+    for i in range(16):
+        drive[i, [i, (i + 8) % 16]] = -1.0, 1.0
+        pairs = [m for m in range(16) if not {m, (m + 4) % 16} & {i, (i + 8) % 16}]
+        weights = np.zeros((len(pairs), 16))
+        weights[np.arange(len(pairs)), pairs] = 1.0
+        weights[np.arange(len(pairs)), (np.array(pairs) + 4) % 16] = -1.0
+        readings.append(weights)
+    return de.Protocol(drive, readings)
+
+
+def _touch(mesh: de.Mesh, level: float, contrast: float = -0.5) -> np.ndarray:
+    inside = np.linalg.norm(mesh.element_centroids - CENTRE, axis=1) < RADIUS
+    return level * (1 + contrast * inside)
+
+
+def _recording(
+    protocol: de.Protocol,
+    *,
+    level: float = 0.01,
+    contact_impedance: float = 0.01,
+    truth_protocol: de.Protocol | None = None,
+    angles: np.ndarray | None = None,
+    noise: float = 0.002,
+    sign: float = 1.0,
+    magnitude: bool = False,
+    unit: float = 1.0,
+) -> de.io.Recording:
+    """A reference and 4 frames of a touch, simulated on a fine disc under `truth_protocol`
+    (the instrument's readings as they really are) and recorded as `protocol`."""
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.06, electrode_angles=angles)
+    model = de.ForwardModel(mesh, truth_protocol or protocol, contact_impedance=contact_impedance)
+    reference = np.asarray(model.measure(np.full(mesh.n_elements, level)))
+    touched = np.asarray(model.measure(_touch(mesh, level)))
+    frames = np.stack([reference, touched, 0.5 * (reference + touched), touched])
+    rng = np.random.default_rng(0)
+    scale = noise * np.sqrt(np.mean(reference**2))
+    frames = frames + rng.normal(0, scale, frames.shape)
+    reference = reference + rng.normal(0, scale, reference.shape)
+    frames, reference = sign * unit * frames, sign * unit * reference
+    if magnitude:
+        frames, reference = np.abs(frames), np.abs(reference)
+    return de.io.Recording(
+        frames=frames,
+        times=np.arange(4.0),
+        protocol=protocol,
+        reference=reference,
+        voltage_unit="V" if unit == 1.0 else "arbitrary",
+        readings="magnitude" if magnitude else "signed",
+    )
+
+
+def _reconstruct(recording, angles=None, **options):
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1, electrode_angles=angles)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = de.reconstruct(recording, mesh=mesh, progress=False, **options)
+    return result, [str(w.message) for w in caught if issubclass(w.category, CalibrationWarning)]
+
+
+def _position_error(result, frame: int = 1) -> float:
+    image = result.images[frame]
+    return float(np.linalg.norm(de.metrics.half_amplitude_centroid(result.mesh, -image) - CENTRE))
+
+
+def test_a_recording_in_volts_images_the_touch_at_its_place_and_says_what_it_chose():
+    result, caught = _reconstruct(_recording(de.protocol.adjacent(16)))
+    metadata = result.provenance["metadata"]
+    calibration = metadata["calibration"]
+    assert caught == []
+    assert calibration["orientation"] == "as recorded"
+    assert calibration["correlation"] > 0.999 and calibration["misfit"] < 0.02
+    assert calibration["conductivity"] == pytest.approx(0.01, rel=0.05)  # the level in S/sq
+    assert result.image_quantity == "conductivity change"
+    assert result.images.shape == (4, result.mesh.n_elements)
+    assert _position_error(result) < 0.12
+    assert result.images[1].min() < -0.1 * 0.01 * 0.5  # S/sq: a drop of the right sign and size
+    assert np.abs(result.images[0]).max() < 0.2 * np.abs(result.images[1]).max()  # the reference frame is calm
+    choice = metadata["hyperparameter_choice"]
+    assert (
+        choice["method"] in ("lcurve", "noise_figure")
+        and metadata["hyperparameter"] == choice[choice["method"]]["value"]
+    )
+    assert metadata["difference"] == "calibrated"
+
+
+def test_an_arbitrary_voltage_unit_gives_the_same_relative_image():
+    volts, _ = _reconstruct(_recording(de.protocol.adjacent(16)), hyperparameter=0.05)
+    counts, _ = _reconstruct(_recording(de.protocol.adjacent(16), unit=3.7e4), hyperparameter=0.05)
+    assert counts.image_quantity == "relative conductivity change"
+    level = volts.provenance["metadata"]["calibration"]["conductivity"]
+    np.testing.assert_allclose(counts.images, volts.images / level, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("position", "expected"),
+    [
+        ((-np.arange(16)) % 16, "the electrodes numbered the other way round"),
+        ((np.arange(16) + 1) % 16, "the first electrode one on"),
+        (np.arange(16), "the drive's sign flipped"),
+    ],
+)
+def test_a_wrong_electrode_order_or_drive_sign_is_found_named_and_undone(position, expected):
+    protocol = de.protocol.adjacent(16)
+    sign = -1.0 if "sign" in expected else 1.0
+    recording = _recording(protocol, truth_protocol=protocol.relabel(position), angles=ANGLES, sign=sign)
+    result, caught = _reconstruct(recording, angles=ANGLES)
+    calibration = result.provenance["metadata"]["calibration"]
+    assert calibration["orientation"] == expected
+    misfits = calibration["orientations_misfit"]
+    assert misfits[expected] < 0.5 * misfits["as recorded"] and calibration["correlation"] > 0.99
+    assert any(expected in message for message in caught)
+    assert _position_error(result) < 0.12  # imaged as if the instrument had been set up right
+
+
+def test_a_symmetric_disc_keeps_the_recorded_order_when_rotations_fit_alike():
+    protocol = de.protocol.adjacent(16)
+    result, caught = _reconstruct(_recording(protocol, truth_protocol=protocol.relabel((np.arange(16) + 1) % 16)))
+    assert result.provenance["metadata"]["calibration"]["orientation"] == "as recorded"
+    assert caught == []
+
+
+@pytest.mark.parametrize("protocol", [de.protocol.opposite(16), _opposite_skip_three()], ids=["openeit", "skip3"])
+def test_magnitudes_take_the_models_signs_and_beat_treating_them_as_signed(protocol):
+    """An OpenEIT-class board (opposition drive, 192 readings) and one reading pairs four apart,
+    magnitudes only. Treated as signed values, OpenEIT's magnitudes still image (its drive i+8
+    is drive i negated, so every reading comes with both signs) but less well; pairs four apart
+    do not image at all."""
+    magnitudes = _recording(protocol, magnitude=True, noise=0.001)
+    restored, _ = _reconstruct(magnitudes, hyperparameter=0.05)
+    as_signed, _ = _reconstruct(
+        de.io.Recording(
+            frames=magnitudes.frames, times=magnitudes.times, protocol=protocol, reference=magnitudes.reference
+        ),
+        hyperparameter=0.05,
+        calibrate=False,
+        background=0.01,
+        difference="calibrated",
+    )
+    truth, _ = _reconstruct(_recording(protocol, noise=0.001), hyperparameter=0.05)
+    assert _position_error(restored) < 0.05
+    assert _position_error(restored) < 0.5 * _position_error(as_signed)
+    correlation = np.corrcoef(restored.images[1], truth.images[1])[0, 1]
+    assert correlation > 0.97 and correlation > np.corrcoef(as_signed.images[1], truth.images[1])[0, 1] + 0.005
+
+
+def test_magnitudes_whose_sign_the_model_leaves_open_are_reported_and_masked():
+    protocol = _opposite_skip_three()
+    result, caught = _reconstruct(_recording(protocol, magnitude=True), hyperparameter=0.05)
+    uncertain = result.provenance["metadata"]["calibration"]["masked"]["uncertain sign"]
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
+    model = np.asarray(de.ForwardModel(mesh, protocol).measure(np.ones(mesh.n_elements)))
+    np.testing.assert_array_equal(uncertain, np.flatnonzero(np.abs(model) < 0.05 * np.sqrt(np.mean(model**2))))
+    assert len(uncertain) >= 16  # a mirrored pair per drive
+    assert any("uncertain sign" in message for message in caught)
+
+
+def test_readings_on_driven_electrodes_are_kept_through_a_fitted_contact_impedance_or_dropped():
+    protocol = de.protocol.adjacent(16, measure_driven=True)
+    recording = _recording(protocol, contact_impedance=2.0, noise=0.0005)
+    kept, _ = _reconstruct(recording, hyperparameter=0.05)
+    calibration = kept.provenance["metadata"]["calibration"]
+    assert calibration["driven_readings"] == "kept" and calibration["readings_used"] == 256
+    # The level and the contact impedance both fitted: the model's nominal 0.01 ohm m was 200x off.
+    # (to 30%: the data's finer mesh resolves the current crowding under the electrodes better)
+    assert calibration["contact_impedance"] == pytest.approx(2.0, rel=0.3)
+    assert calibration["correlation"] > 0.999
+    dropped, _ = _reconstruct(recording, hyperparameter=0.05, driven_readings="drop")
+    assert dropped.provenance["metadata"]["calibration"]["readings_used"] == 208
+    assert _position_error(kept) < 0.12 and _position_error(dropped) < 0.12
+
+    # Driven readings the model cannot reproduce (another instrument's convention) are dropped.
+    mangled = np.array(recording.frames)
+    driven = np.flatnonzero(de.reconstruction._driven(protocol))
+    mangled[:, driven] = np.roll(mangled[:, driven], 1, axis=1)
+    reference = np.array(recording.reference)
+    reference[driven] = np.roll(reference[driven], 1)
+    auto, caught = _reconstruct(
+        de.io.Recording(frames=mangled, times=recording.times, protocol=protocol, reference=reference),
+        hyperparameter=0.05,
+    )
+    assert auto.provenance["metadata"]["calibration"]["driven_readings"] == "dropped"
+    assert any("driven electrodes dropped" in message for message in caught)
+
+
+def test_broken_readings_and_a_broken_electrode_are_masked_and_reported():
+    protocol = de.protocol.adjacent(16)
+    recording = _recording(protocol)
+    frames, reference = np.array(recording.frames), np.array(recording.reference)
+    largest = np.abs(reference).max()
+    reference[10] = 0.0  # a dead channel
+    reference[[40, 41]] = frames[:, [40, 41]] = 50 * largest  # a saturated rail
+    reference[100] *= 4.0  # a wrong gain
+    electrode = 7
+    uses = de.reconstruction._uses(protocol, np.arange(16) == electrode)
+    noise = np.random.default_rng(5).normal(0, largest, (5, uses.sum()))
+    reference[uses], frames[:, uses] = noise[0], noise[1:]  # a loose electrode
+    result, caught = _reconstruct(
+        de.io.Recording(frames=frames, times=recording.times, protocol=protocol, reference=reference)
+    )
+    calibration = result.provenance["metadata"]["calibration"]
+    masked = calibration["masked"]
+    assert 10 in masked["zero"] and masked["saturated"] == [40, 41]
+    assert 100 in masked["outlier"]
+    assert calibration["broken_electrodes"] == [electrode]
+    lost = set().union(*map(set, masked.values()))
+    assert set(np.flatnonzero(uses)) <= lost
+    assert calibration["readings_used"] == 208 - len(lost) and calibration["readings_used"] > 120
+    assert any("masked readings" in message for message in caught)
+    assert calibration["correlation"] > 0.99
+    assert _position_error(result) < 0.15
+
+
+def test_reading_by_reading_ratios_blow_up_where_the_default_does_not():
+    """Pairs mirrored across the drive's axis read near zero: dividing by the reference reading by reading
+    amplifies their noise; the default scales by the calibrated model, and normalised
+    differences in `reconstruct` mask the readings whose ratio would blow up."""
+    protocol = _opposite_skip_three()
+    recording = _recording(protocol, noise=0.002)
+    calibrated, _ = _reconstruct(recording, hyperparameter=0.05)
+    normalised, caught = _reconstruct(recording, hyperparameter=0.05, difference="normalised")
+    assert calibrated.provenance["metadata"]["difference"] == "calibrated"
+    assert _position_error(calibrated) < 0.12 and _position_error(normalised) < 0.12
+    assert len(normalised.provenance["metadata"]["unsafe_ratio_readings"]) >= 16
+    assert any("normalised differences" in message for message in caught)
+
+    model = de.ForwardModel(calibrated.mesh, protocol)
+    plain = de.inverse.OneStep(model, hyperparameter=0.05, background=0.01, normalised=True)
+    ratios = np.asarray(plain.reconstruct(recording.difference(), reference=recording.reference))
+
+    error = np.linalg.norm(de.metrics.half_amplitude_centroid(calibrated.mesh, -ratios[1]) - CENTRE)
+    assert error > 0.3 > 0.12 > _position_error(calibrated)  # the ratios of near-zero readings lose the touch
+
+
+def test_bad_input_is_refused_or_warned_about():
+    recording = _recording(de.protocol.adjacent(16))
+    with pytest.raises(ValueError, match="method"):
+        de.reconstruct(recording, method="magic")
+    with pytest.raises(ValueError, match="hyperparameter"):
+        de.reconstruct(recording, hyperparameter="largest")
+    with pytest.raises(ValueError, match="hyperparameter"):
+        de.reconstruct(recording, hyperparameter=-1.0)
+    with pytest.raises(ValueError, match="difference"):
+        de.reconstruct(recording, difference="ratio")
+    with pytest.raises(ValueError, match="no frames"):
+        de.reconstruct(de.io.Recording(frames=np.zeros((0, 208)), times=[], protocol=de.protocol.adjacent(16)))
+    mesh = de.mesh.disc(16, h=0.1)
+    model = de.ForwardModel(mesh, de.protocol.adjacent(16))
+    with pytest.raises(ValueError, match="non-finite"):
+        calibrate_to_reference(model, np.full(208, np.nan))
+    with pytest.raises(ValueError, match="shape"):
+        calibrate_to_reference(model, np.ones(200))
+    with pytest.raises(ValueError, match="negative"):
+        calibrate_to_reference(model, -np.ones(208), readings="magnitude")
+    with pytest.raises(ValueError, match="zero or saturated"):
+        calibrate_to_reference(model, np.zeros(208))
+    with pytest.raises(ValueError, match="does not correlate positively"):
+        calibrate_to_reference(model, np.random.default_rng(1).normal(size=208) - 1.0)
+    # A reference the model reproduces badly (a gain per reading): imaged, but loudly.
+    gains = np.exp(np.random.default_rng(2).normal(0, 0.8, 208))
+    skewed = de.io.Recording(
+        frames=recording.frames * gains,
+        times=recording.times,
+        protocol=recording.protocol,
+        reference=recording.reference * gains,
+    )
+    result, caught = _reconstruct(skewed)
+    assert result.provenance["metadata"]["calibration"]["correlation"] < 0.9
+    assert any("does not reproduce the reference" in message for message in caught)
+    assert result.provenance["metadata"]["difference"] == "normalised"  # the gains cancel reading by reading
+    assert _position_error(result) < 0.12
+
+
+def test_a_recording_without_reference_is_calibrated_on_its_first_frames():
+    recording = _recording(de.protocol.adjacent(16))
+    without = de.io.Recording(frames=recording.frames, times=recording.times, protocol=recording.protocol)
+    result, _ = _reconstruct(without, hyperparameter=0.05)
+    assert result.provenance["metadata"]["reference"] == "mean of the first 4 frames"
+    np.testing.assert_allclose(result.reference, recording.frames.mean(axis=0))
+
+
+@pytest.mark.parametrize("method", ["gauss_newton", "total_variation"])
+def test_the_nonlinear_methods_run_at_the_calibrated_state(method):
+    recording = _recording(de.protocol.adjacent(16), unit=250.0)
+    one_step, _ = _reconstruct(recording, hyperparameter=0.05)
+    result, _ = _reconstruct(recording, hyperparameter=0.05, method=method)
+    assert result.provenance["metadata"]["method"] == method
+    assert _position_error(result) < 0.12
+    assert np.corrcoef(result.images[1], one_step.images[1])[0, 1] > 0.7
