@@ -25,14 +25,14 @@ import jax
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.collections import LineCollection  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.collections import LineCollection
 
 jax.config.update("jax_enable_x64", True)  # diffeit computes in float64
 
-import diffeit as de  # noqa: E402
-from diffeit.plotting import plot_elements  # noqa: E402
+import diffeit as de
+from diffeit.plotting import plot_elements
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data"
 RECORDINGS = {
