@@ -162,8 +162,8 @@ def test_live_memory_corrects_frame_by_frame_across_batches(scene, tmp_path):
         memory=over_foam(),
         settings=SimpleNamespace(data_scale=0.005 * np.sqrt(np.mean(frames[0] ** 2))),
     )
-    viewer = _LiveViewer(de.protocol.adjacent(16), settings, str(tmp_path / "live.png"), known)
     reference = np.asarray(simulation.reference)
+    viewer = _LiveViewer(de.protocol.adjacent(16), settings, str(tmp_path / "live.png"), reference[None], known)
     incoming = [hw.Frame(values=values, host_time=1000.0 + t) for values, t in zip(frames, times, strict=True)]
     batches = [incoming[i : i + 3] for i in range(0, len(incoming), 3)]
     shown = np.concatenate([viewer._corrected(_relative_images(viewer, batch, reference), batch) for batch in batches])

@@ -11,6 +11,8 @@ import pytest
 import diffeit as de
 import hw
 from diffeit.cli import main
+from diffeit.cli._hardware import _LiveViewer
+from diffeit.cli._model import ModelSettings
 from diffeit.io import read_frames
 from diffeit.protocol import adjacent
 
@@ -72,6 +74,29 @@ def test_live_reconstructs_batches_and_saves_a_png_without_display(tmp_path, tou
     assert "20 frames reconstructed, 0 rejected; the latest image is in" in capsys.readouterr().out
     image = matplotlib.image.imread(png)
     assert image.shape[2] == 4 and np.ptp(image[..., :3]) > 0.5  # a coloured image, not a blank canvas
+
+
+def test_live_images_the_calibrated_relative_change(tmp_path, touch, capsys):
+    """The viewer calibrates the model to the reference frame (the scene's 0.01 S/sq skin in
+    volts) and shows dsigma/sigma: the press as a drop of tens of percent, the untouched skin
+    near zero, on a colour scale that does not follow the frame."""
+    scene = de.Scene.from_toml(SCENE)
+    settings = ModelSettings(h=0.15, hyperparameter="auto")
+    viewer = _LiveViewer(adjacent(16), settings, str(tmp_path / "live.png"), touch[:2], colour_limit=0.4)
+    report = capsys.readouterr().out
+    assert "calibrated to the reference" in report and "orientation as recorded" in report
+    assert viewer.calibration.correlation > 0.99
+    assert viewer.calibration.conductivity == pytest.approx(scene.background.conductivity, rel=0.1)
+    differences = viewer.calibration.signed(touch) - viewer.reference
+    images = np.asarray(viewer.solver.reconstruct(differences)) / viewer.calibration.conductivity
+    pressed = np.argmax(np.abs(images).max(axis=1))
+    assert -1.0 < images[pressed].min() < -0.05  # a relative drop, not S/sq or volts
+    # The untouched skin: only the reading noise (0.5%, against a reference of 2 frames).
+    assert np.abs(images[0]).max() < 0.2 * np.abs(images[pressed]).max()
+    assert viewer.show([hw.Frame(values=touch[pressed]), hw.Frame(values=touch[0])]) == 2
+    collection = viewer.axes.collections[0]
+    assert collection.get_clim() == (-0.4, 0.4)  # the stated, steady scale, whatever the frame holds
+    assert "colour -0.4 to +0.4" in viewer.axes.get_title()
 
 
 def test_emulate_streams_the_scene_reference_first(tmp_path, touch, capsys):

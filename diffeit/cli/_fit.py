@@ -200,7 +200,8 @@ def fitted_one_step(fit: JointFit, mesh: Mesh, protocol: Protocol, settings: Mod
             f"{mesh.n_elements} and {mesh.n_electrodes} (give the --h of the fit's mesh)"
         )
     model = ForwardModel(mesh, protocol, contact_impedance=z)
-    return OneStep(model, prior=settings.prior, hyperparameter=float(settings.hyperparameter), background=background)
+    hyperparameter = settings.hyperparameter_at(model, background)
+    return OneStep(model, prior=settings.prior, hyperparameter=hyperparameter, background=background)
 
 
 def plot_fit(

@@ -26,6 +26,12 @@ _PROTOCOLS = ("adjacent", "opposite", "full")
 # a held press stays held (noise read as a chattering load would pump the skin's hysteretic modes
 # and make a long press fade), above it a real change passes.
 DEAD_BAND = 3.0
+# The live image's colour scale, dsigma/sigma from -L to L: fixed, so that frames compare and an
+# untouched skin shows pale noise instead of noise stretched to full scale.
+COLOUR_LIMIT = 0.5
+# `live --hyperparameter auto`: a rule that needs no frames to come (the noise figure of
+# diffeit.reconstruct's "auto" fallback); the L-curve would need the frames themselves.
+_LIVE_METHODS = ("auto",)
 
 
 def add_commands(commands: argparse._SubParsersAction) -> None:
@@ -45,13 +51,20 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "live",
         help="reconstruct frames from a serial device as they arrive",
         description="One-step difference images of frames as they arrive, in batches, against the first frame "
-        "(or the mean of the first --reference-frames). Shows them in a window, or without a display "
-        "saves the latest image to --png.",
+        "(or the mean of the first --reference-frames), with the model calibrated to that reference as "
+        "diffeit reconstruct does (level, orientation, broken readings). Shows the relative change dsigma/sigma "
+        "on a fixed colour scale (--colour-limit) in a window, or without a display saves the latest image to --png.",
     )
     _source_arguments(live)
     live.add_argument("--reference-frames", type=int, default=1, help="frames averaged into the reference (1)")
     live.add_argument("--batch", type=int, default=8, help="frames reconstructed together (8)")
-    add_model_options(live)
+    add_model_options(live, methods=_LIVE_METHODS, hyperparameter_default="auto")
+    live.add_argument(
+        "--colour-limit",
+        type=float,
+        default=COLOUR_LIMIT,
+        help=f"the colour scale's end: dsigma/sigma from -L to +L, the same for every frame ({COLOUR_LIMIT:g})",
+    )
     live.add_argument(
         "--memory",
         metavar="FIT",
@@ -205,11 +218,14 @@ def _live(arguments: argparse.Namespace) -> int:
     if arguments.batch < 1 or arguments.reference_frames < 1:
         print("diffeit live: error: --batch and --reference-frames must be at least 1", file=sys.stderr)
         return 2
+    if not arguments.colour_limit > 0:
+        print(f"diffeit live: error: --colour-limit must be positive; got {arguments.colour_limit}", file=sys.stderr)
+        return 2
     if not arguments.dead_band >= 0:
         print(f"diffeit live: error: --dead-band must be >= 0; got {arguments.dead_band}", file=sys.stderr)
         return 2
     try:
-        settings = ModelSettings.from_arguments(arguments)
+        settings = ModelSettings.from_arguments(arguments, methods=_LIVE_METHODS, hyperparameter="auto")
         fit = _memory_fit(arguments.memory)
         source = _open_source(arguments)
     except (ValueError, ConnectionError, FileNotFoundError) as error:
@@ -220,15 +236,23 @@ def _live(arguments: argparse.Namespace) -> int:
     batch: list[hw.Frame] = []
     try:
         for frame in source.frames(max_frames=arguments.frames, duration=arguments.duration):
-            if viewer is None:
-                protocol = _frame_protocol(source, frame)
-                viewer = _LiveViewer(protocol, settings, arguments.png, fit, dead_band=arguments.dead_band)
             if len(reference_frames) < arguments.reference_frames:
+                protocol = _frame_protocol(source, frame)
                 reference_frames.append(frame.values)
                 continue
+            if viewer is None:
+                viewer = _LiveViewer(
+                    protocol,
+                    settings,
+                    arguments.png,
+                    np.array(reference_frames),
+                    fit,
+                    dead_band=arguments.dead_band,
+                    colour_limit=arguments.colour_limit,
+                )
             batch.append(frame)
             if len(batch) == arguments.batch:
-                shown += viewer.show(batch, np.mean(reference_frames, axis=0))
+                shown += viewer.show(batch)
                 batch = []
     except hw.DeviceLost as error:
         ending = str(error)
@@ -240,7 +264,7 @@ def _live(arguments: argparse.Namespace) -> int:
     finally:
         source.close()
     if batch:  # the last, partial batch: also when the device went away
-        shown += viewer.show(batch, np.mean(reference_frames, axis=0))
+        shown += viewer.show(batch)
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
     corrected = " and corrected for memory" if fit is not None else ""
     print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}")
@@ -257,35 +281,44 @@ def _memory_fit(path: str | None) -> JointFit | None:
 
 
 class _LiveViewer:
-    """One-step reconstruction of batches of frames, shown in a window or saved as a PNG.
+    """One-step reconstruction of batches of frames against the mean of the `reference` frames
+    (R, M), shown in a window or saved as a PNG, on a fixed colour scale (+-`colour_limit`).
 
-    With a joint fit (`--memory`): the images are linearised at the fit's background and contact
-    impedances, taken relative to the background, and corrected for the skin's memory frame by
-    frame (`diffeit.fit.correct_memory_step`, from a rested skin at the first imaged frame, the
-    state kept between batches, a dead band of `dead_band` standard deviations of the image noise,
-    `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma."""
+    Without a joint fit: the model is calibrated to the reference
+    (`diffeit.reconstruction.calibrate_to_reference`: the level and unit, the orientation and drive
+    sign, broken readings masked; its summary is printed), the hyperparameter "auto" is the noise
+    figure's (the frames to come are unknown), and the viewer shows dsigma/sigma at the calibrated
+    level. With a joint fit (`--memory`): the images are linearised at the fit's background and
+    contact impedances, taken relative to the background, and corrected for the skin's memory
+    frame by frame (`diffeit.fit.correct_memory_step`, from a rested skin at the first imaged
+    frame, the state kept between batches, a dead band of `dead_band` standard deviations of the
+    image noise, `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma."""
 
     def __init__(
         self,
         protocol: Protocol,
         settings: ModelSettings,
         png: str,
+        reference: np.ndarray,
         fit: JointFit | None = None,
         *,
         dead_band: float = DEAD_BAND,
+        colour_limit: float = COLOUR_LIMIT,
     ) -> None:
         import matplotlib.pyplot as plt
 
         self.mesh = settings.unit_disc(protocol.n_electrodes)
         self.fit = fit
+        self.colour_limit = colour_limit
         if fit is None:
-            self.solver = settings.solver(settings.model(self.mesh, protocol))
+            self._calibrate(protocol, settings, reference)
         else:
             import equinox as eqx
 
             from ..fit import correct_memory_step
             from ._fit import fitted_one_step
 
+            self.reference = reference.mean(axis=0)
             self.solver = fitted_one_step(fit, self.mesh, protocol, settings)
             self.tolerance = dead_band * image_noise(fit, self.solver)
             self.step = eqx.filter_jit(correct_memory_step)
@@ -300,24 +333,58 @@ class _LiveViewer:
             plt.ion()
             plt.show()
 
-    def show(self, batch: list[hw.Frame], reference: np.ndarray) -> int:
+    def _calibrate(self, protocol: Protocol, settings: ModelSettings, reference: np.ndarray) -> None:
+        """The calibrated model and its solver (class docstring); prints what the calibration found."""
+        from ..inverse import OneStep
+        from ..reconstruction import calibrate_to_reference
+
+        calibration = calibrate_to_reference(
+            settings.model(self.mesh, protocol), reference, background=settings.background
+        )
+        self.calibration = calibration
+        self.reference = calibration.signed(reference.mean(axis=0))
+        model, level = calibration.model, calibration.conductivity
+        hyperparameter = settings.hyperparameter_at(model, level)
+        self.solver = OneStep(model, prior=settings.prior, hyperparameter=hyperparameter, background=level)
+        print(
+            f"calibrated to the reference: misfit {calibration.misfit:.3f}, correlation {calibration.correlation:.3f}, "
+            f"orientation {calibration.orientation}, {int(calibration.used.sum())} of {len(calibration.used)} "
+            "readings; "
+            f"hyperparameter {hyperparameter:.3g}"
+        )
+        for note in calibration.warnings:
+            print(f"warning: {note}")
+
+    def show(self, batch: list[hw.Frame]) -> int:
         """Reconstruct the batch (one call), draw its last image; the frames reconstructed."""
         import matplotlib.pyplot as plt
 
-        differences = np.array([frame.values for frame in batch]) - reference
-        images = np.asarray(self.solver.reconstruct(differences))
-        if self.fit is not None:
+        values = np.array([frame.values for frame in batch])
+        if self.fit is None:
+            differences = self.calibration.signed(values) - self.reference
+            images = np.asarray(self.solver.reconstruct(differences)) / self.calibration.conductivity
+        else:
+            images = np.asarray(self.solver.reconstruct(values - self.reference))
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         image = images[-1]
-        limit = float(np.max(np.abs(image))) or 1.0
         self.axes.clear()
         self.axes.set_axis_off()
         self.axes.tripcolor(
-            *self.mesh.nodes.T, self.mesh.triangles, facecolors=image, cmap="RdBu_r", vmin=-limit, vmax=limit
+            *self.mesh.nodes.T,
+            self.mesh.triangles,
+            facecolors=image,
+            cmap="RdBu_r",
+            vmin=-self.colour_limit,
+            vmax=self.colour_limit,
         )
         counter = batch[-1].counter
-        quantity = "dsigma, S/sq" if self.fit is None else "memoryless stimulus dsigma/sigma"
-        self.axes.set_title(f"frame {counter if counter is not None else ''}: {quantity} (peak {limit:.3g})")
+        quantity = "dsigma/sigma" if self.fit is None else "memoryless stimulus dsigma/sigma"
+        peak = image.flat[np.argmax(np.abs(image))]
+        self.axes.set_title(
+            f"frame {counter if counter is not None else ''}: {quantity}\n"
+            f"colour -{self.colour_limit:g} to +{self.colour_limit:g}, peak {peak:+.2f}",
+            fontsize=10,
+        )
         if self.headless:
             self.figure.savefig(self.png, dpi=100)
         else:

@@ -8,6 +8,8 @@ import dataclasses
 import math
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 if TYPE_CHECKING:
     from ..forward import ForwardModel
     from ..inverse import OneStep
@@ -59,6 +61,17 @@ class ModelSettings:
 
         return ForwardModel(mesh, protocol, contact_impedance=self.contact_impedance)
 
+    def hyperparameter_at(self, model: ForwardModel, background: float | np.ndarray) -> float:
+        """The hyperparameter as a number: "auto" (the `live` command, which cannot see the frames
+        to come) is the value of noise figure 0.5 for `model` at `background` (S/sq), which needs
+        no frames (`diffeit.inverse.select_hyperparameter`)."""
+        if self.hyperparameter != "auto":
+            return float(self.hyperparameter)
+        from ..inverse import select_hyperparameter
+
+        silent = np.zeros((1, model.n_measurements))
+        return select_hyperparameter(model, silent, "noise_figure", prior=self.prior, background=background).value
+
     def solver(self, model: ForwardModel, *, hyperparameter: float | None = None, normalised: bool = False) -> OneStep:
         """The one-step solver on `model`; `hyperparameter`: the value a selection method chose,
         when the settings name one."""
@@ -71,15 +84,17 @@ class ModelSettings:
 _DEFAULTS = ModelSettings()
 
 
-def add_model_options(parser: argparse.ArgumentParser, *, methods: tuple[str, ...] = ()) -> None:
+def add_model_options(
+    parser: argparse.ArgumentParser, *, methods: tuple[str, ...] = (), hyperparameter_default: float | str | None = None
+) -> None:
     """Add --prior, --hyperparameter, --background, --contact-impedance and --h to `parser`,
     all defaulting to None: `ModelSettings.from_arguments` fills in the defaults. `methods`:
-    the hyperparameter selection methods the command accepts."""
+    the hyperparameter selection methods the command accepts; `hyperparameter_default`: the
+    command's own default when it is not the settings' (the command passes it as a fallback)."""
     choices = f", or a method choosing it from the data: {', '.join(methods)}" if methods else ""
+    default = _DEFAULTS.hyperparameter if hyperparameter_default is None else hyperparameter_default
     parser.add_argument("--prior", help=f"prior of diffeit.inverse.OneStep (default {_DEFAULTS.prior})")
-    parser.add_argument(
-        "--hyperparameter", help=f"unit-free regularisation weight (default {_DEFAULTS.hyperparameter}){choices}"
-    )
+    parser.add_argument("--hyperparameter", help=f"unit-free regularisation weight (default {default}){choices}")
     parser.add_argument(
         "--background", type=float, help=f"background conductivity, S/sq (default {_DEFAULTS.background})"
     )
