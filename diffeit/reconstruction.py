@@ -86,6 +86,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ._messages import name_indices
+from .fit import background as fit_background
 from .forward import ForwardModel
 from .inverse import GaussNewton, OneStep, TotalVariation, select_hyperparameter
 from .io import Recording, mesh_from_geometry
@@ -523,6 +524,7 @@ def reconstruct(
     reference_frame: int | None = None,
     difference: Difference = "auto",
     driven_readings: DrivenReadings = "auto",
+    background_map: bool = False,
     background: float = 1.0,
     contact_impedance: float = 0.01,
     progress: bool = True,
@@ -542,6 +544,13 @@ def reconstruct(
     - "gauss_newton": `diffeit.inverse.GaussNewton(...).difference` with `prior`, from the
       calibrated level;
     - "total_variation": `diffeit.inverse.TotalVariation`.
+
+    `background_map=True` then fits a smooth background map (and, with driven readings kept,
+    one contact impedance per electrode) to the reference with `diffeit.fit.background`, and
+    images at that map instead of the uniform level: relative images are dsigma over the map.
+    Off by default: on the IIRC tank the map lowers the reference's misfit from 8.0% to 3.9%
+    (it absorbs the model's own error) but the rod's track error only from 0.056 to 0.054, for
+    4.5 s more.
 
     `hyperparameter`: unit-free, or "auto" (module docstring), or a method of
     `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure"), chosen from all
@@ -596,6 +605,22 @@ def reconstruct(
     level = calibration.conductivity
     frames = calibration.signed(recording.frames)
     signed_reference = calibration.signed(reference)
+    map_summary = None
+    if background_map:
+        fitted = fit_background(
+            model,
+            signed_reference,
+            estimate_contact_impedance=calibration.driven_readings == "kept",
+            progress=progress,
+            throw=False,
+        )
+        model, level = _with(model, model.protocol, fitted.contact_impedance), fitted.conductivity
+        map_summary = {
+            "misfit": fitted.misfit,
+            "hyperparameter": fitted.hyperparameter,
+            "result": str(fitted.result),
+            "range": [float(level.min()), float(level.max())],
+        }
     dv = frames - signed_reference
     if difference == "auto":
         difference = "calibrated" if calibration.correlation >= _LEAST_CORRELATION else "normalised"
@@ -617,6 +642,7 @@ def reconstruct(
         "reference": reference_source,
         "calibrated": bool(calibrate),
         "calibration": calibration.summary(),
+        "background_map": map_summary,
         "background": background,
         "contact_impedance": contact_impedance,
         "readings": recording.readings,
@@ -639,7 +665,7 @@ def _normalised(model, dv, reference, level, calibration) -> tuple[ForwardModel,
     more than `_LARGEST_GAIN` times off the median gain, or where V_ref or V_h is under 5% of
     its RMS, are masked (their indices in the recording returned): there the ratio would blow
     up, flip a sign or divide noise by noise."""
-    voltages = np.asarray(model.measure(jnp.full(model.n_elements, level)))
+    voltages = np.asarray(model.measure(jnp.broadcast_to(jnp.asarray(level), (model.n_elements,))))
     gain = reference / voltages
     positive = gain > 0
     # A ratio of two near-zero numbers says nothing: such readings go too, whatever their ratio.

@@ -311,3 +311,25 @@ def test_the_nonlinear_methods_run_at_the_calibrated_state(method):
     assert result.provenance["metadata"]["method"] == method
     assert _position_error(result) < 0.12
     assert np.corrcoef(result.images[1], one_step.images[1])[0, 1] > 0.7
+
+
+def test_a_background_map_fitted_to_the_reference_images_on_a_non_uniform_skin():
+    """Left half 0.01 S/sq, right half 0.004 (the touch's side): with `background_map` the
+    fitted map tells the regions apart and explains the reference the uniform level cannot."""
+    protocol = de.protocol.adjacent(16)
+    fine = de.mesh.disc(16, electrode_width=0.2, h=0.06)
+    model = de.ForwardModel(fine, protocol)
+    background = np.where(fine.element_centroids[:, 0] < 0, 0.01, 0.004)
+    touched = background * np.where(np.linalg.norm(fine.element_centroids - CENTRE, axis=1) < RADIUS, 0.5, 1.0)
+    reference, frame = (np.asarray(model.measure(s)) for s in (background, touched))
+    recording = de.io.Recording(
+        frames=np.stack([reference, frame]), times=[0.0, 1.0], protocol=protocol, reference=reference
+    )
+    uniform, _ = _reconstruct(recording, hyperparameter=0.05)
+    mapped, _ = _reconstruct(recording, hyperparameter=0.05, background_map=True)
+    summary = mapped.provenance["metadata"]["background_map"]
+    assert uniform.provenance["metadata"]["background_map"] is None
+    assert summary["misfit"] < 0.3 * uniform.provenance["metadata"]["calibration"]["misfit"]
+    low, high = summary["range"]
+    assert 1.8 < high / low < 4.0  # the true ratio is 2.5; a smooth map rounds the step
+    assert _position_error(mapped) < 0.12
