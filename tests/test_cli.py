@@ -83,6 +83,10 @@ def test_options_reach_reconstruct(tmp_path, simulated, capsys):
     assert not metadata["calibrated"] and metadata["difference"] == "normalised" and metadata["prior"] == "laplace"
     assert metadata["contact_impedance"] == 0.02 and metadata["background"] == 1.0
     assert out.mesh.n_elements == de.mesh.disc(16, electrode_width=0.2, h=0.2).n_elements  # the geometry at --h
+    arguments = ["reconstruct", str(frames), "-o", str(tmp_path / "mapped"), "--background-map", "--h", "0.2"]
+    assert main(arguments) == 0
+    summary = read_frames(tmp_path / "mapped.h5").provenance["metadata"]["background_map"]
+    assert 0 <= summary["misfit"] < 0.05 and summary["range"][0] <= summary["range"][1]
 
 
 def test_reference_frame_option_and_a_file_without_reference(tmp_path, simulated, capsys):

@@ -76,6 +76,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
             reference_frame=arguments.reference_frame,
             difference=arguments.difference,
             driven_readings=arguments.driven_readings,
+            background_map=arguments.background_map,
             progress=True,
             **model,
         )
@@ -232,6 +233,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         dest="calibrate",
         action="store_false",
         help="image with the nominal model as it is: no fit of level, orientation or readings",
+    )
+    reconstruct.add_argument(
+        "--background-map",
+        action="store_true",
+        help="fit a smooth background map to the reference (diffeit.fit.background) and image at it",
     )
     reconstruct.add_argument(
         "--difference",
