@@ -88,16 +88,16 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from .fit import background as fit_background
 from .forward import ForwardModel
-from .inverse import GaussNewton, OneStep, TotalVariation, select_hyperparameter
+from .inverse import GREIT, GaussNewton, OneStep, TotalVariation, select_hyperparameter
 from .io import Recording, mesh_from_geometry
 from .mesh import Mesh, disc
 from .protocol import Protocol
 from .results import RESULTS
 
-Method = Literal["one_step", "gauss_newton", "total_variation"]
+Method = Literal["one_step", "gauss_newton", "total_variation", "greit"]
 Difference = Literal["auto", "calibrated", "normalised"]
 DrivenReadings = Literal["auto", "keep", "drop"]
-METHODS = ("one_step", "gauss_newton", "total_variation")
+METHODS = ("one_step", "gauss_newton", "total_variation", "greit")
 SELECTION_METHODS = ("auto", "gcv", "lcurve", "noise_figure")
 
 # A recording without a reference is calibrated on the mean of at most this many first frames.
@@ -543,7 +543,10 @@ def reconstruct(
     - "one_step" (default): `diffeit.inverse.OneStep` with `prior`;
     - "gauss_newton": `diffeit.inverse.GaussNewton(...).difference` with `prior`, from the
       calibrated level;
-    - "total_variation": `diffeit.inverse.TotalVariation`.
+    - "total_variation": `diffeit.inverse.TotalVariation`;
+    - "greit": `diffeit.inverse.GREIT` (32 x 32 pixels, designed for noise figure 0.5 when the
+      hyperparameter is "auto", else with the given value), its pixels averaged back onto the
+      elements by their overlap areas.
 
     `background_map=True` then fits a smooth background map (and, with driven readings kept,
     one contact impedance per electrode) to the reference with `diffeit.fit.background`, and
@@ -627,8 +630,11 @@ def reconstruct(
     unsafe: list[int] = []
     if difference == "normalised":
         model, dv, unsafe = _normalised(model, dv, signed_reference, level, calibration)
-    value, choice = _hyperparameter(model, dv, hyperparameter, prior, level)
-    images = _images(model, dv, method, prior, value, level, progress)
+    if method == "greit" and hyperparameter == "auto":
+        value, choice = None, {"rule": "GREIT designed for noise figure 0.5", "method": "noise_figure"}
+    else:
+        value, choice = _hyperparameter(model, dv, hyperparameter, prior, level)
+    images, value = _images(model, dv, method, prior, value, level, progress)
     relative = recording.voltage_unit != "V"
     if relative:
         images = images / level
@@ -709,17 +715,33 @@ def _hyperparameter(model, dv, hyperparameter, prior, level) -> tuple[float, dic
     return float(selections[rule].value), {**choice, "method": rule}
 
 
-def _images(model, dv, method, prior, hyperparameter, level, progress) -> np.ndarray:
-    """(T, E) conductivity changes, S/sq, of the frames' differences `dv` at the uniform `level`."""
+def _images(model, dv, method, prior, hyperparameter, level, progress) -> tuple[np.ndarray, float]:
+    """(T, E) conductivity changes, S/sq, of the frames' differences `dv` at `level` (S/sq, a
+    scalar or a map), and the hyperparameter used (GREIT's own when None)."""
     if method == "one_step":
         solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=level)
         batches = range(0, len(dv), _BATCH)
         bar = tqdm(batches, desc="reconstructing", unit="batch", disable=not progress or len(batches) < 2)
-        return np.concatenate([np.asarray(solver.reconstruct(dv[i : i + _BATCH])) for i in bar])
+        return np.concatenate([np.asarray(solver.reconstruct(dv[i : i + _BATCH])) for i in bar]), hyperparameter
     if method == "gauss_newton":
         result = GaussNewton(model, prior=prior, hyperparameter=hyperparameter).difference(
             dv, background=level, throw=False
         )
-        return np.atleast_2d(np.asarray(result.conductivity_change))
+        return np.atleast_2d(np.asarray(result.conductivity_change)), hyperparameter
+    if method == "greit":
+        greit = GREIT(
+            model, hyperparameter=hyperparameter, noise_figure=0.5 if hyperparameter is None else None, background=level
+        )
+        return _pixels_to_elements(greit.grid, np.asarray(greit.reconstruct(dv))), greit.hyperparameter
     solver = TotalVariation(model, hyperparameter=hyperparameter, background=level)
-    return np.stack([np.asarray(solver.reconstruct(frame, throw=False)) for frame in tqdm(dv, disable=not progress)])
+    images = [np.asarray(solver.reconstruct(frame, throw=False)) for frame in tqdm(dv, disable=not progress)]
+    return np.stack(images), hyperparameter
+
+
+def _pixels_to_elements(grid, pixels: np.ndarray) -> np.ndarray:
+    """(T, E) element images from pixel images (T, rows, columns): each element the
+    overlap-area-weighted mean of the pixels it meets (0 where it meets none of the image's)."""
+    overlap = grid.element_to_pixel.multiply((grid.pixel_areas * grid.mask).reshape(-1, 1)).tocsc()
+    weights = np.asarray(overlap.sum(axis=0)).ravel()
+    values = (overlap.T @ pixels.reshape(len(pixels), -1).T).T
+    return np.where(weights > 0, values / np.where(weights > 0, weights, 1.0), 0.0)

@@ -303,7 +303,7 @@ def test_a_recording_without_reference_is_calibrated_on_its_first_frames():
     np.testing.assert_allclose(result.reference, recording.frames.mean(axis=0))
 
 
-@pytest.mark.parametrize("method", ["gauss_newton", "total_variation"])
+@pytest.mark.parametrize("method", ["gauss_newton", "total_variation", "greit"])
 def test_the_nonlinear_methods_run_at_the_calibrated_state(method):
     recording = _recording(de.protocol.adjacent(16), unit=250.0)
     one_step, _ = _reconstruct(recording, hyperparameter=0.05)

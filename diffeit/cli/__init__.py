@@ -100,7 +100,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     value, choice = metadata["hyperparameter"], metadata["hyperparameter_choice"]
     chosen = "given" if isinstance(hyperparameter, float) else choice["method"]
     chosen = f"auto: {chosen}" if hyperparameter == "auto" else chosen
-    prior = "" if arguments.method == "total_variation" else f" {arguments.prior}"  # total variation has none
+    prior = "" if arguments.method in ("total_variation", "greit") else f" {arguments.prior}"  # they have none
     described = arguments.method.replace("_", " ") + prior
     shown = plot_image_strip(
         outputs[0],
@@ -217,7 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct.add_argument("-o", "--output", required=True, help="output name: writes OUT.png and OUT.h5")
     reconstruct.add_argument(
         "--method",
-        choices=("one_step", "gauss_newton", "total_variation"),
+        choices=("one_step", "gauss_newton", "total_variation", "greit"),
         default="one_step",
         help="the reconstruction (default one_step)",
     )
