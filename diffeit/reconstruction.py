@@ -11,7 +11,7 @@ the contact impedance moves with it (z_h = c z_0), keeping the contact length z 
 the nominal model. c is a closed-form least-squares fit. In order:
 
 1. **Broken readings** in the reference: exactly zero, or saturated (the largest magnitude,
-   held by two or more readings: a clipped rail).
+   held by two or more readings whose model magnitudes differ: a clipped rail).
 2. **Orientation.** The misfit ||v - c V|| / ||v|| is computed for the electrodes as recorded,
    numbered the other way round, and with the first electrode one on or one back, each with
    either sign of c (the drive's sign flipped; not for magnitudes). An alternative is adopted,
@@ -27,10 +27,9 @@ the nominal model. c is a closed-form least-squares fit. In order:
    them with a warning; "keep" and "drop" force the choice.
 5. **Outliers:** a reading whose residual exceeds both six robust standard deviations of the
    residuals (1.4826 MAD) and half the model's reading (or half of 10% of the RMS reading,
-   when that is larger) is masked: a broken channel is off by a factor, a model's error by
-   a few percent. An electrode with half or more
-   of the readings it takes part in (driving or measuring) masked is broken: every reading
-   that uses it is masked.
+   when that is larger) is masked: a broken channel is off by a factor, a model's error by a
+   few percent. An electrode with half or more of the readings it takes part in (driving or
+   measuring) masked is broken, worst first: every reading that uses it is masked.
 
 The result reports the relative misfit and the Pearson correlation between v and the
 calibrated model on the readings used, and warns (`CalibrationWarning`) when the correlation
@@ -66,7 +65,7 @@ reading, which is a gain per reading.
 The corner of the L-curve of the calibrated, normalised one-step problem, from all frames at
 once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`); when the corner sits at an end
 of the candidates, the noise figure 0.5 instead. On the real tanks (README, "Real
-recordings") the L-curve traced the rod on both, GCV chose 50x too small a value on the
+recordings") the L-curve traced the rod on both, GCV chose 20-50x too small a value on the
 Montreal frames, and the noise figure does not depend on the data at all.
 """
 
