@@ -559,8 +559,9 @@ def reconstruct(
     frames at once. `difference`: "auto" (default), "calibrated" or "normalised" (module
     docstring).
 
-    **Returns** the recording with `mesh`, `images` (T, E) and `image_quantity` filled in, and
-    the reference it used. With volts (`voltage_unit="V"`) the images are conductivity changes
+    **Returns** the recording with `mesh`, `images` (T, E) and `image_quantity` filled in; its
+    frames and reference as recorded (a recording without one gets the reference it was imaged
+    against; `provenance["metadata"]["reference"]` says which). With volts (`voltage_unit="V"`) the images are conductivity changes
     dsigma, S/sq; in any other unit, where no absolute level is known, relative changes
     dsigma / sigma_h ("relative conductivity change", unit-free). The provenance's metadata
     holds the calibration (`ReferenceCalibration.summary`), the hyperparameter and how it was
@@ -656,7 +657,7 @@ def reconstruct(
     }
     return dataclasses.replace(
         recording,
-        reference=reference,
+        reference=reference if recording.reference is None else recording.reference,  # the recorded one is kept
         mesh=mesh,
         images=images,
         image_quantity="relative conductivity change" if relative else "conductivity change",
