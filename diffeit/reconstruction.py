@@ -561,9 +561,10 @@ def reconstruct(
 
     **Returns** the recording with `mesh`, `images` (T, E) and `image_quantity` filled in; its
     frames and reference as recorded (a recording without one gets the reference it was imaged
-    against; `provenance["metadata"]["reference"]` says which). With volts (`voltage_unit="V"`) the images are conductivity changes
-    dsigma, S/sq; in any other unit, where no absolute level is known, relative changes
-    dsigma / sigma_h ("relative conductivity change", unit-free). The provenance's metadata
+    against; `provenance["metadata"]["reference"]` says which). With volts (`voltage_unit="V"`)
+    the images are conductivity changes dsigma, S/sq; in any other unit, where no absolute
+    level is known, relative changes dsigma / sigma_h ("relative conductivity change",
+    unit-free). The provenance's metadata
     holds the calibration (`ReferenceCalibration.summary`), the hyperparameter and how it was
     chosen (with what each selection method gives), and every option.
 
