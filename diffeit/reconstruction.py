@@ -87,7 +87,7 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from .fit import background as fit_background
 from .forward import ForwardModel
-from .inverse import GREIT, GaussNewton, OneStep, TotalVariation, select_hyperparameter
+from .inverse import GREIT, GaussNewton, LinearisedProblem, OneStep, TotalVariation, select_hyperparameter
 from .io import Recording, mesh_from_geometry
 from .mesh import Mesh, disc
 from .protocol import Protocol
@@ -696,24 +696,24 @@ def _normalised(model, dv, reference, level, calibration) -> tuple[ForwardModel,
 
 
 def _hyperparameter(model, dv, hyperparameter, prior, level) -> tuple[float, dict[str, Any]]:
-    """The value and how it was chosen (with what each data-driven method gives)."""
+    """The value and how it was chosen: the rule, and the value of each selection method
+    evaluated (one linearisation shared between them)."""
     if not isinstance(hyperparameter, str):
         return float(hyperparameter), {"rule": "given"}
-    selections = {
-        name: select_hyperparameter(model, dv, name, prior=prior, background=level, throw=False)
-        for name in ("lcurve", "gcv", "noise_figure")
-    }
-    choice: dict[str, Any] = {
-        name: {"value": float(selection.value), "at_boundary": bool(selection.result != RESULTS.successful)}
-        for name, selection in selections.items()
-    }
-    if hyperparameter == "auto":
-        corner = selections["lcurve"]
-        rule = "lcurve" if corner.result == RESULTS.successful else "noise_figure"
-    else:
-        rule = hyperparameter
-    choice["rule"] = rule if hyperparameter == "auto" else "given method"
-    return float(selections[rule].value), {**choice, "method": rule}
+    problem = LinearisedProblem(model, prior, level)
+
+    def select(name: str) -> dict[str, Any]:
+        selection = select_hyperparameter(model, dv, name, prior=prior, background=level, throw=False, problem=problem)
+        return {"value": float(selection.value), "at_boundary": bool(selection.result != RESULTS.successful)}
+
+    if hyperparameter != "auto":
+        chosen = select(hyperparameter)
+        return chosen["value"], {hyperparameter: chosen, "rule": "given method", "method": hyperparameter}
+    choice = {"lcurve": select("lcurve"), "rule": "auto"}
+    rule = "lcurve" if not choice["lcurve"]["at_boundary"] else "noise_figure"
+    if rule == "noise_figure":
+        choice["noise_figure"] = select("noise_figure")
+    return choice[rule]["value"], {**choice, "method": rule}
 
 
 def _images(model, dv, method, prior, hyperparameter, level, progress) -> tuple[np.ndarray, float]:

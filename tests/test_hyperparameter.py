@@ -159,3 +159,15 @@ def test_conversion_refuses_priors_without_a_counterpart(case):
         de.inverse.to_external_hyperparameter(OneStep(model, Noser(0.2), 0.1), "eidors")
     with pytest.raises(ValueError, match="unknown tool"):
         de.inverse.to_external_hyperparameter(OneStep(model, "noser", 0.1), "matlab")
+
+
+def test_a_shared_linearised_problem_gives_the_same_selection(case):
+    model, difference = case[0], case[1]
+    problem = LinearisedProblem(model, "noser", 1.0)
+    for method in ("gcv", "lcurve", "noise_figure"):
+        alone = select_hyperparameter(model, difference, method, throw=False)
+        shared = select_hyperparameter(model, difference, method, throw=False, problem=problem)
+        assert shared.value == alone.value
+        np.testing.assert_allclose(shared.criterion, alone.criterion, rtol=1e-12)
+    with pytest.raises(ValueError, match="linearised problem of this model"):
+        select_hyperparameter(model, difference, normalised=True, reference=np.ones(208), problem=problem)

@@ -333,3 +333,44 @@ def test_a_background_map_fitted_to_the_reference_images_on_a_non_uniform_skin()
     low, high = summary["range"]
     assert 1.8 < high / low < 4.0  # the true ratio is 2.5; a smooth map rounds the step
     assert _position_error(mapped) < 0.12
+
+
+def test_a_32_electrode_tank_with_its_own_patterns_is_imaged_with_the_defaults():
+    """76 current injections between electrode pairs at several spacings, each read on every
+    free adjacent pair against the next-but-one (an instrument's own pattern, some readings near
+    zero), in device units with 1% noise: the defaults image the target where it is."""
+    n = 32
+    rng = np.random.default_rng(7)
+    pairs = [(i, (i + step) % n) for step in (1, 3, 5, 16) for i in range(0, n, 1 if step == 16 else 2)][:76]
+    drive = np.zeros((len(pairs), n))
+    readings = []
+    for k, (a, b) in enumerate(pairs):
+        drive[k, [a, b]] = -1.0, 1.0
+        free = [m for m in range(n) if not {m, (m + 2) % n} & {a, b}]
+        weights = np.zeros((len(free), n))
+        weights[np.arange(len(free)), free] = 1.0
+        weights[np.arange(len(free)), (np.array(free) + 2) % n] = -1.0
+        readings.append(weights)
+    protocol = de.Protocol(drive, readings)
+    assert protocol.n_drives == 76
+    fine = de.mesh.disc(n, electrode_width=0.08, h=0.06)
+    model = de.ForwardModel(fine, protocol)
+    reference = np.asarray(model.measure(np.full(fine.n_elements, 2.0)))
+    frame = np.asarray(model.measure(_touch(fine, 2.0)))
+    scale = 0.01 * np.sqrt(np.mean(reference**2))
+    frames = np.stack([reference, frame]) + rng.normal(0, scale, (2, len(reference)))
+    recording = de.io.Recording(
+        frames=4096 * frames,
+        times=[0.0, 1.0],
+        protocol=protocol,
+        reference=4096 * (reference + rng.normal(0, scale, len(reference))),
+        voltage_unit="arbitrary",
+    )
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        result = de.reconstruct(recording, mesh=de.mesh.disc(n, electrode_width=0.08, h=0.1), progress=False)
+    metadata = result.provenance["metadata"]
+    assert metadata["calibration"]["correlation"] > 0.99 and metadata["difference"] == "calibrated"
+    assert result.image_quantity == "relative conductivity change"
+    assert _position_error(result) < 0.12
+    assert -1.0 < result.images[1].min() < -0.1  # dsigma / sigma of a -50% target, blurred

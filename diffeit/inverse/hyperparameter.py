@@ -89,6 +89,7 @@ def select_hyperparameter(
     noise_figure: float = 0.5,
     target_radius: float | None = None,
     throw: bool = True,
+    problem: LinearisedProblem | None = None,
 ) -> HyperparameterSelection:
     """Choose the `OneStep` hyperparameter for data `voltage_difference` (M,) or (T, M), volts.
 
@@ -103,8 +104,15 @@ def select_hyperparameter(
     `throw=True` (the default) raises `diffeit.results.SolverError` for a choice at an end of
     the candidates (`RESULTS.selection_at_boundary`); with `throw=False` the selection carries
     the code in `result` and its value is the nearest end.
+
+    `problem`: the `LinearisedProblem` of `model`, `prior`, `background` and `normalised` when
+    the caller has built it already (its Jacobian and eigendecomposition are most of the cost of
+    a selection), so that several methods share one.
     """
-    problem = LinearisedProblem(model, prior, background, normalised=normalised)
+    if problem is None:
+        problem = LinearisedProblem(model, prior, background, normalised=normalised)
+    elif problem.model is not model or problem.normalised != bool(normalised):
+        raise ValueError("problem must be the linearised problem of this model (and normalisation)")
     dv = np.atleast_2d(np.asarray(check_frames(voltage_difference, model.n_measurements, "voltage differences")))
     if normalised and reference is None:
         raise ValueError("normalised differences need the measured reference voltages: pass reference=V_ref")
