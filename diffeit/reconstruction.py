@@ -23,8 +23,10 @@ the nominal model. c is a closed-form least-squares fit. In order:
 4. **Readings on driven electrodes** (EIDORS 'meas_current') are dominated by the contact
    impedance: with them, a common factor of the contact impedance is fitted too (a 1-D search
    in log z). `driven_readings="auto"` keeps them when the fitted model reproduces them about
-   as well as the others (relative misfit at most twice theirs, or 5%), and otherwise drops
-   them with a warning; "keep" and "drop" force the choice.
+   as well as the others (relative misfit at most twice theirs, or 5%) once they have
+   determined one contact impedance per electrode (Levenberg-Marquardt on ln z, from the
+   common factor), and otherwise drops them with a warning; "keep" and "drop" force the
+   choice.
 5. **Outliers:** a reading whose residual exceeds both six robust standard deviations of the
    residuals (1.4826 MAD) and half the model's reading (or half of 10% of the RMS reading,
    when that is larger) is masked: a broken channel is off by a factor, a model's error by a
@@ -116,8 +118,10 @@ _DRIVEN_FACTOR, _DRIVEN_FLOOR = 2.0, 0.05
 _LARGEST_GAIN = 30.0
 # The model does not reproduce the reference below this correlation.
 _LEAST_CORRELATION = 0.9
-# Contact impedance factors searched (log-spaced) before a golden-section refinement.
+# Contact impedance factors searched (log-spaced) before a golden-section refinement, and the
+# most Levenberg-Marquardt steps of the per-electrode fit that follows.
 _CONTACT_GRID = np.logspace(-3, 3, 25)
+_CONTACT_STEPS = 20
 # Frames per batch of one-step reconstruction: one matrix product and one progress step each.
 _BATCH = 256
 
@@ -171,6 +175,7 @@ class ReferenceCalibration(eqx.Module):
             "orientations_misfit": {name: round(value, 6) for name, value in self.orientations.items()},
             "conductivity": self.conductivity,
             "contact_impedance": float(np.mean(self.contact_impedance)),
+            "contact_impedance_per_electrode": [float(z) for z in self.contact_impedance],
             "misfit": self.misfit,
             "correlation": self.correlation,
             "readings_used": int(self.used.sum()),
@@ -261,22 +266,27 @@ def calibrate_to_reference(
         with_driven = used | (driven & usable)
         factor = _contact_factor(model, protocol, signed, with_driven, background, z0)
         voltages = _voltages(model, protocol, background, z0 * factor)
-        projection = voltages[with_driven] @ signed[with_driven]
-        scale_driven = projection / (voltages[with_driven] @ voltages[with_driven])
-        residual = signed - scale_driven * voltages
-        # Driven readings of another sign than the model's can spoil the level itself: a misfit of 100%.
-        misfit_driven = _relative(residual[driven & usable], signed[driven & usable]) if projection > 0 else 1.0
+        # Driven readings of another sign than the model's spoil the level itself: a misfit of 100%.
+        misfit_driven, contact = 1.0, z0 * factor
+        if voltages[with_driven] @ signed[with_driven] > 0:
+            contact, scale_driven = _electrode_contact_impedances(
+                model, protocol, signed, with_driven, background, contact
+            )
+            voltages = _voltages(model, protocol, background, contact)
+            misfit_driven = _relative(
+                signed[driven & usable] - scale_driven * voltages[driven & usable], signed[driven & usable]
+            )
         # Against the others' misfit without them: a fit the driven readings spoil misfits both.
         misfit_others = _relative(signed[used] - scale * _voltages(model, protocol, background, z0)[used], signed[used])
         if driven_readings == "auto" and misfit_driven > max(_DRIVEN_FACTOR * misfit_others, _DRIVEN_FLOOR):
             notes.append(
-                f"readings on driven electrodes dropped: the model with a fitted contact impedance misses them by "
+                f"readings on driven electrodes dropped: the model with fitted contact impedances misses them by "
                 f"{misfit_driven:.0%}, the others by {misfit_others:.0%}"
             )
             masked["driven electrode"] = driven & usable
             factor = 1.0
-        else:
-            scale = scale_driven
+        elif misfit_driven < 1.0 or driven_readings == "keep":
+            scale, factor = (scale_driven, contact / z0) if misfit_driven < 1.0 else (scale, factor)
             used = _mask_outliers(protocol, signed, scale * voltages, with_driven, usable, masked)
     masked = {reason: mask & ~_earlier(masked, reason) for reason, mask in masked.items()}
     lost = {reason: mask for reason, mask in masked.items() if mask.any() and reason != "driven electrode"}
@@ -491,6 +501,45 @@ def _contact_factor(model, protocol, data, used, background, z0) -> float:
         left, right = misfits(np.exp([a, b]))
         low, high = (low, b) if left <= right else (a, high)
     return float(np.exp(0.5 * (low + high)))
+
+
+def _electrode_contact_impedances(
+    model: ForwardModel, protocol: Protocol, data: np.ndarray, used: np.ndarray, background: float, start: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """One contact impedance per electrode (ohm m, at `background`) and the scale c minimising
+    ||data - c V(z)|| on `used`, from `start`: Levenberg-Marquardt on ln z, c in closed form at
+    every step. The readings on driven electrodes determine each z; a weak pull (1% of the
+    curvature's mean) towards `start` keeps an electrode they do not see where it was."""
+    uniform = _with(model, protocol, start)
+    sigma = jnp.full(model.n_elements, background)
+    log_z, anchor = np.log(start), np.log(start)
+
+    def evaluate(log_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+        z = jnp.asarray(np.exp(log_z))
+        voltages = np.asarray(uniform.measure(sigma, z))[used]
+        slope = np.asarray(uniform.jacobian(sigma, z, wrt="contact_impedance"))[used] * np.exp(log_z)
+        scale = float(voltages @ data[used] / (voltages @ voltages))
+        return voltages, slope, scale, float(np.sum((data[used] - scale * voltages) ** 2))
+
+    voltages, slope, scale, cost = evaluate(log_z)
+    damping = 1e-3
+    for _ in range(_CONTACT_STEPS):
+        design = scale * slope
+        curvature = design.T @ design
+        pull = 0.01 * np.trace(curvature) / len(curvature)
+        gradient = design.T @ (data[used] - scale * voltages) - pull * (log_z - anchor)
+        step = np.linalg.solve(
+            curvature + (pull + damping * np.trace(curvature) / len(curvature)) * np.eye(len(log_z)), gradient
+        )
+        trial = evaluate(log_z + step)
+        if trial[3] < cost:
+            log_z, (voltages, slope, scale, cost) = log_z + step, trial
+            damping = max(damping / 10, 1e-6)
+            if np.max(np.abs(step)) < 1e-4:
+                break
+        else:
+            damping *= 10
+    return np.exp(log_z), scale
 
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:

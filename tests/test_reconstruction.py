@@ -42,7 +42,7 @@ def _recording(
     protocol: de.Protocol,
     *,
     level: float = 0.01,
-    contact_impedance: float = 0.01,
+    contact_impedance: float | np.ndarray = 0.01,
     truth_protocol: de.Protocol | None = None,
     angles: np.ndarray | None = None,
     noise: float = 0.002,
@@ -181,13 +181,20 @@ def test_magnitudes_whose_sign_the_model_leaves_open_are_reported_and_masked():
 
 def test_readings_on_driven_electrodes_are_kept_through_a_fitted_contact_impedance_or_dropped():
     protocol = de.protocol.adjacent(16, measure_driven=True)
-    recording = _recording(protocol, contact_impedance=2.0, noise=0.0005)
+    truth = 2.0 * np.exp(np.random.default_rng(4).normal(0, 0.4, 16))  # ohm m, one per electrode
+    recording = _recording(protocol, contact_impedance=truth, noise=0.0005)
     kept, _ = _reconstruct(recording, hyperparameter=0.05)
     calibration = kept.provenance["metadata"]["calibration"]
     assert calibration["driven_readings"] == "kept" and calibration["readings_used"] == 256
-    # The level and the contact impedance both fitted: the model's nominal 0.01 ohm m was 200x off.
-    # (to 30%: the data's finer mesh resolves the current crowding under the electrodes better)
-    assert calibration["contact_impedance"] == pytest.approx(2.0, rel=0.3)
+    # The level and the contact impedances fitted: the model's nominal 0.01 ohm m was 200x off.
+    # Their level to 30% (the data's finer mesh resolves the current crowding under the
+    # electrodes better), their pattern over the electrodes to 25% (the smallest, which the
+    # readings see least, are the furthest off).
+    fitted = np.array(calibration["contact_impedance_per_electrode"])
+    level, true_level = np.exp(np.mean(np.log(fitted))), np.exp(np.mean(np.log(truth)))
+    assert level == pytest.approx(true_level, rel=0.3)
+    np.testing.assert_allclose(fitted / level, truth / true_level, rtol=0.25)
+    assert np.corrcoef(np.log(fitted), np.log(truth))[0, 1] > 0.95
     assert calibration["correlation"] > 0.999
     dropped, _ = _reconstruct(recording, hyperparameter=0.05, driven_readings="drop")
     assert dropped.provenance["metadata"]["calibration"]["readings_used"] == 208
