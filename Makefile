@@ -19,7 +19,7 @@ demo: $(STAMP)
 # limits BLAS threads itself, only while it computes). `make bench BENCH_FLAGS="--blas-threads 1"`
 # pins the measuring processes instead.
 test: $(STAMP)
-	$(BIN)/ruff check diffeit hw tests benchmarks examples
+	$(BIN)/ruff check diffeit hw tests benchmarks examples experiments
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest
 

@@ -126,6 +126,25 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     return 0
 
 
+def _experiment(arguments: argparse.Namespace) -> int:
+    """`diffeit experiment NAME [--small] [-o DIR]` and `diffeit experiment --list`."""
+    import experiments
+
+    if arguments.list or arguments.name is None:
+        for study in experiments.STUDIES.values():
+            print(f"{study.name:16s} Fig. {study.figure}: {study.title}")
+        return 0 if arguments.list else 2
+    output = Path(arguments.output or Path("experiments-output") / arguments.name)
+    start = time.perf_counter()
+    findings = experiments.run(arguments.name, output, small=arguments.small)
+    for statement in findings.statements:
+        print(statement)
+    print(f"{arguments.name}{' (small)' if arguments.small else ''} in {time.perf_counter() - start:.0f} s; wrote:")
+    for path in findings.files:
+        print(f"  {path}")
+    return 0
+
+
 def _output_paths(output: str, suffixes: tuple[str, ...], overwrite: bool) -> list[Path]:
     """The files of -o OUT: OUT with each of `suffixes` (a .png or .h5 ending of OUT is dropped
     first). Raises FileExistsError for one that exists, unless `overwrite`."""
@@ -268,6 +287,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct.add_argument("--frame-rate", type=float, default=1.0, help=".mat files: frames per second")
     reconstruct.add_argument("--overwrite", action="store_true", help="replace existing output files")
     reconstruct.set_defaults(run=reporting_user_errors("reconstruct", _reconstruct_file))
+    experiment = commands.add_parser(
+        "experiment",
+        help="run a study of experiments/ (the dissertation's Chapter 5), writing its figures and tables",
+        description="Run the study NAME, writing its PNG figures and CSV tables into DIR and printing its "
+        "findings; --small runs the quick mode CI runs. --list names the studies.",
+    )
+    experiment.add_argument("name", nargs="?", help="the study to run (see --list)")
+    experiment.add_argument("--list", action="store_true", help="name the studies and stop")
+    experiment.add_argument("--small", action="store_true", help="the quick mode: fewer settings, coarser meshes")
+    experiment.add_argument("-o", "--output", help="folder to write into (default experiments-output/NAME)")
+    experiment.set_defaults(run=reporting_user_errors("experiment", _experiment))
     from ._simulate import add_command as add_simulate
 
     add_simulate(commands)
