@@ -13,9 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 
 from ._study import Findings, Study
+from .accuracy_time import STUDY as _ACCURACY_TIME
 from .hyperparameter import STUDY as _HYPERPARAMETER
 
-STUDIES: dict[str, Study] = {study.name: study for study in (_HYPERPARAMETER,)}
+STUDIES: dict[str, Study] = {study.name: study for study in (_HYPERPARAMETER, _ACCURACY_TIME)}
 
 
 def run(name: str, output: str | Path, *, small: bool = False, progress: bool = True) -> Findings:

@@ -36,3 +36,21 @@ def test_the_command_lists_and_runs_studies(tmp_path, capsys):
 def test_an_unknown_study_is_refused():
     with pytest.raises(ValueError, match="no study"):
         experiments.run("nonsense", "unused")
+
+
+def test_nonlinear_iterations_lower_the_amplitude_error_on_a_high_contrast_scene(tmp_path):
+    findings = experiments.run("accuracy_time", tmp_path, small=True, progress=False)
+    errors = findings.values["gauss_newton_amplitude_error"]  # 0: the one-step linearisation
+    assert findings.values["iterations_help"] and errors["5"] < errors["1"] < errors["0"]
+    with (tmp_path / "accuracy_time.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    assert {row["scene"] for row in rows} == {"touch", "contrast"}
+    assert all(float(row["time_per_frame_s"]) > 0 and 0 <= float(row["one_minus_correlation"]) <= 2 for row in rows)
+    with (tmp_path / "accuracy_time_front.csv").open() as file:
+        front = list(csv.DictReader(file))
+    for scene in ("touch", "contrast"):  # along the front, more time buys less error
+        line = [row for row in front if row["scene"] == scene]
+        assert [float(r["time_per_frame_s"]) for r in line] == sorted(float(r["time_per_frame_s"]) for r in line)
+        assert [float(r["amplitude_error"]) for r in line] == sorted(
+            (float(r["amplitude_error"]) for r in line), reverse=True
+        )
