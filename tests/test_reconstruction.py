@@ -381,3 +381,15 @@ def test_a_32_electrode_tank_with_its_own_patterns_is_imaged_with_the_defaults()
     assert result.image_quantity == "relative conductivity change"
     assert _position_error(result) < 0.12
     assert -1.0 < result.images[1].min() < -0.1  # dsigma / sigma of a -50% target, blurred
+
+
+def test_gauss_newtons_automatic_hyperparameter_is_four_times_the_one_steps():
+    recording = _recording(de.protocol.adjacent(16))
+    one_step, _ = _reconstruct(recording)
+    nonlinear, _ = _reconstruct(recording, method="gauss_newton")
+    choice = nonlinear.provenance["metadata"]["hyperparameter_choice"]
+    assert choice["gauss_newton_factor"] == 4.0
+    assert nonlinear.provenance["metadata"]["hyperparameter"] == pytest.approx(
+        4.0 * one_step.provenance["metadata"]["hyperparameter"]
+    )
+    assert _position_error(nonlinear) < 0.12
