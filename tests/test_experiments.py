@@ -2,6 +2,7 @@
 `diffeit experiment` runs and lists them."""
 
 import csv
+from pathlib import Path
 
 import pytest
 
@@ -54,3 +55,23 @@ def test_nonlinear_iterations_lower_the_amplitude_error_on_a_high_contrast_scene
         assert [float(r["amplitude_error"]) for r in line] == sorted(
             (float(r["amplitude_error"]) for r in line), reverse=True
         )
+
+
+@pytest.mark.slow
+def test_the_linear_against_nonlinear_notebook_executes_in_its_small_mode():
+    """The notebook (a jupytext percent script) runs top to bottom in a kernel, SMALL = True."""
+    import jupytext  # the [notebooks] extra, which make test installs
+    import nbclient
+    notebook = jupytext.read(Path(experiments.__file__).parent / "notebooks" / "linear_vs_nonlinear.py")
+    parameters = next(cell for cell in notebook.cells if cell.cell_type == "code" and "SMALL = False" in cell.source)
+    parameters.source = parameters.source.replace("SMALL = False", "SMALL = True")
+    nbclient.NotebookClient(notebook, timeout=900, kernel_name="python3").execute()
+    printed = "".join(
+        output.get("text", "")
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.get("outputs", [])
+    )
+    assert "| touch | Gauss-Newton x5 |" in printed and "| IIRC | greit |" in printed
+    figures = [o for c in notebook.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
+    assert len(figures) == 2
