@@ -79,15 +79,11 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
         for noise in NOISES:
             percent = NOISE_LEVELS[noise]
             draws = range(1 if percent == 0 else n_draws)
-            data = (
-                np.array(
-                    [
-                        noisy(touched, reference, percent, 2 * s) - noisy(reference, reference, percent, 2 * s + 1)
-                        for s in draws
-                    ]
-                )
-                / problem.data_scale
-            )
+            differences = [
+                noisy(touched, reference, percent, 2 * s) - noisy(reference, reference, percent, 2 * s + 1)
+                for s in draws
+            ]
+            data = np.array(differences) / problem.data_scale
             for value, inverse in zip(hyperparameters, inverses, strict=True):
                 images = data @ inverse.T  # dsigma / sigma, (draws, E)
                 chosen = []
@@ -206,8 +202,9 @@ def _findings(summary: list[dict], hyperparameters: np.ndarray) -> tuple[dict, l
         + f"; the 0.5 R touch stays at {big.min():.2f}-{big.max():.2f} R",
         f"at hp {hyperparameters[-1]:g} the images break up: "
         + "; ".join(
-            f"{n} noise, {100 * min(broken[n].values()):.0f}-{100 * max(broken[n].values()):.0f}% of the images "
-            f"with artifacts, {mean_artifacts[n]:.1f} on average"
+            f"{n} noise, artifacts in "
+            + ("every image" if min(broken[n].values()) == 1 else f"{100 * min(broken[n].values()):.0f}% or more")
+            + f", {mean_artifacts[n]:.1f} on average"
             for n in broken
         ),
         f"the 0.025 R touch, noise-free at hp {WORKING['noise-free']:g}: radius {tiny['equivalent_radius_R']:.3f} R "
