@@ -236,7 +236,7 @@ def _plot_curves(path: Path, summary: list[dict]) -> Path:
         for ax in (radius_ax, peak_ax):
             ax.set_xscale("log")
             ax.axvline(WORKING[noise], color="0.5", linestyle=":", linewidth=1)
-            ax.invert_xaxis()
+        peak_ax.invert_xaxis()  # once: the column's axes share x
         peak_ax.set_yscale("log")
         peak_ax.axhline(-AMPLITUDE, color="k", linestyle="--", linewidth=0.8)
         radius_ax.set_title(f"{noise} ({NOISE_LEVELS[noise]:g}% of RMS(V_ref)); working point dotted", fontsize=9)
