@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV) || { $(PYTHON) -m pip install --user virtualenv && $(PYTHON) -m virtualenv $(VENV); }
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,bench,notebooks]'
+	$(BIN)/python -m pip install --quiet -e '.[test,bench,notebooks,sweeps]'
 	touch $(STAMP)
 
 demo: $(STAMP)

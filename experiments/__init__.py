@@ -17,8 +17,9 @@ from .accuracy_time import STUDY as _ACCURACY_TIME
 from .hyperparameter import STUDY as _HYPERPARAMETER
 from .metrics import STUDY as _METRICS
 from .size import STUDY as _SIZE
+from .sweep import STUDY as _SWEEP
 
-STUDIES: dict[str, Study] = {study.name: study for study in (_METRICS, _HYPERPARAMETER, _SIZE, _ACCURACY_TIME)}
+STUDIES: dict[str, Study] = {study.name: study for study in (_METRICS, _HYPERPARAMETER, _SIZE, _ACCURACY_TIME, _SWEEP)}
 
 
 def run(name: str, output: str | Path, *, small: bool = False, progress: bool = True) -> Findings:

@@ -4,6 +4,7 @@
 import csv
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import experiments
@@ -62,6 +63,7 @@ def test_the_linear_against_nonlinear_notebook_executes_in_its_small_mode():
     """The notebook (a jupytext percent script) runs top to bottom in a kernel, SMALL = True."""
     import jupytext  # the [notebooks] extra, which make test installs
     import nbclient
+
     notebook = jupytext.read(Path(experiments.__file__).parent / "notebooks" / "linear_vs_nonlinear.py")
     parameters = next(cell for cell in notebook.cells if cell.cell_type == "code" and "SMALL = False" in cell.source)
     parameters.source = parameters.source.replace("SMALL = False", "SMALL = True")
@@ -75,3 +77,32 @@ def test_the_linear_against_nonlinear_notebook_executes_in_its_small_mode():
     assert "| touch | Gauss-Newton x5 |" in printed and "| IIRC | greit |" in printed
     figures = [o for c in notebook.cells for o in c.get("outputs", []) if "image/png" in o.get("data", {})]
     assert len(figures) == 2
+
+
+def test_a_sweep_on_two_local_dask_workers_equals_the_single_process_run(tmp_path):
+    from experiments.sweep import problem_arrays, simulated, sweep
+
+    differences, truths, centres = simulated(5, 0.1, 0.16)
+    arrays = {prior: problem_arrays(0.16, prior, differences, truths, centres) for prior in ("noser", "laplace")}
+    grid = np.logspace(-2, 0, 7)
+    alone = sweep(arrays, grid, block=3)
+    clustered = sweep(arrays, grid, block=3, workers=2)
+    for prior in arrays:
+        assert alone[prior].shape == (7, 5, 3)
+        np.testing.assert_allclose(clustered[prior], alone[prior], rtol=1e-10, atol=1e-12)
+    # The batched figures are the library's: correlation and position error of one point.
+    import diffeit as de
+    from diffeit.inverse import OneStep
+    from experiments._study import BACKGROUND, model, skin
+
+    mesh = skin(0.16)
+    image = np.asarray(OneStep(model(mesh), "noser", grid[3], BACKGROUND).reconstruct(differences[2])) / BACKGROUND
+    assert alone["noser"][3, 2, 0] == pytest.approx(de.metrics.correlation(mesh, truths[2], image), rel=1e-8)
+    assert alone["noser"][3, 2, 2] == pytest.approx(de.metrics.position_error(mesh, image, centres[2]), rel=1e-8)
+
+
+def test_the_sweep_study_runs_in_its_small_mode(tmp_path):
+    findings = experiments.run("sweep", tmp_path, small=True, progress=False)
+    assert set(findings.values["best"]) == {"tikhonov", "noser", "laplace"}
+    assert all(1e-3 <= value <= 1.0 for value in findings.values["best"].values())
+    assert findings.values["timing"][0]["microseconds_per_point"] > 0
