@@ -213,3 +213,31 @@ def test_more_bad_protocols_are_refused(drive, measure, message):
 def test_bad_builder_arguments_are_refused(build, message):
     with pytest.raises(ValueError, match=message):
         build()
+
+
+def test_select_keeps_the_chosen_readings_in_order_and_refuses_none():
+    protocol = de.protocol.adjacent(16)
+    mask = np.arange(208) % 3 != 0
+    chosen = protocol.select(mask)
+    np.testing.assert_array_equal(chosen.measure, protocol.measure[mask])
+    np.testing.assert_array_equal(chosen.drive_index, protocol.drive_index[mask])
+    np.testing.assert_array_equal(chosen.drive, protocol.drive)
+    np.testing.assert_array_equal(protocol.select(np.flatnonzero(mask)).measure, chosen.measure)
+    with pytest.raises(ValueError, match="no readings"):
+        protocol.select(np.zeros(208, bool))
+    with pytest.raises(ValueError, match="shape"):
+        protocol.select(np.ones(200, bool))
+    with pytest.raises(ValueError, match="indices"):
+        protocol.select([0, 208])
+
+
+def test_relabel_moves_the_electrodes_and_keeps_the_readings():
+    protocol = de.protocol.adjacent(16)
+    rotated = protocol.relabel((np.arange(16) + 1) % 16)
+    # Instrument drive 0 (into electrode 1, out of 0) now enters the sheet at 2 and leaves at 1.
+    assert rotated.drive[0, 2] == 1 and rotated.drive[0, 1] == -1
+    np.testing.assert_array_equal(np.roll(protocol.measure, 1, axis=1), rotated.measure)
+    reversed_twice = protocol.relabel((-np.arange(16)) % 16).relabel((-np.arange(16)) % 16)
+    assert reversed_twice == protocol
+    with pytest.raises(ValueError, match="permutation"):
+        protocol.relabel(np.zeros(16, int))
