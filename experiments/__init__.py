@@ -14,12 +14,16 @@ from pathlib import Path
 
 from ._study import Findings, Study
 from .accuracy_time import STUDY as _ACCURACY_TIME
+from .background import STUDY as _BACKGROUND
 from .hyperparameter import STUDY as _HYPERPARAMETER
+from .memory import STUDY as _MEMORY
 from .metrics import STUDY as _METRICS
 from .size import STUDY as _SIZE
 from .sweep import STUDY as _SWEEP
 
-STUDIES: dict[str, Study] = {study.name: study for study in (_METRICS, _HYPERPARAMETER, _SIZE, _ACCURACY_TIME, _SWEEP)}
+STUDIES: dict[str, Study] = {
+    study.name: study for study in (_METRICS, _HYPERPARAMETER, _BACKGROUND, _MEMORY, _SIZE, _ACCURACY_TIME, _SWEEP)
+}
 
 
 def run(name: str, output: str | Path, *, small: bool = False, progress: bool = True) -> Findings:
