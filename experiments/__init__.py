@@ -18,11 +18,24 @@ from .background import STUDY as _BACKGROUND
 from .hyperparameter import STUDY as _HYPERPARAMETER
 from .memory import STUDY as _MEMORY
 from .metrics import STUDY as _METRICS
+from .scaling import STUDY as _SCALING
 from .size import STUDY as _SIZE
+from .stimuli import STUDY as _STIMULI
 from .sweep import STUDY as _SWEEP
 
 STUDIES: dict[str, Study] = {
-    study.name: study for study in (_METRICS, _HYPERPARAMETER, _BACKGROUND, _MEMORY, _SIZE, _ACCURACY_TIME, _SWEEP)
+    study.name: study
+    for study in (
+        _METRICS,
+        _HYPERPARAMETER,
+        _STIMULI,
+        _SCALING,
+        _BACKGROUND,
+        _MEMORY,
+        _SIZE,
+        _ACCURACY_TIME,
+        _SWEEP,
+    )
 }
 
 
