@@ -106,3 +106,27 @@ def test_the_sweep_study_runs_in_its_small_mode(tmp_path):
     assert set(findings.values["best"]) == {"tikhonov", "noser", "laplace"}
     assert all(1e-3 <= value <= 1.0 for value in findings.values["best"].values())
     assert findings.values["timing"][0]["microseconds_per_point"] > 0
+
+
+def test_the_sweep_shards_its_hyperparameters_over_several_devices():
+    """In a process that sees two (host) devices, a block is split over both and gives the
+    figures of the unsharded computation."""
+    import subprocess
+    import sys
+
+    script = """
+import jax, numpy as np
+from experiments.sweep import _block, _figures, problem_arrays, simulated
+assert len(jax.devices()) == 2, jax.devices()
+differences, truths, centres = simulated(3, 0.12, 0.18)
+arrays = problem_arrays(0.18, "noser", differences, truths, centres)
+grid = np.logspace(-2, 0, 5)  # odd: one device gets a padded value
+sharded = _block(arrays, grid)
+plain = np.asarray(_figures(**arrays, lambdas=grid))
+np.testing.assert_allclose(sharded, plain, rtol=1e-12, atol=1e-14)
+print("sharded over", len(jax.devices()), "devices:", sharded.shape)
+"""
+    environment = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2", "PATH": "/usr/bin:/bin"}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=environment, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "sharded over 2 devices: (5, 3, 3)" in done.stdout
