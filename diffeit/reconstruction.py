@@ -793,16 +793,7 @@ def _images(model, dv, method, prior, hyperparameter, level, progress) -> tuple[
         greit = GREIT(
             model, hyperparameter=hyperparameter, noise_figure=0.5 if hyperparameter is None else None, background=level
         )
-        return _pixels_to_elements(greit.grid, np.asarray(greit.reconstruct(dv))), greit.hyperparameter
+        return greit.grid.to_elements(np.asarray(greit.reconstruct(dv))), greit.hyperparameter
     solver = TotalVariation(model, hyperparameter=hyperparameter, background=level)
     images = [np.asarray(solver.reconstruct(frame, throw=False)) for frame in tqdm(dv, disable=not progress)]
     return np.stack(images), hyperparameter
-
-
-def _pixels_to_elements(grid, pixels: np.ndarray) -> np.ndarray:
-    """(T, E) element images from pixel images (T, rows, columns): each element the
-    overlap-area-weighted mean of the pixels it meets (0 where it meets none of the image's)."""
-    overlap = grid.element_to_pixel.multiply((grid.pixel_areas * grid.mask).reshape(-1, 1)).tocsc()
-    weights = np.asarray(overlap.sum(axis=0)).ravel()
-    values = (overlap.T @ pixels.reshape(len(pixels), -1).T).T
-    return np.where(weights > 0, values / np.where(weights > 0, weights, 1.0), 0.0)

@@ -80,6 +80,24 @@ class PixelGrid(StaticData):
         pixels = (self.element_to_pixel @ values.T).T.reshape(*values.shape[:-1], *self.shape)
         return np.where(self.mask, pixels, np.nan)
 
+    def to_elements(self, pixels: np.ndarray) -> np.ndarray:
+        """A pixel image (n_rows, n_columns) or a batch (T, n_rows, n_columns) as element values
+        (E,) or (T, E): each element the mean of the image's pixels it meets, weighted by the
+        overlap areas A_pe (0 for an element that meets none of `mask`'s pixels). Pixels off
+        `mask` are ignored (they may be NaN). Units as the input's; a constant image maps to
+        the same constant on every element it covers."""
+        values = np.asarray(pixels, dtype=float)
+        if values.ndim not in (2, 3) or values.shape[-2:] != self.shape:
+            raise ValueError(f"pixel image has shape {values.shape}; expected {self.shape} or (T, *{self.shape})")
+        flat = np.where(self.mask, values, 0.0).reshape(-1, self.mask.size)
+        if not np.all(np.isfinite(flat)):
+            raise ValueError("pixel image is not finite (NaN or inf) inside the mask")
+        # element_to_pixel holds A_pe / covered_p; times covered_p (pixel_areas) it is A_pe.
+        overlap = scipy.sparse.csc_array(self.element_to_pixel.multiply(self.pixel_areas.reshape(-1, 1)))
+        weights = np.asarray(overlap.sum(axis=0)).ravel()
+        elements = (overlap.T @ flat.T).T / np.where(weights > 0, weights, 1.0)
+        return elements.reshape(*values.shape[:-2], self.n_elements)
+
 
 def pixel_grid(mesh: Mesh, grid: int | tuple[int, int] = 64, min_coverage: float = 0.5) -> PixelGrid:
     """The `grid` x `grid` (or (n_rows, n_columns)) pixel grid over the bounding box of `mesh`,

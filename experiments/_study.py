@@ -12,7 +12,12 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 jax.config.update("jax_enable_x64", True)  # the studies compute in float64, as diffeit does
 
@@ -73,6 +78,31 @@ def noisy(clean: np.ndarray, reference: np.ndarray, percent: float, seed: int) -
     return clean + np.random.default_rng(seed).normal(0.0, scale, np.shape(clean))
 
 
+def is_clean(figures: de.metrics.TargetFigures) -> bool:
+    """Whether a half-amplitude image is clean: one component per touch, each matched to its
+    touch, and no artifact."""
+    return bool(figures.matched.all()) and figures.n_artifacts == 0
+
+
+def clean_range(clean: np.ndarray, min_run: int = 3) -> tuple[int | None, int | None]:
+    """The image-based optimum on a grid of hyperparameters: (first, last) index of the longest
+    run of consecutive clean values (`clean`, ascending hyperparameters; the lower one of equal
+    runs), or (None, None) when no run is `min_run` long (a lucky draw is not a range).
+
+    The first index is the image-based optimal hyperparameter (the sharpest clean image); the
+    last is where the blurred touches merge or the far lobe of the smoothest mode passes half
+    the peak."""
+    best, start = (None, None), None
+    for k, value in enumerate([*np.asarray(clean, bool), False]):
+        if value and start is None:
+            start = k
+        elif not value and start is not None:
+            if k - start >= min_run and (best[0] is None or k - 1 - start > best[1] - best[0]):
+                best = (start, k - 1)
+            start = None
+    return best
+
+
 def write_table(path: Path, rows: Iterable[Mapping[str, Any]]) -> Path:
     """Write `rows` (dicts with the same keys) as CSV; floats with 6 significant digits."""
     rows = list(rows)
@@ -81,6 +111,16 @@ def write_table(path: Path, rows: Iterable[Mapping[str, Any]]) -> Path:
         writer.writeheader()
         for row in rows:
             writer.writerow({k: f"{v:.6g}" if isinstance(v, float) else v for k, v in row.items()})
+    return path
+
+
+def save_figure(figure: Figure, path: Path, dpi: int = 100) -> Path:
+    """Save `figure` as a PNG at `path` (laid out tightly unless it has a layout engine of its
+    own), close it, and return `path`."""
+    if figure.get_layout_engine() is None:
+        figure.tight_layout()
+    figure.savefig(path, dpi=dpi)
+    plt.close(figure)
     return path
 
 

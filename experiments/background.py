@@ -61,7 +61,19 @@ from diffeit.inverse.linearised import regularised_inverse
 from diffeit.plotting import plot_elements
 from diffeit.results import RESULTS
 
-from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, disc_change, model, noisy, skin, write_table
+from ._study import (
+    BACKGROUND,
+    NOISE_LEVELS,
+    RADIUS,
+    Findings,
+    Study,
+    disc_change,
+    model,
+    noisy,
+    save_figure,
+    skin,
+    write_table,
+)
 
 LOW = 0.002  # S/sq, the right half
 CENTRES = ((-0.5 * RADIUS, 0.0), (0.5 * RADIUS, 0.0))
@@ -233,10 +245,7 @@ def _plot_maps(path: Path, mesh: de.Mesh, true_map: np.ndarray, shown: dict) -> 
         "dashed: the true touches",
         fontsize=9,
     )
-    figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 def _plot_ratios(path: Path, rows: list[dict]) -> Path:
@@ -260,10 +269,7 @@ def _plot_ratios(path: Path, rows: list[dict]) -> Path:
         ax.set_title(f"Touch {what}: 0.002 S/sq half over 0.01 S/sq half", fontsize=9)
         ax.legend(fontsize=8)
     figure.suptitle("Mean over the draws (bars: smallest to largest)", fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 STUDY = Study(

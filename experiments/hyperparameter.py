@@ -5,10 +5,11 @@ is simulated on a fine mesh of the skin and imaged one-step (NOSER prior) on a c
 for every hyperparameter of a log-spaced grid, at each noise level (percent of RMS(V_ref),
 `NOISE_LEVELS`; several seeded draws) and background (0.001, 0.01 and 0.02 S/sq).
 
-**The image-based optimal hyperparameter** (defined here; the dissertation chose it by eye):
-the smallest value of the grid (quarter-decade steps in the small mode, tenth-decade in the
-full one) that starts a run of three values at which every draw's half-amplitude image is one
-component at the touch and nothing else (no artifact). Smaller values sharpen the image until
+**The image-based optimal hyperparameter** (defined here, `experiments._study.clean_range`; the
+dissertation chose it by eye): the lower end of the longest run, at least three values long, of
+grid values (quarter-decade steps in the small mode, tenth-decade in the full one) at which
+every draw's half-amplitude image is one component at the touch and nothing else (no
+artifact). Smaller values sharpen the image until
 it breaks up into blobs of noise; very large ones (about 8 and more) blur it into the sheet's
 smoothest mode, whose far lobe passes half the peak again. Beside it: GCV and the
 L-curve's corner (`diffeit.inverse.select_hyperparameter`) of all the draws together.
@@ -38,10 +39,22 @@ from diffeit.inverse import LinearisedProblem, select_hyperparameter
 from diffeit.inverse.linearised import regularised_inverse
 from diffeit.plotting import plot_elements
 
-from ._study import NOISE_LEVELS, RADIUS, Findings, Study, disc_change, model, noisy, skin, write_table
+from ._study import (
+    NOISE_LEVELS,
+    RADIUS,
+    Findings,
+    Study,
+    clean_range,
+    disc_change,
+    is_clean,
+    model,
+    noisy,
+    save_figure,
+    skin,
+    write_table,
+)
 
 CENTRE = (0.5 * RADIUS, 0.0)
-_CLEAN_RUN = 3
 TARGET_RADIUS = 0.2 * RADIUS
 AMPLITUDE = -0.3
 
@@ -73,8 +86,7 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
             images = data @ regularised_inverse(problem, value).T  # dsigma / sigma, (seeds, E)
             for seed, image in zip(seeds, images, strict=True):
                 figures = de.metrics.target_figures(mesh, image, [CENTRE])
-                one = bool(figures.matched[0]) and figures.n_artifacts == 0
-                clean[k] &= one
+                clean[k] &= is_clean(figures)
                 rows.append(
                     {
                         "background": background,
@@ -90,9 +102,8 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
                 )
             if background == 0.01:
                 kept_images[noise, k] = images[0]
-        # The smallest value that starts a run of _CLEAN_RUN clean ones (a lucky draw is not a start).
-        runs = np.array([clean[k : k + _CLEAN_RUN].all() and k + _CLEAN_RUN <= len(clean) for k in range(len(clean))])
-        optimal = float(hyperparameters[np.argmax(runs)]) if runs.any() else float("nan")
+        lower, _ = clean_range(clean)
+        optimal = float(hyperparameters[lower]) if lower is not None else float("nan")
         chosen = {}
         for method in ("gcv", "lcurve"):
             selection = select_hyperparameter(
@@ -155,10 +166,7 @@ def _plot_artifacts(path: Path, rows: list[dict], noises: tuple[str, ...]) -> Pa
     ax.set_ylabel("artifacts (extra half-amplitude blobs), mean over draws")
     ax.set_title("Artifacts against the hyperparameter (0.01 S/sq)")
     ax.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def _plot_optimal(path: Path, rows: list[dict], backgrounds: tuple[float, ...]) -> Path:
@@ -180,10 +188,7 @@ def _plot_optimal(path: Path, rows: list[dict], backgrounds: tuple[float, ...]) 
     note = "\n(the backgrounds' curves coincide: the hyperparameter is unit-free)" if same else ""
     ax.set_title("Optimal hyperparameter against noise" + note, fontsize=10)
     ax.legend(fontsize=7)
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def _plot_images(path: Path, mesh, images: dict, noises: tuple[str, ...], hyperparameters: np.ndarray) -> Path:
@@ -194,10 +199,7 @@ def _plot_images(path: Path, mesh, images: dict, noises: tuple[str, ...], hyperp
             plot_elements(ax, mesh, images[noise, k], label="dsigma/sigma", electrodes=False)
             ax.set_title(f"{noise}, hp {hyperparameters[k]:.3g}", fontsize=8)
     figure.suptitle("One-step NOSER images of a -30% touch at (0.5 R, 0), 0.01 S/sq")
-    figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 STUDY = Study(

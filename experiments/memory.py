@@ -74,6 +74,7 @@ from ._study import (
     Study,
     model,
     noisy,
+    save_figure,
     skin,
     write_table,
 )
@@ -332,9 +333,7 @@ def _plot_strips(path: Path, mesh: de.Mesh, times: np.ndarray, shown: dict) -> P
         f"one-step NOSER, hyperparameter {HYPERPARAMETER:g}",
         fontsize=9,
     )
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 def _plot_profiles(path: Path, shown: dict) -> Path:
@@ -352,10 +351,7 @@ def _plot_profiles(path: Path, shown: dict) -> Path:
     axes[0].set_ylabel("dsigma/sigma")
     axes[0].legend(fontsize=7, loc="lower left")
     figure.suptitle("Profiles through the press centre (shaded: the true press)", fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def _plot_peaks(path: Path, times: np.ndarray, shown: dict, energies: dict, mesh: de.Mesh) -> Path:
@@ -405,10 +401,7 @@ def _plot_peaks(path: Path, times: np.ndarray, shown: dict, energies: dict, mesh
     course.set_ylabel("dsigma/sigma at the press centre")
     course.legend(fontsize=7, ncol=3)
     course.set_title("Time course at the press centre (shaded: the presses)", fontsize=9)
-    figure.tight_layout()
-    figure.savefig(path, dpi=90)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=90)
 
 
 STUDY = Study(

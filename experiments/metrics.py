@@ -43,7 +43,19 @@ from diffeit.inverse import LinearisedProblem
 from diffeit.inverse.linearised import regularised_inverse
 from diffeit.plotting import plot_elements
 
-from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, disc_change, model, noisy, skin, write_table
+from ._study import (
+    BACKGROUND,
+    NOISE_LEVELS,
+    RADIUS,
+    Findings,
+    Study,
+    disc_change,
+    model,
+    noisy,
+    save_figure,
+    skin,
+    write_table,
+)
 
 CENTRE = (0.5 * RADIUS, 0.0)
 TARGET_RADIUS = 0.2 * RADIUS
@@ -189,10 +201,7 @@ def _plot(path: Path, mesh, images: dict[float, np.ndarray]) -> Path:
         section_ax.set_title(f"cross-section through the peak ({peak:.2f})", fontsize=9)
         section_ax.legend(fontsize=7)
     figure.suptitle(f"A -30% touch of radius 0.2 R at (0.5 R, 0), {NOISE} noise, one-step NOSER, first draw")
-    figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 STUDY = Study(name="metrics", figure="5.1", title="the image metrics on one scene", run=run)

@@ -53,7 +53,7 @@ from diffeit.inverse import LinearisedProblem
 from diffeit.inverse.linearised import regularised_inverse
 from diffeit.plotting import plot_elements
 
-from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, model, skin, write_table
+from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, model, save_figure, skin, write_table
 
 HYPERPARAMETER = 0.05
 NOISE_PERCENT = NOISE_LEVELS["medium"]
@@ -289,10 +289,7 @@ def _plot_ratios(path: Path, rows: list[dict], varied: dict) -> Path:
                 ax.set_xlabel("position, r / R")
         axes[0, column].legend(fontsize=7, title="dashed: before, solid: after", title_fontsize=7)
     figure.suptitle("Off-centre over centre targets, before and after the scaling matrix (grey: within 10%)")
-    figure.tight_layout()
-    figure.savefig(path, dpi=90)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=90)
 
 
 def _plot_factors(path: Path, calibration: correction.Calibration) -> Path:
@@ -305,10 +302,7 @@ def _plot_factors(path: Path, calibration: correction.Calibration) -> Path:
     ax.set_ylabel("factor")
     ax.set_title("The scaling matrix at the working point (all angles)")
     ax.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def _plot_images(path: Path, mesh: de.Mesh, images: dict, radial: np.ndarray, centres: np.ndarray) -> Path:
@@ -321,10 +315,7 @@ def _plot_images(path: Path, mesh: de.Mesh, images: dict, radial: np.ndarray, ce
             ax.set_title(f"{when} correction, r = {radial[j]:.2g} R, peak {metrics.peak(frames[j]):.2f}", fontsize=8)
             ax.set_aspect("equal")
     figure.suptitle("A -50% touch of radius 0.2 R at the working point, one noise draw (circle: the truth)")
-    figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 STUDY = Study(

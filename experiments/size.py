@@ -49,7 +49,19 @@ from diffeit.inverse import LinearisedProblem
 from diffeit.inverse.linearised import regularised_inverse
 from diffeit.plotting import plot_elements
 
-from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, disc_change, model, noisy, skin, write_table
+from ._study import (
+    BACKGROUND,
+    NOISE_LEVELS,
+    RADIUS,
+    Findings,
+    Study,
+    disc_change,
+    model,
+    noisy,
+    save_figure,
+    skin,
+    write_table,
+)
 from .metrics import WORKING_POINTS
 
 CENTRE = (0.0, 0.0)
@@ -245,10 +257,7 @@ def _plot_curves(path: Path, summary: list[dict]) -> Path:
         peak_ax.set_xlabel("hyperparameter (decreasing)")
         radius_ax.legend(fontsize=7, title="hollow: artifacts in some draw", title_fontsize=7)
     figure.suptitle("Reconstructed size of centred -30% touches against the hyperparameter (mean over draws)")
-    figure.tight_layout()
-    figure.savefig(path, dpi=90)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=90)
 
 
 def _plot_images(path: Path, mesh, shown: dict) -> Path:
@@ -261,10 +270,7 @@ def _plot_images(path: Path, mesh, shown: dict) -> Path:
             ax.plot(size * RADIUS * np.cos(angle), size * RADIUS * np.sin(angle), "k--", linewidth=0.8)
             ax.set_title(f"{size:g} R, {noise}, hp {value:g}", fontsize=8)
     figure.suptitle("One-step NOSER images of centred -30% touches (dsigma/sigma; dashed: the true touch)")
-    figure.tight_layout()
-    figure.savefig(path, dpi=70)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=70)
 
 
 STUDY = Study(name="size", figure="5.8", title="stimulus size", run=run)

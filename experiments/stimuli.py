@@ -25,7 +25,8 @@ component matches a touch only if its centroid lies inside the touch's disc, so 
 away does not stand in for a touch merged with its neighbour), and no artifact. For one touch
 the clean values run from a lowest one up to (nearly) the grid's end; for several touches they
 stop too, where the hyperparameter is so large that the blurred touches join into one
-component. The clean range is the longest run of consecutive clean grid values; the optimal
+component. The clean range is the longest run of consecutive clean grid values (at least three; the rule
+of `hyperparameter`, `experiments._study.clean_range`); the optimal
 hyperparameter is its lower end (the sharpest image without artifacts) and the merge limit its
 upper end. Beside them: GCV and the L-curve's corner (`diffeit.inverse.select_hyperparameter`)
 of all the draws together.
@@ -62,7 +63,21 @@ from diffeit.inverse import LinearisedProblem, select_hyperparameter
 from diffeit.inverse.linearised import regularised_inverse
 from diffeit.plotting import plot_elements
 
-from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, disc_change, model, noisy, skin, write_table
+from ._study import (
+    BACKGROUND,
+    NOISE_LEVELS,
+    RADIUS,
+    Findings,
+    Study,
+    clean_range,
+    disc_change,
+    is_clean,
+    model,
+    noisy,
+    save_figure,
+    skin,
+    write_table,
+)
 
 ANGLES = (10.0, 130.0, 250.0)  # degrees; n touches take the first n
 CENTRES = [(0.5 * RADIUS * np.cos(np.radians(a)), 0.5 * RADIUS * np.sin(np.radians(a))) for a in ANGLES]
@@ -107,7 +122,7 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
             images = data @ inverse.T  # dsigma / sigma, (seeds, E)
             for seed, image in zip(seeds, images, strict=True):
                 figures = de.metrics.target_figures(mesh, image, centres, max_distance=TARGET_RADIUS)
-                clean = bool(figures.matched.all()) and figures.n_artifacts == 0
+                clean = is_clean(figures)
                 fractions[k] += clean / len(seeds)
                 rows.append(
                     {
@@ -124,7 +139,7 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
             if value in _nearest(hyperparameters, SHOWN):
                 shown_images[count, float(value)] = images[0]
         clean_fractions[count] = fractions
-        lower, upper = _clean_range(fractions == 1.0)
+        lower, upper = clean_range(fractions == 1.0)
         optimal = float(hyperparameters[lower]) if lower is not None else float("nan")
         merge_limit = float(hyperparameters[upper]) if upper is not None else float("nan")
         spread = float("nan")
@@ -209,19 +224,6 @@ def _peak_spread(peaks: np.ndarray) -> float:
     return float(magnitudes.min() / magnitudes.max()) if np.all(np.isfinite(magnitudes)) else float("nan")
 
 
-def _clean_range(clean: np.ndarray) -> tuple[int | None, int | None]:
-    """(first, last) index of the longest run of True in `clean` (the lower one of equal runs)."""
-    best, start = (None, None), None
-    for k, value in enumerate([*clean, False]):
-        if value and start is None:
-            start = k
-        elif not value and start is not None:
-            if best[0] is None or k - 1 - start > best[1] - best[0]:
-                best = (start, k - 1)
-            start = None
-    return best
-
-
 def _nearest(grid: np.ndarray, values: tuple[float, ...]) -> list[float]:
     return [float(grid[np.argmin(np.abs(np.log(grid / v)))]) for v in values]
 
@@ -240,10 +242,7 @@ def _plot_optimal(path: Path, rows: list[dict]) -> Path:
     ax.set_ylabel("hyperparameter")
     ax.set_title("Hyperparameter against the number of stimuli (medium noise)")
     ax.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def _plot_clean(path: Path, hyperparameters: np.ndarray, fractions: dict, rows: list[dict]) -> Path:
@@ -255,10 +254,7 @@ def _plot_clean(path: Path, hyperparameters: np.ndarray, fractions: dict, rows: 
     ax.set_ylabel("fraction of draws clean")
     ax.set_title("One component per touch and no artifact (dotted: optimal)")
     ax.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 def _plot_images(path: Path, mesh, images: dict) -> Path:
@@ -272,10 +268,7 @@ def _plot_images(path: Path, mesh, images: dict) -> Path:
             ax.set_title(f"{_touches(count)}, hp {value:.3g}", fontsize=8)
             ax.set_aspect("equal")
     figure.suptitle("One-step NOSER images of -30% touches at 0.5 R, medium noise (circles: the truth)")
-    figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 STUDY = Study(

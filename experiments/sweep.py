@@ -59,6 +59,7 @@ from ._study import (
     machine,
     model,
     noisy,
+    save_figure,
     skin,
     write_table,
 )
@@ -223,10 +224,7 @@ def _plot(path: Path, figures: dict[str, np.ndarray], hyperparameters: np.ndarra
     ax.set_ylabel("correlation with the truth (median, quartiles)")
     ax.set_title("Random touches at medium noise, one-step imaging")
     ax.legend()
-    figure.tight_layout()
-    figure.savefig(path, dpi=100)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path)
 
 
 STUDY = Study(name="sweep", figure="-", title="scenes x priors x hyperparameters, batched, sharded, on Dask", run=run)

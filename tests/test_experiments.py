@@ -50,12 +50,22 @@ def test_nonlinear_iterations_lower_the_amplitude_error_on_a_high_contrast_scene
     assert all(float(row["time_per_frame_s"]) > 0 and 0 <= float(row["one_minus_correlation"]) <= 2 for row in rows)
     with (tmp_path / "accuracy_time_front.csv").open() as file:
         front = list(csv.DictReader(file))
-    for scene in ("touch", "contrast"):  # along the front, more time buys less error
-        line = [row for row in front if row["scene"] == scene]
-        assert [float(r["time_per_frame_s"]) for r in line] == sorted(float(r["time_per_frame_s"]) for r in line)
-        assert [float(r["amplitude_error"]) for r in line] == sorted(
-            (float(r["amplitude_error"]) for r in line), reverse=True
-        )
+    for scene in ("touch", "contrast"):  # along each front, more time buys less error
+        for error in ("amplitude_error", "one_minus_correlation"):
+            line = [row for row in front if row["scene"] == scene and row["front_of"] == error]
+            assert line and line[0]["time_per_frame_s"] == min(
+                (r["time_per_frame_s"] for r in rows if r["scene"] == scene), key=float
+            )
+            assert [float(r["time_per_frame_s"]) for r in line] == sorted(float(r["time_per_frame_s"]) for r in line)
+            assert [float(r[error]) for r in line] == sorted((float(r[error]) for r in line), reverse=True)
+    with (tmp_path / "accuracy_time_budget.csv").open() as file:
+        budget = list(csv.DictReader(file))
+    assert {row["budget_s"] for row in budget} >= {"1", "10", "100"}
+    for row in budget:  # the best within a budget fits it, and no row that fits does better
+        limit = float(row["budget_s"])
+        assert float(row["time_per_frame_s"]) <= limit
+        fitting = [r for r in rows if r["scene"] == row["scene"] and float(r["time_per_frame_s"]) <= limit]
+        assert float(row["value"]) == pytest.approx(min(float(r[row["error"]]) for r in fitting), rel=1e-5)
 
 
 @pytest.mark.slow

@@ -213,6 +213,27 @@ def test_render_is_an_exact_area_weighted_mean(mesh):
     np.testing.assert_allclose(coarse_grid.render(values)[whole], values[owner[whole]], rtol=1e-12)
 
 
+def test_pixels_back_to_elements_conserve_the_integral(mesh):
+    """`to_elements` is the area-weighted adjoint of `render`: constants stay constant, the
+    integral over the covered area is conserved, a batch maps frame by frame, and an element
+    under pixels of one value takes that value."""
+    grid = pixel_grid(mesh, (20, 30), min_coverage=0.0)
+    np.testing.assert_allclose(grid.to_elements(np.full(grid.shape, 0.01)), 0.01, rtol=1e-12)
+    pixels = np.where(grid.mask, np.random.default_rng(2).standard_normal(grid.shape), np.nan)
+    elements = grid.to_elements(pixels)
+    assert elements.shape == (mesh.n_elements,)
+    assert mesh.element_areas @ elements == pytest.approx(np.nansum(pixels * grid.pixel_areas), rel=1e-10)
+    np.testing.assert_allclose(grid.to_elements(np.stack([pixels, -pixels]))[1], -elements, rtol=1e-12)
+    smooth = mesh.element_centroids[:, 0] + 2 * mesh.element_centroids[:, 1]
+    back = grid.to_elements(grid.render(smooth))
+    inner = np.linalg.norm(mesh.element_centroids, axis=1) < 0.8 * np.linalg.norm(mesh.nodes, axis=1).max()
+    np.testing.assert_allclose(back[inner], smooth[inner], atol=0.15)
+    with pytest.raises(ValueError, match=r"pixel image has shape \(20, 29\)"):
+        grid.to_elements(pixels[:, :-1])
+    with pytest.raises(ValueError, match="pixel image is not finite"):
+        grid.to_elements(np.where(grid.mask, np.inf, 0.0))
+
+
 def test_the_pixel_grid_is_greits():
     model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.15), de.protocol.adjacent(16), 0.01)
     greit = de.inverse.GREIT(model, grid=16, n_targets=20)

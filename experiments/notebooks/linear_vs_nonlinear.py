@@ -16,7 +16,8 @@
 # same comparison on real tank recordings (Montreal 1995, IIRC 2006) through `de.reconstruct`.
 #
 # Stored as a jupytext percent script: open it in Jupyter with jupytext, or run it as a script.
-# `SMALL = True` (what CI runs) uses coarser meshes and fewer frames.
+# `SMALL = True` (what CI runs) uses coarser meshes and fewer frames. The full run writes its
+# figures and tables to `experiments/results/linear_vs_nonlinear/`.
 
 # %%
 SMALL = False
@@ -46,6 +47,25 @@ fine = de.mesh.disc(16, electrode_width=0.2 * R, h=h_data * R, radius=R)
 model = de.ForwardModel(skin, de.protocol.adjacent(16), contact_impedance=0.01 * R)
 data_model = de.ForwardModel(fine, de.protocol.adjacent(16), contact_impedance=0.01 * R)
 print(f"reconstruction mesh {skin.n_elements} triangles, data mesh {fine.n_elements}")
+repository = Path(de.__file__).resolve().parents[1]
+output = None if SMALL else repository / "experiments" / "results" / "linear_vs_nonlinear"
+if output is not None:
+    output.mkdir(parents=True, exist_ok=True)
+
+
+def save(figure, name):
+    """Save a figure of the full run (PNG) next to the committed results."""
+    if output is not None:
+        figure.savefig(output / name, dpi=90)
+
+
+def table(name, header, lines):
+    """Print a Markdown table, and write it in the full run."""
+    text = "\n".join(["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *lines])
+    print(text)
+    if output is not None:
+        (output / name).write_text(text + "\n")
+
 
 # %% [markdown]
 # ## Simulated scenes
@@ -68,7 +88,7 @@ for name, (centre, radius, amplitude) in scenes.items():
 greit = GREIT(model, noise_figure=0.5, background=BACKGROUND)
 methods = {
     "one-step NOSER": lambda dv: np.asarray(OneStep(model, "noser", 0.05, BACKGROUND).reconstruct(dv)),
-    "GREIT": lambda dv: np.asarray(greit.reconstruct(dv)),
+    "GREIT": lambda dv: greit.grid.to_elements(np.asarray(greit.reconstruct(dv))),  # pixels to elements
     "Gauss-Newton x5": lambda dv: np.asarray(
         GaussNewton(model, "laplace", 0.05, max_iterations=5)
         .difference(dv, background=BACKGROUND, throw=False)
@@ -90,36 +110,25 @@ rows, images = [], {}
 for scene, (centre, _, amplitude) in scenes.items():
     for method, reconstruct in methods.items():
         start = time.perf_counter()
-        image = reconstruct(differences[scene]) / BACKGROUND  # dsigma / sigma
+        image = reconstruct(differences[scene]) / BACKGROUND  # dsigma / sigma on the elements
         seconds = time.perf_counter() - start
-        geometry = greit.grid if method == "GREIT" else skin
-        truth = greit.grid.render(truths[scene]) if method == "GREIT" else truths[scene]
-        if method == "GREIT":
-            image, truth = np.where(greit.grid.mask, image, 0.0), np.nan_to_num(truth)
         images[scene, method] = image
         rows.append(
-            (scene, method, de.metrics.position_error(geometry, image, centre) / R,
-             abs(de.metrics.peak(image) - amplitude) / abs(amplitude),
-             de.metrics.correlation(geometry, truth, image), seconds)
-        )  # fmt: skip
-print("| scene | method | position error / R | amplitude error | correlation | seconds |")
-print("|---|---|---|---|---|---|")
-for scene, method, position, amplitude_error, correlation, seconds in rows:
-    print(f"| {scene} | {method} | {position:.3f} | {amplitude_error:.3f} | {correlation:.3f} | {seconds:.2f} |")
+            f"| {scene} | {method} | {de.metrics.position_error(skin, image, centre) / R:.3f} "
+            f"| {abs(de.metrics.peak(image) - amplitude) / abs(amplitude):.3f} "
+            f"| {de.metrics.correlation(skin, truths[scene], image):.3f} | {seconds:.2f} |"
+        )
+table("simulated.md", ["scene", "method", "position error / R", "amplitude error", "correlation", "seconds"], rows)
 
 # %%
 figure, axes = plt.subplots(len(scenes), len(methods), figsize=(3.2 * len(methods), 3 * len(scenes)))
 for row, scene in zip(axes, scenes, strict=True):
     for ax, method in zip(row, methods, strict=True):
-        image = images[scene, method]
-        if method == "GREIT":
-            limit = np.abs(image).max()
-            ax.imshow(image, origin="lower", extent=greit.grid.extent, cmap="RdBu_r", vmin=-limit, vmax=limit)
-            ax.set_axis_off()
-        else:
-            plot_elements(ax, skin, image, label="dsigma/sigma", electrodes=False)
+        plot_elements(ax, skin, images[scene, method], label="dsigma/sigma", electrodes=False)
         ax.set_title(f"{scene}: {method}", fontsize=8)
+figure.suptitle("Linear (one-step, GREIT) against nonlinear: a -30% touch and a +300% object, 0.5% noise")
 figure.tight_layout()
+save(figure, "simulated.png")
 
 # %% [markdown]
 # On the touch, every method finds the place; the nonlinear ones come closer to the -30%
@@ -134,7 +143,7 @@ figure.tight_layout()
 # the image centroids from their least-squares circle, over its radius.
 
 # %%
-data = Path(de.__file__).resolve().parents[1] / "tests" / "data"
+data = repository / "tests" / "data"
 recordings = {
     "Montreal": de.io.read_eidors_mat(data / "montreal_data_1995.mat", "zc_demo3", reference="zc_h_demo3"),
     "IIRC": de.io.read_eidors_mat(data / "iirc_data_2006.mat", "v_rotate", reference="v_reference"),
@@ -152,9 +161,7 @@ def track_error(positions):
     return float(np.median(np.abs(np.linalg.norm(positions - [a, b], axis=1) - radius)) / radius)
 
 
-real = {}
-print("| recording | method | track error | seconds |")
-print("|---|---|---|---|")
+real, rows = {}, []
 for name, recording in recordings.items():
     for method in ("one_step", "greit", "gauss_newton", "total_variation"):
         start = time.perf_counter()
@@ -164,7 +171,8 @@ for name, recording in recordings.items():
         seconds = time.perf_counter() - start
         positions = np.array([de.metrics.half_amplitude_centroid(result.mesh, -image) for image in result.images])
         real[name, method] = result
-        print(f"| {name} | {method} | {track_error(positions):.3f} | {seconds:.1f} |")
+        rows.append(f"| {name} | {method} | {track_error(positions):.3f} | {seconds:.1f} |")
+table("tanks.md", ["recording", "method", "track error", "seconds"], rows)
 
 # %%
 methods_real = ("one_step", "greit", "gauss_newton", "total_variation")
@@ -174,7 +182,9 @@ for row, name in zip(axes, recordings, strict=True):
         result = real[name, method]
         plot_elements(ax, result.mesh, result.images[len(result.images) // 3], label="dsigma/sigma", electrodes=False)
         ax.set_title(f"{name}: {method}", fontsize=8)
+figure.suptitle("The tanks through de.reconstruct, one frame a third of the way round")
 figure.tight_layout()
+save(figure, "tanks.png")
 
 # %% [markdown]
 # On the tanks the methods agree on where the rod is; what differs is the amplitude and the
