@@ -11,6 +11,7 @@ from __future__ import annotations
 import abc
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -297,14 +298,15 @@ class DenseCholesky(AbstractLinearSolver):
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(the lower Cholesky factor (n, n), the values (nnz,) for the refinement's residual)."""
         matrix = jnp.zeros((pattern.size, pattern.size), values.dtype).at[pattern.rows, pattern.cols].set(values)
-        return one_blas_thread_in_xla(jnp.linalg.cholesky)(matrix), values
+        return one_blas_thread_in_xla(_cholesky)(matrix), values
 
     def solve_factorised(
         self, pattern: SparsityPattern, factor: tuple[jax.Array, jax.Array], rhs: jax.Array
     ) -> tuple[jax.Array, RESULTS]:
         lower, values = factor
 
-        def refined(b: jax.Array) -> jax.Array:
+        @_one_at_a_time_on_cpu
+        def refined(lower: jax.Array, values: jax.Array, b: jax.Array) -> jax.Array:
             x = jax.scipy.linalg.cho_solve((lower, True), b)
             # Cholesky without pivoting is normwise but not componentwise backward stable: with
             # entries spanning many decades (contact impedance 1e-9, contrast 1e6) a step of
@@ -313,8 +315,21 @@ class DenseCholesky(AbstractLinearSolver):
                 x = x + jax.scipy.linalg.cho_solve((lower, True), b - pattern.matvec(values, x))
             return x
 
-        x = one_blas_thread_in_xla(refined)(rhs.astype(values.dtype)).astype(rhs.dtype)
+        x = one_blas_thread_in_xla(lambda b: refined(lower, values, b))(rhs.astype(values.dtype)).astype(rhs.dtype)
         return x, _finite_result(x)
+
+
+def _one_at_a_time_on_cpu(function: Callable[..., jax.Array]) -> Callable[..., jax.Array]:
+    """`function` of arrays, run one batch element at a time under vmap on CPU (batched
+    elsewhere). Why: jaxlib's batched LAPACK kernels on CPU split a batch over XLA's intra-op
+    thread pool and wait for it from inside that pool, and two of them at once waited for each
+    other for ever on 2 cores (the Jacobians of 4 conductivities in one call, 708 triangles).
+    Sequentially a batch costs the same here: OpenBLAS runs on one thread while they do."""
+    sequential = jax.custom_batching.sequential_vmap(function)
+    return lambda *arrays: jax.lax.platform_dependent(*arrays, cpu=sequential, default=function)
+
+
+_cholesky = _one_at_a_time_on_cpu(jnp.linalg.cholesky)
 
 
 class ConjugateGradient(AbstractLinearSolver):

@@ -230,10 +230,11 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
     else:
         # Each setting in a fresh process, one at a time: timings without another setting's
         # caches, and memory given back (one process for all ran out of 24 GB at 13,000 triangles).
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(1, mp_context=context, max_tasks_per_child=1) as pool:
-            measured = pool.map(_measure, settings, [data] * len(settings), [small] * len(settings))
-            rows = [row for setting_rows in tqdm(measured, **bar) for row in setting_rows]
+        # (A pool of one worker per setting: max_tasks_per_child=1 hung after 46 settings here.)
+        rows = []
+        for setting in tqdm(settings, **bar):
+            with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+                rows += pool.submit(_measure, setting, data, small).result()
 
     front = [row | {"front_of": error} for error in FRONT_ERRORS for row in _pareto_front(rows, error)]
     budget = _by_budget(rows)

@@ -1,6 +1,9 @@
 """The solver backends agree with each other, under every JAX transformation; the point
 electrode model agrees with pyEIT's."""
 
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -61,6 +64,36 @@ def test_backends_work_under_jit_vmap_jvp_and_jacrev(backend_pair, rough_conduct
     assert _relative(reverse, reference.jacobian(rough_conductivity)) < 1e-9
     in_z = jax.jacrev(lambda z: model.measure(rough_conductivity, z))(contact_impedance)
     assert _relative(in_z, reference.jacobian(rough_conductivity, wrt="contact_impedance")) < 1e-9
+
+
+_GAUSS_NEWTON_ON_A_BATCH = """
+import jax, numpy as np
+jax.config.update("jax_enable_x64", True)
+import diffeit as de
+mesh = de.mesh.disc(16, electrode_width=0.2, h=0.12)
+change = -0.3 * de.mesh.disc_fraction(mesh, (0.5, 0.0), 0.2)
+images = []
+for solver in ("dense_cholesky", "host_sparse"):
+    model = de.ForwardModel(mesh, de.protocol.adjacent(16), 0.01, solver=solver)
+    reference = np.asarray(model.measure(np.full(mesh.n_elements, 0.01)))
+    touched = np.asarray(model.measure(0.01 * (1 + change)))
+    noise = np.random.default_rng(0).normal(0, 1e-3 * np.abs(reference).max(), (4, reference.size))
+    solution = de.inverse.GaussNewton(model, "laplace", 0.05, max_iterations=3).difference(
+        touched + noise - reference, background=0.01, throw=False
+    )
+    images.append(np.asarray(solution.conductivity_change))
+print(np.abs(images[0] - images[1]).max() / np.abs(images[1]).max())
+"""
+
+
+def test_gauss_newton_on_a_batch_finishes_on_dense_cholesky_and_agrees():
+    """Gauss-Newton on 4 frames (one vmapped call of voltages and Jacobians) on the dense
+    Cholesky backend: jaxlib's batched LAPACK Cholesky on CPU waited for its own thread pool for
+    ever there (2 cores); it now runs one matrix at a time. In a fresh process, so that a hang
+    fails this test (after 5 minutes; it takes seconds) instead of stalling the suite."""
+    run = subprocess.run([sys.executable, "-c", _GAUSS_NEWTON_ON_A_BATCH], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert float(run.stdout.split()[-1]) < 1e-8
 
 
 def test_a_backend_is_chosen_by_name_or_instance(small_disc):
