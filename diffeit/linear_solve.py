@@ -286,9 +286,10 @@ class DenseCholesky(AbstractLinearSolver):
     """Dense Cholesky factorisation in JAX (XLA), in the dtype of the values.
 
     For small meshes and for accelerators: the n x n matrix is formed, so memory grows as n^2
-    and time as n^3 (a few thousand unknowns at most). Runs under jit and vmap natively; on
-    CPU, XLA's Cholesky and triangular solves call OpenBLAS, which runs on one thread while
-    they do (see `diffeit._threads`). A matrix that is not positive definite (in the working
+    and time as n^3 (a few thousand unknowns at most). Runs under jit and vmap; on CPU, XLA's
+    Cholesky and triangular solves call OpenBLAS, which runs on one thread while they do (see
+    `diffeit._threads`), and a vmapped batch is factorised and solved one matrix at a time
+    (`_one_at_a_time_on_cpu`). A matrix that is not positive definite (in the working
     precision) gives NaN and `RESULTS.nonfinite`.
     `refinement_steps` steps of iterative refinement follow the triangular solves.
     """
@@ -323,8 +324,9 @@ def _one_at_a_time_on_cpu(function: Callable[..., jax.Array]) -> Callable[..., j
     """`function` of arrays, run one batch element at a time under vmap on CPU (batched
     elsewhere). Why: jaxlib's batched LAPACK kernels on CPU split a batch over XLA's intra-op
     thread pool and wait for it from inside that pool, and two of them at once waited for each
-    other for ever on 2 cores (the Jacobians of 4 conductivities in one call, 708 triangles).
-    Sequentially a batch costs the same here: OpenBLAS runs on one thread while they do."""
+    other for ever on 2 cores (Gauss-Newton's voltages and Jacobians of 4 frames in one call,
+    708 triangles). The batch's spread over the pool is given up on CPU, where the host sparse
+    backend is the fast one anyway; accelerators keep their batched kernels."""
     sequential = jax.custom_batching.sequential_vmap(function)
     return lambda *arrays: jax.lax.platform_dependent(*arrays, cpu=sequential, default=function)
 

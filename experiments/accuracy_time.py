@@ -21,8 +21,8 @@ to elements by overlap area, `PixelGrid.to_elements`):
 position error (m), amplitude error |peak - true peak| / |true peak| (relative changes), size
 error |r_eq / r_true - 1| (half-amplitude equivalent radius), and 1 - correlation. **Time**: the
 setup (matrix or prior factorisation, compiled once beforehand) and the time per frame, the
-median of three runs over a batch of draws (one run where the warm-up took over 20 s), in a
-fresh process of this machine.
+median of three runs over a batch of draws (one run where the warm-up took over 20 s), each
+setting in a fresh process (the small mode: all in the calling one).
 
 **Outputs.** `accuracy_time.csv` (every row), `accuracy_time_front.csv` (the Pareto fronts of
 amplitude error and of 1 - correlation against time per frame, per scene),
@@ -230,7 +230,6 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
     else:
         # Each setting in a fresh process, one at a time: timings without another setting's
         # caches, and memory given back (one process for all ran out of 24 GB at 13,000 triangles).
-        # (A pool of one worker per setting: max_tasks_per_child=1 hung after 46 settings here.)
         rows = []
         for setting in tqdm(settings, **bar):
             with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -252,8 +251,8 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
     lowers = contrast[5] < contrast[1] < contrast[0]
     verdict = "lower" if lowers else "do NOT lower"
     statements = [
-        "high-contrast scene, amplitude error by Gauss-Newton iterations (0: the one-step linearisation): "
-        + ", ".join(f"{k}: {v:.3f}" for k, v in contrast.items()),
+        "high-contrast scene, amplitude error by Gauss-Newton iterations, mean over the meshes "
+        "(0: the one-step linearisation): " + ", ".join(f"{k}: {v:.3f}" for k, v in contrast.items()),
         f"nonlinear iterations {verdict} the amplitude error on the high-contrast scene",
         f"machine: {machine()}",
     ]
