@@ -22,6 +22,7 @@ from matplotlib.figure import Figure
 jax.config.update("jax_enable_x64", True)  # the studies compute in float64, as diffeit does
 
 import diffeit as de
+from diffeit.plotting import plot_elements
 
 # The skin: a disc of radius 0.08 m (the dissertation's figures use a unit disc: lengths below
 # are also given as fractions of the radius), 16 electrodes each 0.2 R wide, 0.01 S/sq.
@@ -122,6 +123,18 @@ def save_figure(figure: Figure, path: Path, dpi: int = 100) -> Path:
     figure.savefig(path, dpi=dpi)
     plt.close(figure)
     return path
+
+
+def draw_image(
+    ax: Any, mesh: de.Mesh, image: np.ndarray, truths: Sequence[Sequence[float]], radius: float, title: str
+) -> None:
+    """Draw one relative-change image (E,) on `ax` with its colour bar, circle each true touch
+    (centres `truths`, radius `radius`, m) and title it."""
+    plot_elements(ax, mesh, image, label="dsigma/sigma", electrodes=False)
+    for centre in truths:
+        ax.add_patch(plt.Circle(tuple(centre), radius, fill=False, color="k", linewidth=0.8))
+    ax.set_title(title, fontsize=8)
+    ax.set_aspect("equal")
 
 
 def machine() -> str:

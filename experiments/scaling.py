@@ -51,9 +51,19 @@ import diffeit as de
 from diffeit import correction, metrics
 from diffeit.inverse import LinearisedProblem
 from diffeit.inverse.linearised import regularised_inverse
-from diffeit.plotting import plot_elements
 
-from ._study import BACKGROUND, NOISE_LEVELS, RADIUS, Findings, Study, model, save_figure, skin, write_table
+from ._study import (
+    BACKGROUND,
+    NOISE_LEVELS,
+    RADIUS,
+    Findings,
+    Study,
+    draw_image,
+    model,
+    save_figure,
+    skin,
+    write_table,
+)
 
 HYPERPARAMETER = 0.05
 NOISE_PERCENT = NOISE_LEVELS["medium"]
@@ -310,10 +320,8 @@ def _plot_images(path: Path, mesh: de.Mesh, images: dict, radial: np.ndarray, ce
     figure, axes = plt.subplots(2, len(columns), figsize=(3.2 * len(columns), 5.4), squeeze=False)
     for row, (when, frames) in zip(axes, images.items(), strict=True):
         for ax, j in zip(row, columns, strict=True):
-            plot_elements(ax, mesh, frames[j], label="dsigma/sigma", electrodes=False)
-            ax.add_patch(plt.Circle(centres[j], TEST_RADIUS, fill=False, color="k", linewidth=0.8))
-            ax.set_title(f"{when} correction, r = {radial[j]:.2g} R, peak {metrics.peak(frames[j]):.2f}", fontsize=8)
-            ax.set_aspect("equal")
+            title = f"{when} correction, r = {radial[j]:.2g} R, peak {metrics.peak(frames[j]):.2f}"
+            draw_image(ax, mesh, frames[j], [centres[j]], TEST_RADIUS, title)
     figure.suptitle("A -50% touch of radius 0.2 R at the working point, one noise draw (circle: the truth)")
     return save_figure(figure, path, dpi=80)
 

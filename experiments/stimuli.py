@@ -61,7 +61,6 @@ from tqdm.auto import tqdm
 import diffeit as de
 from diffeit.inverse import LinearisedProblem, select_hyperparameter
 from diffeit.inverse.linearised import regularised_inverse
-from diffeit.plotting import plot_elements
 
 from ._study import (
     BACKGROUND,
@@ -71,6 +70,7 @@ from ._study import (
     Study,
     clean_range,
     disc_change,
+    draw_image,
     is_clean,
     model,
     noisy,
@@ -262,11 +262,9 @@ def _plot_images(path: Path, mesh, images: dict) -> Path:
     figure, axes = plt.subplots(len(COUNTS), len(values), figsize=(3 * len(values), 2.6 * len(COUNTS)), squeeze=False)
     for row, count in zip(axes, COUNTS, strict=True):
         for ax, value in zip(row, values, strict=True):
-            plot_elements(ax, mesh, images[count, value], label="dsigma/sigma", electrodes=False)
-            for x, y in CENTRES[:count]:
-                ax.add_patch(plt.Circle((x, y), TARGET_RADIUS, fill=False, color="k", linewidth=0.8))
-            ax.set_title(f"{_touches(count)}, hp {value:.3g}", fontsize=8)
-            ax.set_aspect("equal")
+            draw_image(
+                ax, mesh, images[count, value], CENTRES[:count], TARGET_RADIUS, f"{_touches(count)}, hp {value:.3g}"
+            )
     figure.suptitle("One-step NOSER images of -30% touches at 0.5 R, medium noise (circles: the truth)")
     return save_figure(figure, path, dpi=80)
 
