@@ -107,6 +107,14 @@ relaxation) were 61/97/22/44/94% from the images of hyperparameter 0.02 (20 nois
   costs more than one release. The data still leave the fast mode's fraction, its time
   constant and the relaxation trading with each other at frame rates of a few per fast time
   constant (README, Fitting: what the benchmark measures).
+- **A long held touch against a memory that holds it.** The same per-frame charge works the
+  other way during a hold: a held stimulus pays for every frame it lasts, while memory modes
+  that keep the response up after a brief stimulus pay nothing. On holds of many frames the fit
+  shrinks the held stimulus, lowering the relaxation to make up for it. Given a large, slow
+  fast mode it can instead let the stimulus spike at the press and fade. Measured on a 200-frame
+  recording whose Cramer-Rao bound is under 20% (README, Fitting): the memory parameters end
+  well outside it, and the objective is lower there than at the truth. This is a bias of the
+  priors, not of the data.
 - **Background level against contact impedance.** Near an electrode a lower conductivity and a
   higher contact impedance change the readings alike, and readings that leave out the driven
   electrodes (adjacent drives) see z little. The untouched frames fix the background's level
