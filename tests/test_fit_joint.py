@@ -265,3 +265,43 @@ def test_at_low_noise_the_memory_start_is_near_the_truth():
     )
     for name in ("fast_fraction", "fast_time", "slow_fraction", "slow_time"):
         assert float(getattr(start.memory, name)) == pytest.approx(float(getattr(truth, name)), rel=0.25), name
+
+
+def test_modes_are_reported_quicker_first_and_swapping_them_changes_no_response(coarse_model, coarse_frames):
+    swapped = sc.MemoryParameters(fast_fraction=0.35, fast_time=5.0, slow_fraction=0.25, slow_time=1.5)
+    ordered = fit.ordered_modes(swapped)
+    assert (ordered.fast_fraction, ordered.fast_time, ordered.slow_fraction, ordered.slow_time) == (
+        0.25,
+        1.5,
+        0.35,
+        5.0,
+    )
+    assert ordered.relaxation == swapped.relaxation and ordered.fatigue_rate == swapped.fatigue_rate
+    assert fit.ordered_modes(ordered) is ordered
+    stimulus = np.outer([0.0, -0.3, -0.3, 0.0, 0.0, -0.2, 0.0], [1.0, 0.5])
+    times = np.arange(7) * 0.7
+    np.testing.assert_allclose(
+        sc.memory_response(stimulus, times, ordered), sc.memory_response(stimulus, times, swapped), rtol=1e-12
+    )
+    # Per element: only the elements whose modes came out the other way round are exchanged.
+    mixed = dataclasses.replace(swapped, fast_time=jnp.array([5.0, 1.0]))
+    per_element = fit.ordered_modes(mixed)
+    np.testing.assert_array_equal(per_element.fast_time, [1.5, 1.0])
+    np.testing.assert_array_equal(per_element.slow_time, [5.0, 1.5])
+    np.testing.assert_array_equal(per_element.fast_fraction, [0.25, 0.35])
+    np.testing.assert_array_equal(per_element.slow_fraction, [0.35, 0.25])
+
+    # A joint fit reports the order; its unknowns keep the optimiser's labelling (for resuming).
+    found = fit.joint(
+        coarse_model,
+        coarse_frames,
+        TIMES,
+        initial=_start(coarse_model) | {"memory": swapped},
+        noise=0.2,
+        max_steps=0,
+        throw=False,
+        progress=False,
+    )
+    assert float(found.memory.fast_time) == pytest.approx(1.5) and float(found.memory.slow_time) == pytest.approx(5.0)
+    assert float(found.memory.fast_fraction) == pytest.approx(0.25)
+    assert float(jnp.exp(found.parameters.memory["fast_time"])) == pytest.approx(5.0)

@@ -8,6 +8,8 @@ recorded frames:
 - `memory`: the memory model's parameters and the memoryless stimulus from a sequence of
   relative-change images, per element, in image space;
 - `correct_memory`: the causal correction of images with known memory parameters (live use);
+- `ordered_modes`: memory parameters with the quicker recovery mode named fast (the model
+  treats both alike; every fit reports this order);
 - `joint`: background, contact impedances, memory parameters and per-frame stimulus images
   together, with every frame's misfit through the forward model; `JointFit.save` and `load`
   keep a fit, and `joint(..., initial=fit)` resumes it;
@@ -31,5 +33,6 @@ from ._memory import MemoryFit as MemoryFit
 from ._memory import correct_memory as correct_memory
 from ._memory import correct_memory_step as correct_memory_step
 from ._memory import memory as memory
+from ._memory import ordered_modes as ordered_modes
 from ._uncertainty import MemoryUncertainty as MemoryUncertainty
 from ._uncertainty import memory_uncertainty as memory_uncertainty

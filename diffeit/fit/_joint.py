@@ -152,10 +152,12 @@ from ._background import background as fit_background
 from ._memory import (
     DEFAULT_FREE,
     MEMORY_FIELDS,
+    MODE_FIELDS,
     check_times,
     correct_memory,
     memory_from_unconstrained,
     memory_to_unconstrained,
+    ordered_modes,
 )
 from ._memory import memory as fit_memory
 from ._optimise import History, minimise
@@ -282,7 +284,8 @@ class JointFit(eqx.Module):
 
     - `background`: (E,) background conductivity b, S/sq.
     - `contact_impedance`: (L,) contact impedance per electrode, ohm m.
-    - `memory`: the memory parameters (`diffeit.scene.MemoryParameters`).
+    - `memory`: the memory parameters (`diffeit.scene.MemoryParameters`); with both modes
+      fitted, the quicker one is named fast (`diffeit.fit.ordered_modes`).
     - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma per frame (touches < 0).
     - `response`: (T, E) the skin's response dsigma/sigma, the memory model applied to the
       stimulus: frame k's conductivity is background * (1 + response[k]).
@@ -682,7 +685,7 @@ def joint(
     fit = JointFit(
         background=background,
         contact_impedance=z,
-        memory=MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}),
+        memory=_reported(MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}), settings),
         stimulus=parameters.stimulus,
         response=response,
         times=times,
@@ -693,6 +696,13 @@ def joint(
         settings=settings,
     )
     return throw_if_failed(fit, fit.result, "joint fit") if throw else fit
+
+
+def _reported(memory: MemoryParameters, settings: JointSettings) -> MemoryParameters:
+    """The memory a fit reports: with both modes fitted, the quicker one named fast
+    (`ordered_modes`). The unknowns keep the optimiser's labelling, so that a resumed fit
+    continues from exactly where this one stopped."""
+    return ordered_modes(memory) if set(MODE_FIELDS) <= set(settings.memory_fitted) else memory
 
 
 def _setting(value: Any, before: JointSettings | None, name: str, default: Any) -> Any:

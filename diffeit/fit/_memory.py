@@ -75,6 +75,8 @@ _SHARES = ("fast_fraction", "slow_fraction")
 _INSIDE = 1e-9
 _LOG_LIMIT = 14.0
 DEFAULT_FREE = ("fast_fraction", "fast_time", "slow_fraction", "slow_time", "relaxation")
+# The fields of the two recovery modes (`ordered_modes`).
+MODE_FIELDS = ("fast_fraction", "fast_time", "slow_fraction", "slow_time")
 # Elements whose misfit after a round exceeds this many times the median (or the noise level,
 # whichever is larger) are left out of the next round: a change of touch was missed there.
 _OUTLIER = 4.0
@@ -293,6 +295,23 @@ def memory_from_unconstrained(values: Mapping[str, jax.Array], base: MemoryParam
     return dataclasses.replace(base, **changes)
 
 
+def ordered_modes(memory: MemoryParameters) -> MemoryParameters:
+    """`memory` with its two recovery modes named by their time constants: where the fast mode
+    came out slower than the slow one, their fractions and time constants are exchanged (per
+    element, for fields given per element). The memory model treats the two modes alike, so the
+    exchange changes no response: a fit can end with either labelling, and the fits report this
+    one."""
+    swap = np.asarray(memory.fast_time, float) > np.asarray(memory.slow_time, float)
+    if not np.any(swap):
+        return memory
+    changes = {}
+    for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
+        a, b = np.asarray(getattr(memory, fast), float), np.asarray(getattr(memory, slow), float)
+        for name, value in ((fast, np.where(swap, b, a)), (slow, np.where(swap, a, b))):
+            changes[name] = float(value) if value.ndim == 0 else jnp.asarray(value)
+    return dataclasses.replace(memory, **changes)
+
+
 # --- The fit --------------------------------------------------------------------------------------
 
 
@@ -300,7 +319,8 @@ class MemoryFit(eqx.Module):
     """The result of `memory`.
 
     - `memory`: the fitted `diffeit.scene.MemoryParameters` (the free fields fitted, one value
-      shared by all elements; the others as given).
+      shared by all elements; the others as given); with both modes free, the quicker one is
+      named fast (`ordered_modes`).
     - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma, `correct_memory` of the images with
       the fitted parameters and the dead band at the images' noise level.
     - `response`: (T, E) `memory_response(stimulus)`, the images as the fitted model explains them.
@@ -549,7 +569,7 @@ def memory(
     size = float(jnp.linalg.norm(images))
     misfit = float(jnp.linalg.norm(images - response)) / size if size > 0 else 0.0
     fit = MemoryFit(
-        memory=fitted,
+        memory=ordered_modes(fitted) if set(MODE_FIELDS) <= set(free) else fitted,
         stimulus=stimulus,
         response=response,
         misfit=misfit,
