@@ -278,6 +278,10 @@ def test_modes_are_reported_quicker_first_and_swapping_them_changes_no_response(
     )
     assert ordered.relaxation == swapped.relaxation and ordered.fatigue_rate == swapped.fatigue_rate
     assert fit.ordered_modes(ordered) is ordered
+    with pytest.raises(ValueError, match="takes a MemoryParameters"):
+        fit.ordered_modes({"fast_time": 5.0})
+    with pytest.raises(ValueError, match="not traced arrays"):
+        jax.jit(lambda t: fit.ordered_modes(dataclasses.replace(swapped, fast_time=t)).fast_time)(5.0)
     stimulus = np.outer([0.0, -0.3, -0.3, 0.0, 0.0, -0.2, 0.0], [1.0, 0.5])
     times = np.arange(7) * 0.7
     np.testing.assert_allclose(

@@ -152,12 +152,11 @@ from ._background import background as fit_background
 from ._memory import (
     DEFAULT_FREE,
     MEMORY_FIELDS,
-    MODE_FIELDS,
     check_times,
     correct_memory,
     memory_from_unconstrained,
     memory_to_unconstrained,
-    ordered_modes,
+    reported_memory,
 )
 from ._memory import memory as fit_memory
 from ._optimise import History, minimise
@@ -685,7 +684,11 @@ def joint(
     fit = JointFit(
         background=background,
         contact_impedance=z,
-        memory=_reported(MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}), settings),
+        # Reported in mode order; the unknowns keep the optimiser's labelling, so that a resumed
+        # fit continues from exactly where this one stopped.
+        memory=reported_memory(
+            MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}), settings.memory_fitted
+        ),
         stimulus=parameters.stimulus,
         response=response,
         times=times,
@@ -696,13 +699,6 @@ def joint(
         settings=settings,
     )
     return throw_if_failed(fit, fit.result, "joint fit") if throw else fit
-
-
-def _reported(memory: MemoryParameters, settings: JointSettings) -> MemoryParameters:
-    """The memory a fit reports: with both modes fitted, the quicker one named fast
-    (`ordered_modes`). The unknowns keep the optimiser's labelling, so that a resumed fit
-    continues from exactly where this one stopped."""
-    return ordered_modes(memory) if set(MODE_FIELDS) <= set(settings.memory_fitted) else memory
 
 
 def _setting(value: Any, before: JointSettings | None, name: str, default: Any) -> Any:

@@ -300,16 +300,28 @@ def ordered_modes(memory: MemoryParameters) -> MemoryParameters:
     came out slower than the slow one, their fractions and time constants are exchanged (per
     element, for fields given per element). The memory model treats the two modes alike, so the
     exchange changes no response: a fit can end with either labelling, and the fits report this
-    one."""
-    swap = np.asarray(memory.fast_time, float) > np.asarray(memory.slow_time, float)
+    one. ValueError for anything but a `MemoryParameters` of values (not traced ones: call it
+    outside `jax.jit`)."""
+    if not isinstance(memory, MemoryParameters):
+        raise ValueError(f"ordered_modes takes a MemoryParameters; got {type(memory).__name__}")
+    values = {name: concrete_floats(getattr(memory, name), f"MemoryParameters.{name}") for name in MODE_FIELDS}
+    if any(value is None for value in values.values()):
+        raise ValueError("ordered_modes needs the memory parameters' values, not traced arrays (call it outside jit)")
+    swap = values["fast_time"] > values["slow_time"]
     if not np.any(swap):
         return memory
     changes = {}
     for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
-        a, b = np.asarray(getattr(memory, fast), float), np.asarray(getattr(memory, slow), float)
+        a, b = values[fast], values[slow]
         for name, value in ((fast, np.where(swap, b, a)), (slow, np.where(swap, a, b))):
             changes[name] = float(value) if value.ndim == 0 else jnp.asarray(value)
     return dataclasses.replace(memory, **changes)
+
+
+def reported_memory(memory: MemoryParameters, fitted: Collection[str]) -> MemoryParameters:
+    """The memory a fit reports: `ordered_modes` when both modes were among the `fitted` fields;
+    as it is when a mode was held (its labels are then the caller's)."""
+    return ordered_modes(memory) if set(MODE_FIELDS) <= set(fitted) else memory
 
 
 # --- The fit --------------------------------------------------------------------------------------
@@ -569,7 +581,7 @@ def memory(
     size = float(jnp.linalg.norm(images))
     misfit = float(jnp.linalg.norm(images - response)) / size if size > 0 else 0.0
     fit = MemoryFit(
-        memory=ordered_modes(fitted) if set(MODE_FIELDS) <= set(free) else fitted,
+        memory=reported_memory(fitted, free),
         stimulus=stimulus,
         response=response,
         misfit=misfit,
