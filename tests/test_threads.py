@@ -54,8 +54,10 @@ _TIMES = textwrap.dedent(
 def test_in_a_clean_environment_diffeit_runs_as_fast_as_inside_a_limiter(what, h):
     """A user who sets no variable gets the benchmarked speed: the median time of a one-step
     set-up (3,272 triangles), and of a dense Cholesky forward solve under the user's own jit,
-    is within 2x of the same call with BLAS limited to one thread by the caller. Before diffeit
-    limited its own algebra these ratios were about 18 and 100 on 2 cores."""
+    is within 5x of the same call with BLAS limited to one thread by the caller. Before diffeit
+    limited its own algebra these ratios were about 18 and 100 on 2 cores; when it does they are
+    about 1, but a 6 ms call read 2.1 once in a full suite run here (the cores shared with the
+    suite's own leftover threads), so the bound separates the two cases, not the noise."""
     environment = {k: v for k, v in os.environ.items() if k not in _THREAD_VARIABLES}
     times = {}
     for mode in ("plain", "limited"):
@@ -67,7 +69,7 @@ def test_in_a_clean_environment_diffeit_runs_as_fast_as_inside_a_limiter(what, h
             check=True,
         )
         times[mode] = json.loads(result.stdout.strip().splitlines()[-1])
-    assert times["plain"] / times["limited"] <= 2.0, times
+    assert times["plain"] / times["limited"] <= 5.0, times
 
 
 def _blas_threads() -> list[int]:
