@@ -3,6 +3,7 @@
 import dataclasses
 
 import equinox as eqx
+import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -64,7 +65,7 @@ def test_gradient_matches_central_differences_in_every_group(coarse_model, coars
     settings = fit.JointSettings(
         free=("background", "contact_impedance", "memory", "stimulus"),
         memory_free=memory_free,
-        priors=fit.JointPriors(),
+        priors=fit.JointPriors(stimulus=20.0),  # every term on, the per-frame one too
         data_scale=1e-4,
         memory_centre=sc.bare_skin(),
         log_contact_impedance_centre=jnp.log(jnp.full(16, 0.01)),
@@ -106,6 +107,48 @@ def test_gradient_matches_central_differences_in_every_group(coarse_model, coars
         assert exact == pytest.approx(estimate, rel=1e-5, abs=1e-6 * abs(float(problem(parameters)))), name
 
 
+def test_a_held_touch_pays_its_priors_once_whatever_its_length(coarse_model):
+    """The stimulus priors charge changes: a press held 2 or 9 frames costs the same, a press
+    that fades over its hold costs more in time than one held, and the per-frame term (off by
+    default) grows with the hold."""
+    model, n_frames = coarse_model, 12
+    times = jnp.arange(n_frames) * 0.5
+    settings = fit.JointSettings(
+        free=("stimulus",),
+        memory_free=(),
+        priors=fit.JointPriors(stimulus=20.0),
+        data_scale=1e-4,
+        memory_centre=sc.over_foam(),
+        log_contact_impedance_centre=jnp.log(jnp.full(16, 0.01)),
+    )
+    frames = jnp.zeros((n_frames, model.n_measurements))
+    problem = fit.JointProblem(model, frames, times, settings)
+    patch = np.linalg.norm(model.mesh.element_centroids - np.array([0.3, 0.2]), axis=1) < 0.35
+    held = np.zeros(n_frames)
+
+    def priors(levels: np.ndarray) -> dict[str, float]:
+        parameters = fit.JointParameters(
+            log_background=jnp.log(jnp.full(model.n_elements, 0.01)),
+            log_contact_impedance=jnp.log(jnp.full(16, 0.01)),
+            memory={},
+            stimulus=jnp.asarray(np.outer(levels, patch)),
+        )
+        return {name: float(value) for name, value in problem.terms(parameters).items()}
+
+    short, long = held.copy(), held.copy()
+    short[1:3], long[1:10] = -0.3, -0.3
+    fading = long.copy()
+    fading[1:10] = np.linspace(-0.3, -0.1, 9)
+    short, long, fading = priors(short), priors(long), priors(fading)
+    for name in ("stimulus_change", "stimulus_variation"):
+        assert short[name] > 0
+        assert long[name] == pytest.approx(short[name], rel=1e-12), name
+    # The temporal term is concave in a change's size: eight small steps cost more than one.
+    assert fading["stimulus_change"] > 1.5 * long["stimulus_change"]
+    assert long["stimulus"] == pytest.approx(9 / 2 * short["stimulus"], rel=1e-12)
+    assert fit.JointPriors().stimulus == 0.0
+
+
 def test_a_capped_fit_says_so_and_round_trips_through_a_file(coarse_model, coarse_frames, capped, tmp_path):
     assert capped.result == RESULTS.max_iterations_reached
     assert capped.history.objective[-1] < capped.history.objective[0]
@@ -127,6 +170,12 @@ def test_a_capped_fit_says_so_and_round_trips_through_a_file(coarse_model, coars
         fit.joint(coarse_model, coarse_frames, TIMES + 0.1, initial=loaded, max_steps=1, progress=False)
     with pytest.raises(ValueError, match="not a joint fit"):
         fit.load(_frames_file(tmp_path, coarse_model, coarse_frames))
+    # A fit saved when the stimulus priors were charged per frame does not load as if they meant
+    # what they mean now.
+    with h5py.File(path, "r+") as file:
+        file.attrs["schema_version"] = 1
+    with pytest.raises(ValueError, match=r"schema version 1.*fit again"):
+        fit.load(path)
 
 
 def _frames_file(tmp_path, model, frames):
