@@ -40,10 +40,11 @@ shared by all frames. The fit minimises
   edge rather than a few spikes (L1 alone is indifferent to that, and the memory model's fatigue
   is not: a spike fatigues its elements differently from a patch).
 - The per-frame sparsity term (w_a, default 0) charges a held touch in every frame it lasts,
-  while memory modes that keep the response up cost nothing: with it on (w_a = 20, w_v on the
-  stimulus per frame, as diffeit had it before), a 200-frame recording with an 8 s hold came out
+  while memory modes that keep the response up cost nothing: with it on (w_a = 20, and w_v on
+  the stimulus itself rather than its changes), a 200-frame recording with an 8 s hold came out
   with the held stimulus fading and a large, slow fast mode holding the response, at a lower
-  objective than the truth's (Identifiability).
+  objective than the truth's (Identifiability). Without it the changes' sparsity alone keeps
+  untouched elements at zero, hence its weight w_t = 200 (20 beside the per-frame term).
 - theta: the free memory parameters (`memory_free`) in the unconstrained space of
   `diffeit.fit.memory`: ln of the time constants (and gain, fatigue rate), logits of fractions,
   and a multinomial logit of (fast_fraction, slow_fraction, 1 - both). theta_0 and ln z_0 are
