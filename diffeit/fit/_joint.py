@@ -380,11 +380,10 @@ def load(path: str | os.PathLike) -> JointFit:
         schema = file.attrs.get("schema")
         if schema != _SCHEMA:
             raise ValueError(f"{path} is not a joint fit (schema {schema!r}, not {_SCHEMA!r})")
-        if int(file.attrs["schema_version"]) != _SCHEMA_VERSION:
-            raise ValueError(
-                f"{path} has schema version {int(file.attrs['schema_version'])}; this diffeit reads "
-                f"{_SCHEMA_VERSION} (version 1 fits had priors charged per frame, which mean otherwise now: fit again)"
-            )
+        version = int(file.attrs["schema_version"])
+        if version != _SCHEMA_VERSION:
+            older = " (its priors were charged per frame and mean otherwise now: fit again)" if version < 2 else ""
+            raise ValueError(f"{path} has schema version {version}; this diffeit reads {_SCHEMA_VERSION}{older}")
 
         def array(name: str) -> jax.Array:
             return jnp.asarray(file[name][()])
@@ -550,6 +549,8 @@ class JointProblem(eqx.Module):
         jacobian = self.model.jacobian(sigma, z, wrt="log_conductivity")  # (M, E)
         sensitivity = weight * jnp.sum(jacobian**2, axis=0)  # (E,), per frame
         background = n_frames * sensitivity + 2 * priors.background * self._per_element(self.edge_weights)
+        # a_k enters two changes (c_k and c_(k+1)), and each change's variation over every edge
+        # of its element: hence 2 and 2 x 2.
         sparsity = (priors.stimulus + 2 * priors.stimulus_change) * self.area_fractions
         sparsity = (sparsity + 4 * priors.stimulus_variation * self._per_element(self.edge_lengths)) / priors.smoothing
         stimulus = jnp.broadcast_to(sensitivity + sparsity, parameters.stimulus.shape)
