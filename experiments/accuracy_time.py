@@ -22,7 +22,10 @@ position error (m), amplitude error |peak - true peak| / |true peak| (relative c
 error |r_eq / r_true - 1| (half-amplitude equivalent radius), and 1 - correlation. **Time**: the
 setup (matrix or prior factorisation, compiled once beforehand) and the time per frame, the
 median of three runs over a batch of draws (one run where the warm-up took over 20 s), each
-setting in a fresh process (the small mode: all in the calling one).
+setting in a fresh process (the small mode: all in the calling one). **Converged**: for the
+iterative methods, the fraction of frames whose iteration ended successfully (`RESULTS`; a
+capped Gauss-Newton that stops at its cap before the noise level reads 0); empty for direct
+ones. Errors are measured on every frame, converged or not.
 
 **Outputs.** `accuracy_time.csv` (every row), `accuracy_time_front.csv` (the Pareto fronts of
 amplitude error and of 1 - correlation against time per frame, per scene),
@@ -53,6 +56,7 @@ from tqdm.auto import tqdm
 
 import diffeit as de
 from diffeit.inverse import GREIT, GaussNewton, OneStep, TotalVariation
+from diffeit.results import RESULTS, failed
 
 from ._study import (
     BACKGROUND,
@@ -88,7 +92,9 @@ _LONG_RUN = 20.0  # seconds
 @dataclasses.dataclass(frozen=True)
 class Method:
     """A method: `build(model) -> reconstruct`, where `reconstruct(frames, reference)` maps (T, M)
-    frames and the (M,) reference (volts) to (T, E) relative changes on the model's elements.
+    frames and the (M,) reference (volts) to (T, E) relative changes on the model's elements and,
+    for an iterative method, (T,) whether each frame's iteration converged (its result code is
+    `RESULTS.successful`; None for a direct method).
     `max_triangles`: the largest mesh it runs on in the full sweep (its cost grows past use)."""
 
     name: str
@@ -97,10 +103,15 @@ class Method:
     max_triangles: int = 10**9
 
 
+def _converged(result: RESULTS) -> np.ndarray:
+    """(T,) or (1,) whether each frame's iteration ended successfully."""
+    return ~np.atleast_1d(failed(result))
+
+
 def _one_step(prior: str) -> Method:
     def build(model):
         solver = OneStep(model, prior, HYPERPARAMETER, BACKGROUND)
-        return lambda frames, reference: np.asarray(solver.reconstruct(frames - reference)) / BACKGROUND
+        return lambda frames, reference: (np.asarray(solver.reconstruct(frames - reference)) / BACKGROUND, None)
 
     return Method(f"one-step {prior}", build, "one-step")
 
@@ -109,7 +120,8 @@ def _greit() -> Method:
     def build(model):
         solver = GREIT(model, noise_figure=0.5, background=BACKGROUND)
         return lambda frames, reference: (
-            solver.grid.to_elements(np.asarray(solver.reconstruct(frames - reference))) / (BACKGROUND)
+            solver.grid.to_elements(np.asarray(solver.reconstruct(frames - reference))) / BACKGROUND,
+            None,
         )
 
     return Method("GREIT", build, "GREIT")
@@ -121,7 +133,7 @@ def _gauss_newton(iterations: int) -> Method:
 
         def reconstruct(frames, reference):
             result = solver.difference(frames - reference, background=BACKGROUND, throw=False)
-            return np.atleast_2d(np.asarray(result.conductivity_change)) / BACKGROUND
+            return np.atleast_2d(np.asarray(result.conductivity_change)) / BACKGROUND, _converged(result.result)
 
         return reconstruct
 
@@ -133,8 +145,9 @@ def _absolute() -> Method:
         solver = GaussNewton(model, "laplace", HYPERPARAMETER, noise=NOISE_LEVELS["medium"])
 
         def reconstruct(frames, reference):
-            sigma = np.atleast_2d(np.asarray(solver.absolute(frames, throw=False).conductivity))
-            return sigma / np.median(sigma, axis=1, keepdims=True) - 1
+            result = solver.absolute(frames, throw=False)
+            sigma = np.atleast_2d(np.asarray(result.conductivity))
+            return sigma / np.median(sigma, axis=1, keepdims=True) - 1, _converged(result.result)
 
         return reconstruct
 
@@ -144,7 +157,12 @@ def _absolute() -> Method:
 def _total_variation() -> Method:
     def build(model):
         solver = TotalVariation(model, HYPERPARAMETER, background=BACKGROUND)
-        return lambda frames, reference: np.asarray(solver.reconstruct(frames - reference, throw=False)) / BACKGROUND
+
+        def reconstruct(frames, reference):
+            solution = solver.solve(frames - reference, throw=False)
+            return np.asarray(solution.conductivity_change) / BACKGROUND, _converged(solution.result)
+
+        return reconstruct
 
     return Method("total variation", build, "total variation", 15_000)
 
@@ -159,7 +177,7 @@ def _joint_fit() -> Method:
 
     def build(model):
         def reconstruct(frames, reference):
-            images = []
+            images, converged = [], []
             for frame in frames:
                 fit = de.fit.joint(
                     model,
@@ -172,7 +190,8 @@ def _joint_fit() -> Method:
                     throw=False,
                 )
                 images.append(np.asarray(fit.response[1]))
-            return np.stack(images)
+                converged.append(_converged(fit.result))
+            return np.stack(images), np.concatenate(converged)
 
         return reconstruct
 
@@ -296,7 +315,7 @@ def _measure(setting: tuple[float, str, str, str], data: dict, small: bool) -> l
         times = []
         for _ in range(repeats):
             start = time.perf_counter()
-            images = reconstruct(frames, reference)
+            images, converged = reconstruct(frames, reference)
             times.append((time.perf_counter() - start) / len(frames))
         rows.append(
             {
@@ -308,6 +327,7 @@ def _measure(setting: tuple[float, str, str, str], data: dict, small: bool) -> l
                 "precision": precision,
                 "setup_s": setup,
                 "time_per_frame_s": float(np.median(times)),
+                "converged": "" if converged is None else float(np.mean(converged)),
                 **_errors(mesh, np.asarray(images, np.float64), centre, radius, amplitude),
             }
         )

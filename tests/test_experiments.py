@@ -48,6 +48,11 @@ def test_nonlinear_iterations_lower_the_amplitude_error_on_a_high_contrast_scene
         rows = list(csv.DictReader(file))
     assert {row["scene"] for row in rows} == {"touch", "contrast"}
     assert all(float(row["time_per_frame_s"]) > 0 and 0 <= float(row["one_minus_correlation"]) <= 2 for row in rows)
+    iterative = {"Gauss-Newton x1", "Gauss-Newton x5", "total variation"}
+    assert {row["method"] for row in rows if row["converged"] != ""} == iterative
+    assert all(0 <= float(row["converged"]) <= 1 for row in rows if row["method"] in iterative)
+    # Total variation runs to its gradient test on every frame of these scenes.
+    assert all(float(row["converged"]) == 1 for row in rows if row["method"] == "total variation")
     with (tmp_path / "accuracy_time_front.csv").open() as file:
         front = list(csv.DictReader(file))
     for scene in ("touch", "contrast"):  # along each front, more time buys less error
