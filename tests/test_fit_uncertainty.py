@@ -110,7 +110,7 @@ def test_bad_input_raises_naming_the_problem(at_truth):
 
 
 def test_memories_far_apart_along_the_valley_answer_the_presses_closer_than_one_parameter_moved_by_20_percent():
-    """The trade-off the local bound does not see (module docstring): on presses of 8, 1 and 3 s
+    """The valley the bound does not see (module docstring): on presses of 8, 1 and 3 s
     read at 5 Hz for 40 s, a memory 84% off in the fast fraction (and 20-82% in the others)
     answers within 2.5% of the press depth in every frame, closer than the truth with any one of
     its fractions or its slow time moved by 20%."""

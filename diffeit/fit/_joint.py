@@ -128,8 +128,8 @@ relaxation) were 61/97/22/44/94% from the images of hyperparameter 0.02 (20 nois
   at 1.5 s, 0.35 at 5 s, 0.2 differ by under 2.5% of the press depth in every frame. Started at
   the truth's stimulus, the fit kept it and moved the memory from its start to near the first
   of these, at the objective of the truth start to 0.1 of a frame's misfit: the stimulus and
-  background take up what is left. The local bound (`diffeit.fit.memory_uncertainty`) does not
-  see the valley's bend; at 0.5% noise the fitted memory stays near its start.
+  background take up what is left. `diffeit.fit.memory_uncertainty` holds each press's pattern
+  fixed and so does not see this; at 0.5% noise the fitted memory stays near its start.
 - **Background level against contact impedance.** Near an electrode a lower conductivity and a
   higher contact impedance change the readings alike, and readings that leave out the driven
   electrodes (adjacent drives) see z little. The untouched frames fix the background's level

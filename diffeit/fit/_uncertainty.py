@@ -14,12 +14,12 @@ uncertainty widens the memory's). The priors are left out: this is what the data
 
 What it leaves out, and why it is a lower bound: the stimulus' spatial pattern is held at the
 fit's, and the parameters the fit holds fixed (the gain, the first-cycle offset, fatigue) are
-taken as known. Freed, each only widens the errors. And it is local, the curvature at one
-point: the memory model's trade-offs lie along a curved valley, and parameters far outside
-these errors can answer the same presses almost alike (memories 84% apart in the fast fraction,
-within 2.5% of the press depth in every frame, on a recording whose errors here are 17% or less;
-README, Benchmarks). Large errors say the data do not determine a parameter; small ones do not
-prove that they do.
+taken as known. Freed, each only widens the errors, and the pattern can widen them far: the
+memory model answers presses almost alike along a valley of its parameters (memories 84% apart
+in the fast fraction, within 2.5% of the press depth in every frame), and on a recording whose
+errors here are 17% or less the joint fit, whose patterns are free, is level between the two
+(README, Benchmarks). Large errors say the data do not determine a parameter; small ones do not
+prove that the joint fit will find it.
 
 ## Reading it
 A relative error of 0.3 means the frames cannot tell the parameter from 30% more or less, at one
