@@ -123,9 +123,10 @@ def test_memories_far_apart_along_the_valley_answer_the_presses_closer_than_one_
     truth = sc.MemoryParameters(fast_fraction=0.25, fast_time=1.5, slow_fraction=0.35, slow_time=5.0, relaxation=0.2)
     valley = sc.MemoryParameters(fast_fraction=0.46, fast_time=2.5, slow_fraction=0.11, slow_time=9.1, relaxation=0.16)
 
+    reference = sc.memory_response(stimulus, times, truth)
+
     def distance(memory):
-        response = sc.memory_response(stimulus, times, memory)
-        return float(np.max(np.abs(response - sc.memory_response(stimulus, times, truth)))) / depth
+        return float(np.max(np.abs(sc.memory_response(stimulus, times, memory) - reference))) / depth
 
     along = distance(valley)
     assert along < 0.025
