@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import warnings
-from functools import partial
 from typing import Literal, NamedTuple
 
 import equinox as eqx
@@ -229,9 +228,11 @@ def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
 
 
 # The computations, jitted once per mesh, protocol, drive current and solver (compared by
-# content), shape and dtype. The methods
-# above validate concrete inputs first with messages naming the elements; under an outer jit or
-# vmap only `_positive` can see the values.
+# content), shape and dtype. The methods above validate concrete inputs first with messages
+# naming the elements; under an outer jit or vmap only `_positive` can see the values.
+# equinox.filter_jit, not jax.jit: it waits for the run-time checks (an unconverged solve), so
+# that a concrete call raises at the call even while other work is in flight (JAX dispatches
+# asynchronously, and a plain jitted call would report the error only where an output is read).
 
 
 def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -242,7 +243,7 @@ def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     return sigma, z
 
 
-@jax.jit
+@eqx.filter_jit
 def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentials:
     system = model.system
     sigma, z = _positive(sigma, z)
@@ -266,7 +267,7 @@ def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentia
     )
 
 
-@jax.jit
+@eqx.filter_jit
 def _measure(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
     return _readings(model, _potentials(model, sigma, z).electrode)
 
@@ -277,7 +278,7 @@ def _readings(model: ForwardModel, electrode: jax.Array) -> jax.Array:
     return jnp.sum(weights * electrode[model.protocol.drive_index], axis=-1)
 
 
-@jax.jit
+@eqx.filter_jit
 def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
     """Estimated relative 2-norm error of float32 voltages: one step of iterative refinement,
     the residual taken in float64, the correction solved with the float32 system."""
@@ -293,7 +294,7 @@ def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) 
     return jnp.linalg.norm(change.astype(jnp.float64)) / jnp.linalg.norm(voltages.astype(jnp.float64))
 
 
-@partial(jax.jit, static_argnums=3)
+@eqx.filter_jit
 def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable) -> jax.Array:
     system, protocol = model.system, model.protocol
     sigma, z = _positive(sigma, z)

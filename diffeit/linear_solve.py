@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from ._arrays import StaticData, fingerprint
+from ._arrays import StaticData, fingerprint, is_concrete
 from ._threads import host_algebra, one_blas_thread_in_xla
 from .results import RESULTS
 
@@ -423,7 +423,13 @@ def solve_spd(
     solution is another solve with the same matrix (A is symmetric, so the transposed solve
     is the solve), and it reuses the factorisation: the solver factorises once. `rhs` has
     shape (n,) or (n, k). `solve_spd_with_result` also returns the solve's result code.
+
+    A solver that throws (`ConjugateGradient` by default) raises for an unconverged solve: on
+    concrete inputs at the call (`equinox.EquinoxRuntimeError`), under an outer `jax.jit` at run
+    time, where JAX reports it when an output is read.
     """
+    if is_concrete(values) and is_concrete(rhs):
+        return _solve_spd_at_call(pattern, values, rhs, solver)[0]
     return solve_spd_with_result(pattern, values, rhs, solver)[0]
 
 
@@ -446,6 +452,12 @@ def solve_spd_with_result(
         return (x if b.ndim == 2 else x[:, 0]), result
 
     return jax.lax.custom_linear_solve(matvec, rhs, solve, symmetric=True, has_aux=True)
+
+
+# JAX dispatches asynchronously: a plain compiled call can return before its run-time checks
+# (equinox.error_if) have run, and its error then surfaces only where an output is read, or never.
+# equinox.filter_jit waits for them, so a concrete call raises at the call, in every process.
+_solve_spd_at_call = eqx.filter_jit(solve_spd_with_result)
 
 
 def relative_residual(pattern: SparsityPattern, values: jax.Array, x: jax.Array, rhs: jax.Array) -> jax.Array:

@@ -5,7 +5,11 @@ hyperparameter selection, the joint fit) returns a result value carrying a `resu
 item of `RESULTS`, and takes a `throw=` choice:
 
 - `throw=True` (the default): a result other than `RESULTS.successful` raises, with the code's
-  message. Under `jax.jit` the error is raised at run time (`equinox.error_if`).
+  message. A call on concrete values raises at the call; under your own `jax.jit` the error
+  is raised at run time (`equinox.error_if`), and since JAX dispatches asynchronously it
+  surfaces where an output is read (`np.asarray`, `.block_until_ready()`), not necessarily at
+  the call (`equinox.filter_jit` waits for it). JAX's persistent compilation cache changes
+  nothing here: programs with run-time checks are not written to it, so every process checks.
 - `throw=False`: nothing raises; inspect `solution.result` yourself. Compare codes with `==`
   (`solution.result == RESULTS.max_iterations_reached`); a batched solve carries one code per
   frame, and `RESULTS[item]` gives the message of a single code.

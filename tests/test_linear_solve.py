@@ -1,5 +1,8 @@
 """The differentiable sparse SPD solve and its backends."""
 
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -150,10 +153,10 @@ def test_conjugate_gradient_reports_or_raises_when_it_stops_at_its_limit():
     rhs = jnp.asarray(np.random.default_rng(10).normal(size=(30, 2)))
     with pytest.raises(Exception, match="did not reach its tolerance"):
         linear_solve.solve_spd(pattern, values, rhs, linear_solve.ConjugateGradient(max_iterations=3))
+    # Under a plain jax.jit the run-time error surfaces where an output is read.
+    jitted = jax.jit(lambda v: linear_solve.solve_spd(pattern, v, rhs, linear_solve.ConjugateGradient(max_iterations=3)))
     with pytest.raises(Exception, match="did not reach its tolerance"):
-        jax.jit(lambda v: linear_solve.solve_spd(pattern, v, rhs, linear_solve.ConjugateGradient(max_iterations=3)))(
-            values
-        )
+        np.asarray(jitted(values))
     capped = linear_solve.ConjugateGradient(max_iterations=3, throw=False)
     _, result = linear_solve.solve_spd_with_result(pattern, values, rhs, capped)
     assert result == RESULTS.linear_solve_not_converged
@@ -197,3 +200,64 @@ def test_a_singular_matrix_gives_nan_not_an_exception(solver):
 def test_non_symmetric_patterns_are_refused():
     with pytest.raises(ValueError, match="not symmetric"):
         linear_solve.SparsityPattern.from_entries(np.array([0, 1]), np.array([1, 1]), 2)
+
+
+def test_an_unconverged_solve_raises_at_the_call_while_other_work_is_in_flight(small_model, rough_conductivity):
+    """JAX dispatches asynchronously: while earlier work is still running, a compiled call
+    returns before its run-time check has run, and under plain `jax.jit` the error surfaces only
+    where an output is read (never, if none is). The eager entry points raise at the call all the
+    same. Before they did, this failed in clean clones, where compiling left work in flight."""
+    pattern, values, _ = _laplacian_system(seed=9)
+    rhs = jnp.asarray(np.random.default_rng(10).normal(size=(30, 2)))
+    capped = linear_solve.ConjugateGradient(max_iterations=3)
+    strict = de.ForwardModel(
+        small_model.mesh, small_model.protocol, solver=linear_solve.ConjugateGradient(max_iterations=5)
+    )
+    calls = {
+        "solve_spd": lambda: linear_solve.solve_spd(pattern, values, rhs, capped),
+        "measure": lambda: strict.measure(rough_conductivity),
+        "potentials": lambda: strict.potentials(rough_conductivity),
+        "jacobian": lambda: strict.jacobian(rough_conductivity),
+    }
+    busy = jnp.ones((1500, 1500))
+    for name, call in calls.items():
+        for attempt in ('compiling', 'compiled'):
+            in_flight = busy @ busy @ busy
+            assert not in_flight.is_ready(), "the check needs work in flight"
+            with pytest.raises(Exception, match="did not reach its tolerance"):
+                call()
+            in_flight.block_until_ready()
+
+
+_FAILING_SOLVE = """
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_compilation_cache_dir", {cache!r})
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+import diffeit as de
+mesh = de.mesh.disc(16, electrode_width=0.2, h=0.3)
+capped = de.linear_solve.ConjugateGradient(max_iterations=2)
+model = de.ForwardModel(mesh, de.protocol.adjacent(16), solver=capped)
+busy = jnp.ones((1000, 1000))
+for _ in range(2):
+    in_flight = busy @ busy
+    try:
+        model.measure(jnp.ones(mesh.n_elements))
+    except Exception as error:
+        assert "did not reach its tolerance" in str(error), error
+    else:
+        raise SystemExit("an unconverged solve did not raise")
+print("raised")
+"""
+
+
+def test_an_unconverged_solve_raises_with_the_persistent_compilation_cache_on(tmp_path):
+    """Users who turn on JAX's persistent compilation cache get the same errors: a program with
+    run-time checks is never written to the cache (JAX keeps no programs with host callbacks),
+    so a second, warm process compiles and checks again."""
+    script = _FAILING_SOLVE.format(cache=str(tmp_path / "cache"))
+    for process in ("cold", "warm"):
+        run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0 and run.stdout.strip() == "raised", (process, run.stdout, run.stderr[-2000:])
+    assert any((tmp_path / "cache").iterdir()), "the cache was in use"
