@@ -37,14 +37,14 @@ from typing import Any
 import h5py
 import numpy as np
 
-from diffeit.io import Recording, read_frames, write_frames
+from diffeit.io import CHUNK_ROWS, Recording, create_checked, read_checked, read_frames, write_frames
 from diffeit.protocol import Protocol
 
 from .frame import Frame
 from .parser import DropStatistics
 
 _KINDS = tuple(field.name for field in dataclasses.fields(DropStatistics))
-_CHUNK_ROWS = 64
+_WHAT = "recorder's frames file"
 # Seconds `close` keeps trying to reopen the file when a reader holds it.
 _CLOSE_RETRY_SECONDS = 5.0
 
@@ -100,11 +100,12 @@ class Recorder:
         self._file = h5py.File(self.path, "r+", libver="v110")
         acquisition = self._file.create_group("acquisition")
         for name, dtype in (("counter", np.int64), ("device_time", np.float64)):
-            acquisition.create_dataset(name, shape=(0,), dtype=dtype, maxshape=(None,), chunks=(_CHUNK_ROWS,))
+            create_checked(acquisition, name, np.empty(0, dtype), maxshape=(None,), chunks=(CHUNK_ROWS,))
         acquisition["device_time"].attrs["units"] = "s"
-        drops = acquisition.create_dataset("drops", data=np.zeros(len(_KINDS), dtype=np.int64))
+        drops = create_checked(acquisition, "drops", np.zeros(len(_KINDS), dtype=np.int64))
         drops.attrs["kinds"] = list(_KINDS)
-        self._file.create_dataset("committed_frames", data=np.int64(0))
+        # (1,), not a scalar: a chunked dataset carries a checksum, and SWMR readers see it change.
+        create_checked(self._file, "committed_frames", np.zeros(1, dtype=np.int64))
         self._file.swmr_mode = True  # from here on: appends only, readable at every instant
         self._statistics = DropStatistics()
         self.n_frames = 0
@@ -144,7 +145,7 @@ class Recorder:
                 dataset[start:end] = values
             self._sync()
             self.n_frames = end
-        self._file["committed_frames"][()] = self.n_frames
+        self._file["committed_frames"][...] = self.n_frames
         self._file["acquisition/drops"][:] = [getattr(self._statistics, kind) for kind in _KINDS]
         self._sync()
         return self.n_frames
@@ -206,27 +207,27 @@ def read_recorded_frames(path: str | os.PathLike) -> Iterator[Frame]:
 
 def recorded_statistics(path: str | os.PathLike) -> DropStatistics:
     """The drop statistics a recorder's file holds (the latest it committed)."""
-    with _open_acquisition(path) as file:
-        drops = file["acquisition/drops"]
+
+    def read(file: h5py.File) -> DropStatistics:
+        drops = _acquisition_group(file, path)["drops"]
         kinds = [str(kind) for kind in drops.attrs["kinds"]]
         return DropStatistics(**{kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)})
 
+    return read_checked(path, read, what=_WHAT)
+
 
 def _acquisition(path: str | os.PathLike, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
-    with _open_acquisition(path) as file:
-        counters = file["acquisition/counter"][:n_frames]
-        device_times = file["acquisition/device_time"][:n_frames]
+    def read(file: h5py.File) -> tuple[np.ndarray, np.ndarray]:
+        acquisition = _acquisition_group(file, path)
+        return acquisition["counter"][:n_frames], acquisition["device_time"][:n_frames]
+
+    counters, device_times = read_checked(path, read, what=_WHAT)
     if len(counters) != n_frames or len(device_times) != n_frames:
         raise ValueError(f"{path}: /acquisition holds fewer rows than the {n_frames} committed frames")
     return counters, device_times
 
 
-def _open_acquisition(path: str | os.PathLike) -> h5py.File:
-    try:
-        file = h5py.File(path, "r")
-    except OSError:
-        file = h5py.File(path, "r", swmr=True)  # still being written, or its writer was killed
+def _acquisition_group(file: h5py.File, path: str | os.PathLike) -> h5py.Group:
     if "acquisition" not in file:
-        file.close()
         raise ValueError(f"{path} was not written by hw.Recorder (it has no /acquisition group)")
-    return file
+    return file["acquisition"]

@@ -78,7 +78,7 @@ def test_every_field_survives_a_round_trip(tmp_path, mesh):
     }
     # The units and schema attributes a reader without diffeit relies on.
     with h5py.File(path) as file:
-        assert file.attrs["schema"] == "diffeit.frames" and file.attrs["schema_version"] == 1
+        assert file.attrs["schema"] == "diffeit.frames" and file.attrs["schema_version"] == 2
         assert file["frames"].attrs["units"] == "V" and file["times"].attrs["units"] == "s"
         assert file["mesh/nodes"].attrs["units"] == "m" and file["images"].attrs["units"] == "S/sq"
         assert file["frames"].maxshape == (None, 12) and file["frames"].chunks is not None
@@ -175,7 +175,7 @@ def _replace(name, values):
         (_replace("mesh/electrode_offsets", [0, 5]), "electrode_offsets must rise from 0"),
         (_replace("protocol/drive_index", np.zeros(12, dtype=int) + 3), "drive_index must run"),
         (lambda f: f.attrs.__setitem__("schema", "other"), "not a diffeit frames file"),
-        (lambda f: f.attrs.__setitem__("schema_version", 2), "schema version 2"),
+        (lambda f: f.attrs.__setitem__("schema_version", 3), "schema version 3"),
         (lambda f: f.attrs.__setitem__("metadata", "{oops"), "not valid JSON"),
     ],
     ids=[
@@ -205,9 +205,9 @@ def test_reading_names_the_problem_and_the_file(tmp_path, mesh, change, message)
 def test_reading_files_that_are_not_frames_files(tmp_path):
     text = tmp_path / "notes.h5"
     text.write_text("not hdf5")
-    with pytest.raises(ValueError, match=r"notes\.h5 is not a readable HDF5 file"):
+    with pytest.raises(ValueError, match=r"notes\.h5 is not a diffeit frames file: it is not HDF5 \(a text file\)"):
         read_frames(text)
-    with pytest.raises(FileNotFoundError, match="no such frames file"):
+    with pytest.raises(FileNotFoundError, match="no such diffeit frames file"):
         read_frames(tmp_path / "missing.h5")
 
 

@@ -154,7 +154,8 @@ def test_conjugate_gradient_reports_or_raises_when_it_stops_at_its_limit():
     with pytest.raises(Exception, match="did not reach its tolerance"):
         linear_solve.solve_spd(pattern, values, rhs, linear_solve.ConjugateGradient(max_iterations=3))
     # Under a plain jax.jit the run-time error surfaces where an output is read.
-    jitted = jax.jit(lambda v: linear_solve.solve_spd(pattern, v, rhs, linear_solve.ConjugateGradient(max_iterations=3)))
+    capped = linear_solve.ConjugateGradient(max_iterations=3)
+    jitted = jax.jit(lambda v: linear_solve.solve_spd(pattern, v, rhs, capped))
     with pytest.raises(Exception, match="did not reach its tolerance"):
         np.asarray(jitted(values))
     capped = linear_solve.ConjugateGradient(max_iterations=3, throw=False)
@@ -221,11 +222,12 @@ def test_an_unconverged_solve_raises_at_the_call_while_other_work_is_in_flight(s
     }
     busy = jnp.ones((1500, 1500))
     for name, call in calls.items():
-        for attempt in ('compiling', 'compiled'):
+        for attempt in ("compiling", "compiled"):
             in_flight = busy @ busy @ busy
             assert not in_flight.is_ready(), "the check needs work in flight"
             with pytest.raises(Exception, match="did not reach its tolerance"):
                 call()
+                pytest.fail(f"{name} ({attempt}) returned")
             in_flight.block_until_ready()
 
 

@@ -14,11 +14,11 @@ validates it. Readers of other recordings, each mapping the frames to a diffeit 
 without the readings on driven electrodes), `read_openeit(path)` (OpenEIT text logs, its
 opposition layout, magnitudes), `read_csv(path)` (one frame a row).
 
-The frames file (HDF5, schema "diffeit.frames", version 1):
+The frames file (HDF5, schema "diffeit.frames", version 2):
 
 ```
 /                    attributes:
-                       schema = "diffeit.frames", schema_version = 1 (int)
+                       schema = "diffeit.frames", schema_version = 2 (int)
                        diffeit_version (str), created_utc (ISO 8601, UTC), source (str)
                        metadata (str): free-form user metadata as JSON
 /frames              (T, n_meas) float64, attributes units: "V" (or "arbitrary": device units)
@@ -40,7 +40,7 @@ The frames file (HDF5, schema "diffeit.frames", version 1):
                      arguments, lengths in metres, e.g. n_electrodes, electrode_width, h, radius)
 /images              (T, E) float64 on /mesh, attributes units = "S/sq" and     [optional]
                      quantity = "conductivity change" | "conductivity"
-/committed_frames    () int64: the frames (and times) a recorder committed; rows  [optional]
+/committed_frames    (1,) int64: the frames (and times) a recorder committed; rows [optional]
                      beyond it are the frame in flight when it was stopped, and are not read
 /acquisition/        written by hw.Recorder (counters, device times, drop statistics) [optional]
 ```
@@ -49,10 +49,24 @@ n_meas is the protocol's number of readings and L its number of electrodes. Fram
 protocol's order and sign (for `adjacent(16)`, EIDORS's). Files are written in the HDF5 1.10
 format, which single-writer/multiple-reader (SWMR) access needs; `read_frames` reads a file a
 recorder is still writing, or was writing when it was killed, through SWMR access.
+
+Damage is refused, never read as data: every array dataset carries a Fletcher-32 checksum
+(every scalar sits in its checksummed object header), HDF5 1.10's metadata carries checksums,
+and a truncated file is recognised from its superblock before HDF5 reads it (`open_checked`).
+Every reader raises a `ValueError` naming the file for a damaged one, within moments. Version 1
+(written before checksums; committed_frames of shape ()) reads with a `NoChecksumWarning`.
+`open_checked`, `read_checked`, `create_checked` and `write_atomically` are the discipline every diffeit HDF5
+file follows (frames, fits, recorders): use them for files of your own.
 """
 
+from ._checked import NoChecksumWarning as NoChecksumWarning
+from ._checked import create_checked as create_checked
+from ._checked import open_checked as open_checked
+from ._checked import read_checked as read_checked
+from ._checked import write_atomically as write_atomically
 from ._csv import read_csv as read_csv
 from ._eidors import read_eidors_mat as read_eidors_mat
+from ._hdf5 import CHUNK_ROWS as CHUNK_ROWS
 from ._hdf5 import SCHEMA as SCHEMA
 from ._hdf5 import SCHEMA_VERSION as SCHEMA_VERSION
 from ._hdf5 import append_frames as append_frames

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import importlib.metadata
 import itertools
 import json
 import os
-import time
-import uuid
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -20,18 +17,17 @@ from numpy.typing import ArrayLike
 
 from ..mesh import Mesh
 from ..protocol import Protocol
+from ._checked import create_checked, open_checked, read_checked, warn_if_unchecked, write_atomically
 from ._recording import Recording
 
 SCHEMA = "diffeit.frames"
-SCHEMA_VERSION = 1
+# Version 2: every dataset checksummed, committed_frames of shape (1,). Version 1 files read,
+# with a NoChecksumWarning.
+SCHEMA_VERSION = 2
 # Rows per HDF5 chunk of `frames` and `times`: about 100 kB for 208 readings, so appending one
 # frame at a time touches one chunk and reading a few frames reads little.
-_CHUNK_ROWS = 64
-# Seconds a reader waits while another process holds a file's lock.
-_LOCK_WAIT = 5.0
-# HDF5 file format 1.10 or later: what single-writer/multiple-reader (SWMR) mode needs, so a
-# recorder can append while a viewer reads.
-_LIBVER = "v110"
+CHUNK_ROWS = 64
+_WHAT = "diffeit frames file"
 
 
 def write_frames(path: str | os.PathLike, recording: Recording, *, overwrite: bool = False) -> Path:
@@ -45,38 +41,34 @@ def write_frames(path: str | os.PathLike, recording: Recording, *, overwrite: bo
     """
     if not isinstance(recording, Recording):
         raise ValueError(f"write_frames needs a diffeit.io.Recording; got {type(recording).__name__}")
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-    if not path.parent.is_dir():
-        raise FileNotFoundError(f"the folder of {path} does not exist")
     metadata = _metadata_json(recording.provenance.get("metadata", {}))  # fail before creating anything
-    # Not tempfile.mkstemp: its files are private (mode 0600); h5py creates with the umask's mode.
-    temporary = path.with_name(f".{path.name}.{uuid.uuid4().hex[:12]}.partial")
-    try:
-        with h5py.File(temporary, "x", libver=_LIBVER) as file:
-            _write(file, recording, metadata)
-        _publish(temporary, path, overwrite)
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
-    return path
+    return write_atomically(path, lambda file: _write(file, recording, metadata), overwrite=overwrite)
 
 
 def read_frames(path: str | os.PathLike) -> Recording:
     """Read a frames file written by `write_frames` (and perhaps grown by `append_frames`).
 
-    Raises `FileNotFoundError` for a missing file and `ValueError` naming the file and the
-    problem for anything else: not HDF5, not a frames file, a newer schema version, missing
-    datasets, shapes that disagree (frames wider or narrower than the protocol's readings,
-    times not one per frame, images not one per frame and element), non-finite values.
+    Returns the file's data as written: all of it, or of a file a recorder is writing (or was
+    writing when it was killed) the frames it committed. Every dataset's checksum is verified;
+    a file written before diffeit stored checksums reads with a `NoChecksumWarning`.
+
+    Raises `FileNotFoundError` for a missing file and, promptly, `ValueError` naming the file and
+    the problem for anything else: empty, not HDF5, truncated, altered bytes (a failed
+    checksum), not a frames file, a newer schema version, missing datasets, wrong dtypes,
+    shapes that disagree (frames wider or narrower than the protocol's readings, times not one
+    per frame, images not one per frame and element), non-finite values.
     """
     path = Path(path)
-    with _open(path, "r") as file:
+
+    def read(file: h5py.File) -> Recording:
         try:
-            return _read(file)
+            recording = _read(file)
         except (KeyError, ValueError, TypeError) as error:
             raise ValueError(f"{path}: {_message(error)}") from None
+        warn_if_unchecked(file, path)
+        return recording
+
+    return read_checked(path, read, what=_WHAT)
 
 
 def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) -> int:
@@ -91,7 +83,7 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
     frames = np.array(frames, dtype=np.float64)
     frames = frames[None] if frames.ndim == 1 else frames
     times = np.atleast_1d(np.array(times, dtype=np.float64))
-    with _open(path, "r+") as file:
+    with open_checked(path, "r+", what=_WHAT) as file:
         try:
             _check_schema(file)
             stored, stored_times = _dataset(file, "frames"), _dataset(file, "times")
@@ -124,7 +116,7 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
         stored[n_old:] = frames
         stored_times[n_old:] = times
         if committed is not None:
-            file["committed_frames"][()] = n_new
+            file["committed_frames"][...] = n_new
     return n_new
 
 
@@ -141,29 +133,29 @@ def _write(file: h5py.File, recording: Recording, metadata: str) -> None:
     file.attrs["metadata"] = metadata
 
     n_meas = recording.n_measurements
-    frames = file.create_dataset("frames", data=recording.frames, maxshape=(None, n_meas), chunks=(_CHUNK_ROWS, n_meas))
+    frames = create_checked(file, "frames", recording.frames, maxshape=(None, n_meas), chunks=(CHUNK_ROWS, n_meas))
     frames.attrs["units"] = recording.voltage_unit
     frames.attrs["readings"] = recording.readings
-    times = file.create_dataset("times", data=recording.times, maxshape=(None,), chunks=(_CHUNK_ROWS,))
+    times = create_checked(file, "times", recording.times, maxshape=(None,), chunks=(CHUNK_ROWS,))
     times.attrs["units"] = "s"
     if recording.reference is not None:
-        reference = file.create_dataset("reference", data=recording.reference)
+        reference = create_checked(file, "reference", recording.reference)
         reference.attrs["units"] = recording.voltage_unit
 
     protocol = file.create_group("protocol")
     protocol.attrs["drive_units"] = "multiples of the model's drive current, positive into the sheet"
-    protocol.create_dataset("drive", data=recording.protocol.drive)
-    protocol.create_dataset("measure", data=recording.protocol.measure)
-    protocol.create_dataset("drive_index", data=recording.protocol.drive_index.astype(np.int64))
+    create_checked(protocol, "drive", recording.protocol.drive)
+    create_checked(protocol, "measure", recording.protocol.measure)
+    create_checked(protocol, "drive_index", recording.protocol.drive_index.astype(np.int64))
 
     if recording.mesh is not None:
         mesh = file.create_group("mesh")
-        nodes = mesh.create_dataset("nodes", data=recording.mesh.nodes)
+        nodes = create_checked(mesh, "nodes", recording.mesh.nodes)
         nodes.attrs["units"] = "m"
-        mesh.create_dataset("triangles", data=recording.mesh.triangles.astype(np.int64))
+        create_checked(mesh, "triangles", recording.mesh.triangles.astype(np.int64))
         chains = recording.mesh.electrodes
-        mesh.create_dataset("electrode_nodes", data=np.concatenate(chains).astype(np.int64))
-        mesh.create_dataset("electrode_offsets", data=np.cumsum([0, *map(len, chains)]).astype(np.int64))
+        create_checked(mesh, "electrode_nodes", np.concatenate(chains).astype(np.int64))
+        create_checked(mesh, "electrode_offsets", np.cumsum([0, *map(len, chains)]).astype(np.int64))
     if recording.geometry is not None:
         geometry = file.create_group("geometry")
         geometry.attrs["units"] = "m"
@@ -171,7 +163,7 @@ def _write(file: h5py.File, recording: Recording, metadata: str) -> None:
             if value is not None:  # every generator's None default; HDF5 attributes cannot hold None
                 geometry.attrs[key] = value
     if recording.images is not None:
-        images = file.create_dataset("images", data=recording.images)
+        images = create_checked(file, "images", recording.images)
         images.attrs["units"] = "S/sq"
         images.attrs["quantity"] = recording.image_quantity
 
@@ -277,10 +269,29 @@ def _committed_frames(file: h5py.File) -> int | None:
     """The committed frame count of a recorder's file, None when the file has none."""
     if "committed_frames" not in file:
         return None
-    value = _dataset(file, "committed_frames")[()]
-    if np.ndim(value) != 0 or not np.issubdtype(np.asarray(value).dtype, np.integer) or value < 0:
-        raise ValueError(f"committed_frames must be a non-negative integer; got {value!r}")
-    return int(value)
+    value = np.asarray(_dataset(file, "committed_frames")[()])
+    # () in schema version 1, (1,) since: a chunked dataset can carry a checksum.
+    if value.shape not in ((), (1,)) or not np.issubdtype(value.dtype, np.integer) or value.ravel()[0] < 0:
+        raise ValueError(f"committed_frames must be one non-negative integer; got {value!r}")
+    return int(value.ravel()[0])
+
+
+# The dtype each dataset must have: numbers of a kind, so that strings, compound types or a
+# float where an index belongs are refused by name instead of failing somewhere later.
+_KINDS = {
+    "frames": np.floating,
+    "times": np.floating,
+    "reference": np.floating,
+    "images": np.floating,
+    "protocol/drive": np.number,
+    "protocol/measure": np.number,
+    "protocol/drive_index": np.integer,
+    "mesh/nodes": np.floating,
+    "mesh/triangles": np.integer,
+    "mesh/electrode_nodes": np.integer,
+    "mesh/electrode_offsets": np.integer,
+    "committed_frames": np.integer,
+}
 
 
 def _dataset(file: h5py.File, name: str) -> h5py.Dataset:
@@ -289,61 +300,11 @@ def _dataset(file: h5py.File, name: str) -> h5py.Dataset:
     dataset = file[name]
     if not isinstance(dataset, h5py.Dataset):
         raise ValueError(f"{name!r} is not a dataset")
+    kind = _KINDS.get(name)
+    if kind is not None and not np.issubdtype(dataset.dtype, kind):
+        expected = {np.floating: "floating-point numbers", np.integer: "integers", np.number: "numbers"}[kind]
+        raise ValueError(f"the dataset {name!r} holds {dataset.dtype}; it must hold {expected}")
     return dataset
-
-
-@contextlib.contextmanager
-def _open(path: Path, mode: str):
-    if not path.exists():
-        raise FileNotFoundError(f"no such frames file: {path}")
-    try:
-        file = _open_locked(path, mode)
-    except OSError as error:
-        if mode != "r":
-            if "already open for write" in str(error):
-                raise ValueError(
-                    f"{path} is marked open for writing: a recorder is still writing it, or was killed before it "
-                    "closed the file. Its frames read as they are (read_frames); to append, first clear the mark "
-                    f"with `h5clear -s {path}` (Debian package hdf5-tools)"
-                ) from None
-            raise ValueError(f"{path} is not a writable HDF5 file ({error})") from None
-        try:
-            # A file a recorder is writing, or was writing when it was killed, is marked open
-            # for writing; single-writer/multiple-reader access reads it all the same.
-            file = _open_locked(path, "r", swmr=True)
-        except OSError:
-            raise ValueError(f"{path} is not a readable HDF5 file ({error})") from None
-    with file:
-        yield file
-
-
-def _open_locked(path: Path, mode: str, **options: Any) -> h5py.File:
-    """h5py.File, waiting up to _LOCK_WAIT seconds while another process holds the file's lock
-    (a recorder creating the file, or reopening it as it closes)."""
-    deadline = time.monotonic() + _LOCK_WAIT
-    while True:
-        try:
-            return h5py.File(path, mode, **options)
-        except BlockingIOError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.02)
-
-
-def _publish(temporary: Path, path: Path, overwrite: bool) -> None:
-    """Move the finished file into place; without `overwrite`, never replace a file that
-    appeared meanwhile (a hard link fails when the name exists)."""
-    if overwrite:
-        os.replace(temporary, path)
-        return
-    try:
-        os.link(temporary, path)
-    except FileExistsError:
-        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it") from None
-    except OSError:  # file systems without hard links
-        if path.exists():
-            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it") from None
-        os.replace(temporary, path)
 
 
 def _metadata_json(metadata: Mapping[str, Any]) -> str:
