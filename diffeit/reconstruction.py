@@ -100,7 +100,7 @@ from .inverse import GREIT, GaussNewton, LinearisedProblem, OneStep, TotalVariat
 from .io import Recording, mesh_from_geometry
 from .mesh import Mesh, disc
 from .protocol import Protocol
-from .results import RESULTS
+from .results import RESULTS, failed, names, throw_if_failed
 
 Method = Literal["one_step", "gauss_newton", "total_variation", "greit"]
 Difference = Literal["auto", "calibrated", "normalised"]
@@ -584,7 +584,9 @@ def reconstruct(
     background_map: bool = False,
     background: float = 1.0,
     contact_impedance: float = 0.01,
+    max_iterations: int | None = None,
     progress: bool = True,
+    throw: bool = True,
 ) -> Recording:
     """Image every frame of `recording` against its reference: the one call from recorded
     frames to images.
@@ -615,7 +617,19 @@ def reconstruct(
     `hyperparameter`: unit-free, or "auto" (module docstring), or a method of
     `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure"), chosen from all
     frames at once. `difference`: "auto" (default), "calibrated" or "normalised" (module
-    docstring).
+    docstring). `max_iterations`: the iteration limit of "gauss_newton" and "total_variation"
+    (None: theirs, 20 and 100).
+
+    **Failures.** Every frame gets a `diffeit.results.RESULTS` code: the solver's for
+    "gauss_newton" and "total_variation", `successful` for the direct "one_step" and "greit";
+    a frame whose image is not finite gets `nonfinite` (and, with `throw=False`, a zero image).
+    With `throw=True` (the default) a frame that failed raises `diffeit.results.SolverError`
+    naming the frames and the first failure's message, and so does a background map whose fit
+    failed (the frames would be imaged at it). With `throw=False` nothing raises: the codes
+    are in the metadata (below). A selection that ends at an end of its candidates never
+    raises, that of the hyperparameter ("auto" falls back by design) or of the background map
+    (`selection_at_boundary`: its misfit levelled off at the model's own error); their codes
+    are in the metadata too.
 
     **Returns** the recording with `mesh`, `images` (T, E) and `image_quantity` filled in; its
     frames and reference as recorded (a recording without one gets the reference it was imaged
@@ -624,10 +638,13 @@ def reconstruct(
     level is known, relative changes dsigma / sigma_h ("relative conductivity change",
     unit-free). The provenance's metadata
     holds the calibration (`ReferenceCalibration.summary`), the hyperparameter and how it was
-    chosen (with what each selection method gives), and every option.
+    chosen (with what each selection method gives and its code's name, "result"), every option,
+    and the outcome: "results", the name of each frame's code ("successful",
+    "max_iterations_reached", ...; one per frame), "frames_failed", how many are not
+    "successful", and the background map's code's name in `["background_map"]["result"]`.
 
     Raises `ValueError` for a recording without frames, a bad option, or a reference the model
-    cannot be calibrated on.
+    cannot be calibrated on; `diffeit.results.SolverError` as above.
     """
     start = time.perf_counter()
     if not isinstance(recording, Recording):
@@ -644,6 +661,11 @@ def reconstruct(
         )
     if not isinstance(hyperparameter, str) and not (math.isfinite(hyperparameter) and hyperparameter > 0):
         raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
+    if max_iterations is not None:
+        if method not in ("gauss_newton", "total_variation"):
+            raise ValueError(f"max_iterations applies to gauss_newton and total_variation, not {method}")
+        if int(max_iterations) != max_iterations or max_iterations < 1:
+            raise ValueError(f"max_iterations must be a positive integer; got {max_iterations}")
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if recording.reference is not None or reference_frame is not None:
         reference = recording.reference_values(reference_frame)
@@ -676,11 +698,15 @@ def reconstruct(
             progress=progress,
             throw=False,
         )
+        # At the boundary the misfit levelled off (the model's own error): the map is the selection's
+        # best, as a hyperparameter at an end of its candidates is; a failed solve is no map.
+        if throw and bool(fitted.result != RESULTS.selection_at_boundary):
+            throw_if_failed(fitted, fitted.result, "the background map's fit (diffeit.fit.background)")
         model, level = _with(model, model.protocol, fitted.contact_impedance), fitted.conductivity
         map_summary = {
             "misfit": fitted.misfit,
             "hyperparameter": fitted.hyperparameter,
-            "result": str(fitted.result),
+            "result": names(fitted.result)[0],
             "range": [float(level.min()), float(level.max())],
         }
     dv = frames - signed_reference
@@ -695,7 +721,11 @@ def reconstruct(
         value, choice = _hyperparameter(model, dv, hyperparameter, prior, level)
         if method == "gauss_newton" and hyperparameter == "auto":
             value, choice = _GAUSS_NEWTON_FACTOR * value, {**choice, "gauss_newton_factor": _GAUSS_NEWTON_FACTOR}
-    images, value = _images(model, dv, method, prior, value, level, progress)
+    images, value, codes = _images(model, dv, method, prior, value, level, max_iterations, progress)
+    codes = _nonfinite_marked(codes, images)
+    if throw:
+        throw_if_failed(images, codes, f"{method} reconstruction")
+    images = np.where(np.isfinite(images).all(axis=1, keepdims=True), images, 0.0)  # a Recording's are finite
     relative = recording.voltage_unit != "V"
     if relative:
         images = images / level
@@ -704,6 +734,9 @@ def reconstruct(
         "prior": prior,
         "hyperparameter": value,
         "hyperparameter_choice": choice,
+        "max_iterations": max_iterations,
+        "results": names(codes),
+        "frames_failed": int(failed(codes).sum()),
         "difference": difference,
         "unsafe_ratio_readings": unsafe,
         "reference": reference_source,
@@ -764,7 +797,11 @@ def _hyperparameter(model, dv, hyperparameter, prior, level) -> tuple[float, dic
 
     def select(name: str) -> dict[str, Any]:
         selection = select_hyperparameter(model, dv, name, prior=prior, background=level, throw=False, problem=problem)
-        return {"value": float(selection.value), "at_boundary": bool(selection.result != RESULTS.successful)}
+        return {
+            "value": float(selection.value),
+            "at_boundary": bool(selection.result != RESULTS.successful),
+            "result": names(selection.result)[0],
+        }
 
     if hyperparameter != "auto":
         chosen = select(hyperparameter)
@@ -776,24 +813,40 @@ def _hyperparameter(model, dv, hyperparameter, prior, level) -> tuple[float, dic
     return choice[rule]["value"], {**choice, "method": rule}
 
 
-def _images(model, dv, method, prior, hyperparameter, level, progress) -> tuple[np.ndarray, float]:
+def _images(
+    model, dv, method, prior, hyperparameter, level, max_iterations, progress
+) -> tuple[np.ndarray, float, RESULTS]:
     """(T, E) conductivity changes, S/sq, of the frames' differences `dv` at `level` (S/sq, a
-    scalar or a map), and the hyperparameter used (GREIT's own when None)."""
+    scalar or a map), the hyperparameter used (GREIT's own when None), and the codes: the
+    solver's, one per frame, or one `RESULTS.successful` for all frames of the direct methods.
+    `max_iterations`: the iterative solvers' limit (None: their default)."""
+    limit = {} if max_iterations is None else {"max_iterations": max_iterations}
     if method == "one_step":
         solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=level)
         batches = range(0, len(dv), _BATCH)
         bar = tqdm(batches, desc="reconstructing", unit="batch", disable=not progress or len(batches) < 2)
-        return np.concatenate([np.asarray(solver.reconstruct(dv[i : i + _BATCH])) for i in bar]), hyperparameter
+        images = np.concatenate([np.asarray(solver.reconstruct(dv[i : i + _BATCH])) for i in bar])
+        return images, hyperparameter, RESULTS.successful
     if method == "gauss_newton":
-        result = GaussNewton(model, prior=prior, hyperparameter=hyperparameter).difference(
+        result = GaussNewton(model, prior=prior, hyperparameter=hyperparameter, **limit).difference(
             dv, background=level, throw=False
         )
-        return np.atleast_2d(np.asarray(result.conductivity_change)), hyperparameter
+        return np.atleast_2d(np.asarray(result.conductivity_change)), hyperparameter, result.result
     if method == "greit":
         greit = GREIT(
             model, hyperparameter=hyperparameter, noise_figure=0.5 if hyperparameter is None else None, background=level
         )
-        return greit.grid.to_elements(np.asarray(greit.reconstruct(dv))), greit.hyperparameter
-    solver = TotalVariation(model, hyperparameter=hyperparameter, background=level)
-    images = [np.asarray(solver.reconstruct(frame, throw=False)) for frame in tqdm(dv, disable=not progress)]
-    return np.stack(images), hyperparameter
+        return greit.grid.to_elements(np.asarray(greit.reconstruct(dv))), greit.hyperparameter, RESULTS.successful
+    solver = TotalVariation(model, hyperparameter=hyperparameter, background=level, **limit)
+    solutions = [solver.solve(frame, throw=False) for frame in tqdm(dv, disable=not progress)]
+    codes = jax.tree_util.tree_map(lambda *frames: np.stack(frames), *(s.result for s in solutions))
+    return np.stack([np.asarray(s.conductivity_change) for s in solutions]), hyperparameter, codes
+
+
+def _nonfinite_marked(codes: RESULTS, images: np.ndarray) -> RESULTS:
+    """One code per frame of `images` (T, E): `codes` (one per frame, or one for all), with
+    `RESULTS.nonfinite` where the image holds NaN or inf."""
+    finite = np.all(np.isfinite(images), axis=1)
+    codes = jax.tree_util.tree_map(lambda code: np.broadcast_to(code, finite.shape), codes)
+    return jax.vmap(lambda ok, code: RESULTS.where(ok, code, RESULTS.nonfinite))(finite, codes)
+

@@ -26,7 +26,7 @@ import numpy as np
 
 from ._messages import name_indices
 
-__all__ = ["RESULTS", "SolverError", "failed", "messages", "throw_if_failed"]
+__all__ = ["RESULTS", "SolverError", "failed", "messages", "names", "throw_if_failed"]
 
 
 class RESULTS(eqx.Enumeration):
@@ -68,6 +68,13 @@ def failed(result: RESULTS) -> np.ndarray:
 def messages(result: RESULTS) -> list[str]:
     """The message of each code of a concrete result (one per frame of a batch), "" for success."""
     return [RESULTS._index_to_message[code] for code in np.atleast_1d(np.asarray(result._value)).tolist()]
+
+
+def names(result: RESULTS) -> list[str]:
+    """The name of each code of a concrete result ("successful", "max_iterations_reached", ...),
+    one per frame of a batch: what files and reports store."""
+    by_value = {int(item._value): name for name, item in RESULTS._name_to_item.items()}
+    return [by_value[code] for code in np.atleast_1d(np.asarray(result._value)).tolist()]
 
 
 Value = TypeVar("Value")

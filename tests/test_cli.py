@@ -62,6 +62,7 @@ def test_reconstruct_images_every_frame_of_a_frames_file(tmp_path, simulated, ca
     assert metadata["calibration"]["conductivity"] == pytest.approx(BACKGROUND)
     assert metadata["hyperparameter_choice"]["method"] in ("lcurve", "noise_figure")
     assert f"hyperparameter {metadata['hyperparameter']:.3g} (auto: " in printed
+    assert metadata["results"] == ["successful"] * 3 and metadata["frames_failed"] == 0  # every frame's code
     for image, touch in zip(out.images, TOUCHES, strict=True):
         assert image[np.argmax(np.abs(image))] < 0  # a touch lowers the conductivity
         error = np.linalg.norm(_centroid(mesh, image) - touch)
@@ -89,6 +90,32 @@ def test_options_reach_reconstruct(tmp_path, simulated, capsys):
     assert 0 <= summary["misfit"] < 0.05 and summary["range"][0] <= summary["range"][1]
 
 
+def test_frames_that_did_not_converge_are_written_named_and_exit_1(tmp_path, simulated, capsys):
+    """Gauss-Newton capped at one step converges on no touch: the files are written with every
+    frame's code, stderr counts and names the frames, the exit status is 1."""
+    frames = write_frames(tmp_path / "touches.h5", simulated)
+    arguments = ["reconstruct", str(frames), "-o", str(tmp_path / "capped"), "--method", "gauss_newton"]
+    arguments += ["--max-iterations", "1", "--hyperparameter", "0.2", "--h", "0.2"]
+    assert main(arguments) == 1
+    captured = capsys.readouterr()
+    assert "3 of 3 frames failed: [0, 1, 2] max_iterations_reached (the iteration limit was reached" in captured.err
+    assert "their codes in capped.h5" in captured.err and "wrote" in captured.out
+    out = read_frames(tmp_path / "capped.h5")
+    metadata = out.provenance["metadata"]
+    assert metadata["results"] == ["max_iterations_reached"] * 3 and metadata["frames_failed"] == 3
+    assert metadata["max_iterations"] == 1 and out.images.shape == (3, out.mesh.n_elements)
+    assert (tmp_path / "capped.png").exists()
+    # GCV on noise-free differences ends at its smallest candidate: a note, not a failure.
+    arguments = ["reconstruct", str(frames), "-o", str(tmp_path / "gcv"), "--hyperparameter", "gcv", "--h", "0.2"]
+    assert main(arguments) == 0
+    assert "that gcv chose is at an end of its candidates" in capsys.readouterr().err
+    choice = read_frames(tmp_path / "gcv.h5").provenance["metadata"]["hyperparameter_choice"]
+    assert choice["gcv"]["result"] == "selection_at_boundary"
+    # An iteration limit for a direct method is a bad option.
+    assert main(["reconstruct", str(frames), "-o", str(tmp_path / "x"), "--max-iterations", "5"]) == 2
+    assert "max_iterations applies to gauss_newton and total_variation" in capsys.readouterr().err
+
+
 def test_reference_frame_option_and_a_file_without_reference(tmp_path, simulated, capsys):
     without = write_frames(tmp_path / "plain.h5", Recording(**{**_fields(simulated), "reference": None}))
     assert main(["reconstruct", str(without), "-o", str(tmp_path / "a")]) == 0
@@ -113,9 +140,10 @@ def test_bad_inputs_exit_with_a_clear_message(tmp_path, simulated, capsys):
     text.write_text("not a frames file")
     assert main(["reconstruct", str(text), "-o", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("diffeit reconstruct: error:") and f"{text} is not a readable HDF5 file" in err
+    assert err.startswith("diffeit reconstruct: error:")
+    assert f"{text} is not a diffeit frames file: it is not HDF5" in err
     assert main(["reconstruct", str(tmp_path / "missing.h5"), "-o", str(tmp_path / "x")]) == 2
-    assert "no such frames file" in capsys.readouterr().err
+    assert "no such diffeit frames file" in capsys.readouterr().err
     assert main(["reconstruct", str(MONTREAL), "-o", str(tmp_path / "x")]) == 2
     assert "name the frames with --variable" in capsys.readouterr().err
     frames = write_frames(tmp_path / "touches.h5", simulated)

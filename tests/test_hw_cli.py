@@ -99,6 +99,30 @@ def test_live_images_the_calibrated_relative_change(tmp_path, touch, capsys):
     assert "colour -0.4 to +0.4" in viewer.axes.get_title()
 
 
+def test_live_counts_images_that_are_not_finite_and_exits_1(tmp_path, touch, capsys):
+    """A frame of readings near the float64 limit overflows the one-step image: the run goes on,
+    the image is not drawn, the PNG's title and stderr count it, and the exit status is 1."""
+    frames = touch[:9].copy()
+    frames[4] = 1e308  # imaged frame 3: the first frame is the reference
+    emulator = hw.Emulator(frames, frame_rate=100.0, text=True, label="v").start()
+    png = tmp_path / "live.png"
+    status = main(
+        ["live", "--port", emulator.port, "--text", "--protocol", "adjacent", "--frames", "9", "--batch", "4",
+         "--h", "0.15", "--png", str(png)]
+    )  # fmt: skip
+    emulator.stop()
+    assert status == 1
+    captured = capsys.readouterr()
+    assert "8 frames reconstructed" in captured.out
+    assert "diffeit live: 1 of 8 images not finite, imaged frames [3]" in captured.err
+    assert png.exists()
+    settings = ModelSettings(h=0.15, hyperparameter="auto")
+    viewer = _LiveViewer(adjacent(16), settings, str(tmp_path / "viewer.png"), touch[:1])
+    assert viewer.show([hw.Frame(values=touch[1]), hw.Frame(values=frames[4])]) == 2
+    assert viewer.nonfinite == [1] and not viewer.axes.collections  # the last image, not drawn
+    assert "not finite: not drawn\n1 of 2 images not finite" in viewer.axes.get_title()
+
+
 def test_emulate_streams_the_scene_reference_first(tmp_path, touch, capsys):
     port, log = tmp_path / "ttyEIT", tmp_path / "faults.json"
     arguments = ["emulate", str(SCENE), "--port", str(port), "--frame-rate", "100", "--wait", "30"]

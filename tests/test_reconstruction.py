@@ -9,6 +9,7 @@ import pytest
 
 import diffeit as de
 from diffeit.reconstruction import CalibrationWarning, calibrate_to_reference
+from diffeit.results import SolverError
 
 jax.config.update("jax_enable_x64", True)
 
@@ -316,6 +317,8 @@ def test_the_nonlinear_methods_run_at_the_calibrated_state(method):
     one_step, _ = _reconstruct(recording, hyperparameter=0.05)
     result, _ = _reconstruct(recording, hyperparameter=0.05, method=method)
     assert result.provenance["metadata"]["method"] == method
+    assert result.provenance["metadata"]["results"] == ["successful"] * 4  # each frame's solver converged
+    assert result.provenance["metadata"]["frames_failed"] == 0
     assert _position_error(result) < 0.12
     assert np.corrcoef(result.images[1], one_step.images[1])[0, 1] > 0.7
 
@@ -336,6 +339,8 @@ def test_a_background_map_fitted_to_the_reference_images_on_a_non_uniform_skin()
     mapped, _ = _reconstruct(recording, hyperparameter=0.05, background_map=True)
     summary = mapped.provenance["metadata"]["background_map"]
     assert uniform.provenance["metadata"]["background_map"] is None
+    # The coarse sheet's own error stops the map's misfit above the noise: recorded, not raised.
+    assert summary["result"] == "selection_at_boundary"
     assert summary["misfit"] < 0.3 * uniform.provenance["metadata"]["calibration"]["misfit"]
     low, high = summary["range"]
     assert 1.8 < high / low < 4.0  # the true ratio is 2.5; a smooth map rounds the step
@@ -393,3 +398,74 @@ def test_gauss_newtons_automatic_hyperparameter_is_four_times_the_one_steps():
         4.0 * one_step.provenance["metadata"]["hyperparameter"]
     )
     assert _position_error(nonlinear) < 0.12
+
+
+def _coarse_touch(noise: float = 0.002) -> tuple[de.io.Recording, de.Mesh]:
+    """An untouched and a touched frame (noise `noise` of the RMS reading, seeded; the
+    reference noise-free), simulated on a coarse disc, and the coarser sheet to image them on:
+    quick to solve."""
+    protocol = de.protocol.adjacent(16)
+    truth = de.mesh.disc(16, electrode_width=0.2, h=0.12)
+    model = de.ForwardModel(truth, protocol)
+    reference = np.asarray(model.measure(np.full(truth.n_elements, 0.01)))
+    frames = np.stack([reference, np.asarray(model.measure(_touch(truth, 0.01)))])
+    frames = frames + np.random.default_rng(0).normal(0, noise * np.sqrt(np.mean(reference**2)), frames.shape)
+    recording = de.io.Recording(frames=frames, times=[0.0, 1.0], protocol=protocol, reference=reference)
+    return recording, de.mesh.disc(16, electrode_width=0.2, h=0.2)
+
+
+def test_a_frame_whose_gauss_newton_stops_at_its_iteration_limit_raises_or_is_marked():
+    """Capped at 5 steps, Gauss-Newton converges on the untouched frame (3 steps) but not on
+    the touch (7): throw=True names frame 1, throw=False marks it, uncapped both converge."""
+    recording, mesh = _coarse_touch()
+    options = {"method": "gauss_newton", "mesh": mesh, "hyperparameter": 0.2, "progress": False}
+    message = r"gauss_newton reconstruction \(frames \[1\]\): the iteration limit was reached"
+    with pytest.raises(SolverError, match=message):
+        de.reconstruct(recording, max_iterations=5, **options)
+    capped = de.reconstruct(recording, max_iterations=5, throw=False, **options)
+    metadata = capped.provenance["metadata"]
+    assert metadata["results"] == ["successful", "max_iterations_reached"] and metadata["frames_failed"] == 1
+    assert metadata["max_iterations"] == 5 and np.all(np.isfinite(capped.images))
+    converged = de.reconstruct(recording, **options).provenance["metadata"]
+    assert converged["results"] == ["successful", "successful"] and converged["frames_failed"] == 0
+
+
+def test_total_variation_gives_each_frame_its_code():
+    """One iteration: the frame equal to the reference starts at its minimiser, the touch does not."""
+    recording, mesh = _coarse_touch(noise=0.0)
+    result = de.reconstruct(
+        recording,
+        method="total_variation",
+        mesh=mesh,
+        hyperparameter=0.1,
+        max_iterations=1,
+        throw=False,
+        progress=False,
+    )
+    assert result.provenance["metadata"]["results"] == ["successful", "max_iterations_reached"]
+
+
+def test_a_direct_method_marks_a_non_finite_image_and_a_selection_at_its_boundary_does_not_raise():
+    recording, mesh = _coarse_touch()
+    overflowing = de.io.Recording(
+        frames=np.stack([recording.frames[1], np.full(recording.protocol.n_measurements, 1e308)]),
+        times=[0.0, 1.0],
+        protocol=recording.protocol,
+        reference=recording.reference,
+    )
+    options = {"mesh": mesh, "hyperparameter": 0.1, "progress": False}
+    with pytest.raises(SolverError, match=r"one_step reconstruction \(frames \[1\]\): a non-finite value"):
+        de.reconstruct(overflowing, **options)
+    result = de.reconstruct(overflowing, throw=False, **options)
+    assert result.provenance["metadata"]["results"] == ["successful", "nonfinite"]
+    np.testing.assert_array_equal(result.images[1], 0.0)  # a Recording holds finite images only
+    assert np.abs(result.images[0]).max() > 0
+    # GCV on noise-free differences chooses its smallest candidate: kept in the metadata, not raised.
+    noiseless, mesh = _coarse_touch(noise=0.0)
+    choice = de.reconstruct(noiseless, mesh=mesh, hyperparameter="gcv", progress=False).provenance["metadata"]
+    assert choice["hyperparameter_choice"]["gcv"]["result"] == "selection_at_boundary"
+    assert choice["results"] == ["successful", "successful"]
+    with pytest.raises(ValueError, match="max_iterations applies to gauss_newton and total_variation"):
+        de.reconstruct(noiseless, mesh=mesh, max_iterations=5, progress=False)
+    with pytest.raises(ValueError, match="max_iterations must be a positive integer"):
+        de.reconstruct(noiseless, mesh=mesh, method="gauss_newton", max_iterations=0, progress=False)

@@ -39,8 +39,11 @@ def _demo(arguments: argparse.Namespace) -> int:
 
 def _reconstruct_file(arguments: argparse.Namespace) -> int:
     """`diffeit reconstruct FILE -o OUT`: `diffeit.reconstruct` on the file's recording, with its
-    defaults for every option not given."""
+    defaults for every option not given. Every frame's result code goes into OUT.h5; the exit
+    status is 1 when a frame or the background map's fit failed (the files written all the
+    same), else 0."""
     from .. import io
+    from .._messages import name_indices
     from ..plotting import plot_image_strip
     from ..reconstruction import SELECTION_METHODS, CalibrationWarning, reconstruct
 
@@ -77,7 +80,9 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
             difference=arguments.difference,
             driven_readings=arguments.driven_readings,
             background_map=arguments.background_map,
+            max_iterations=arguments.max_iterations,
             progress=True,
+            throw=False,
             **model,
         )
     notes = []
@@ -123,7 +128,46 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         f"reconstructed in {time.perf_counter() - start:.1f} s; "
         f"wrote {outputs[0]} ({len(shown)} panels) and {outputs[1]} (images {images.shape})"
     )
-    return 0
+    # Failed solves: on stderr, after the files they concern are written.
+    results = np.array(metadata["results"])
+    if metadata["frames_failed"]:
+        codes = dict.fromkeys(results[results != "successful"])  # in the order of their first frame
+        which = "; ".join(f"{name_indices(np.flatnonzero(results == c))} {c} ({_message(c)})" for c in codes)
+        print(
+            f"diffeit reconstruct: {metadata['frames_failed']} of {len(results)} frames failed: {which}. Their images "
+            f"are written all the same, their codes in {outputs[1].name}",
+            file=sys.stderr,
+        )
+    # A selection at an end of its candidates is used all the same: said, not failed.
+    selection = choice.get(choice.get("method"), {})
+    if selection.get("result", "successful") != "successful":
+        print(
+            f"diffeit reconstruct: note: the hyperparameter {value:.3g} that {choice['method']} chose is at an end "
+            "of its candidates",
+            file=sys.stderr,
+        )
+    map_result = (metadata["background_map"] or {}).get("result", "successful")
+    map_failed = map_result not in ("successful", "selection_at_boundary")
+    if map_failed:
+        print(
+            f"diffeit reconstruct: the background map's fit failed: {map_result} ({_message(map_result)}); the "
+            "frames are imaged at it all the same",
+            file=sys.stderr,
+        )
+    elif map_result != "successful":
+        print(
+            "diffeit reconstruct: note: the background map's misfit levelled off above the noise "
+            "(selection_at_boundary): the model's own error dominates it",
+            file=sys.stderr,
+        )
+    return 1 if metadata["frames_failed"] or map_failed else 0
+
+
+def _message(code: str) -> str:
+    """The message of the `diffeit.results.RESULTS` code named `code`."""
+    from ..results import RESULTS, messages
+
+    return messages(getattr(RESULTS, code))[0]
 
 
 def _experiment(arguments: argparse.Namespace) -> int:
@@ -230,7 +274,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         "Writes OUT.png (an image strip) and OUT.h5 (a diffeit frames file with the images (T, E), their mesh and "
         "the calibration in its provenance). Images are conductivity changes (S/sq) for frames in volts, else "
         "relative conductivity changes. The sheet: the file's geometry, else its mesh, else a unit disc. A "
-        "simulated file's scene sets the defaults of --background and --contact-impedance.",
+        "simulated file's scene sets the defaults of --background and --contact-impedance. Every frame's result "
+        "code (successful, max_iterations_reached, ...) goes into OUT.h5's provenance. Exit status: 0 when every "
+        "frame's solve succeeded; 1 when some frame's (or the background map's fit) failed, named on stderr, "
+        "the files written all the same; 2 for bad input or options.",
     )
     reconstruct.add_argument("frames", help="a diffeit frames file (.h5) or an EIDORS .mat file")
     reconstruct.add_argument("-o", "--output", required=True, help="output name: writes OUT.png and OUT.h5")
@@ -270,6 +317,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         choices=("auto", "keep", "drop"),
         default="auto",
         help="readings on driven electrodes: kept when the model reproduces them (auto, default), or forced",
+    )
+    reconstruct.add_argument(
+        "--max-iterations",
+        type=int,
+        help="iteration limit of gauss_newton and total_variation (default: theirs, 20 and 100)",
     )
     reconstruct.add_argument(
         "--reference-frame",

@@ -53,7 +53,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         description="One-step difference images of frames as they arrive, in batches, against the first frame "
         "(or the mean of the first --reference-frames), with the model calibrated to that reference as "
         "diffeit reconstruct does (level, orientation, broken readings). Shows the relative change dsigma/sigma "
-        "on a fixed colour scale (--colour-limit) in a window, or without a display saves the latest image to --png.",
+        "on a fixed colour scale (--colour-limit) in a window, or without a display saves the latest image to --png. "
+        "Exit status: 0 when frames were imaged, all finite; 1 when none was, or some image was not finite (counted "
+        "on stderr and in the image's title); 2 for bad options or a device that cannot be opened.",
     )
     _source_arguments(live)
     live.add_argument("--reference-frames", type=int, default=1, help="frames averaged into the reference (1)")
@@ -268,7 +270,16 @@ def _live(arguments: argparse.Namespace) -> int:
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
     corrected = " and corrected for memory" if fit is not None else ""
     print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}")
-    return 0 if shown else 1
+    nonfinite = viewer.nonfinite if viewer is not None else []
+    if nonfinite:
+        from .._messages import name_indices
+
+        print(
+            f"diffeit live: {len(nonfinite)} of {shown} images not finite, imaged frames {name_indices(nonfinite)} "
+            "(counted from 0 after the reference frames): not drawn",
+            file=sys.stderr,
+        )
+    return 0 if shown and not nonfinite else 1
 
 
 def _memory_fit(path: str | None) -> JointFit | None:
@@ -292,7 +303,12 @@ class _LiveViewer:
     contact impedances, taken relative to the background, and corrected for the skin's memory
     frame by frame (`diffeit.fit.correct_memory_step`, from a rested skin at the first imaged
     frame, the state kept between batches, a dead band of `dead_band` standard deviations of the
-    image noise, `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma."""
+    image noise, `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma.
+
+    The solves are direct (a matrix product, a closed-form memory step): what fails is a
+    non-finite image (overflowing readings, a degenerate memory). `nonfinite` lists those
+    frames (their index among the frames imaged, from 0); they are not drawn, their count is in
+    the title, and they do not enter the memory state."""
 
     def __init__(
         self,
@@ -310,6 +326,8 @@ class _LiveViewer:
         self.mesh = settings.unit_disc(protocol.n_electrodes)
         self.fit = fit
         self.colour_limit = colour_limit
+        self.imaged = 0
+        self.nonfinite: list[int] = []
         if fit is None:
             self._calibrate(protocol, settings, reference)
         else:
@@ -366,23 +384,30 @@ class _LiveViewer:
         else:
             images = np.asarray(self.solver.reconstruct(values - self.reference))
             images = self._corrected(images / np.asarray(self.fit.background), batch)
+        finite = np.all(np.isfinite(images), axis=1)
+        self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
+        self.imaged += len(batch)
         image = images[-1]
         self.axes.clear()
         self.axes.set_axis_off()
-        self.axes.tripcolor(
-            *self.mesh.nodes.T,
-            self.mesh.triangles,
-            facecolors=image,
-            cmap="RdBu_r",
-            vmin=-self.colour_limit,
-            vmax=self.colour_limit,
-        )
+        if finite[-1]:
+            self.axes.tripcolor(
+                *self.mesh.nodes.T,
+                self.mesh.triangles,
+                facecolors=image,
+                cmap="RdBu_r",
+                vmin=-self.colour_limit,
+                vmax=self.colour_limit,
+            )
+            detail = f"peak {image.flat[np.argmax(np.abs(image))]:+.2f}"
+        else:
+            detail = "not finite: not drawn"
         counter = batch[-1].counter
         quantity = "dsigma/sigma" if self.fit is None else "memoryless stimulus dsigma/sigma"
-        peak = image.flat[np.argmax(np.abs(image))]
+        failures = f"\n{len(self.nonfinite)} of {self.imaged} images not finite" if self.nonfinite else ""
         self.axes.set_title(
             f"frame {counter if counter is not None else ''}: {quantity}\n"
-            f"colour -{self.colour_limit:g} to +{self.colour_limit:g}, peak {peak:+.2f}",
+            f"colour -{self.colour_limit:g} to +{self.colour_limit:g}, {detail}{failures}",
             fontsize=10,
         )
         if self.headless:
@@ -402,6 +427,9 @@ class _LiveViewer:
                 self.state = initial_state(self.mesh.n_elements, time=now)
             # A clock that steps back (a device reset) holds the memory still rather than rewinding it.
             now = max(now, float(self.state.time))
+            if not np.all(np.isfinite(image)):  # reported by `show`; it would poison the state for good
+                stimuli.append(image)
+                continue
             # An array, not a Python float: filter_jit would compile anew for every static time.
             time = np.float64(now)
             stimulus, self.state = self.step(self.state, image, time, self.fit.memory, self.tolerance)
