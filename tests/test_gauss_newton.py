@@ -8,7 +8,7 @@ from helpers import noisy
 
 import diffeit as de
 from diffeit.inverse import GaussNewton, OneStep
-from diffeit.results import RESULTS, SolverError
+from diffeit.results import RESULTS, SolverError, names
 
 CENTRE, RADIUS, CONTRAST, BACKGROUND = (0.5, 0.0), 0.2, 10.0, 2.0
 STOPS = (RESULTS.successful, RESULTS.max_iterations_reached, RESULTS.line_search_failed)
@@ -159,6 +159,17 @@ def test_joint_contact_impedance_estimation():
     assert joint.misfit < 0.8 * fixed.misfit  # measured 0.0013 against 0.0017
     assert np.corrcoef(joint.contact_impedance, z_true)[0, 1] > 0.9
     assert np.median(np.abs(joint.contact_impedance / z_true - 1)) < 0.2
+
+
+def test_a_frame_equal_to_the_reference_is_fitted_at_once(small_model):
+    """A zero difference (an untouched frame of noise-free data) is fitted by the start to
+    rounding: successful in no steps, not a line search that cannot lower 1e-30."""
+    touched = np.asarray(small_model.measure(1 + 0.5 * de.mesh.disc_fraction(small_model.mesh, (0.3, 0.2), 0.3)))
+    untouched = np.asarray(small_model.measure(jnp.ones(small_model.n_elements)))
+    solution = GaussNewton(small_model, "laplace", 0.05).difference(np.stack([0 * untouched, touched - untouched]))
+    assert names(solution.result) == ["successful", "successful"]
+    assert solution.iterations[0] == 0 and solution.iterations[1] > 0
+    np.testing.assert_array_equal(solution.conductivity[0], 1.0)
 
 
 def test_bad_input_is_refused():

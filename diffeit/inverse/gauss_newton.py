@@ -25,6 +25,9 @@ _ARMIJO = 1e-4
 _HALVINGS = 12
 _MAX_LOG_STEP = 4.0
 _DAMPING_RETRIES = 6
+# A frame fitted to this relative RMS misfit (of the data scale) is fitted to rounding: no step
+# can lower its objective measurably, and it stops, successful (a frame equal to the reference).
+_EXACT_FIT = 1e-10
 
 
 class GaussNewtonResult(eqx.Module):
@@ -41,8 +44,9 @@ class GaussNewtonResult(eqx.Module):
     - `misfit`: the final normalised data misfit ||V - v|| / s.
     - `reached_discrepancy`: whether the misfit reached the noise level (the discrepancy
       principle stopped the iteration; False without `noise`).
-    - `result`: `RESULTS.successful` when the discrepancy principle or stagnation (the
-      objective no longer decreases by a relative `stagnation_tolerance`) stopped the iteration;
+    - `result`: `RESULTS.successful` when the discrepancy principle, stagnation (the
+      objective no longer decreases by a relative `stagnation_tolerance`) or a fit to rounding
+      (a frame equal to the reference) stopped the iteration;
       `RESULTS.max_iterations_reached`; or `RESULTS.line_search_failed` when no step decreased
       the objective, even damped. One code per frame for a batch.
     """
@@ -295,7 +299,7 @@ class GaussNewton(eqx.Module):
             frame = _Frame(frame_data, scale[k], operator, prior_scale, start[k].copy(), log_z[k].copy(), noise_norm)
             residual = (voltages[k] - frame_data) / scale[k]
             objective = self._objective(frame, residual, frame.log_reference, frame.log_z_reference)
-            reached = noise_norm is not None and bool(np.linalg.norm(residual) <= noise_norm)
+            reached = _fitted(residual, noise_norm)
             iterate = _Iterate(
                 log_conductivity=frame.log_reference,
                 log_contact_impedance=frame.log_z_reference,
@@ -407,7 +411,7 @@ class GaussNewton(eqx.Module):
             return iterate._replace(damping=damping, result=RESULTS.line_search_failed if failed else None)
         damping = iterate.damping / 3 if trial.length == 1.0 else max(2 * iterate.damping, weight * 1e-3)
         decrease = (iterate.objective - trial.objective) / max(iterate.objective, np.finfo(float).tiny)
-        reached = frame.noise_norm is not None and bool(np.linalg.norm(trial.residual) <= frame.noise_norm)
+        reached = _fitted(trial.residual, frame.noise_norm)
         stopped = reached or decrease < self.stagnation_tolerance
         return iterate._replace(
             log_conductivity=trial.log_conductivity,
@@ -458,6 +462,13 @@ def _result(frames: list[_Frame], iterates: list[_Iterate], single: bool, dtype:
         reached_discrepancy=bool(result.reached_discrepancy[0]),
         result=iterates[0].result,
     )
+
+
+def _fitted(residual: np.ndarray, noise_norm: float | None) -> bool:
+    """Whether the normalised `residual` is within the noise (the discrepancy principle, when
+    the noise is known) or fits the data to rounding (`_EXACT_FIT`)."""
+    norm = float(np.linalg.norm(residual))
+    return norm <= _EXACT_FIT * np.sqrt(len(residual)) or (noise_norm is not None and norm <= noise_norm)
 
 
 def _regularised_solve(gram: np.ndarray, alpha: float, right: np.ndarray) -> np.ndarray:
