@@ -213,7 +213,7 @@ def recorded_statistics(path: str | os.PathLike) -> DropStatistics:
         kinds = [str(kind) for kind in drops.attrs["kinds"]]
         return DropStatistics(**{kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)})
 
-    return read_checked(path, read, what=_WHAT)
+    return read_checked(path, read, what=_WHAT, warn_unchecked=False)
 
 
 def _acquisition(path: str | os.PathLike, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -221,7 +221,7 @@ def _acquisition(path: str | os.PathLike, n_frames: int) -> tuple[np.ndarray, np
         acquisition = _acquisition_group(file, path)
         return acquisition["counter"][:n_frames], acquisition["device_time"][:n_frames]
 
-    counters, device_times = read_checked(path, read, what=_WHAT)
+    counters, device_times = read_checked(path, read, what=_WHAT, warn_unchecked=False)
     if len(counters) != n_frames or len(device_times) != n_frames:
         raise ValueError(f"{path}: /acquisition holds fewer rows than the {n_frames} committed frames")
     return counters, device_times

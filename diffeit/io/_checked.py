@@ -137,15 +137,22 @@ def open_checked(path: str | os.PathLike, mode: str = "r", *, what: str = "HDF5 
             raise failure(f"{path} is damaged: {_first_line(error)}") from None
 
 
-def read_checked(path: str | os.PathLike, read: Callable[[h5py.File], Any], *, what: str = "HDF5 file") -> Any:
-    """`read(file)` on the file at `path` opened by `open_checked`. A file a writer holds open
-    may be caught mid-write (a chunk half rewritten fails its checksum): its reading is tried
-    again for up to `GROWTH_WAIT` seconds before the failure is reported."""
+def read_checked(
+    path: str | os.PathLike, read: Callable[[h5py.File], Any], *, what: str = "HDF5 file", warn_unchecked: bool = True
+) -> Any:
+    """`read(file)` on the file at `path` opened by `open_checked`, with a `NoChecksumWarning`
+    when its datasets carry no checksums (unless `warn_unchecked=False`). A file a writer holds
+    open may be caught mid-write (a chunk half rewritten fails its checksum): its reading is
+    tried again for up to `GROWTH_WAIT` seconds before the failure is reported."""
+    path = Path(path)
     deadline = time.monotonic() + GROWTH_WAIT
     while True:
         try:
             with open_checked(path, "r", what=what) as file:
-                return read(file)
+                value = read(file)
+                if warn_unchecked:
+                    _warn_if_unchecked(file, path)
+                return value
         except _ReadDuringWrite:
             if time.monotonic() > deadline:
                 raise
@@ -193,7 +200,7 @@ def unchecked_datasets(file: h5py.File) -> list[str]:
     return names
 
 
-def warn_if_unchecked(file: h5py.File, path: Path) -> None:
+def _warn_if_unchecked(file: h5py.File, path: Path) -> None:
     """A `NoChecksumWarning` when datasets of `file` carry no checksum."""
     unchecked = unchecked_datasets(file)
     if unchecked:
@@ -202,7 +209,7 @@ def warn_if_unchecked(file: h5py.File, path: Path) -> None:
             f"{path} carries no checksums ({shown}): it was written before diffeit stored them, and altered bytes "
             "in it cannot be detected",
             NoChecksumWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
 
 

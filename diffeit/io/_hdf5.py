@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike
 
 from ..mesh import Mesh
 from ..protocol import Protocol
-from ._checked import create_checked, open_checked, read_checked, warn_if_unchecked, write_atomically
+from ._checked import create_checked, open_checked, read_checked, write_atomically
 from ._recording import Recording
 
 SCHEMA = "diffeit.frames"
@@ -62,11 +62,9 @@ def read_frames(path: str | os.PathLike) -> Recording:
 
     def read(file: h5py.File) -> Recording:
         try:
-            recording = _read(file)
+            return _read(file)
         except (KeyError, ValueError, TypeError) as error:
             raise ValueError(f"{path}: {_message(error)}") from None
-        warn_if_unchecked(file, path)
-        return recording
 
     return read_checked(path, read, what=_WHAT)
 
