@@ -43,13 +43,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import matplotlib.tri
 import numpy as np
 import scipy.optimize
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from .mesh import Mesh, disc_fraction, element_adjacency
+from .mesh import Mesh, disc_fraction, element_adjacency, locate
 
 if TYPE_CHECKING:
     from .render import PixelGrid
@@ -472,8 +471,7 @@ def _locate(geometry: Geometry, points: np.ndarray) -> np.ndarray:
     """(P,) the index of the cell containing each point (among the value-carrying cells), -1 off
     the domain."""
     if _is_mesh(geometry):
-        finder = matplotlib.tri.Triangulation(geometry.nodes[:, 0], geometry.nodes[:, 1], geometry.triangles)
-        return np.asarray(finder.get_trifinder()(points[:, 0], points[:, 1]), dtype=int)
+        return locate(geometry, points)
     n_rows, n_columns = geometry.mask.shape
     column = np.floor((points[:, 0] - geometry.x_edges[0]) / np.diff(geometry.x_edges[:2])[0]).astype(int)
     row = np.floor((points[:, 1] - geometry.y_edges[0]) / np.diff(geometry.y_edges[:2])[0]).astype(int)

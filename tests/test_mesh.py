@@ -170,3 +170,10 @@ def test_disc_fraction_integrates_the_disc_area():
     fraction = de.mesh.disc_fraction(mesh, (0.3, -0.2), 0.25)
     assert np.all((fraction >= 0) & (fraction <= 1))
     np.testing.assert_allclose(fraction @ mesh.element_areas, np.pi * 0.25**2, rtol=2e-3)
+
+
+def test_locate_finds_the_element_holding_each_point(small_disc):
+    """Every centroid is in its own element; a point off the sheet is in none (-1)."""
+    found = de.mesh.locate(small_disc, small_disc.element_centroids)
+    np.testing.assert_array_equal(found, np.arange(small_disc.n_elements))
+    assert de.mesh.locate(small_disc, [2.0, 0.0]) == -1 and de.mesh.locate(small_disc, [2.0, 0.0]).shape == ()

@@ -16,7 +16,6 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib.tri
 import numpy as np
 import scipy.optimize
 import scipy.sparse
@@ -26,7 +25,7 @@ from scipy.spatial import cKDTree
 from .._arrays import IdentityModule
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..mesh import Mesh, distance_to_segments, element_sample_points
+from ..mesh import Mesh, distance_to_segments, element_sample_points, locate
 from ..render import PixelGrid, pixel_grid
 from .linearised import LinearisedProblem, apply_matrix, check_frames
 from .priors import Tikhonov
@@ -328,13 +327,12 @@ class _RidgeFit:
 def _target_positions(mesh: Mesh, n_targets: int, radius: float, rng: np.random.Generator) -> np.ndarray:
     """(n_targets, 2) centres drawn uniformly over the points of the domain at least `radius`
     from its boundary (rejection sampling in the bounding box)."""
-    finder = matplotlib.tri.Triangulation(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles).get_trifinder()
     start, end = mesh.nodes[mesh.boundary_edges[:, 0]], mesh.nodes[mesh.boundary_edges[:, 1]]
     low, high = mesh.nodes.min(axis=0), mesh.nodes.max(axis=0)
     found = np.empty((0, 2))
     for _ in range(10):  # enough wherever at least 1 in 50 points of the box is a valid centre
         points = rng.uniform(low, high, size=(5 * n_targets, 2))
-        points = points[finder(points[:, 0], points[:, 1]) >= 0]
+        points = points[locate(mesh, points) >= 0]
         found = np.concatenate([found, points[distance_to_segments(points, start, end) >= radius]])
         if len(found) >= n_targets:
             return found[:n_targets]

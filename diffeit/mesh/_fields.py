@@ -1,11 +1,37 @@
 """Element fields defined by geometry: sample points inside each triangle, distances to
-segments, and what fraction of each triangle a shape covers."""
+segments, what fraction of each triangle a shape covers, and which triangle holds a point."""
 
 from __future__ import annotations
 
+import functools
+
+import matplotlib.tri
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ._mesh import Mesh
+
+
+def locate(mesh: Mesh, points: ArrayLike) -> np.ndarray:
+    """The element holding each point.
+
+    Arguments:
+        mesh: the sheet.
+        points: (P, 2) positions in metres (or (2,) for one).
+
+    Returns:
+        (P,) (or a scalar for one point) int: the index of the triangle containing each point,
+        -1 for a point off the mesh. A point on an edge goes to one of its triangles.
+    """
+    positions = np.asarray(points, dtype=float)
+    found = _finder(mesh)(*np.atleast_2d(positions).T)
+    return np.asarray(found, dtype=int).reshape(positions.shape[:-1])
+
+
+@functools.lru_cache(maxsize=16)
+def _finder(mesh: Mesh) -> matplotlib.tri.TriFinder:
+    """matplotlib's trapezoid-map point locator of `mesh`, built once per mesh (by content)."""
+    return matplotlib.tri.Triangulation(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles).get_trifinder()
 
 
 def barycentric_samples(level: int) -> np.ndarray:
