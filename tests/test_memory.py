@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import diffeit  # noqa: F401  (turns on float64)
-from diffeit.scene._memory import (
+from diffeit.memory import (
     MemoryParameters,
     advance,
     apply_stimulus,

@@ -162,7 +162,7 @@ from ..inverse import OneStep
 from ..inverse.linearised import check_frames
 from ..mesh import element_adjacency
 from ..results import RESULTS, throw_if_failed
-from ..scene import MemoryParameters, memory_response, over_foam
+from ..memory import MemoryParameters, memory_response, over_foam
 from ._background import background as fit_background
 from ._memory import (
     DEFAULT_FREE,

@@ -2,7 +2,7 @@
 and the fit of its parameters and of the memoryless stimulus from a sequence of images (`memory`).
 
 Images, stimuli and responses are relative changes dsigma/sigma (dimensionless), per frame and
-element; times are in seconds. The memory model is `diffeit.scene.MemoryParameters` (equations
+element; times are in seconds. The memory model is `diffeit.memory.MemoryParameters` (equations
 in docs/science.md, Memory): every element evolves on its own, r = R_p(a).
 
 ## The correction is an exact inverse, piece by piece
@@ -51,8 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._arrays import concrete_floats, is_concrete
-from ..results import RESULTS, throw_if_failed
-from ..scene import (
+from ..memory import (
     MemoryParameters,
     MemoryState,
     advance,
@@ -62,6 +61,7 @@ from ..scene import (
     over_foam,
     read_response,
 )
+from ..results import RESULTS, throw_if_failed
 from ._optimise import History, minimise
 
 MEMORY_FIELDS = tuple(field.name for field in dataclasses.fields(MemoryParameters))
@@ -107,7 +107,7 @@ def correct_memory_step(
 
     `tolerance` (dsigma/sigma, scalar or per element): the dead band of the module docstring.
     Pure JAX and unchecked: jit it for live use, frame by frame, starting from
-    `diffeit.scene.initial_state(n_elements, time=first_time)` for a rested skin.
+    `diffeit.memory.initial_state(n_elements, time=first_time)` for a rested skin.
     """
     held = advance(state, memory, time)
     previous, kappa, extreme = held.stimulus, held.sensitivity, held.extreme
@@ -157,7 +157,7 @@ def correct_memory(
 ) -> jax.Array:
     """(T, E) the memoryless stimulus (dsigma/sigma) whose memory response is `images`.
 
-    The causal inverse of `diffeit.scene.memory_response` with known parameters `memory`: frame k
+    The causal inverse of `diffeit.memory.memory_response` with known parameters `memory`: frame k
     uses frames 0..k only, in closed form (module docstring), in one `jax.lax.scan`; jit, vmap
     and grad (in the images and every parameter) work. With `tolerance=0`,
     `memory_response(correct_memory(r)) == r` to rounding for any images the model can
@@ -166,7 +166,7 @@ def correct_memory(
     - `images`: (T, E) relative changes dsigma/sigma per frame and element (for example one-step
       images against the first frame).
     - `times`: (T,) frame times, seconds, increasing.
-    - `state`: the skin's memory before the first frame (`diffeit.scene.initial_state`, or the
+    - `state`: the skin's memory before the first frame (`diffeit.memory.initial_state`, or the
       state `integrate_memory` returned); default a rested, virgin skin at times[0].
       `correct_memory_step` continues frame by frame from any state (live use).
     - `tolerance`: the dead band for noisy images (dsigma/sigma, >= 0, scalar or (E,); module
@@ -330,7 +330,7 @@ def reported_memory(memory: MemoryParameters, fitted: Collection[str]) -> Memory
 class MemoryFit(eqx.Module):
     """The result of `memory`.
 
-    - `memory`: the fitted `diffeit.scene.MemoryParameters` (the free fields fitted, one value
+    - `memory`: the fitted `diffeit.memory.MemoryParameters` (the free fields fitted, one value
       shared by all elements; the others as given); with both modes free, the quicker one is
       named fast (`ordered_modes`).
     - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma, `correct_memory` of the images with
@@ -437,7 +437,7 @@ def memory(
     relative-change images (for example one-step images against the first frame).
 
     **Model.** images_ke = R_p(a)_ke + noise, per element e and frame k: R_p is
-    `diffeit.scene.memory_response` from a rested, virgin skin at times[0], p the memory
+    `diffeit.memory.memory_response` from a rested, virgin skin at times[0], p the memory
     parameters (free ones shared by all elements), a the memoryless stimulus (dsigma/sigma).
 
     **Identifiability, and the prior that settles it.** With a free stimulus per frame and
@@ -478,7 +478,7 @@ def memory(
     **Arguments.**
     - `images`: (T, E) dsigma/sigma; `times`: (T,) seconds, increasing.
     - `initial`: the start and the fixed values (`MemoryParameters` of scalars for the free
-      fields); default `diffeit.scene.over_foam()`.
+      fields); default `diffeit.memory.over_foam()`.
     - `free`: the fields fitted; default the fractions, time constants and relaxation. The two
       fractions are free or fixed together (their sum stays below 1).
     - `jump`, `threshold`, `tolerance`, `rounds`: as above; `max_steps`: the limit of each

@@ -16,6 +16,16 @@ its own (`stimulus`, `memory_response`, `add_noise`, `add_drift`, `contact_imped
 `open_electrodes`, `pressure_to_change`) for use in fitting code.
 """
 
+from ..memory import MemoryParameters as MemoryParameters
+from ..memory import MemoryState as MemoryState
+from ..memory import advance as advance
+from ..memory import apply_stimulus as apply_stimulus
+from ..memory import bare_skin as bare_skin
+from ..memory import initial_state as initial_state
+from ..memory import integrate_memory as integrate_memory
+from ..memory import memory_response as memory_response
+from ..memory import over_foam as over_foam
+from ..memory import read_response as read_response
 from ._background import Background as Background
 from ._background import Region as Region
 from ._effects import EFFECT_NAMES as EFFECT_NAMES
@@ -34,16 +44,6 @@ from ._instrument import contact_impedance as contact_impedance
 from ._instrument import lost_readings as lost_readings
 from ._instrument import open_contact_impedance as open_contact_impedance
 from ._instrument import open_electrodes as open_electrodes
-from ._memory import MemoryParameters as MemoryParameters
-from ._memory import MemoryState as MemoryState
-from ._memory import advance as advance
-from ._memory import apply_stimulus as apply_stimulus
-from ._memory import bare_skin as bare_skin
-from ._memory import initial_state as initial_state
-from ._memory import integrate_memory as integrate_memory
-from ._memory import memory_response as memory_response
-from ._memory import over_foam as over_foam
-from ._memory import read_response as read_response
 from ._scene import EXAMPLES as EXAMPLES
 from ._scene import Scene as Scene
 from ._scene import example as example

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..memory import MemoryParameters
 from ._instrument import CommonModeDrift, ContactDrift, ElectrodePositionError, MeasurementNoise, OpenElectrodes
-from ._memory import MemoryParameters
 
 # Names of the effects in scene files, and their types.
 EFFECTS: dict[str, type] = {

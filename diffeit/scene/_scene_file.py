@@ -22,7 +22,7 @@ from ._instrument import (
     Noise,
     OpenElectrodes,
 )
-from ._memory import bare_skin, over_foam
+from ..memory import bare_skin, over_foam
 from ._shapes import AbstractShape, Disc, Ellipse, Polygon
 from ._skin import GEOMETRY_KEYS, SKIN_KINDS, Skin, thawed
 from ._time_courses import AbstractTimeCourse, Path, Press, Ramp

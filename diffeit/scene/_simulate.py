@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 from .. import io
 from .._arrays import is_concrete
 from ..forward import ForwardModel
+from ..memory import MemoryParameters, memory_response
 from ..mesh import Mesh, interpolate
 from ..protocol import Protocol
 from ._instrument import (
@@ -43,7 +44,6 @@ from ._instrument import (
     lost_readings,
     open_contact_impedance,
 )
-from ._memory import MemoryParameters, memory_response
 from ._scene import Scene
 from ._touches import Touch, stimulus
 

@@ -88,7 +88,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import concrete_floats, is_concrete
+from ._arrays import concrete_floats, is_concrete
 
 ArrayLike = float | jax.Array | np.ndarray
 
