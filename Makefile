@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test bench docs lint clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV) || { $(PYTHON) -m pip install --user virtualenv && $(PYTHON) -m virtualenv $(VENV); }
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test,bench,notebooks,sweeps]'
+	$(BIN)/python -m pip install --quiet -e '.[test,bench,notebooks,sweeps,docs]'
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -31,6 +31,10 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/scene.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/fit.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/memory_bound.py
+
+# The documentation site, into site/ (tests/test_docs.py builds it with --strict in `make test`).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict
 
 clean:
 	rm -rf $(VENV) demo.png .pytest_cache

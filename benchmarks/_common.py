@@ -4,12 +4,16 @@ the child processes that measure one mesh each."""
 from __future__ import annotations
 
 import argparse
+import datetime
+import io
 import json
 import os
 import platform
+import shlex
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import jax
 
@@ -89,6 +93,17 @@ class MarkdownTable:
         return "| " + " | ".join(cells) + " |"
 
 
+def cpu_name() -> str:
+    """The processor's model name where the system tells it (Linux), and its architecture."""
+    architecture = platform.machine() or platform.processor() or "unknown architecture"
+    try:
+        with open("/proc/cpuinfo") as file:
+            names = [line.split(":", 1)[1].strip() for line in file if line.startswith("model name")]
+    except OSError:
+        names = []
+    return f"{names[0]} ({architecture})" if names else architecture
+
+
 def describe() -> dict:
     """The machine and the software, as the header line shows them (run in a child process, so
     that the parent never initialises an accelerator that the children need)."""
@@ -115,7 +130,7 @@ def describe() -> dict:
     pools = [f"{pool['internal_api']} {pool['num_threads']}" for pool in blas_pools]
     variables = [f"{name}={os.environ[name]}" for name in THREAD_VARIABLES if name in os.environ]
     return {
-        "processor": platform.processor() or platform.machine(),
+        "processor": cpu_name(),
         "cpus": os.cpu_count(),
         "python": f"{platform.python_implementation()} {platform.python_version()}",
         "jax": jax.__version__,
@@ -201,3 +216,59 @@ def save_json(options: argparse.Namespace, machine: dict, rows: list[dict]) -> N
         with open(options.json, "w") as file:
             settings = {key: value for key, value in vars(options).items() if key not in ("one", "describe", "json")}
             json.dump({"machine": machine, "options": settings, "rows": rows}, file, indent=1)
+
+
+# Where each benchmark's tables go: a Markdown file the documentation includes (docs/benchmarks.md).
+TABLES = Path(__file__).resolve().parents[1] / "docs" / "benchmarks"
+
+
+class _Tee(io.TextIOBase):
+    """Writes to the terminal and keeps a copy."""
+
+    def __init__(self, stream) -> None:
+        self.stream, self.copy = stream, io.StringIO()
+
+    def write(self, text: str) -> int:
+        self.copy.write(text)
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+def record_output() -> _Tee:
+    """From here on, what the benchmark prints goes to the terminal and is kept for
+    `write_tables` (the child processes' output is their own)."""
+    tee = _Tee(sys.stdout)
+    sys.stdout = tee
+    return tee
+
+
+def write_tables(name: str, printed: _Tee | str, *, date: str | None = None, command: str | None = None) -> Path:
+    """Write what a benchmark printed (its machine line, tables and notes) as the Markdown file
+    docs/benchmarks/NAME.md, which the documentation's Benchmarks page includes; stops
+    `record_output`'s copy. The file names the date (UTC) and the command of the run; every
+    line that is not a table row becomes a paragraph of its own."""
+    if isinstance(printed, _Tee):
+        if sys.stdout is printed:
+            sys.stdout = printed.stream
+        printed = printed.copy.getvalue()
+    date = date or datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    command = command or shlex.join(["python", os.path.relpath(sys.argv[0], TABLES.parents[1]), *sys.argv[1:]])
+    blocks: list[str] = [f"Run of {date}: `{command}`"]
+    table: list[str] = []
+    for line in [*printed.splitlines(), ""]:
+        line = line.rstrip()
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        if table:
+            blocks.append("\n".join(table))
+            table = []
+        if line:
+            blocks.append(line)
+    TABLES.mkdir(parents=True, exist_ok=True)
+    path = TABLES / f"{name}.md"
+    header = "<!-- Written by benchmarks/_common.py write_tables: `make bench` replaces it. -->"
+    path.write_text(header + "\n\n" + "\n\n".join(blocks) + "\n")
+    return path

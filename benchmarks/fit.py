@@ -53,7 +53,9 @@ from _common import (
     format_seconds,
     machine_line,
     measure_sizes,
+    record_output,
     save_json,
+    write_tables,
 )
 
 TARGET_TRIANGLES = 3000
@@ -171,6 +173,7 @@ def main() -> None:
         return
 
     machine = describe_machine(__file__, options.blas_threads)
+    printed = record_output()  # the table also goes to docs/benchmarks/fit.md (fit-SCENE-NOISE.md)
     print(machine_line(machine, with_pyeit=False))
     print(
         f"\njoint fit of the {options.scene} scene ({options.noise} noise), each run in a fresh process "
@@ -208,6 +211,8 @@ def main() -> None:
     targets = _target_lines(rows) if options.scene == "presses" else []
     for line in targets + [f"note: {failure}" for failure in failures]:
         print(line)
+    default = (options.scene, options.noise) == ("presses", "medium")
+    write_tables("fit" if default else f"fit-{options.scene}-{options.noise}", printed)
     save_json(options, machine, rows)
 
 

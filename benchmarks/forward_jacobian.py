@@ -77,8 +77,10 @@ from _common import (
     fraction,
     machine_line,
     measure_sizes,
+    record_output,
     relative,
     save_json,
+    write_tables,
 )
 
 PYEIT_JACOBIAN_LIMIT = 10_000  # pyEIT inverts the dense N x N matrix: beyond this it takes minutes
@@ -323,6 +325,7 @@ def main() -> None:
         return
 
     machine = describe_machine(__file__, options.blas_threads)
+    printed = record_output()  # the tables also go to docs/benchmarks/forward_jacobian.md
     print(machine_line(machine, with_pyeit=not options.skip_pyeit) + f", {options.repeats} repeats")
     print()
     print("diffeit (host_sparse, float64) against pyEIT:")
@@ -403,6 +406,7 @@ def main() -> None:
         notes.append("host_sparse float32 solves in float64 on the host: its time measures the conversion only")
     for note in dict.fromkeys(notes):
         print(f"note: {note}")
+    write_tables("forward_jacobian", printed)
 
     save_json(options, machine, rows)
 

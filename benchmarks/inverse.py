@@ -8,7 +8,7 @@ and data in the same run), and total variation (against L-BFGS, the method it re
 The problem: unit disc, 16 electrodes of width 0.2, adjacent protocol (M = 208 voltages), contact
 impedance 0.01, background 1 S/sq. The data: a touch (conductivity -50% in a disc of radius 0.2
 at (0.5, 0)) simulated with diffeit's complete electrode model on the reconstruction mesh itself,
-plus 1% noise (the README's convention: standard deviation 1% of RMS(V_ref), seeded); a batch is `--frames`
+plus 1% noise (docs, Conventions: standard deviation 1% of RMS(V_ref), seeded); a batch is `--frames`
 frames of that touch, each with noise of its own. diffeit reconstructs with
 `OneStep(model, "noser", HYPERPARAMETER)`; pyEIT with `JAC` and `setup(p=0.5, lamb, method="kotre",
 perm=1.0)`, the same NOSER prior, `lamb` converted from diffeit's hyperparameter by
@@ -175,8 +175,10 @@ from _common import (
     fraction,
     machine_line,
     measure_sizes,
+    record_output,
     relative,
     save_json,
+    write_tables,
 )
 
 HYPERPARAMETER = 0.2  # diffeit's unit-free lambda (about what GCV picks for these data); pyEIT's lamb converted
@@ -1081,6 +1083,7 @@ def main() -> None:
         return
 
     machine = describe_machine(__file__, options.blas_threads)
+    printed = record_output()  # the tables also go to docs/benchmarks/inverse.md
     print(
         machine_line(machine, with_pyeit=not options.skip_pyeit)
         + f", {options.repeats} repeats, {options.frames} frames"
@@ -1107,6 +1110,7 @@ def main() -> None:
         print(f"target: {line}")
     for note in dict.fromkeys(notes):
         print(f"note: {note}")
+    write_tables("inverse", printed)
 
     save_json(options, machine, rows)
 

@@ -36,7 +36,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 
 import numpy as np
-from _common import MarkdownTable, describe, describe_machine, disc_with_about, machine_line
+from _common import (
+    MarkdownTable,
+    describe,
+    describe_machine,
+    disc_with_about,
+    machine_line,
+    record_output,
+    write_tables,
+)
 
 NOISES = {"low": 0.1, "medium": 0.5, "high": 2.0}
 FIELDS = ("fast_fraction", "fast_time", "slow_fraction", "slow_time", "relaxation")
@@ -127,7 +135,9 @@ def main() -> None:
         print(json.dumps(describe()))
         return
 
-    print(machine_line(describe_machine(__file__, None), with_pyeit=False))
+    machine = describe_machine(__file__, None)
+    printed = record_output()  # the table also goes to docs/benchmarks/memory_bound.md
+    print(machine_line(machine, with_pyeit=False))
     print(
         "\nrelative errors of the memory parameters: fast fraction / fast time / slow fraction / slow time / "
         "relaxation; bound: the Cramer-Rao bound (standard deviation) at the truth; memory fit: RMS over "
@@ -153,6 +163,7 @@ def main() -> None:
             )
         print(f"({design}: {time.perf_counter() - start:.0f} s)", file=sys.stderr)
     print()
+    write_tables("memory_bound", printed)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import MarkdownTable, describe, describe_machine, format_seconds, machine_line
+from _common import (
+    MarkdownTable,
+    describe,
+    describe_machine,
+    format_seconds,
+    machine_line,
+    record_output,
+    write_tables,
+)
 from threadpoolctl import threadpool_limits
 
 
@@ -107,6 +115,7 @@ def main() -> None:
     # This process has loaded its BLAS already: environment variables would no longer reach it.
     with threadpool_limits(limits=options.blas_threads, user_api="blas"):
         rows = run(options)
+    printed = record_output()  # the table also goes to docs/benchmarks/scene.md
     print(machine_line(machine, with_pyeit=False))
     print(f"\nScene cost by effect: {rows[0]['frames']} frames, {rows[0]['triangles']} triangles (simulation mesh)\n")
     press = next(row["seconds"] for row in rows if row["scene"] == "press")
@@ -122,6 +131,7 @@ def main() -> None:
                 format_seconds(row["seconds"] / row["frames"]),
             ]
         )
+    write_tables("scene", printed)
     if options.json:
         Path(options.json).write_text(json.dumps({"machine": machine, "rows": rows}, indent=1))
 

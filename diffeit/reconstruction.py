@@ -57,7 +57,7 @@ reading, which is a gain per reading.
 - "auto" (the default): "calibrated" when the calibrated model reproduces the reference
   (correlation at least 0.9), else "normalised": then the reference is not what the model
   predicts, and gains per reading are the explanation left. Measured on the real tanks
-  (README, "Real recordings"): on the Montreal rod, whose reference correlates -0.48 with the
+  (docs: tutorials, Real recordings): on the Montreal rod, whose reference correlates -0.48 with the
   model (gains per channel), normalised differences put the rod on a circle to 0.7% of its
   radius against 2.8%, and its peak at -3.4 against -15.7; on IIRC (correlation 0.997) both
   trace the rod alike.
@@ -66,7 +66,7 @@ reading, which is a gain per reading.
 
 The corner of the L-curve of the calibrated, normalised one-step problem, from all frames at
 once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`); when the corner sits at an end
-of the candidates, the noise figure 0.5 instead. On the real tanks (README, "Real
+of the candidates, the noise figure 0.5 instead. On the real tanks (docs: "Real
 recordings") the L-curve traced the rod on both, GCV chose 20-50x too small a value on the
 Montreal frames, and the noise figure does not depend on the data at all.
 

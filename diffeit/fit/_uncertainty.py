@@ -18,7 +18,7 @@ taken as known. Freed, each only widens the errors, and the pattern can widen th
 memory model answers presses almost alike along a valley of its parameters (memories 84% apart
 in the fast fraction, within 2.5% of the press depth in every frame), and on a recording whose
 errors here are 17% or less the joint fit, whose patterns are free, is level between the two
-(README, Benchmarks). Large errors say the data do not determine a parameter; small ones do not
+(docs: Benchmarks). Large errors say the data do not determine a parameter; small ones do not
 prove that the joint fit will find it.
 
 ## Reading it

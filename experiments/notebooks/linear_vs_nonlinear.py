@@ -169,7 +169,7 @@ for name, recording in recordings.items():
     for method in ("one_step", "greit", "gauss_newton", "total_variation"):
         start = time.perf_counter()
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the calibration's warnings: see the README's "Real recordings"
+            warnings.simplefilter("ignore")  # the calibration's warnings: see the docs' Real recordings tutorial
             result = de.reconstruct(recording, method=method, progress=False)
         seconds = time.perf_counter() - start
         positions = np.array([de.metrics.half_amplitude_centroid(result.mesh, -image) for image in result.images])
@@ -193,7 +193,7 @@ save(figure, "tanks.png")
 # On the tanks the fast methods hold up best. One-step and GREIT trace the rod on both tanks
 # (track errors 0.01-0.06, in about a second or less for the whole recording). Gauss-Newton
 # traces IIRC but loses Montreal's rod (track error 0.32): its image is a faint rod under
-# artifacts at the boundary. Montreal's reference frame does not fit the model (the README's
+# artifacts at the boundary. Montreal's reference frame does not fit the model (the docs'
 # "Real recordings": it is imaged with normalised differences), and a linear image is
 # forgiving of that where iterating on the model is not; not investigated further. Total
 # variation traces both, less tightly on Montreal. For live use the
