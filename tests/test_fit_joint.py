@@ -178,6 +178,37 @@ def test_a_capped_fit_says_so_and_round_trips_through_a_file(coarse_model, coars
         fit.load(path)
 
 
+def test_on_step_hands_out_the_fit_so_far_and_stops_the_fit_by_raising(coarse_model, coarse_frames, capped):
+    """`on_step` sees the start and every accepted step, in order, each `fit()` an unfinished fit
+    on the uninterrupted fit's path whose state has the objective reported; what it raises stops
+    the fit and propagates."""
+    seen = []
+
+    def on_step(progress: fit.JointProgress) -> None:
+        seen.append(progress)
+        if progress.steps == 4:
+            raise KeyboardInterrupt  # what `diffeit fit` raises when asked to stop
+
+    with pytest.raises(KeyboardInterrupt):
+        fit.joint(
+            coarse_model,
+            coarse_frames,
+            TIMES,
+            initial=_start(coarse_model),
+            noise=0.2,
+            max_steps=10,
+            progress=False,
+            on_step=on_step,
+        )
+    assert [progress.steps for progress in seen] == [0, 1, 2, 3, 4]
+    np.testing.assert_allclose([p.objective for p in seen], capped.history.objective[:5], rtol=1e-12)
+    so_far = seen[-1].fit()
+    assert so_far.result == RESULTS.max_iterations_reached
+    np.testing.assert_array_equal(so_far.history.objective, [p.objective for p in seen])
+    problem = fit.JointProblem(coarse_model, jnp.asarray(coarse_frames), jnp.asarray(TIMES), so_far.settings)
+    assert float(problem(so_far.parameters)) == pytest.approx(seen[-1].objective, rel=1e-9)
+
+
 def _frames_file(tmp_path, model, frames):
     recording = de.io.Recording(frames=frames, times=TIMES, protocol=model.protocol)
     return de.io.write_frames(tmp_path / "frames.h5", recording)

@@ -35,6 +35,22 @@ def test_units_precondition_a_badly_scaled_quadratic():
     assert found.objective[0] == pytest.approx(float(quadratic(START)))
 
 
+def test_on_step_sees_the_start_and_every_accepted_step():
+    """`on_step` gets the minimisation so far, unfinished, at the start and after every accepted
+    step: the histories are the final one's beginnings, the last value the minimiser."""
+    units = jax.tree_util.tree_map(lambda c: 1 / jnp.sqrt(c), CURVATURES)
+    seen = []
+    found = minimise(quadratic, START, units=units, rtol=0.0, atol=1e-20, progress=False, on_step=seen.append)
+    assert len(seen) == len(found.objective)
+    for steps, so_far in enumerate(seen):
+        assert so_far.result == RESULTS.max_iterations_reached
+        np.testing.assert_array_equal(so_far.objective, found.objective[: steps + 1])
+        np.testing.assert_array_equal(so_far.gradient_norm, found.gradient_norm[: steps + 1])
+        assert float(quadratic(so_far.value)) == pytest.approx(so_far.objective[-1], rel=1e-12, abs=1e-15)
+    for name in CENTRES:
+        np.testing.assert_array_equal(seen[-1].value[name], found.value[name])
+
+
 def test_without_units_the_same_minimum_takes_many_more_steps():
     found = minimise(quadratic, START, max_steps=3000, rtol=0.0, atol=1e-20, progress=False)
     assert found.result == RESULTS.successful

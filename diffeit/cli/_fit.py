@@ -6,8 +6,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
+import signal
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -19,7 +22,7 @@ from ._errors import reporting_user_errors
 from ._model import ModelSettings, add_model_options
 
 if TYPE_CHECKING:
-    from ..fit import JointFit, MemoryUncertainty
+    from ..fit import JointFit, JointProgress, MemoryUncertainty
     from ..inverse import OneStep
     from ..mesh import Mesh
     from ..protocol import Protocol
@@ -27,8 +30,16 @@ if TYPE_CHECKING:
 # What the images of OUT.h5 hold: the io schema's "conductivity change" is in S/sq, these are
 # relative and free of the skin's memory.
 IMAGE_QUANTITY = "relative conductivity change dsigma/sigma, memoryless stimulus (diffeit fit)"
-# Exit statuses: 0 converged, 1 the fit ran but did not converge (its files are written), 2 bad input.
-NOT_CONVERGED = 1
+# Exit statuses: 0 converged; 1 the fit ran but did not converge, or a computation after it
+# failed (its files are written); 2 bad input; 128 + the signal when one of `STOPPING_SIGNALS`
+# stopped it (Ctrl-C 130, SIGTERM 143: the fit so far is saved), as a shell reports a process
+# the signal ended.
+FELL_SHORT = 1
+STOPPING_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+# The default --checkpoint-every, accepted steps: a checkpoint costs about one objective evaluation
+# and a file write, a step at least one evaluation and its gradient.
+CHECKPOINT_EVERY = 25
+CHECKPOINT_SUFFIX = ".checkpoint.fit.h5"
 
 
 def add_command(commands: argparse._SubParsersAction) -> None:
@@ -42,8 +53,14 @@ def add_command(commands: argparse._SubParsersAction) -> None:
         "--reference-frames frames must be untouched (the file's separate reference frame is not used). Writes "
         "OUT.h5 (a frames file whose images are the stimulus), OUT.fit.h5 (the fit: diffeit.fit.load reads it, "
         "diffeit live --memory applies it) and OUT.png (the background map, the parameters, and the images "
-        "before and after the memory correction). Exit status 0 when the fit converged, 1 when it did not "
-        "(the files hold the last iterate: raise --max-steps or --resume from OUT.fit.h5), 2 for bad input. "
+        "before and after the memory correction). While it runs, the fit so far goes to OUT.checkpoint.fit.h5 "
+        "every --checkpoint-every accepted steps, each time written whole to a temporary file and renamed over "
+        "the last (a kill, even SIGKILL, leaves the last checkpoint intact): --resume OUT.checkpoint.fit.h5 "
+        "continues from it; it is removed once OUT.fit.h5 holds the result. Ctrl-C or SIGTERM stops the fit at "
+        "its next step with the checkpoint written there (a second one stops at once). Exit status 0 when the "
+        "fit converged; 1 when it did not, or when the memory uncertainty or the images before correction "
+        "failed (stderr says which; the files hold the last iterate: raise --max-steps or --resume from "
+        "OUT.fit.h5); 2 for bad input; 130 when stopped by Ctrl-C and 143 by SIGTERM. "
         "--background and --contact-impedance, when given, are the fit's starting values (fixed when their "
         "group is not --free; a simulated file's scene does not set them: the fit finds its own); --prior and "
         "--hyperparameter set the one-step images shown before correction.",
@@ -66,7 +83,20 @@ def add_command(commands: argparse._SubParsersAction) -> None:
         help="the groups fitted, of background, contact_impedance, memory, stimulus (default all); the others "
         "keep their starting values",
     )
-    fit.add_argument("--resume", metavar="FIT", help="continue from a saved fit (OUT.fit.h5 of an earlier run)")
+    fit.add_argument(
+        "--resume",
+        metavar="FIT",
+        help="continue from a saved fit: OUT.fit.h5 of an earlier run, or the OUT.checkpoint.fit.h5 an "
+        "interrupted or killed run left",
+    )
+    fit.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=CHECKPOINT_EVERY,
+        metavar="N",
+        help=f"write the fit so far to OUT{CHECKPOINT_SUFFIX} every N accepted steps, and when stopped by "
+        f"Ctrl-C or SIGTERM (default {CHECKPOINT_EVERY}; 0: only when stopped)",
+    )
     add_model_options(fit)
     fit.add_argument("--panels", type=int, default=8, help="most frames shown before and after (default 8)")
     fit.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -75,13 +105,24 @@ def add_command(commands: argparse._SubParsersAction) -> None:
 
 def _fit_file(arguments: argparse.Namespace) -> int:
     from .. import io
+    from .._messages import name_indices
     from ..fit import joint, load, memory_uncertainty
-    from ..results import RESULTS, messages
+    from ..results import RESULTS, messages, names
 
     source = Path(arguments.frames)
     png, images_file, fit_file = _output_paths(arguments.output, (".png", ".h5", ".fit.h5"), arguments.overwrite)
+    # Its own rule: an earlier run's checkpoint is the run to continue, not an output to refuse.
+    (checkpoint_file,) = _output_paths(arguments.output, (CHECKPOINT_SUFFIX,), overwrite=True)
+    continued = arguments.resume is not None and Path(arguments.resume).resolve() == checkpoint_file.resolve()
+    if checkpoint_file.exists() and not (continued or arguments.overwrite):
+        raise FileExistsError(
+            f"{checkpoint_file} exists, the state of an interrupted fit: continue it with --resume {checkpoint_file}, "
+            "or pass --overwrite to start afresh"
+        )
     if arguments.panels < 1:
         raise ValueError(f"--panels must be at least 1; got {arguments.panels}")
+    if arguments.checkpoint_every < 0:
+        raise ValueError(f"--checkpoint-every must be 0 or more (accepted steps); got {arguments.checkpoint_every}")
     recording = io.read_frames(source)
     if recording.n_frames < 3:
         raise ValueError(f"{source} holds {recording.n_frames} frames; the joint fit needs at least 3")
@@ -109,28 +150,62 @@ def _fit_file(arguments: argparse.Namespace) -> int:
     if arguments.free is not None:
         options["free"] = [name.replace("-", "_") for item in arguments.free for name in item.split(",") if name]
 
+    signals = _DeferredSignals()
+    checkpoints = _Checkpoints(checkpoint_file, arguments.checkpoint_every, signals)
     start = time.perf_counter()
-    fit = joint(
-        model,
-        recording.frames,
-        recording.times,
-        reference_frames=arguments.reference_frames,
-        initial=initial or None,
-        progress=sys.stderr.isatty(),
-        throw=False,
-        **options,
-    )
+    try:
+        with signals:
+            fit = joint(
+                model,
+                recording.frames,
+                recording.times,
+                reference_frames=arguments.reference_frames,
+                initial=initial or None,
+                progress=sys.stderr.isatty(),
+                throw=False,
+                on_step=checkpoints,
+                **options,
+            )
+            fit.save(fit_file, overwrite=arguments.overwrite)
+    except _Stopped as stopped:
+        print(
+            f"diffeit fit: stopped by {signal.Signals(stopped.number).name}; the fit at step {stopped.steps} is in "
+            f"{checkpoint_file}: continue with diffeit fit {source} -o {arguments.output} --resume {checkpoint_file}",
+            file=sys.stderr,
+        )
+        return 128 + stopped.number
+    if signals.received is not None:  # as the fit ended, after its last step
+        checkpoint_file.unlink(missing_ok=True)
+        print(
+            f"diffeit fit: stopped by {signal.Signals(signals.received).name} as the fit ended; it is in {fit_file} "
+            f"({images_file} and {png} not written)",
+            file=sys.stderr,
+        )
+        return 128 + signals.received
     seconds = time.perf_counter() - start
     converged = bool(fit.result == RESULTS.successful)
-    uncertainty = memory_uncertainty(model, recording.frames, fit) if _shared_memory_fitted(fit) else None
     steps = len(fit.history.objective) - 1
+    # What fell short after the fit, by computation: said on stderr and kept in OUT.h5.
+    failures = {}
+    uncertainty = None
+    if _shared_memory_fitted(fit):
+        try:
+            uncertainty = memory_uncertainty(model, recording.frames, fit)
+        except (ValueError, np.linalg.LinAlgError) as error:
+            failures["memory_uncertainty"] = str(error)
+        else:
+            if np.isnan(uncertainty.relative_error).any():
+                failures["memory_uncertainty"] = "NaN standard errors (an information matrix not finite)"
+                uncertainty = None
 
     reference = np.mean(recording.frames[: arguments.reference_frames], axis=0)
     solver = fitted_one_step(fit, mesh, recording.protocol, settings)
     before = np.asarray(solver.reconstruct(recording.frames - reference)) / np.asarray(fit.background)
+    nonfinite = np.flatnonzero(~np.all(np.isfinite(before), axis=1))
+    if nonfinite.size:
+        failures["images_before"] = f"the one-step images of frames {name_indices(nonfinite)} are not finite"
     stimulus = np.asarray(fit.stimulus)
 
-    fit.save(fit_file, overwrite=arguments.overwrite)
     corrected = _with_images(
         recording,
         source,
@@ -143,7 +218,9 @@ def _fit_file(arguments: argparse.Namespace) -> int:
             "fit": str(fit_file),
             "reference_frames": arguments.reference_frames,
             "free": list(fit.settings.free),
-            "result": "converged" if converged else messages(fit.result)[0],
+            "result": names(fit.result)[0],
+            "result_message": messages(fit.result)[0],
+            "failures": failures,
             "steps": steps,
             "misfit": fit.misfit,
             "seconds": seconds,
@@ -174,14 +251,77 @@ def _fit_file(arguments: argparse.Namespace) -> int:
         f"memory: {_memory_line(fit, uncertainty)}\n"
         f"wrote {png} ({len(shown)} frames before and after), {images_file} (stimulus {stimulus.shape}) and {fit_file}"
     )
+    # Superseded by OUT.fit.h5, written above.
+    checkpoint_file.unlink(missing_ok=True)
     if not converged:
         print(
             f"diffeit fit: the joint fit did not converge ({messages(fit.result)[0]}); the files hold its last "
             f"iterate: raise --max-steps, or continue with --resume {fit_file}",
             file=sys.stderr,
         )
-        return NOT_CONVERGED
-    return 0
+    for name, failure in failures.items():
+        print(f"diffeit fit: {name.replace('_', ' ')} failed: {failure}", file=sys.stderr)
+    return 0 if converged and not failures else FELL_SHORT
+
+
+class _Stopped(Exception):
+    """The stopping signal `number` stopped the fit at a step; the fit at `steps` accepted steps
+    is saved."""
+
+    def __init__(self, number: int, steps: int) -> None:
+        super().__init__(number, steps)
+        self.number, self.steps = number, steps
+
+
+class _DeferredSignals:
+    """While the block runs, the first of `STOPPING_SIGNALS` is kept in `received` (its number)
+    for the fit's next step to act on, not raised where it lands: a KeyboardInterrupt raised
+    inside the forward model's host solve reaches Python as an XLA runtime error, and the fit
+    could not save its state. After it the handlers are the previous ones again: a second
+    signal stops at once. Only the main thread may set handlers; elsewhere they stay."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+        self._previous: dict[int, object] = {}
+
+    def __enter__(self) -> _DeferredSignals:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {number: signal.signal(number, self._receive) for number in STOPPING_SIGNALS}
+        return self
+
+    def __exit__(self, *exception: object) -> None:
+        self._restore()
+
+    def _receive(self, number: int, frame: object) -> None:
+        self.received = number
+        self._restore()
+        # os.write, not print: a handler may run while another write to stderr is under way.
+        os.write(2, b"diffeit fit: stopping at the fit's next step, saving it there (again to stop at once)\n")
+
+    def _restore(self) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+        self._previous = {}
+
+
+class _Checkpoints:
+    """The joint fit's `on_step`: writes the fit so far over `path` every `every` accepted steps
+    of this run (0: never on a count) and, once `signals` received one, at the next step, then
+    stops the fit there (`_Stopped`). `JointFit.save` writes a temporary file and renames it into
+    place: a kill mid-write leaves the last checkpoint whole."""
+
+    def __init__(self, path: Path, every: int, signals: _DeferredSignals) -> None:
+        self.path, self.every, self.signals = path, every, signals
+        self.first: int | None = None
+
+    def __call__(self, progress: JointProgress) -> None:
+        if self.first is None:
+            self.first = progress.steps
+        done = progress.steps - self.first
+        if self.signals.received is not None or (self.every and done and done % self.every == 0):
+            progress.fit().save(self.path, overwrite=True)
+        if self.signals.received is not None:
+            raise _Stopped(self.signals.received, progress.steps)
 
 
 def fitted_one_step(fit: JointFit, mesh: Mesh, protocol: Protocol, settings: ModelSettings) -> OneStep:

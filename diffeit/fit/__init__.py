@@ -12,7 +12,8 @@ recorded frames:
   treats both alike; every fit reports this order);
 - `joint`: background, contact impedances, memory parameters and per-frame stimulus images
   together, with every frame's misfit through the forward model; `JointFit.save` and `load`
-  keep a fit, and `joint(..., initial=fit)` resumes it;
+  keep a fit, `joint(..., initial=fit)` resumes it, and `joint(..., on_step=...)` hands out
+  the fit so far at every step (`JointProgress`: to save, and resume after a kill);
 - `memory_uncertainty`: how well the frames determine a joint fit's memory parameters (standard
   errors and correlations, the Cramer-Rao bound at the fit).
 
@@ -26,6 +27,7 @@ from ._joint import JointFit as JointFit
 from ._joint import JointParameters as JointParameters
 from ._joint import JointPriors as JointPriors
 from ._joint import JointProblem as JointProblem
+from ._joint import JointProgress as JointProgress
 from ._joint import JointSettings as JointSettings
 from ._joint import joint as joint
 from ._joint import load as load

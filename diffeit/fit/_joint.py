@@ -7,7 +7,7 @@ Frame k (time t_k, seconds) of T frames is measured from the sheet conductivity 
     sigma_k = b * (1 + r_k),   r = memory_response(a, times, p)
 
 with b the background map (E,), a the memoryless stimulus and r the skin's response (both
-dsigma/sigma, (T, E); `diffeit.scene.memory_response` integrates the memory model with
+dsigma/sigma, (T, E); `diffeit.memory.memory_response` integrates the memory model with
 parameters p from a rested skin at t_0), and one contact impedance z_l per electrode (ohm m)
 shared by all frames. The fit minimises
 
@@ -146,7 +146,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from collections.abc import Collection, Mapping
+from collections.abc import Callable, Collection, Mapping
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -160,9 +161,10 @@ from .._arrays import concrete_floats
 from ..forward import ForwardModel
 from ..inverse import OneStep
 from ..inverse.linearised import check_frames
-from ..mesh import element_adjacency
-from ..results import RESULTS, throw_if_failed
+from ..io import create_checked, read_checked, write_atomically
 from ..memory import MemoryParameters, memory_response, over_foam
+from ..mesh import element_adjacency
+from ..results import RESULTS, names, throw_if_failed
 from ._background import background as fit_background
 from ._memory import (
     DEFAULT_FREE,
@@ -174,7 +176,7 @@ from ._memory import (
     reported_memory,
 )
 from ._memory import memory as fit_memory
-from ._optimise import History, minimise
+from ._optimise import History, Minimum, minimise
 
 GROUPS = ("background", "contact_impedance", "memory", "stimulus")
 # The noise, percent of the RMS of the reference, when neither the caller nor the background fit
@@ -297,12 +299,30 @@ class JointSettings(eqx.Module):
         return self.memory_free if "memory" in self.free else ()
 
 
+@dataclasses.dataclass(frozen=True)
+class JointProgress:
+    """A joint fit while it runs, as `joint` hands it to its `on_step`.
+
+    - `steps`: the accepted steps so far, a resumed fit's earlier ones included (its history's
+      length less one).
+    - `objective`: J at the current iterate (in units of one frame's misfit at the noise level).
+    - `fit`: builds the `JointFit` of the current iterate, its `result`
+      `RESULTS.max_iterations_reached` (unfinished): what `JointFit.save` writes as a
+      checkpoint, and `joint(..., initial=load(path))` resumes. Built when called, for about the
+      cost of one objective evaluation.
+    """
+
+    steps: int
+    objective: float
+    fit: Callable[[], JointFit]
+
+
 class JointFit(eqx.Module):
     """The result of `joint`.
 
     - `background`: (E,) background conductivity b, S/sq.
     - `contact_impedance`: (L,) contact impedance per electrode, ohm m.
-    - `memory`: the memory parameters (`diffeit.scene.MemoryParameters`); with both modes
+    - `memory`: the memory parameters (`diffeit.memory.MemoryParameters`); with both modes
       fitted, the quicker one is named fast (`diffeit.fit.ordered_modes`).
     - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma per frame (touches < 0).
     - `response`: (T, E) the skin's response dsigma/sigma, the memory model applied to the
@@ -333,23 +353,23 @@ class JointFit(eqx.Module):
     def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write the fit to `path` (HDF5, schema "diffeit.joint_fit") and return the path.
 
-        Refuses an existing file (`FileExistsError`) unless `overwrite=True`. Datasets:
-        `background`, `contact_impedance`, `stimulus`, `response`, `times`, `memory/<field>`,
-        `history/objective`, `history/gradient_norm`, and what resuming needs:
+        Refuses an existing file (`FileExistsError`) unless `overwrite=True`; the file is
+        written under a temporary name and renamed when complete, so an interrupted save leaves
+        the old file (or none) at `path`. Every dataset carries a checksum (`diffeit.io`).
+        Datasets: `background`, `contact_impedance`, `stimulus`, `response`, `times`,
+        `memory/<field>`, `history/objective`, `history/gradient_norm`, and what resuming needs:
         `parameters/...` (the unconstrained unknowns), `settings/memory_centre/<field>` and
         `settings/log_contact_impedance_centre`. Attributes: schema, schema_version, result
         (its name), misfit, free, memory_free, priors (JSON), data_scale (volts).
         """
-        path = Path(path)
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
         settings, parameters = self.settings, self.parameters
-        with h5py.File(path, "w") as file:
+
+        def write(file: h5py.File) -> None:
             file.attrs.update(
                 {
                     "schema": _SCHEMA,
                     "schema_version": _SCHEMA_VERSION,
-                    "result": _result_name(self.result),
+                    "result": names(self.result)[0],
                     "misfit": self.misfit,
                     "free": json.dumps(list(settings.free)),
                     "memory_free": json.dumps(list(settings.memory_free)),
@@ -358,84 +378,104 @@ class JointFit(eqx.Module):
                 }
             )
             for name in ("background", "contact_impedance", "stimulus", "response", "times"):
-                file[name] = np.asarray(getattr(self, name))
+                create_checked(file, name, np.asarray(getattr(self, name)))
             _write_memory(file.create_group("memory"), self.memory)
-            file["history/objective"] = self.history.objective
-            file["history/gradient_norm"] = self.history.gradient_norm
+            create_checked(file, "history/objective", self.history.objective)
+            create_checked(file, "history/gradient_norm", self.history.gradient_norm)
             for name in ("log_background", "log_contact_impedance", "stimulus"):
-                file[f"parameters/{name}"] = np.asarray(getattr(parameters, name))
+                create_checked(file, f"parameters/{name}", np.asarray(getattr(parameters, name)))
             group = file.create_group("parameters/memory")
             for name, value in parameters.memory.items():
-                group[name] = np.asarray(value)
+                create_checked(group, name, np.asarray(value))
             _write_memory(file.create_group("settings/memory_centre"), settings.memory_centre)
-            file["settings/log_contact_impedance_centre"] = np.asarray(settings.log_contact_impedance_centre)
-        return path
+            create_checked(
+                file, "settings/log_contact_impedance_centre", np.asarray(settings.log_contact_impedance_centre)
+            )
+
+        return write_atomically(path, write, overwrite=overwrite)
 
 
 def load(path: str | os.PathLike) -> JointFit:
     """A `JointFit` written by `JointFit.save`, read back (to inspect, or to resume with
-    `joint(..., initial=fit)`). `FileNotFoundError` for a missing file, `ValueError` naming the
-    file for anything but a joint fit."""
+    `joint(..., initial=fit)`).
+
+    Raises `FileNotFoundError` for a missing file and, promptly, `ValueError` naming the file
+    for anything but a sound joint fit: empty, not HDF5, truncated, altered bytes (a failed
+    checksum), another schema or version, missing or non-numeric datasets. A fit saved before
+    diffeit stored checksums reads with a `diffeit.io.NoChecksumWarning`.
+    """
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path} does not exist")
-    try:
-        file = h5py.File(path, "r")
-    except OSError:
-        raise ValueError(f"{path} is not an HDF5 file") from None
-    with file:
-        schema = file.attrs.get("schema")
-        if schema != _SCHEMA:
-            raise ValueError(f"{path} is not a joint fit (schema {schema!r}, not {_SCHEMA!r})")
-        version = int(file.attrs["schema_version"])
-        if version != _SCHEMA_VERSION:
-            older = " (its priors were charged per frame and mean otherwise now: fit again)" if version < 2 else ""
-            raise ValueError(f"{path} has schema version {version}; this diffeit reads {_SCHEMA_VERSION}{older}")
 
-        def array(name: str) -> jax.Array:
-            return jnp.asarray(file[name][()])
+    def read(file: h5py.File) -> JointFit:
+        try:
+            return _read_fit(file, path)
+        except (KeyError, TypeError, json.JSONDecodeError) as error:
+            raise ValueError(f"{path} is not a complete joint fit: {error}") from None
 
-        settings = JointSettings(
-            free=tuple(json.loads(file.attrs["free"])),
-            memory_free=tuple(json.loads(file.attrs["memory_free"])),
-            priors=JointPriors(**json.loads(file.attrs["priors"])),
-            data_scale=float(file.attrs["data_scale"]),
-            memory_centre=_read_memory(file["settings/memory_centre"]),
-            log_contact_impedance_centre=array("settings/log_contact_impedance_centre"),
-        )
-        parameters = JointParameters(
-            log_background=array("parameters/log_background"),
-            log_contact_impedance=array("parameters/log_contact_impedance"),
-            memory={name: array(f"parameters/memory/{name}") for name in file["parameters/memory"]},
-            stimulus=array("parameters/stimulus"),
-        )
-        return JointFit(
-            background=array("background"),
-            contact_impedance=array("contact_impedance"),
-            memory=_read_memory(file["memory"]),
-            stimulus=array("stimulus"),
-            response=array("response"),
-            times=array("times"),
-            misfit=float(file.attrs["misfit"]),
-            history=History(file["history/objective"][()], file["history/gradient_norm"][()]),
-            result=getattr(RESULTS, str(file.attrs["result"])),
-            parameters=parameters,
-            settings=settings,
-        )
+    return read_checked(path, read, what="joint fit")
+
+
+def _read_fit(file: h5py.File, path: Path) -> JointFit:
+    schema = file.attrs.get("schema")
+    if schema != _SCHEMA:
+        raise ValueError(f"{path} is not a joint fit (schema {schema!r}, not {_SCHEMA!r})")
+    version = int(file.attrs["schema_version"])
+    if version != _SCHEMA_VERSION:
+        older = " (its priors were charged per frame and mean otherwise now: fit again)" if version < 2 else ""
+        newer = " (a newer diffeit wrote it?)" if version > _SCHEMA_VERSION else ""
+        raise ValueError(f"{path} has schema version {version}; this diffeit reads {_SCHEMA_VERSION}{older}{newer}")
+
+    def values(name: str) -> np.ndarray:
+        if not isinstance(file.get(name), h5py.Dataset):
+            raise ValueError(f"{path} is not a complete joint fit: the dataset {name!r} is missing")
+        if not np.issubdtype(file[name].dtype, np.number):
+            raise ValueError(f"{path}: the dataset {name!r} holds {file[name].dtype}, not numbers")
+        return file[name][()]
+
+    def array(name: str) -> jax.Array:
+        return jnp.asarray(values(name))
+
+    def memory(group: str) -> MemoryParameters:
+        read = {name: values(f"{group}/{name}") for name in MEMORY_FIELDS}
+        return MemoryParameters(**{name: float(v) if np.ndim(v) == 0 else jnp.asarray(v) for name, v in read.items()})
+
+    result = str(file.attrs["result"])
+    if result not in RESULTS._name_to_item:
+        raise ValueError(f"{path}: result {result!r} is not a diffeit.results.RESULTS code")
+    if not isinstance(file.get("parameters/memory"), h5py.Group):
+        raise ValueError(f"{path} is not a complete joint fit: the group 'parameters/memory' is missing")
+    settings = JointSettings(
+        free=tuple(json.loads(file.attrs["free"])),
+        memory_free=tuple(json.loads(file.attrs["memory_free"])),
+        priors=JointPriors(**json.loads(file.attrs["priors"])),
+        data_scale=float(file.attrs["data_scale"]),
+        memory_centre=memory("settings/memory_centre"),
+        log_contact_impedance_centre=array("settings/log_contact_impedance_centre"),
+    )
+    parameters = JointParameters(
+        log_background=array("parameters/log_background"),
+        log_contact_impedance=array("parameters/log_contact_impedance"),
+        memory={name: array(f"parameters/memory/{name}") for name in file["parameters/memory"]},
+        stimulus=array("parameters/stimulus"),
+    )
+    return JointFit(
+        background=array("background"),
+        contact_impedance=array("contact_impedance"),
+        memory=memory("memory"),
+        stimulus=array("stimulus"),
+        response=array("response"),
+        times=array("times"),
+        misfit=float(file.attrs["misfit"]),
+        history=History(values("history/objective"), values("history/gradient_norm")),
+        result=getattr(RESULTS, result),
+        parameters=parameters,
+        settings=settings,
+    )
 
 
 def _write_memory(group: h5py.Group, memory: MemoryParameters) -> None:
     for name in MEMORY_FIELDS:
-        group[name] = np.asarray(getattr(memory, name), dtype=float)
-
-
-def _read_memory(group: h5py.Group) -> MemoryParameters:
-    values = {name: group[name][()] for name in MEMORY_FIELDS}
-    return MemoryParameters(**{name: float(v) if np.ndim(v) == 0 else jnp.asarray(v) for name, v in values.items()})
-
-
-def _result_name(result: RESULTS) -> str:
-    return next(name for name, item in RESULTS._name_to_item.items() if bool(item == result))
+        create_checked(group, name, np.asarray(getattr(memory, name), dtype=float))
 
 
 # --- The objective --------------------------------------------------------------------------------
@@ -607,6 +647,7 @@ def joint(
     atol: float = 1e-2,
     progress: bool = True,
     throw: bool = True,
+    on_step: Callable[[JointProgress], None] | None = None,
 ) -> JointFit:
     """Fit background, contact impedances, memory parameters and stimulus to `frames` jointly.
 
@@ -635,9 +676,19 @@ def joint(
       default 1% of a frame's misfit at the noise level, about 1e-4 of J).
     - `progress`: a tqdm progress bar; `throw`: a result other than `RESULTS.successful` raises
       `diffeit.results.SolverError` (with False, see `result`).
+    - `on_step`: called with a `JointProgress` when the optimisation starts (after the
+      initialisation) and after every accepted step; its `fit()` is the fit so far, to save as
+      a checkpoint. What it raises stops the fit and propagates: the way to stop at a step,
+      with the state saved (`diffeit fit` saves every few steps, and on Ctrl-C at the next
+      step). A `KeyboardInterrupt` raised at any moment may arrive inside the forward model's
+      host solve, where XLA reports it as a runtime error: keep the last progress and save it
+      when that happens, or stop from `on_step`.
 
     `free`, `memory_free`, `priors` and `noise` left None take a resumed fit's settings, else
-    the defaults above; a resumed fit keeps its prior centres. Returns a `JointFit`.
+    the defaults above; a resumed fit keeps its prior centres. Returns a `JointFit`: resumed,
+    its history continues the one it started from; resumed from a checkpoint, the fit goes on
+    from there with its L-BFGS memory rebuilt (the next steps differ from the uninterrupted
+    fit's, the minimum agrees to the tolerances).
 
     Raises ValueError for frames that are not finite or not (T, M), times that do not increase
     or are not one per frame, `reference_frames` out of range, unknown groups or fields, initial
@@ -683,6 +734,12 @@ def joint(
 
     problem = JointProblem(model, frames, times, settings)
     scales = eqx.filter_jit(problem.scales)(start)
+    earlier = 0 if resumed is None else len(resumed.history.objective) - 1
+
+    def report(so_far: Minimum) -> None:
+        steps = earlier + len(so_far.objective) - 1
+        on_step(JointProgress(steps, float(so_far.objective[-1]), partial(_joint_fit, problem, start, resumed, so_far)))
+
     minimum = minimise(
         lambda groups: problem(start.with_groups(groups)),
         {name: start.group(name) for name in free},
@@ -692,7 +749,15 @@ def joint(
         atol=atol,
         progress=progress,
         description="joint fit",
+        on_step=None if on_step is None else report,
     )
+    fit = _joint_fit(problem, start, resumed, minimum)
+    return throw_if_failed(fit, fit.result, "joint fit") if throw else fit
+
+
+def _joint_fit(problem: JointProblem, start: JointParameters, resumed: JointFit | None, minimum: Minimum) -> JointFit:
+    """The `JointFit` of `minimum` (the free groups' values) from `start`, its history continuing
+    `resumed`'s when there is one."""
     parameters = start.with_groups(minimum.value)
     history = History(minimum.objective, minimum.gradient_norm)
     if resumed is not None:
@@ -702,24 +767,24 @@ def joint(
         )
     background, z, memory, response = problem.state(parameters)
     voltages = problem.voltages(parameters)
-    fit = JointFit(
+    return JointFit(
         background=background,
         contact_impedance=z,
         # Reported in mode order; the unknowns keep the optimiser's labelling, so that a resumed
         # fit continues from exactly where this one stopped.
         memory=reported_memory(
-            MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}), settings.memory_fitted
+            MemoryParameters(**{name: getattr(memory, name) for name in MEMORY_FIELDS}),
+            problem.settings.memory_fitted,
         ),
         stimulus=parameters.stimulus,
         response=response,
-        times=times,
-        misfit=float(jnp.linalg.norm(voltages - frames) / jnp.linalg.norm(frames)),
+        times=problem.times,
+        misfit=float(jnp.linalg.norm(voltages - problem.frames) / jnp.linalg.norm(problem.frames)),
         history=history,
         result=minimum.result,
         parameters=parameters,
-        settings=settings,
+        settings=problem.settings,
     )
-    return throw_if_failed(fit, fit.result, "joint fit") if throw else fit
 
 
 def _setting(value: Any, before: JointSettings | None, name: str, default: Any) -> Any:

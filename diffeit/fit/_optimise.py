@@ -60,6 +60,7 @@ def minimise(
     atol: float = 1e-10,
     progress: bool = True,
     description: str = "fit",
+    on_step: Callable[[Minimum], None] | None = None,
 ) -> Minimum:
     """Minimise the scalar `objective(y)` over the pytree of arrays `y` from `initial` by L-BFGS.
 
@@ -75,6 +76,12 @@ def minimise(
     unknown: L-BFGS works on w = (y - initial) / units, one flat vector, so that a step of 1 is
     about as large in every unknown (1 / sqrt of the objective's curvature there is the usual
     choice: a diagonal preconditioner). Default 1 for every unknown.
+
+    `on_step`: called at the start and after every accepted step whose objective and gradient
+    are finite, with the minimisation so far: a `Minimum` whose `value` is the current iterate,
+    `objective` and `gradient_norm` its history up to it, and `result`
+    `RESULTS.max_iterations_reached` (not finished). What it raises ends the minimisation and
+    propagates: a caller saves the state from it, and stops at a step by raising.
     """
     if max_steps < 0:
         raise ValueError(f"max_steps must be >= 0; got {max_steps}")
@@ -90,6 +97,11 @@ def minimise(
         objectives.append(float(value))
         norms.append(max((float(jnp.max(jnp.abs(g))) for g in jax.tree_util.tree_leaves(gradient)), default=0.0))
 
+    def report(w: jax.Array) -> None:
+        if on_step is not None:
+            unfinished = RESULTS.max_iterations_reached
+            on_step(Minimum(scaled.unscaled(w), np.asarray(objectives), np.asarray(norms), unfinished))
+
     objectives: list[float] = []
     norms: list[float] = []
     record(*_value_and_gradient(scaled, flat))
@@ -97,6 +109,7 @@ def minimise(
     small, rejected, finite = 0, 0, flat
     if not np.isfinite(objectives[0]) or not np.isfinite(norms[0]):
         return Minimum(scaled.unscaled(y), np.asarray(objectives), np.asarray(norms), RESULTS.nonfinite)
+    report(y)
     with tqdm(total=max_steps, desc=description, disable=not progress, leave=False) as bar:
         for _ in range(max_steps):
             y, state, _ = _step(solver, scaled, y, state)
@@ -114,6 +127,7 @@ def minimise(
                     y, result = finite, RESULTS.nonfinite
                     break
                 finite = y
+                report(y)
                 decrease = objectives[-2] - objectives[-1]
                 small = small + 1 if decrease <= atol + rtol * abs(objectives[-1]) else 0
                 rejected = 0
