@@ -146,6 +146,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import warnings
 from collections.abc import Callable, Collection, Mapping
 from functools import partial
 from pathlib import Path
@@ -164,7 +165,7 @@ from ..inverse.linearised import check_frames
 from ..io import create_checked, read_checked, write_atomically
 from ..memory import MemoryParameters, memory_response, over_foam
 from ..mesh import element_adjacency
-from ..results import RESULTS, names, throw_if_failed
+from ..results import RESULTS, messages, names, throw_if_failed
 from ._background import background as fit_background
 from ._memory import (
     DEFAULT_FREE,
@@ -874,6 +875,9 @@ def _initial_values(
             progress=progress,
             throw=False,
         )
+        # At the boundary its misfit levelled off at the model's own error: a map all the same.
+        if bool(found.result != RESULTS.selection_at_boundary):
+            _warn_if_failed(found.result, "the starting background fit (diffeit.fit.background)")
         background = found.conductivity
         if np.isfinite(found.noise) and found.noise > 0:
             estimated_noise = found.noise
@@ -894,6 +898,7 @@ def _initial_values(
                 )
             try:
                 found = fit_memory(calm, times, noise=calm_noise, progress=progress, throw=False)
+                _warn_if_failed(found.result, "the starting memory fit (diffeit.fit.memory)")
                 memory = _modes_apart(_determined(found.memory, float(times[-1] - times[0])), over_foam())
             except ValueError:  # no element rises above the images' noise: nothing to fit p to
                 memory = over_foam()
@@ -902,6 +907,13 @@ def _initial_values(
             threshold = _THRESHOLD * float(jnp.median(jnp.abs(derived)))
             stimulus = jnp.minimum(derived + threshold, 0.0)
     return background, z, memory, jnp.asarray(stimulus), data_scale
+
+
+def _warn_if_failed(result: RESULTS, what: str) -> None:
+    """A warning when a fit that gives the joint fit its start fell short: the joint fit goes on
+    from its last iterate, which only costs steps, but the user hears of it."""
+    if bool(result != RESULTS.successful):
+        warnings.warn(f"{what} ended: {messages(result)[0]}; the joint fit starts from its last iterate", stacklevel=4)
 
 
 def _determined(memory: MemoryParameters, duration: float) -> MemoryParameters:

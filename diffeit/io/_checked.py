@@ -219,7 +219,8 @@ def write_atomically(
     """Create the HDF5 file `path` by `write(file)` under a temporary name beside it, then
     rename it into place, so an interrupted write leaves no half-written file at `path` (and,
     with `overwrite=True`, the old file intact). `FileExistsError` for an existing `path`
-    unless `overwrite`; `FileNotFoundError` when its folder does not exist."""
+    unless `overwrite`; `FileNotFoundError` when its folder does not exist. The file is
+    flushed to disk (fsync) before it is renamed."""
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
@@ -230,6 +231,9 @@ def write_atomically(
     try:
         with h5py.File(temporary, "x", libver=LIBVER) as file:
             write(file)
+        # On disk before it takes the name: a power cut then leaves the old file or the new one.
+        with open(temporary, "rb") as written:
+            os.fsync(written.fileno())
         _publish(temporary, path, overwrite)
     finally:
         with contextlib.suppress(FileNotFoundError):
