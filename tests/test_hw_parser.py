@@ -260,6 +260,31 @@ def test_a_frame_whose_values_disagree_with_its_layout_is_rejected():
         assert parser.feed(forged) == [] and parser.statistics.length == 1
 
 
+def test_every_flipped_bit_and_every_cut_in_a_frame_is_caught():
+    """The header's CRC-16 and the frame's CRC-32 catch any one flipped bit: frame 1 of 3,
+    damaged at each bit in turn, is never delivered, and is counted (`header`, `crc`; a
+    damaged sync marker: discarded bytes); a frame cut anywhere costs no other frame."""
+    values = np.arange(1.0, 9.0)  # 8 values, declared by the host: 64-byte frames
+    parts = [
+        hw.encode_frame(values * (i + 1), counter=i, device_time=0.01 * i, layout=LAYOUT_DECLARED) for i in range(3)
+    ]
+    damaged_streams = []
+    for offset in range(len(parts[1])):
+        for bit in range(8):
+            damaged = bytearray(parts[1])
+            damaged[offset] ^= 1 << bit
+            damaged_streams.append((offset, bytes(damaged)))
+    damaged_streams += [(len(SYNC), parts[1][:cut]) for cut in range(len(SYNC), len(parts[1]))]
+    for offset, damaged in damaged_streams:
+        parser = hw.BinaryParser()
+        frames = parser.feed(parts[0] + damaged + parts[2])
+        assert [f.counter for f in frames] == [0, 2]
+        np.testing.assert_array_equal(frames[1].values, 3 * values)
+        statistics = parser.finish()
+        assert statistics.missing_frames == 1
+        assert statistics.header + statistics.crc == (offset >= len(SYNC))
+
+
 # -- fuzzing ----------------------------------------------------------------------------------
 
 STREAM = _stream()

@@ -90,7 +90,7 @@ def test_csv_with_a_header_and_a_time_column(tmp_path):
 def test_csv_without_header_full_layout_and_semicolons(tmp_path):
     frames = RNG.normal(size=(2, 256))
     path = tmp_path / "full.csv"
-    path.write_text("\n".join(";".join(repr(float(v)) for v in row) for row in frames))
+    path.write_text("".join(";".join(repr(float(v)) for v in row) + "\n" for row in frames))
     recording = read_csv(path, delimiter=";", frame_rate=10.0)
     np.testing.assert_array_equal(recording.frames, frames)
     np.testing.assert_array_equal(recording.times, [0.0, 0.1])
@@ -110,7 +110,7 @@ def test_csv_headers_of_column_numbers_and_a_byte_order_mark(tmp_path):
     marked.write_bytes(b"\xef\xbb\xbf" + ("\r\n".join(rows) + "\r\n").encode())
     np.testing.assert_array_equal(read_csv(marked).frames, frames)
     named = tmp_path / "named.csv"
-    named.write_text("\n".join([",".join(f"v{i}" for i in range(208)), *rows]))
+    named.write_text("\n".join([",".join(f"v{i}" for i in range(208)), *rows]) + "\n")
     assert read_csv(named, header=True).provenance["metadata"]["columns"][:2] == ["v0", "v1"]
 
 
@@ -133,9 +133,73 @@ def test_csv_refusals_name_the_row_and_column(tmp_path, text, message):
 
 def test_csv_time_column_errors(tmp_path):
     path = tmp_path / "frames.csv"
-    path.write_text("\n".join(",".join(["0.1"] * 209) for _ in range(2)))
+    path.write_text(",".join(["0.1"] * 209) + "\n" + ",".join(["0.1"] * 209) + "\n")
     assert read_csv(path, time_column=0).n_measurements == 208
     with pytest.raises(ValueError, match="no column named 'time'"):
         read_csv(path, time_column="time")
     with pytest.raises(ValueError, match="holds 209 readings a row; the protocol has 208"):
         read_csv(path, adjacent(16))
+
+
+# -- damaged text files -----------------------------------------------------------------------
+
+
+def test_an_openeit_log_cut_within_a_line_is_refused(tmp_path):
+    """A log cut within its last line: refused (a cut within a number would read as another
+    number; a cut after 32 of 192 values as an 8-electrode frame), or dropped when told."""
+    lines = [_openeit_line(values) for values in RNG.uniform(150, 350, size=(2, 192))]
+    log = tmp_path / "cut.txt"
+    for cut in (len(lines[1]) - 5, 12 + 32 * 16):  # within the last number; after 32 values
+        log.write_text(lines[0] + lines[1][:cut])
+        with pytest.raises(ValueError, match=r"cut\.txt: line 2, the last, does not end in a newline: the log is cut"):
+            read_openeit(log)
+        recording = read_openeit(log, skip_malformed=True)
+        assert recording.n_frames == 1 and recording.provenance["metadata"]["skipped_lines"] == [2]
+    log.write_text(lines[0][:200])
+    with pytest.raises(ValueError, match="line 1, the last, does not end in a newline"):
+        read_openeit(log)
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"", "holds no lines of values"),
+        (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR,\x00\x10\n", r"lines \[\d+\] are not 32 numbers"),
+        (b"\x89HDF\r\n\x1a\n" + bytes(range(256)) + b"\n", "lines hold .* values; OpenEIT's opposition layouts"),
+    ],
+)
+def test_openeit_refuses_files_of_another_kind_naming_the_file(tmp_path, content, message):
+    path = tmp_path / "other.txt"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=r"other\.txt.*" + message):
+        read_openeit(path, **({"n_electrodes": 8} if b"PNG" in content else {}))
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b"1.5,2.5,3.5\n4.5,5.5,6.", r"the last line does not end in a newline: the file is cut short"),
+        (b"\x89PNG\r\n\x1a\n\x00\x00", r"line 1 is not UTF-8 text \(byte 0\)"),
+        (b"1,2\n" + b"x" * 200_000 + b"\n", "line 2 is not CSV: field larger than field limit"),
+        (b"", "holds no rows of values"),
+        # A row of readings with one damaged field is refused, not taken for a header.
+        (b"0.5,0.2x5,0.7,0.1\n0.6,0.3,0.2,0.9\n", r"row 1, column 1 is not a number: '0\.2x5'"),
+    ],
+)
+def test_csv_refuses_damaged_files_naming_the_file(tmp_path, content, message):
+    path = tmp_path / "damaged.csv"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=r"damaged\.csv:? " + message):
+        read_csv(path, adjacent(4))
+
+
+def test_csv_headers_with_a_time_name_and_column_numbers(tmp_path):
+    frames = RNG.normal(size=(2, 40))
+    path = tmp_path / "numbered.csv"
+    rows = ["t," + ",".join(str(i) for i in range(40))] + [
+        f"{t}," + ",".join(repr(float(v)) for v in row) for t, row in enumerate(frames)
+    ]
+    path.write_text("\n".join(rows) + "\n")
+    recording = read_csv(path, time_column="t")
+    np.testing.assert_array_equal(recording.frames, frames)
+    assert recording.protocol.n_electrodes == 8

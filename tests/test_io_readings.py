@@ -1,6 +1,7 @@
 """What a reading is (signed or a magnitude), complex EIDORS frames and readings on driven
 electrodes: the IIRC 2006 tank, the Montreal 1995 magnitudes, OpenEIT logs, the frames file."""
 
+import re
 from pathlib import Path
 
 import h5py
@@ -139,6 +140,124 @@ def test_montreal_reads_as_magnitudes_unless_told():
     recording = read_eidors_mat(MONTREAL, "zc_demo3", reference="zc_h_demo3")
     assert recording.readings == "magnitude"
     assert read_eidors_mat(MONTREAL, "zc_demo3", readings="signed").readings == "signed"
+
+
+# ---------------------------------------------------------------------------------------------
+# Damaged .mat files: refused as a whole, never read in part (or, in scipy, a crash)
+
+
+def _sound_mat(path: Path, compressed: bool) -> np.ndarray:
+    """A v5 file as MATLAB saves one: frames, a reference, and a cell array and a struct that
+    are not frames (never read). The frames (T, 208)."""
+    frames = np.random.default_rng(5).uniform(1, 2, size=(2, 208))
+    variables = {"frames": frames.T, "reference": frames[:1].T, "notes": np.array([[1.0, "a"]], dtype=object)}
+    scipy.io.savemat(path, {**variables, "model": {"n": 16}}, do_compression=compressed)
+    return frames
+
+
+def _changed(path: Path, offset: int, value: bytes) -> Path:
+    data = bytearray(path.read_bytes())
+    data[offset : offset + len(value)] = value
+    damaged = path.with_name("damaged.mat")
+    damaged.write_bytes(bytes(data))
+    return damaged
+
+
+def test_a_compressed_mat_file_cut_or_changed_anywhere_is_refused_or_read_whole(tmp_path):
+    """MATLAB's default (v7) compresses each variable with a checksum: a cut or a flipped bit
+    anywhere is refused (naming the file) or changes nothing that is read (the header's text)."""
+    frames = _sound_mat(tmp_path / "sound.mat", compressed=True)
+    data = (tmp_path / "sound.mat").read_bytes()
+    rng = np.random.default_rng(6)
+    path = tmp_path / "damaged.mat"
+    damaged = [data[:cut] for cut in rng.integers(0, len(data), 40)]
+    for offset, bit in zip(rng.integers(0, len(data), 80), rng.integers(0, 8, 80), strict=True):
+        flipped = bytearray(data)
+        flipped[offset] ^= 1 << bit
+        damaged.append(bytes(flipped))
+    for content in damaged:
+        path.write_bytes(content)
+        try:
+            recording = read_eidors_mat(path, "frames", reference="reference")
+        except ValueError as error:
+            assert str(path) in str(error)
+        else:
+            np.testing.assert_array_equal(recording.frames, frames)
+            np.testing.assert_array_equal(recording.reference, frames[0])
+
+
+# The uncompressed file ('-v6', scipy's default): "frames" at byte 128, its real values' tag at
+# 184 (after its 8-byte tag, array flags, dimensions and name, 16 bytes each).
+@pytest.mark.parametrize(
+    ("offset", "value", "message"),
+    [
+        (184, b"\x19", r"'frames', 208x2\) has no real values of that size \(data type 25"),  # scipy: a segfault
+        (184, b"\x0e", r"has no real values of that size \(data type 14"),  # an miMATRIX: a segfault too
+        (168, b"\x07", r"has no name \(miINT8 characters\)"),
+        (152, b"\x09", r"has no dimensions"),
+        (132, b"\xff\xff", "cut short: the variable at byte 128 claims"),
+        (128, b"\x0d", "has data type 13, neither miMATRIX nor miCOMPRESSED"),
+        (125, b"\x02", r"a MATLAB v7\.3 file \(HDF5\)"),
+        (126, b"XX", "not a MATLAB file: bytes 124-127"),
+    ],
+)
+def test_a_mat_file_of_damaged_structure_is_refused(tmp_path, offset, value, message):
+    _sound_mat(tmp_path / "sound.mat", compressed=False)
+    damaged = _changed(tmp_path / "sound.mat", offset, value)
+    with pytest.raises(ValueError, match=re.escape(str(damaged)) + ".*" + message):
+        read_eidors_mat(damaged, "frames")
+
+
+def test_other_damaged_mat_files_are_refused_naming_the_file(tmp_path):
+    frames = _sound_mat(tmp_path / "sound.mat", compressed=False)
+    data = (tmp_path / "sound.mat").read_bytes()
+    # Variables other than numeric arrays are named, never read: a cell array whose dimensions
+    # are damaged (scipy allocated 2**28 cells, a hang) costs nothing.
+    notes = data.index(b"notes") - 48  # its tag: then flags, dimensions and the name's tag, 16, 16, 8 bytes
+    assert data[notes : notes + 4] == b"\x0e\x00\x00\x00"
+    huge = _changed(tmp_path / "sound.mat", notes + 35, b"\x10")  # the high byte of its first dimension
+    np.testing.assert_array_equal(read_eidors_mat(huge, "frames").frames, frames)
+    for name, kind in (("notes", "a cell array"), ("model", "a struct")):
+        with pytest.raises(ValueError, match=f"variable '{name}' is {kind}, not frames"):
+            read_eidors_mat(huge, name)
+    cases = {
+        "cut.mat": data[: len(data) - 3],  # within the last variable
+        "twice.mat": data + data[128:],
+        "empty.mat": b"",
+        "text.mat": b"frames = [1 2 3]\n",
+        "picture.mat": b"\x89PNG\r\n\x1a\n" + bytes(range(256)),
+    }
+    messages = {
+        "cut.mat": "cut short: the variable at byte",
+        "twice.mat": "two variables are named 'frames'",
+        "empty.mat": "is not a MATLAB file: 0 bytes",
+        "text.mat": "cut short or not a MATLAB file: 17 bytes",
+        "picture.mat": "not a MATLAB file: bytes 124-127",
+    }
+    for name, content in cases.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match=re.escape(str(tmp_path / name)) + ".*" + messages[name]):
+            read_eidors_mat(tmp_path / name, "frames")
+    with h5py.File(tmp_path / "frames.h5", "w") as file:
+        file["frames"] = frames
+    with pytest.raises(ValueError, match=r"frames\.h5: not a MATLAB file"):
+        read_eidors_mat(tmp_path / "frames.h5")
+    with pytest.raises(FileNotFoundError, match=r"no such \.mat file"):
+        read_eidors_mat(tmp_path / "missing.mat")
+
+
+def test_a_compressed_variable_damaged_or_cut_is_refused(tmp_path):
+    _sound_mat(tmp_path / "sound.mat", compressed=True)
+    data = (tmp_path / "sound.mat").read_bytes()
+    start, size = 136, int.from_bytes(data[132:136], "little")  # the zlib stream of the first variable
+    changed = _changed(tmp_path / "sound.mat", start + size // 2, bytes([data[start + size // 2] ^ 0x01]))
+    with pytest.raises(ValueError, match=r"damaged\.mat: the variable at byte 128 is compressed and damaged"):
+        read_eidors_mat(changed, "frames")
+    # The stream's length shortened by 2: its end is missing, and the next variable's tag
+    # starts within it.
+    shorter = _changed(tmp_path / "sound.mat", 132, (size - 2).to_bytes(4, "little"))
+    with pytest.raises(ValueError, match="the variable at byte 128 is compressed and cut short"):
+        read_eidors_mat(shorter, "frames")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -245,6 +245,37 @@ def test_bad_scene_objects_name_the_field():
         de.scene.example("two_touches")
 
 
+SINGLE_TOUCH = de.scene.example_path("single_touch").read_text()
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        # Cut within "duration = 2.5": it would read as 2 s.
+        (SINGLE_TOUCH[: SINGLE_TOUCH.index("duration = 2.5") + 12].encode(), "the last line does not end in a newline"),
+        (b"\x89PNG\r\n\x1a\n\x00\x00", r"is not a scene file: byte 0 is not UTF-8 text"),
+        (b"\x89HDF\r\n\x1a\n\x00\x00", r"is not a scene file: byte 0 is not UTF-8 text"),
+        (b"", "holds no scene: no key"),
+        (b"# a scene, some day\n", "holds no scene: no key"),
+        (b"frame_rate = = 3\n", "is not valid TOML"),
+        (b"[skin]\nradius = -1.0\n", "skin: "),
+        # Refused by the Scene itself: the touch is off the simulation mesh.
+        (b"[[touches]]\ncentre = [0.98763, 0.15615]\nradius = 0.1\namplitude = -0.3\n", r"touches\[0\]\.shape\.centre"),
+    ],
+)
+def test_bad_scene_files_are_refused_naming_the_file(tmp_path, content, message):
+    path = tmp_path / "scene.toml"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=message) as raised:
+        Scene.from_toml(path)
+    assert str(raised.value).startswith(str(path))
+
+
+def test_a_missing_scene_file():
+    with pytest.raises(FileNotFoundError, match="no scene file"):
+        Scene.from_toml("no/such/scene.toml")
+
+
 def test_integer_parameters_become_float_leaves():
     """jax.grad refuses integer leaves: `hold=2` or integer vertices must not stop a gradient."""
     scene = Scene(

@@ -153,9 +153,9 @@ def read_checked(
                 if warn_unchecked:
                     _warn_if_unchecked(file, path)
                 return value
-        except _ReadDuringWrite:
+        except _ReadDuringWrite as error:
             if time.monotonic() > deadline:
-                raise
+                raise ValueError(str(error)) from None
             time.sleep(0.02)
 
 

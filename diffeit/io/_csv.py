@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 from pathlib import Path
@@ -27,8 +28,11 @@ def read_csv(
     """Frames from a CSV file: one frame a row, one reading a column.
 
     `header`: whether the first row holds column names; None (default) decides: a first row
-    that is not all numbers, or that numbers the columns 0, 1, 2, ... or 1, 2, 3, ... (as pandas
-    writes them), is a header. A UTF-8 byte-order mark (Excel's "CSV UTF-8") is skipped.
+    that holds no number, or whose fields number the columns 0, 1, 2, ... or 1, 2, 3, ... (as
+    pandas writes them; after one name, `t,0,1,2,...`), is a header. Any other first row is
+    read as readings, so a row of readings with a damaged field is refused, not taken for a
+    header (pass `header=True` for other headers). A UTF-8 byte-order mark (Excel's "CSV
+    UTF-8") is skipped.
 
     `time_column` names (or numbers, from 0) a column of times in seconds; the other columns
     are the readings, in `protocol`'s order and sign. Without a time column, frame t is at
@@ -41,17 +45,37 @@ def read_csv(
 
     **Raises:** `FileNotFoundError`; `ValueError` naming the file, row and column for rows of
     another length, non-numbers, non-finite values, an unknown time column, readings that fit
-    no protocol.
+    no protocol; naming the file for text that is not UTF-8 or not CSV (a field over the csv
+    module's limit, 128 kB), and a last row without its newline: the file is cut short, or
+    its writer left the newline out (every CSV writer ends the last row too), as the reader
+    cannot tell a row cut within its last number from a whole one.
+
+    A CSV file carries no checksum: a digit changed to another digit, or a file cut at the end
+    of a row, reads as what the file now says.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:
         raise ValueError(f"frame_rate must be positive (frames per second); got {frame_rate}")
     if not path.exists():
         raise FileNotFoundError(f"no such CSV file: {path}")
-    with path.open(newline="", encoding="utf-8-sig") as file:
-        rows = [(number, row) for number, row in enumerate(csv.reader(file, delimiter=delimiter), start=1) if row]
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise ValueError(f"{path}: line {line} is not UTF-8 text (byte {error.start}): not a CSV file?") from None
+    if text and not text.endswith(("\n", "\r")):
+        raise ValueError(
+            f"{path}: the last line does not end in a newline: the file is cut short, or its writer left the "
+            "newline out (add it if the last row is whole)"
+        )
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
+    try:
+        rows = [(number, row) for number, row in enumerate(reader, start=1) if row]
+    except csv.Error as error:
+        raise ValueError(f"{path}: line {reader.line_num} is not CSV: {error}") from None
     if header is None:
-        header = bool(rows) and (not _numeric(rows[0][1]) or _numbers_columns(rows[0][1]))
+        header = bool(rows) and _is_header(rows[0][1])
     if header and rows:
         names, rows = [name.strip() for name in rows[0][1]], rows[1:]
     else:
@@ -109,6 +133,15 @@ def _protocol_of(n_readings: int, path: Path) -> Protocol:
         f"{path} holds {n_readings} readings a row: not n(n-3) (adjacent) nor n * n (the full adjacent layout); "
         "pass the protocol"
     )
+
+
+def _is_header(items: list[str]) -> bool:
+    """Whether a first row names the columns (`read_csv`'s rule): no number among its fields,
+    or fields that number the columns, perhaps after one name."""
+    if not any(_numeric([item]) for item in items):
+        return True
+    counted = items if _numeric(items[:1]) else items[1:]
+    return _numeric(counted) and _numbers_columns(counted)
 
 
 def _numbers_columns(items: list[str]) -> bool:

@@ -2,8 +2,13 @@
 
 from __future__ import annotations
 
+import io
 import math
 import os
+import struct
+import warnings
+import zlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -94,6 +99,16 @@ def read_eidors_mat(
     problem for an unreadable file, an unknown variable, a shape of neither layout, non-finite
     values, a misplaced layout, a reference of more than one frame, driven readings to keep
     that are not there, negative values read as magnitudes.
+
+    Damaged files: a v5 file's structure is checked before scipy reads it, and only its numeric
+    variables are read (cells, structs, text, sparse matrices and objects are named, never
+    read), so a file cut short anywhere, an element whose data type or size does not fit its
+    place, or a compressed variable (MATLAB's default since v7) whose zlib stream fails its
+    checksum is refused as a whole, never read in part. What no check can see: MAT files carry
+    no checksum of uncompressed data, so a changed byte among the values of an uncompressed
+    variable (v4 files; v5 files saved with '-v6' or by scipy without compression) reads as
+    another number, and a file cut short at the end of a variable reads as the variables
+    before it. v7.3 files (HDF5) are refused: save with '-v7'.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:
@@ -105,19 +120,17 @@ def read_eidors_mat(
     ):
         if value not in allowed:
             raise ValueError(f"{name} must be one of {allowed}; got {value!r}")
-    if not path.exists():
+    if not path.is_file():
         raise FileNotFoundError(f"no such .mat file: {path}")
-    try:
-        contents = scipy.io.loadmat(path)
-    except (ValueError, TypeError, NotImplementedError, OSError) as error:
-        raise ValueError(f"{path} is not a MATLAB file scipy can read (v7.3 files are HDF5): {error}") from None
-    arrays = {name: value for name, value in contents.items() if not name.startswith("__")}
+    arrays, others = _load_mat(path)
     n = n_electrodes
     sizes = (n * n, n * (n - 3))
 
     def load(name: str) -> tuple[np.ndarray, bool, dict[str, Any]]:
+        if name in others:
+            raise ValueError(f"{path}, variable {name!r} is {others[name]}, not frames")
         if name not in arrays:
-            raise ValueError(f"{path} has no variable {name!r}; it has {_describe(arrays)}")
+            raise ValueError(f"{path} has no variable {name!r}; it has {_describe(arrays, others)}")
         try:
             return _file_frames(arrays[name], n, complex_part)
         except ValueError as error:
@@ -133,7 +146,9 @@ def read_eidors_mat(
     if variable is None:
         names = [name for name, value in arrays.items() if _holds_frames(value, sizes)]
         if not names:
-            raise ValueError(f"{path} holds no variable of {sizes[0]}- or {sizes[1]}-value frames: {_describe(arrays)}")
+            raise ValueError(
+                f"{path} holds no variable of {sizes[0]}- or {sizes[1]}-value frames: {_describe(arrays, others)}"
+            )
     else:
         names = [variable]
     recordings = {}
@@ -178,6 +193,167 @@ def read_eidors_mat(
         except ValueError as error:
             raise ValueError(f"{path}, variable {name!r}: {error}") from None
     return recordings if variable is None else recordings[variable]
+
+
+def _load_mat(path: Path) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The numeric variables of a MATLAB file by name, as scipy reads them, and the names of
+    the others (cells, structs, text, sparse matrices, objects: never read) with what they are;
+    ValueError naming the file for anything unreadable."""
+    data = path.read_bytes()
+    if len(data) < 4:
+        raise ValueError(f"{path} is not a MATLAB file: {len(data)} bytes")
+    others: dict[str, str] = {}
+    if 0 not in data[:4]:  # scipy's rule: v4 files have a zero in their first four bytes, v5 and v7.3 none
+        try:
+            data, others = _checked_mat5(data)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
+    # From memory: a damaged length cannot make scipy allocate or wait for bytes the file lacks.
+    # Its warnings ("returned data may be corrupt") are errors.
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            contents = scipy.io.loadmat(io.BytesIO(data))
+    except Exception as error:  # scipy's v4 reader raises many kinds on a damaged file (IndexError, ...)
+        raise ValueError(f"{path} is not a MATLAB file scipy can read: {type(error).__name__}: {error}") from None
+    arrays = {name: value for name, value in contents.items() if not name.startswith("__")}
+    for name, value in arrays.items():
+        if isinstance(value, str):  # scipy's stand-in for a variable it could not read
+            raise ValueError(f"{path}, variable {name!r} is unreadable: {value}")
+    return arrays, others
+
+
+# MAT v5 ("MAT-File Format", MathWorks): a 128-byte header (the version at bytes 124-125 and
+# the byte order at 126-127: "IM" little-endian, "MI" big-endian), then one element per
+# variable: an 8-byte tag (data type, byte count), then its bytes. A variable is an miMATRIX
+# element, a sequence of elements (array flags, dimensions, name, then by class: the real and
+# imaginary values; cells, fields) each padded to 8 bytes, a small one (at most 4 bytes)
+# packed into its tag; or an miCOMPRESSED element, a zlib stream (checksummed) of an miMATRIX.
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_MATRIX, _MI_COMPRESSED, _MI_UTF8 = 1, 5, 6, 14, 15, 16
+# Bytes per value of the numeric data types, miINT8 .. miDOUBLE, miINT64, miUINT64. scipy looks
+# a data type up in a table without bounds: any other type in a damaged file is a segmentation
+# fault (scipy 1.17), so only numeric variables whose every element is checked are given to it.
+_VALUE_SIZES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 9: 8, 12: 8, 13: 8}
+_NUMERIC_CLASSES = range(6, 16)  # mxDOUBLE_CLASS .. mxUINT64_CLASS
+_CLASSES = {1: "a cell array", 2: "a struct", 3: "an object", 4: "text", 5: "a sparse matrix", 16: "a function handle"}
+_OPAQUE_CLASS = 17  # a MATLAB object (e.g. a string or table): its name follows the flags, no dimensions
+_COMPLEX_FLAG = 0x800
+
+
+def _checked_mat5(data: bytes) -> tuple[bytes, dict[str, str]]:
+    """The numeric variables of the v5 MAT file `data`, uncompressed, as a v5 file of their
+    own, and the names of its other variables with what they are. ValueError for a v7.3 file
+    (HDF5), a variable cut short or reaching past the file, a compressed variable whose zlib
+    stream is damaged, cut short or not followed by the next variable, an element of another
+    data type or size than its place in a numeric variable needs, two variables of one name."""
+    if len(data) < 128:
+        raise ValueError(f"cut short or not a MATLAB file: {len(data)} bytes, a v5 MAT file's header has 128")
+    order = {b"IM": "<", b"MI": ">"}.get(data[126:128])
+    major = data[125] if order == "<" else data[124]
+    if order is None or major not in (1, 2):
+        raise ValueError("not a MATLAB file: bytes 124-127 are not a v5 header's version and byte order")
+    if major == 2:
+        raise ValueError("a MATLAB v7.3 file (HDF5), which is not read: save it with save(..., '-v7')")
+    tag = struct.Struct(order + "II")
+    # No subsystem offset: the subsystem's objects are among the variables not passed on.
+    parts, others, names, offset = [data[:116] + bytes(8) + data[124:128]], {}, set(), 128
+    while offset < len(data):
+        if len(data) - offset < tag.size:
+            raise ValueError(f"cut short: the variable at byte {offset} has {len(data) - offset} of its 8 tag bytes")
+        data_type, size = tag.unpack_from(data, offset)
+        start, end = offset + tag.size, offset + tag.size + size
+        where = f"the variable at byte {offset}"
+        if data_type not in (_MI_MATRIX, _MI_COMPRESSED):
+            raise ValueError(f"{where} has data type {data_type}, neither miMATRIX nor miCOMPRESSED: damaged")
+        if end > len(data):
+            raise ValueError(f"cut short: {where} claims {size} bytes, the file has {len(data) - start} after its tag")
+        matrix = _decompressed(data[start:end], where) if data_type == _MI_COMPRESSED else data[offset:end]
+        name, kind = _variable(matrix, tag, where)
+        if name in names:
+            raise ValueError(f"two variables are named {name!r}: damaged")
+        names.add(name)
+        if kind is None:
+            parts.append(matrix)
+        else:
+            others[name] = kind
+        offset = end
+    return b"".join(parts), others
+
+
+def _decompressed(stream: bytes, where: str) -> bytes:
+    """The bytes of a compressed variable: one whole zlib stream, its checksum valid, nothing after it."""
+    decompressor = zlib.decompressobj()
+    try:
+        matrix = decompressor.decompress(stream) + decompressor.flush()
+    except zlib.error as error:
+        raise ValueError(f"{where} is compressed and damaged: {error}") from None
+    if not decompressor.eof:
+        raise ValueError(f"{where} is compressed and cut short: its zlib stream does not end")
+    if decompressor.unused_data:
+        raise ValueError(f"{where} is compressed and followed by {len(decompressor.unused_data)} bytes of no variable")
+    return matrix
+
+
+def _variable(matrix: bytes, tag: struct.Struct, where: str) -> tuple[str, str | None]:
+    """The name of the variable in the miMATRIX element `matrix`, and None if it is a numeric
+    array, checked whole (what scipy is given), else what it is (its header checked only)."""
+    if len(matrix) < tag.size or tag.unpack_from(matrix) != (_MI_MATRIX, len(matrix) - tag.size):
+        raise ValueError(f"{where} is not one miMATRIX element: damaged")
+    elements = _elements(matrix, tag, where)
+    flags_type, flags = next(elements, (None, b""))
+    if flags_type != _MI_UINT32 or len(flags) != 8:
+        raise ValueError(f"{where} has no array flags (8 bytes of miUINT32): damaged")
+    (flags_class,) = struct.unpack(tag.format[0] + "I", flags[:4])
+    matrix_class = flags_class & 0xFF
+    if matrix_class == _OPAQUE_CLASS:
+        return _name(next(elements, (None, b"")), where), "an object"
+    dims_type, dims_bytes = next(elements, (None, b""))
+    if dims_type not in (_MI_INT32, _MI_UINT32) or len(dims_bytes) % 4 or not 2 <= len(dims_bytes) // 4 <= 32:
+        raise ValueError(f"{where} has no dimensions (2 to 32 miINT32 values): damaged")
+    dims = struct.unpack(f"{tag.format[0]}{len(dims_bytes) // 4}i", dims_bytes)
+    name = _name(next(elements, (None, b"")), where)
+    if min(dims) < 0:
+        raise ValueError(f"{where} ({name!r}) has negative dimensions {dims}: damaged")
+    if matrix_class not in _NUMERIC_CLASSES:
+        return name, _CLASSES.get(matrix_class, f"of unknown class {matrix_class}")
+    parts = ("real", "imaginary") if flags_class & _COMPLEX_FLAG else ("real",)
+    for part in parts:
+        data_type, values = next(elements, (None, b""))
+        if data_type not in _VALUE_SIZES or len(values) != math.prod(dims) * _VALUE_SIZES[data_type]:
+            raise ValueError(
+                f"{where} ({name!r}, {'x'.join(map(str, dims))}) has no {part} values of that size (data type "
+                f"{data_type}, {len(values)} bytes): damaged"
+            )
+    if next(elements, None) is not None:
+        raise ValueError(f"{where} ({name!r}) holds elements after its values: damaged")
+    return name, None
+
+
+def _name(element: tuple[int | None, bytes], where: str) -> str:
+    data_type, name = element
+    if data_type not in (_MI_INT8, _MI_UTF8):
+        raise ValueError(f"{where} has no name (miINT8 characters): damaged")
+    return name.decode("latin-1")
+
+
+def _elements(matrix: bytes, tag: struct.Struct, where: str) -> Iterator[tuple[int, bytes]]:
+    """(data type, bytes) of each element in an miMATRIX element, in order, each checked to lie within it."""
+    position = tag.size
+    while position < len(matrix):
+        if len(matrix) - position < tag.size:
+            raise ValueError(f"{where}: an element at byte {position} of it is cut short: damaged")
+        first, size = tag.unpack_from(matrix, position)
+        if first >> 16:  # a small element: byte count and data type in the first four bytes, the data in the next
+            data_type, size, start, following = first & 0xFFFF, first >> 16, position + 4, position + tag.size
+            if size > 4:
+                raise ValueError(f"{where}: a small element at byte {position} of it claims {size} bytes: damaged")
+        else:
+            data_type, start = first, position + tag.size
+            following = start + size + -size % 8
+            if start + size > len(matrix):
+                raise ValueError(f"{where}: an element at byte {position} of it claims bytes beyond it: damaged")
+        yield data_type, matrix[start : start + size]
+        position = following
 
 
 def _file_frames(value: Any, n: int, complex_part: str) -> tuple[np.ndarray, bool, dict[str, Any]]:
@@ -276,5 +452,7 @@ def _holds_frames(value: Any, sizes: tuple[int, int]) -> bool:
     return np.issubdtype(array.dtype, np.number) and array.ndim in (1, 2) and bool(set(array.shape) & set(sizes))
 
 
-def _describe(arrays: dict[str, Any]) -> str:
-    return ", ".join(f"{name} {np.shape(value)}" for name, value in arrays.items()) or "no variables"
+def _describe(arrays: dict[str, Any], others: dict[str, str]) -> str:
+    described = [f"{name} {np.shape(value)}" for name, value in arrays.items()]
+    described += [f"{name} ({kind})" for name, kind in others.items()]
+    return ", ".join(described) or "no variables"

@@ -41,13 +41,19 @@ def read_openeit(
 
     **Arguments:** `n_electrodes` (8, 16 or 32; default: from the number of values per line),
     `frame_rate` in frames per second (logs carry no times: frame t is at t / frame_rate s),
-    `skip_malformed`: drop lines of another length or with non-numbers instead of refusing the
-    file (their line numbers go in `provenance["metadata"]["skipped_lines"]`). Lines without a
-    comma (the firmware's messages such as "mode 3: imaging") and blank lines are always
-    skipped.
+    `skip_malformed`: drop lines of another length or with non-numbers, and a last line
+    without its newline, instead of refusing the file (their line numbers go in
+    `provenance["metadata"]["skipped_lines"]`). Lines without a comma (the firmware's messages
+    such as "mode 3: imaging") and blank lines are always skipped.
 
     **Raises:** `FileNotFoundError`; `ValueError` naming the file and the lines for an empty
-    log, malformed lines (unless skipped), non-finite or negative values, an unknown layout.
+    log, malformed lines (unless skipped), non-finite or negative values, an unknown layout, a
+    last line of values without its newline (unless skipped): the log was cut short (or is
+    still being written), and a line cut within its last number would read as another number,
+    or a line cut after 32 of 192 values as an 8-electrode frame.
+
+    A log carries no checksum: a digit changed to another digit, or a log cut at the end of a
+    line, reads as what the file now says.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:
@@ -55,9 +61,13 @@ def read_openeit(
     if not path.exists():
         raise FileNotFoundError(f"no such OpenEIT log: {path}")
     rows: list[tuple[int, list[float] | None]] = []  # (line number from 1, values or None if unreadable)
+    cut: list[int] = []  # a last line of values without its newline
     with path.open("r", encoding="ascii", errors="replace") as file:
         for number, line in enumerate(file, start=1):
             if "," not in line:  # the firmware's messages ("mode 3: imaging") and blank lines
+                continue
+            if not line.endswith("\n"):
+                cut.append(number)
                 continue
             numbers = line.split(":", 1)[-1]
             items = [item.strip() for item in numbers.split(",")]
@@ -67,6 +77,11 @@ def read_openeit(
                 rows.append((number, [float(item) for item in items]))
             except ValueError:
                 rows.append((number, None))
+    if cut and not skip_malformed:
+        raise ValueError(
+            f"{path}: line {cut[0]}, the last, does not end in a newline: the log is cut short (or still being "
+            "written); pass skip_malformed=True to drop it"
+        )
     if not rows:
         raise ValueError(f"{path} holds no lines of values: not an OpenEIT log?")
     if n_electrodes is None:
@@ -109,7 +124,7 @@ def read_openeit(
                 "layout": f"OpenEIT opposition, {n_electrodes} electrodes, {n_values} values (diffeit opposite)",
                 "values": "magnitudes: the sign of each reading is lost",
                 "frame_rate": frame_rate,
-                "skipped_lines": bad,
+                "skipped_lines": bad + cut,
             },
         },
         voltage_unit="arbitrary",

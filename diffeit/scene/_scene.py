@@ -74,7 +74,7 @@ from .._arrays import concrete_floats, is_concrete
 from ..mesh import Mesh
 from ._background import Background
 from ._effects import EFFECT_NAMES, EFFECTS, effect_name
-from ._scene_file import scene_arguments, scene_to_dict
+from ._scene_file import read_scene_file, scene_arguments, scene_to_dict
 from ._skin import Skin
 from ._touches import Touch, check_touches
 
@@ -241,11 +241,14 @@ class Scene(eqx.Module):
 
     @classmethod
     def from_toml(cls, path: str | FilePath) -> Scene:
-        """Read a scene file."""
+        """Read a scene file (`read_scene_file` says which files it refuses); ValueError naming
+        the file and the field."""
         path = FilePath(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"no scene file {path}")
-        return cls.from_toml_string(path.read_text(), source=str(path))
+        data = read_scene_file(path)
+        try:
+            return cls.from_dict(data)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
 
     @classmethod
     def from_toml_string(cls, text: str, *, source: str = "scene") -> Scene:

@@ -1,17 +1,21 @@
-"""Scene files: reading TOML data into the arguments of a `Scene` (checking every field,
-converting units) and writing a scene back as SI numbers. The format is described in the
-docstring of the module of `Scene` (`diffeit.scene._scene`), which calls into this one."""
+"""Scene files: reading a file's TOML data (`read_scene_file`) into the arguments of a `Scene`
+(checking every field, converting units) and writing a scene back as SI numbers. The format is
+described in the docstring of the module of `Scene` (`diffeit.scene._scene`), which calls into
+this one."""
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import tomllib
 from collections.abc import Iterator, Mapping
+from pathlib import Path as FilePath
 from typing import Any
 
 import jax.numpy as jnp
 
 from .._arrays import concrete_floats
+from ..memory import bare_skin, over_foam
 from ._background import Background, Region
 from ._effects import EFFECT_NAMES, EFFECTS, effect_name
 from ._instrument import (
@@ -22,7 +26,6 @@ from ._instrument import (
     Noise,
     OpenElectrodes,
 )
-from ..memory import bare_skin, over_foam
 from ._shapes import AbstractShape, Disc, Ellipse, Polygon
 from ._skin import GEOMETRY_KEYS, SKIN_KINDS, Skin, thawed
 from ._time_courses import AbstractTimeCourse, Path, Press, Ramp
@@ -30,6 +33,39 @@ from ._touches import FoamStack, Touch, pressure_to_change
 from ._units import quantities
 
 # --- Reading --------------------------------------------------------------------------------
+
+
+def read_scene_file(path: FilePath) -> dict[str, Any]:
+    """The TOML data of the scene file at `path`.
+
+    Raises `FileNotFoundError` for a missing file and `ValueError` naming the file for one that
+    is not UTF-8 text (TOML's encoding; a PNG, an HDF5 file), not TOML, holds no key (empty), or
+    whose last line does not end in a newline: the file is cut short (a line cut within a
+    number would read as another number), or its editor left the newline out (add it). A scene
+    file carries no checksum: a digit changed to another digit, or a file cut at the end of a
+    line, reads as what the file now says (the keys cut off take their defaults).
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"no scene file {path}")
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(
+            f"{path} is not a scene file: byte {error.start} is not UTF-8 text (TOML's encoding)"
+        ) from None
+    if text and not text.endswith(("\n", "\r")):
+        raise ValueError(
+            f"{path}: the last line does not end in a newline: the file is cut short, or its editor left the "
+            "newline out (add it if the file is whole)"
+        )
+    try:
+        table = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, RecursionError) as error:  # tomllib recurses into nested arrays
+        raise ValueError(f"{path} is not valid TOML: {error}") from None
+    if not table:
+        raise ValueError(f"{path} holds no scene: no key")
+    return table
 
 
 class _Table:
