@@ -21,7 +21,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check diffeit hw tests benchmarks examples experiments
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest --durations=20  # the 20 slowest tests at the end: creep shows
 
 BENCH_FLAGS ?=
 
