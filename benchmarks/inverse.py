@@ -37,8 +37,9 @@ The ratio column is diffeit's set-up time over pyEIT's ("1/30": diffeit 30 times
 
 Table 2, one frame (M,) in float64, medians over PER_FRAME_CALLS calls:
 
-- `reconstruct`: `rec.reconstruct(dv)` with dv a NumPy array, what users call: the input checks
-  (shape, finiteness, in NumPy), and the product under `jax.jit`;
+- `reconstruct`: `rec.solve(dv).value` with dv a NumPy array, what users call: the input checks
+  (shape, finiteness, in NumPy), the product and the finiteness of the image (its result code)
+  under `jax.jit`, and the check of the code (`throw=True`);
 - `dv @ matrix.T`: the same product evaluated eagerly, for comparison (eager JAX materialises
   the transposed matrix on every call, which is why reconstruct jits it);
 - `jit product`: `jax.jit(lambda dv, m: dv @ m.T)` on arrays on the device (the transpose is
@@ -48,7 +49,7 @@ Table 2, one frame (M,) in float64, medians over PER_FRAME_CALLS calls:
 
 Table 3, a batch of T = `--frames` frames (T, M), medians over `--repeats` calls after a warm-up:
 
-- `reconstruct`: `rec.reconstruct(frames)`, frames a NumPy float64 array; frames per second;
+- `reconstruct`: `rec.solve(frames).value`, frames a NumPy float64 array; frames per second;
 - `NumPy matmul`: `frames @ matrix.T` in NumPy with the same shapes and dtype, in the same
   process with the same BLAS threads: the machine's matrix-multiply rate for these shapes, in
   GFLOP/s = 2 T M E / time; `ours / NumPy` is reconstruct's time over it (the target: at most 2x);
@@ -75,8 +76,8 @@ tests/test_gauss_newton.py: a disc of radius 0.2 at (0.5, 0) with 10 times the b
 (8,864 triangles, or at least DATA_REFINEMENT times the reconstruction's triangles), plus 1% noise
 (1% of RMS(v), seeded):
 
-- diffeit: `GaussNewton(model, "laplace", 1e-2, max_iterations=20).absolute(v)` (the tests'
-  settings) on the reconstruction mesh's model (complete electrode model, contact impedance 0.01,
+- diffeit: `AbsoluteGaussNewton(model, "laplace", 1e-2, max_iterations=20).solve(v)` (the
+  tests' settings) on the reconstruction mesh's model (complete electrode model, contact impedance 0.01,
   built beforehand). No noise level is given, so the discrepancy principle does not stop it; it
   may still stop before 20 iterations when its objective stagnates (a relative decrease below
   1e-6): the "iterations" column says how many it took and why it stopped. The time includes its
@@ -89,7 +90,7 @@ tests/test_gauss_newton.py: a disc of radius 0.2 at (0.5, 0) with 10 times the b
   reuses an earlier call's factorisations of the same iterates from the solver's cache.
 - pyEIT: `gn(v / drive_current, x0=start, maxiter=20, gtol=0, method="kotre", p=0.5, lamb=1e-3)`
   on the same nodes, triangles and data (volts per ampere: pyEIT drives 1 A), from diffeit's
-  homogeneous start (`GaussNewtonResult.reference`), with `generator=True` to count the iterates:
+  homogeneous start (the solution's `stats["reference"]`), with `generator=True` to count the iterates:
   gtol=0 makes it do exactly 20 iterations (its default 1e-4 may stop it earlier, and then drops
   the last step). Each iteration recomputes pyEIT's Jacobian (a dense N x N inverse and a Python
   loop over the elements) and inverts the E x E matrix J^T J + lamb R. The `JAC.setup` that gn()
@@ -316,7 +317,7 @@ def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
     noise = NOISE_PERCENT / 100 * np.sqrt(np.mean(reference**2))
     difference = clean + noise * rng.standard_normal(n_meas)
     frames = clean + noise * rng.standard_normal((options.frames, n_meas))
-    image = np.asarray(reconstruction.reconstruct(difference))
+    image = np.asarray(reconstruction.solve(difference).value)
     row["position_error"] = de.metrics.position_error(mesh, image, TOUCH_CENTRE)
 
     pyeit = None
@@ -338,7 +339,7 @@ def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
     matrix_host = np.asarray(matrix)
     difference_device = jax.device_put(difference)
     per_frame = {
-        "reconstruct": lambda: reconstruction.reconstruct(difference).block_until_ready(),
+        "reconstruct": lambda: reconstruction.solve(difference).value.block_until_ready(),
         "eager": lambda: (difference_device @ matrix.T).block_until_ready(),
         "jit": lambda: product(difference_device, matrix).block_until_ready(),
         "numpy": lambda: difference @ matrix_host.T,
@@ -352,18 +353,18 @@ def run_one(n_triangles: int, options: argparse.Namespace) -> dict:
     frames_device, frames32_device = jax.device_put(frames), jax.device_put(frames32)
     matrix32 = jax.device_put(matrix32_host)
     batch = {
-        "reconstruct": lambda: reconstruction.reconstruct(frames).block_until_ready(),
+        "reconstruct": lambda: reconstruction.solve(frames).value.block_until_ready(),
         "numpy": lambda: frames @ matrix_host.T,
         "jit": lambda: product(frames_device, matrix).block_until_ready(),
-        "reconstruct32": lambda: reconstruction.reconstruct(frames32).block_until_ready(),
+        "reconstruct32": lambda: reconstruction.solve(frames32).value.block_until_ready(),
         "numpy32": lambda: frames32 @ matrix32_host.T,
         "jit32": lambda: product(frames32_device, matrix32).block_until_ready(),
     }
     row["batch"] = _interleaved(batch, options.repeats)
     row["flop"] = 2.0 * options.frames * n_meas * n_elem
-    images = np.asarray(reconstruction.reconstruct(frames))
-    images32 = np.asarray(reconstruction.reconstruct(frames32))
-    row["batch_dtype"] = str(reconstruction.reconstruct(frames).dtype)
+    images = np.asarray(reconstruction.solve(frames).value)
+    images32 = np.asarray(reconstruction.solve(frames32).value)
+    row["batch_dtype"] = str(reconstruction.solve(frames).value.dtype)
     row["batch32_dtype"] = str(images32.dtype)
     row["batch_error"] = float(np.linalg.norm(images - frames @ matrix_host.T) / np.linalg.norm(images))
     row["float32_error"] = float(np.linalg.norm(images32 - images) / np.linalg.norm(images))
@@ -450,7 +451,7 @@ def _breakdown(reconstruction, difference, frames, repeats: int) -> dict:
         transposed = matrix.T.astype(dtype).block_until_ready()
         result[label] = _interleaved(
             {
-                "reconstruct": lambda data=data: reconstruction.reconstruct(data).block_until_ready(),
+                "reconstruct": lambda data=data: reconstruction.solve(data).value.block_until_ready(),
                 "checks": lambda data=data: check_frames(data, n_meas, "frames").block_until_ready(),
                 "transpose": lambda dtype=dtype: matrix.T.astype(dtype).block_until_ready(),
                 "product": lambda d=data_device, t=transposed: (d @ t).block_until_ready(),
@@ -486,7 +487,7 @@ def _gauss_newton(model, data_model, options: argparse.Namespace) -> dict:
     import numpy as np
 
     import diffeit as de
-    from diffeit.inverse import GaussNewton
+    from diffeit.inverse import AbsoluteGaussNewton
 
     mesh, fine = model.mesh, data_model.mesh
     inclusion = GN_BACKGROUND * (1 + (GN_CONTRAST - 1) * de.mesh.disc_fraction(fine, GN_CENTRE, GN_RADIUS))
@@ -501,19 +502,18 @@ def _gauss_newton(model, data_model, options: argparse.Namespace) -> dict:
         # Data scaled by 1 + k 1e-12 per call: the iterates differ, so no call finds an earlier
         # call's factorisations in the solver's cache.
         # A capped run: stopping at the iteration limit is the intent, not a failure.
-        results[iterations] = GaussNewton(model, GN_PRIOR, GN_HYPERPARAMETER, max_iterations=iterations).absolute(
-            voltages * (1 + 1e-12 * next(calls)), throw=False
-        )
+        solver = AbsoluteGaussNewton(model, GN_PRIOR, GN_HYPERPARAMETER, max_iterations=iterations)
+        results[iterations] = solver.solve(voltages * (1 + 1e-12 * next(calls)), throw=False)
 
     timings = _interleaved({"full": lambda: run(GN_ITERATIONS), "start": lambda: run(0)}, options.repeats)
     result = results[GN_ITERATIONS]
     entry = {
         "ours": timings["full"],
         "start": timings["start"],
-        "iterations": int(result.iterations),
+        "iterations": int(result.stats["iterations"]),
         "stop_reason": _outcomes(result.result, success="stagnation")[0],  # no noise level: no discrepancy stop
-        "homogeneous_start": float(result.reference[0]),
-        "quality": _absolute_quality(mesh, result.conductivity, truth),
+        "homogeneous_start": float(result.stats["reference"][0]),
+        "quality": _absolute_quality(mesh, result.value, truth),
     }
 
     if options.skip_pyeit:
@@ -535,7 +535,7 @@ def _gauss_newton(model, data_model, options: argparse.Namespace) -> dict:
     # gn() refuses to run before setup(); setup's own work (at perm 1) is not used by gn() and not timed.
     solver.setup(p=PYEIT_GN_P, lamb=PYEIT_GN_LAMB, method=PYEIT_GN_METHOD, perm=1.0)
     volts_per_amp = voltages / model.drive_current  # pyEIT drives 1 A
-    start = np.asarray(result.reference, dtype=float)
+    start = np.asarray(result.stats["reference"], dtype=float)
 
     def pyeit_gn() -> tuple[int, np.ndarray]:
         count, image = 0, start
@@ -641,13 +641,13 @@ def _total_variation(model, data_model, options: argparse.Namespace) -> dict:
         "frame": timings["ours"],
         "batch": timings["batch"],
         "lbfgs": timings["lbfgs"],
-        "iterations": int(solution.iterations),
+        "iterations": int(solution.stats["iterations"]),
         "stop_reason": _outcomes(solution.result)[0],
-        "batch_iterations": [int(n) for n in np.asarray(batch.iterations)],
+        "batch_iterations": [int(n) for n in np.asarray(batch.stats["iterations"])],
         "batch_stop_reasons": _outcomes(batch.result),
         "lbfgs_steps": int(peer_steps),
         "lbfgs_stop": "converged" if bool(peer_success) else "not converged",
-        "ours_quality": figures(solution.conductivity_change),
+        "ours_quality": figures(solution.value),
         "lbfgs_quality": figures(peer_image),
         "truth_edge_width": _transition_width(mesh, np.asarray(truth)),
     }
@@ -866,7 +866,7 @@ def _print_gauss_newton(gn_rows: list[dict]) -> None:
         return
     print()
     print(
-        f"absolute Gauss-Newton, {GN_ITERATIONS} iterations at most: ours GaussNewton({GN_PRIOR!r}, "
+        f"absolute Gauss-Newton, {GN_ITERATIONS} iterations at most: ours AbsoluteGaussNewton({GN_PRIOR!r}, "
         f"{GN_HYPERPARAMETER:g}, max_iterations={GN_ITERATIONS}), no noise level (so no discrepancy stop); pyEIT "
         f"gn(maxiter={GN_ITERATIONS}, gtol=0, method={PYEIT_GN_METHOD!r}, p={PYEIT_GN_P:g}, "
         f"lamb={PYEIT_GN_LAMB:g}) from our homogeneous start; a disc r {GN_RADIUS:g} at {GN_CENTRE}, "

@@ -106,7 +106,7 @@ def fit_errors(design: str, size: int, noise: str, seeds: int) -> np.ndarray:
         frames, times = np.asarray(simulation.frames), np.asarray(simulation.times)
         model = de.ForwardModel(mesh, scene.skin.make_protocol(), contact_impedance=0.005)
         one_step = de.inverse.OneStep(model, "noser", IMAGE_HYPERPARAMETER, 0.01)
-        images = np.asarray(one_step.reconstruct(frames - frames[0])) / 0.01
+        images = np.asarray(one_step.solve(frames - frames[0]).value) / 0.01
         found = fit.memory(images, times, progress=False, throw=False).memory
         errors.append([float(getattr(found, name)) / float(getattr(truth, name)) - 1 for name in FIELDS])
     return np.sqrt(np.mean(np.square(errors), axis=0))

@@ -21,6 +21,7 @@ from . import scene as scene
 from ._precision import PrecisionWarning as PrecisionWarning
 from .forward import ForwardModel as ForwardModel
 from .forward import Potentials as Potentials
+from .inverse import Solution as Solution
 from .linear_solve import ConjugateGradient as ConjugateGradient
 from .linear_solve import DenseCholesky as DenseCholesky
 from .linear_solve import HostSparse as HostSparse

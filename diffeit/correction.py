@@ -50,13 +50,18 @@ target.
 An `.npz` archive (NumPy, no pickles): `schema` = "diffeit.calibration", `version` = 2, the
 arrays of `Calibration`, and `settings` as JSON (the `CalibrationSettings` it was made with).
 Version 1 files (no `image_positions`) still load: their factors are looked up at `positions`.
+`load` reads every member whole, so the CRC-32 that the archive keeps of each catches a file cut
+short or a changed byte; a newer version is refused by its number.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
+import typing
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -64,7 +69,6 @@ from pathlib import Path
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib.tri
 import numpy as np
 import scipy.interpolate
 from tqdm.auto import tqdm
@@ -72,7 +76,7 @@ from tqdm.auto import tqdm
 from . import metrics
 from .forward import ForwardModel
 from .inverse import OneStep
-from .mesh import Mesh, element_sample_points
+from .mesh import Mesh, element_sample_points, locate
 from .scene import Disc, Noise, Touch, add_noise, touch_field
 
 SCHEMA = "diffeit.calibration"
@@ -201,25 +205,125 @@ _ARRAYS = ("positions", "intensity_factor", "size_factor", "intensity_table", "s
 
 
 def load(path: str | Path) -> Calibration:
-    """A calibration saved by `Calibration.save`; ValueError if the file is not one (schema) or
-    from another version of the format."""
-    with np.load(Path(path), allow_pickle=False) as archive:
-        schema = str(archive["schema"]) if "schema" in archive else None
-        if schema != SCHEMA:
-            raise ValueError(f"{path} is not a diffeit calibration (schema {schema!r}, expected {SCHEMA!r})")
-        version = int(archive["version"])
-        if version not in (1, VERSION):
-            raise ValueError(f"{path} is a calibration of format version {version}; this diffeit reads 1..{VERSION}")
-        # Version 1 had no image positions: its factors were looked up at the true positions.
-        required = _ARRAYS if version == VERSION else _ARRAYS[:-1]
-        missing = [name for name in (*required, "settings") if name not in archive]
-        if missing:
-            raise ValueError(f"{path} lacks {missing}")
-        raw = json.loads(str(archive["settings"]))
-        arrays = {name: np.array(archive[name]) for name in required}
-    for name in ("backgrounds", "intensities", "radii"):
-        raw[name] = tuple(raw[name])
-    return Calibration(settings=CalibrationSettings(**raw), **arrays)
+    """A calibration saved by `Calibration.save`.
+
+    Raises `FileNotFoundError` for a missing file and `ValueError` naming the file for one that
+    is not a calibration (not an .npz archive, another schema), of a format version this diffeit
+    does not read (a newer one named by its number), or damaged: cut short or a changed byte
+    (the archive is read whole, so every member's CRC-32 is checked), members missing, unknown
+    or of another dtype or shape, settings that are not `CalibrationSettings`' fields and types.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no calibration file {path}")
+    try:
+        return _calibration(_npz_members(path.read_bytes()))
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+
+
+def _npz_members(data: bytes) -> dict[str, np.ndarray]:
+    """The arrays of an .npz archive by name (without ".npy"); every member read whole (its
+    CRC-32 checked), no Python objects."""
+    try:
+        # From memory: a damaged size field cannot make zipfile allocate or wait for bytes.
+        with zipfile.ZipFile(io.BytesIO(data)) as archive:
+            contents = {info.filename: archive.read(info) for info in archive.infolist()}
+    except Exception as error:  # zipfile raises many kinds on damage (BadZipFile, zlib.error, RuntimeError, ...)
+        raise ValueError(f"not a readable .npz archive: {type(error).__name__}: {error}") from None
+    members = {}
+    for filename, content in contents.items():
+        name = filename.removesuffix(".npy")
+        if name == filename:
+            raise ValueError(f"member {filename!r} is not a .npy array")
+        members[name] = _npy_array(content, filename)
+    return members
+
+
+def _npy_array(content: bytes, filename: str) -> np.ndarray:
+    """The array of a .npy member, its header checked against its length before reading."""
+    stream = io.BytesIO(content)
+    try:
+        version = np.lib.format.read_magic(stream)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in read_header:
+            raise ValueError(f".npy format version {version}")
+        shape, fortran_order, dtype = read_header[version](stream)
+    except ValueError as error:
+        raise ValueError(f"member {filename!r} is not a readable .npy array: {error}") from None
+    if dtype.hasobject:
+        raise ValueError(f"member {filename!r} holds Python objects, which are not read")
+    size = math.prod(shape) * dtype.itemsize
+    if len(content) - stream.tell() != size:
+        raise ValueError(
+            f"member {filename!r} holds {len(content) - stream.tell()} bytes of values; its header "
+            f"({dtype}, shape {shape}) needs {size}"
+        )
+    values = np.frombuffer(content, dtype, math.prod(shape), stream.tell())
+    return values.reshape(shape, order="F" if fortran_order else "C").copy()
+
+
+def _calibration(members: dict[str, np.ndarray]) -> Calibration:
+    """The calibration in the members of its .npz archive, each checked."""
+    schema = members.get("schema")
+    if schema is None or schema.shape != () or schema.dtype.kind != "U" or str(schema) != SCHEMA:
+        raise ValueError(f"not a diffeit calibration (schema {schema!r}, expected {SCHEMA!r})")
+    version = members.get("version")
+    if version is None or version.shape != () or version.dtype.kind not in "iu":
+        raise ValueError(f"no format version (an integer); found {version!r}")
+    if int(version) not in (1, VERSION):
+        newer = ", a newer diffeit's" if int(version) > VERSION else ""
+        raise ValueError(f"a calibration of format version {int(version)}{newer}; this diffeit reads 1..{VERSION}")
+    # Version 1 had no image positions: its factors were looked up at the true positions.
+    required = _ARRAYS if int(version) == VERSION else _ARRAYS[:-1]
+    missing = [name for name in (*required, "settings") if name not in members]
+    unknown = sorted(set(members) - {*required, "settings", "schema", "version"})
+    if missing:
+        raise ValueError(f"a version {int(version)} calibration lacks {missing}")
+    if unknown:
+        raise ValueError(f"a version {int(version)} calibration has no members {unknown}")
+    arrays = {}
+    for name in required:
+        if members[name].dtype.kind not in "fiu":
+            raise ValueError(f"{name} holds {members[name].dtype} values, not real numbers")
+        arrays[name] = members[name].astype(np.float64)
+    return Calibration(settings=_settings(members["settings"]), **arrays)
+
+
+def _settings(stored: np.ndarray) -> CalibrationSettings:
+    """`CalibrationSettings` from their JSON text, each field's type checked."""
+    if stored.shape != () or stored.dtype.kind != "U":
+        raise ValueError(f"settings are not one text (JSON); found {stored.dtype} of shape {stored.shape}")
+    try:
+        raw = json.loads(str(stored))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"settings are not JSON: {error}") from None
+    kinds = typing.get_type_hints(CalibrationSettings)
+    if not isinstance(raw, dict) or set(raw) != set(kinds):
+        raise ValueError(f"settings are not the fields {sorted(kinds)}: {str(stored)[:200]}")
+    values = {}
+    for name, kind in kinds.items():
+        value = raw[name]
+        if kind is str:
+            valid = isinstance(value, str)
+        elif kind is int:
+            valid = isinstance(value, int) and not isinstance(value, bool)
+        elif kind is float:
+            valid = _is_number(value)
+        else:  # tuple[float, ...], a JSON list
+            valid = isinstance(value, list) and all(map(_is_number, value))
+        if not valid:
+            raise ValueError(f"setting {name} = {value!r} is not {kind.__name__ if isinstance(kind, type) else kind}")
+        if isinstance(value, list):
+            value = tuple(map(float, value))
+        elif kind is float:
+            value = float(value)
+        values[name] = value
+    return CalibrationSettings(**values)
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _checked_positions(positions: np.ndarray) -> np.ndarray:
@@ -314,7 +418,7 @@ def calibrate(
         frames = jnp.broadcast_to(clean, (noise_draws, *clean.shape)).reshape(-1, clean.shape[-1])
         if noise_percent > 0:
             frames = add_noise(frames, reference, Noise.percent(noise_percent), jax.random.fold_in(key, index))
-        images = np.asarray(reconstructions[b].reconstruct(frames)).reshape(noise_draws, len(positions), -1)
+        images = np.asarray(reconstructions[b].solve(frames).value).reshape(noise_draws, len(positions), -1)
         peaks = np.array([[metrics.peak(image) for image in draw] for draw in images]).mean(axis=0)
         sizes = np.array([[metrics.equivalent_radius(mesh, image) for image in draw] for draw in images]).mean(axis=0)
         centroids = [[metrics.half_amplitude_centroid(mesh, image) for image in draw] for draw in images]
@@ -363,12 +467,11 @@ def correct(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarr
     images = np.asarray(image, dtype=float)
     if images.ndim not in (1, 2) or images.shape[-1] != mesh.n_elements:
         raise ValueError(f"image has shape {images.shape}; expected ({mesh.n_elements},) or (T, {mesh.n_elements})")
-    finder = matplotlib.tri.Triangulation(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles).get_trifinder()
-    corrected = np.stack([_correct_one(calibration, mesh, finder, frame) for frame in np.atleast_2d(images)])
+    corrected = np.stack([_correct_one(calibration, mesh, frame) for frame in np.atleast_2d(images)])
     return corrected.reshape(images.shape)
 
 
-def _correct_one(calibration: Calibration, mesh: Mesh, finder, image: np.ndarray) -> np.ndarray:
+def _correct_one(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarray:
     components = metrics.amplitude_components(mesh, image)
     # Specks of noise in the half-amplitude set are no targets: they move with the nearest one.
     centroids = components.centroids[components.areas >= _TARGET_AREA_FRACTION * components.areas[0]]
@@ -379,6 +482,6 @@ def _correct_one(calibration: Calibration, mesh: Mesh, finder, image: np.ndarray
     owner = np.argmin(np.linalg.norm(mesh.element_centroids[:, None, :] - centroids[None], axis=2), axis=1)
     centre = centroids[owner][:, None, :]
     sources = (centre + (points - centre) / size[owner, None, None]).reshape(-1, 2)
-    element = np.asarray(finder(sources[:, 0], sources[:, 1]), dtype=int)
+    element = locate(mesh, sources)
     values = np.where(element >= 0, image[np.maximum(element, 0)], 0.0).reshape(points.shape[:2])
     return intensity[owner] * values.mean(axis=1)

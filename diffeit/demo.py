@@ -54,7 +54,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
     # The hyperparameter from the data (generalised cross-validation), never tuned to the truth;
     # a choice at an end of the candidates is still used (throw=False): the demo always draws its figure.
     hyperparameter = select_hyperparameter(model, difference, "gcv", background=BACKGROUND, throw=False).value
-    image = np.asarray(OneStep(model, "noser", hyperparameter, BACKGROUND).reconstruct(difference))
+    image = np.asarray(OneStep(model, "noser", hyperparameter, BACKGROUND).solve(difference).value)
     truth = BACKGROUND * TOUCH_CHANGE * meshes.disc_fraction(mesh, TOUCH_CENTRE, TOUCH_RADIUS)
     error = metrics.position_error(mesh, image, TOUCH_CENTRE)
 

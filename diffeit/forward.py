@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import warnings
-from typing import Literal, NamedTuple
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -28,8 +28,8 @@ from .protocol import Protocol
 from .results import RESULTS
 
 
-class Potentials(NamedTuple):
-    """The solution of every drive of a protocol.
+class Potentials(eqx.Module):
+    """The solution of every drive of a protocol (an equinox Module, as every result type).
 
     - `nodal`: (n_drives, N) potentials at the mesh nodes, volts.
     - `electrode`: (n_drives, L) electrode potentials U_l, volts, summing to zero per drive.
@@ -259,11 +259,11 @@ def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentia
     )
     nodal, electrode = system.split(solution)
     return Potentials(
-        nodal,
-        electrode,
-        relative_residual(system.pattern, values, solution, rhs),
-        backward_error(system.pattern, values, solution, rhs),
-        result,
+        nodal=nodal,
+        electrode=electrode,
+        relative_residual=relative_residual(system.pattern, values, solution, rhs),
+        backward_error=backward_error(system.pattern, values, solution, rhs),
+        result=result,
     )
 
 

@@ -43,6 +43,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import equinox as eqx
 import numpy as np
 import scipy.optimize
 import scipy.sparse
@@ -315,9 +316,9 @@ def _to_image_shape(geometry: Geometry, values: np.ndarray, fill) -> np.ndarray:
     return out
 
 
-@dataclass(frozen=True)
-class TargetFigures:
-    """Figures of merit per target of a multi-target image (`target_figures`).
+class TargetFigures(eqx.Module):
+    """Figures of merit per target of a multi-target image (`target_figures`); an equinox
+    Module, as every result type.
 
     Arrays over the K targets, in the order of the centres given; a target that no component
     matched has `component` -1 and NaN in every other per-target figure (by definition, not by

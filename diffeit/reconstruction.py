@@ -37,11 +37,9 @@ The result reports the relative misfit and the Pearson correlation between v and
 calibrated model on the readings used, and warns (`CalibrationWarning`) when the correlation
 is under 0.9: the model does not reproduce the reference, whatever the images show.
 
-Per-reading or per-channel gains are not fitted: on the Montreal 1995 reference a gain per
-drive and per measuring pair (32 factors, log-linear least squares) lowers the RMS log misfit
-from 0.995 to 0.978, on the IIRC 2006 reference from 0.079 to 0.078: the data do not support
-them. Normalised differences (`difference="normalised"`) divide by the reference reading by
-reading, which is a gain per reading.
+Per-reading or per-channel gains are not fitted (the real tanks do not support them:
+docs/tutorials/calibration.md). Normalised differences (`difference="normalised"`) divide by
+the reference reading by reading, which is a gain per reading.
 
 ## Which differences
 
@@ -56,26 +54,26 @@ reading, which is a gain per reading.
   hundreds.
 - "auto" (the default): "calibrated" when the calibrated model reproduces the reference
   (correlation at least 0.9), else "normalised": then the reference is not what the model
-  predicts, and gains per reading are the explanation left. Measured on the real tanks
-  (docs: tutorials, Real recordings): on the Montreal rod, whose reference correlates -0.48 with the
-  model (gains per channel), normalised differences put the rod on a circle to 0.7% of its
-  radius against 2.8%, and its peak at -3.4 against -15.7; on IIRC (correlation 0.997) both
-  trace the rod alike.
+  predicts, and gains per reading are the explanation left (measured on the real tanks:
+  docs/tutorials/real-recordings.md#which-differences).
 
 ## Hyperparameter "auto"
 
 The corner of the L-curve of the calibrated, normalised one-step problem, from all frames at
 once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`); when the corner sits at an end
-of the candidates, the noise figure 0.5 instead. On the real tanks (docs: "Real
-recordings") the L-curve traced the rod on both, GCV chose 20-50x too small a value on the
-Montreal frames, and the noise figure does not depend on the data at all.
+of the candidates, the noise figure 0.5 instead. Gauss-Newton iterates to the regularised
+minimiser and fits more of the noise than one linear step: its "auto" is 4 times the
+one-step's value. Total variation keeps the one-step's value; GREIT is designed for noise
+figure 0.5. How the rules were chosen, measured on the real tanks:
+docs/tutorials/real-recordings.md#the-hyperparameter-auto.
 
-Gauss-Newton iterates to the regularised minimiser and fits more of the noise than one linear
-step: its "auto" is 4 times the one-step's value. Measured on every fifth IIRC frame, the rod's
-track error (median distance from the circle over its radius) with the NOSER prior: 0.35 at
-the L-curve's 0.063, 0.19 at 0.1, 0.13 at 0.15, 0.05 at 0.2 and 0.3; with the Laplace prior
-(L-curve 0.014): 0.12 at 0.014, 0.06 from 0.03 to 0.1. Total variation keeps the one-step's
-value (its images traced the rods at it).
+## Solvers
+
+`reconstruct` images with a solver object of `diffeit.inverse` (`OneStep`, `GaussNewton`,
+`TotalVariation`, `GREIT`), built with or without a model: it builds the calibrated model
+itself and binds the solver to it and to the calibrated background (`solver.bound(model,
+background, hyperparameter=...)`). The `method` strings are shorthands for solvers with their
+defaults.
 """
 
 from __future__ import annotations
@@ -96,7 +94,16 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from .fit import background as fit_background
 from .forward import ForwardModel
-from .inverse import GREIT, GaussNewton, LinearisedProblem, OneStep, TotalVariation, select_hyperparameter
+from .inverse import (
+    GREIT,
+    AbsoluteGaussNewton,
+    AbstractSolver,
+    GaussNewton,
+    LinearisedProblem,
+    OneStep,
+    TotalVariation,
+    select_hyperparameter,
+)
 from .io import Recording, mesh_from_geometry
 from .mesh import Mesh, disc
 from .protocol import Protocol
@@ -131,8 +138,12 @@ _LEAST_CORRELATION = 0.9
 # most Levenberg-Marquardt steps of the per-electrode fit that follows.
 _CONTACT_GRID = np.logspace(-3, 3, 25)
 _CONTACT_STEPS = 20
-# Frames per batch of one-step reconstruction: one matrix product and one progress step each.
-_BATCH = 256
+# The solver each method names, and GREIT's design when its hyperparameter is "auto".
+_METHOD_SOLVERS = {"one_step": OneStep, "gauss_newton": GaussNewton, "total_variation": TotalVariation, "greit": GREIT}
+_GREIT_NOISE_FIGURE = 0.5
+# Frames per solve: one-step and GREIT in batches (one product and one progress step each), total
+# variation frame by frame (a progress step each), Gauss-Newton (and any other solver) all at once.
+_CHUNKS = {OneStep: 256, GREIT: 256, TotalVariation: 1}
 
 
 class CalibrationWarning(UserWarning):
@@ -204,16 +215,30 @@ def calibrate_to_reference(
     driven_readings: DrivenReadings = "auto",
     fit: bool = True,
 ) -> ReferenceCalibration:
-    """Calibrate `model` (the sheet's mesh, the recording's protocol, the nominal contact
-    impedance) to the `reference` frame (M,), or the mean of several untouched frames (T, M),
-    in the recording's units. `readings`: "signed" or "magnitude" (the recording's).
-    `background` (S/sq): sigma_0, the nominal level whose contact length z_0 sigma_0 the fit
-    keeps. `driven_readings`: "auto", "keep" or "drop" (module docstring). `fit=False` keeps
-    the nominal model as it is (level, contact impedance, orientation, every reading), signing
-    magnitudes only.
+    """Calibrate a model to a recording's reference frame.
 
-    Raises `ValueError` for a reference of the wrong shape or with non-finite values, an
-    unknown option, or a reference left without readings.
+    Fits the conductivity level (with the voltage unit), the orientation, the signs of
+    magnitudes, the readings on driven electrodes and the broken channels, in the order of the
+    module docstring ("Calibration"); docs/tutorials/calibration.md shows it at work.
+
+    Arguments:
+        model: The nominal model: the sheet's mesh, the recording's protocol, the nominal
+            contact impedance.
+        reference: The reference frame (M,), or several untouched frames (T, M) whose mean is
+            used, in the recording's units.
+        readings: "signed" or "magnitude" (the recording's).
+        background: sigma_0, S/sq: the nominal level whose contact length z_0 sigma_0 the fit
+            keeps.
+        driven_readings: "auto", "keep" or "drop" the readings on driven electrodes.
+        fit: False keeps the nominal model as it is (level, contact impedance, orientation,
+            every reading), signing magnitudes only.
+
+    Returns:
+        The `ReferenceCalibration`.
+
+    Raises:
+        ValueError: For a reference of the wrong shape or with non-finite values, an unknown
+            option, or a reference left without readings.
     """
     v = _reference_mean(reference, model.n_measurements)
     if readings not in ("signed", "magnitude"):
@@ -552,10 +577,23 @@ def _electrode_contact_impedances(
 
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
-    """The sheet a recording is imaged on: its geometry (with `h` when given; a simulation's
-    geometry names the reconstruction mesh, coarser than the one it was simulated on), else
-    its mesh, else a unit disc with the protocol's electrodes (width min(0.2, pi / L), element size `h`,
-    default 0.08)."""
+    """The sheet a recording is imaged on.
+
+    Its geometry (a simulation's geometry names the reconstruction mesh, coarser than the one
+    it was simulated on), else its mesh, else a unit disc with the protocol's electrodes
+    (width min(0.2, pi / L)).
+
+    Arguments:
+        recording: The recording.
+        h: The element size, m, of the geometry's mesh or the default disc (default 0.08 for
+            the disc); not for a recording that brings its mesh.
+
+    Returns:
+        The `diffeit.Mesh`.
+
+    Raises:
+        ValueError: For `h` given with a recording that brings its mesh.
+    """
     if recording.geometry is not None:
         geometry = dict(recording.geometry)
         if h is not None:
@@ -572,9 +610,10 @@ def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
 def reconstruct(
     recording: Recording,
     *,
-    method: Method = "one_step",
-    prior: str = "noser",
-    hyperparameter: float | str = "auto",
+    method: Method | None = None,
+    solver: AbstractSolver | None = None,
+    prior: str | None = None,
+    hyperparameter: float | str | None = None,
     calibrate: bool = True,
     mesh: Mesh | None = None,
     h: float | None = None,
@@ -588,84 +627,93 @@ def reconstruct(
     progress: bool = True,
     throw: bool = True,
 ) -> Recording:
-    """Image every frame of `recording` against its reference: the one call from recorded
-    frames to images.
+    """Image every frame of a recording against its reference: recorded frames to images in one call.
 
-    **Steps.** The reference is the recording's, its frame `reference_frame` when given, or the
-    mean of its first `REFERENCE_FRAMES` frames when it has none. The model (the sheet `mesh`,
-    else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` ohm m at
-    `background` S/sq) is calibrated to it (`calibrate_to_reference`, module docstring: level, orientation,
-    signs of magnitudes, driven readings, broken channels) unless `calibrate=False`; its
-    warnings are issued as `CalibrationWarning`. The frames are then imaged at the calibrated
-    state with `method`:
+    The reference is the recording's, its frame `reference_frame`, or the mean of its first
+    `REFERENCE_FRAMES` frames when it has none. The model (the sheet `mesh`, else
+    `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
+    `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
+    magnitudes, driven readings, broken channels; its warnings are issued as
+    `CalibrationWarning`), and optionally a smooth background map is fitted to it
+    (`diffeit.fit.background`). The frames' differences (module docstring, "Which
+    differences") are then imaged at that state by the solver: a solver object's settings
+    bound to the calibrated model and background (`solver.bound(model, background)`), or the
+    solver a `method` names. The choices and their measurements on real tanks are in
+    docs/tutorials/real-recordings.md.
 
-    - "one_step" (default): `diffeit.inverse.OneStep` with `prior`;
-    - "gauss_newton": `diffeit.inverse.GaussNewton(...).difference` with `prior`, from the
-      calibrated level;
-    - "total_variation": `diffeit.inverse.TotalVariation`;
-    - "greit": `diffeit.inverse.GREIT` (32 x 32 pixels, designed for noise figure 0.5 when the
-      hyperparameter is "auto", else with the given value), its pixels averaged back onto the
-      elements by their overlap areas.
+    Arguments:
+        recording: The frames, with their protocol (and reference, mesh or geometry).
+        method: A shorthand for a solver: "one_step" (`OneStep` with `prior`, the default),
+            "gauss_newton" (`GaussNewton` with `prior`), "total_variation" (`TotalVariation`)
+            or "greit" (`GREIT`, 32 x 32 pixels, designed for noise figure 0.5 when the
+            hyperparameter is "auto"). Not together with `solver`.
+        solver: A solver object (`OneStep`, `GaussNewton`, `TotalVariation`, `GREIT`; built
+            with or without a model): its settings are used, on the calibrated model and
+            background. Not a normalised `OneStep` (use `difference="normalised"`) nor
+            `AbsoluteGaussNewton`.
+        prior: The prior of "one_step" and "gauss_newton" (default "noser"); a solver object
+            brings its own.
+        hyperparameter: Unit-free, or "auto" (module docstring), or a method of
+            `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure"),
+            chosen from all frames at once. None: "auto" for a `method`, the solver's own
+            for a solver object (a value or rule given replaces it).
+        calibrate: Calibrate the model to the reference (False keeps the nominal model,
+            signing magnitudes only).
+        mesh: The sheet to image on; None for `default_mesh(recording, h)`.
+        h: Element size of the default mesh, m.
+        reference_frame: Image against this frame instead of the recording's reference.
+        difference: "auto", "calibrated" or "normalised" (module docstring).
+        driven_readings: "auto", "keep" or "drop" the readings on driven electrodes.
+        background_map: Fit a smooth background map (and, with driven readings kept, one
+            contact impedance per electrode) to the reference and image at that map;
+            relative images are then dsigma over the map.
+        background: The nominal background conductivity, S/sq.
+        contact_impedance: The nominal contact impedance, ohm m.
+        max_iterations: The iteration limit of "gauss_newton" and "total_variation" (None:
+            theirs, 20 and 100); a solver object brings its own.
+        progress: Show progress bars.
+        throw: Raise for a frame that failed (True), or record its code (False).
 
-    `background_map=True` then fits a smooth background map (and, with driven readings kept,
-    one contact impedance per electrode) to the reference with `diffeit.fit.background`, and
-    images at that map instead of the uniform level: relative images are dsigma over the map.
-    Off by default: on the IIRC tank the map lowers the reference's misfit from 8.0% to 3.9%
-    (it absorbs the model's own error) but the rod's track error only from 0.056 to 0.054, for
-    4.5 s more.
+    Returns:
+        The recording with `mesh`, `images` (T, E) and `image_quantity` filled in; its frames
+        and reference as recorded (a recording without one gets the reference it was imaged
+        against). With volts (`voltage_unit="V"`) the images are conductivity changes dsigma,
+        S/sq; in any other unit relative changes dsigma / sigma_h (unit-free). The
+        provenance's metadata holds the calibration (`ReferenceCalibration.summary`), the
+        method, prior, hyperparameter and how it was chosen (with what each selection method
+        gives and its code's name), every option, and the outcome: "results", the name of
+        each frame's `diffeit.results.RESULTS` code (the solver's; `nonfinite` for an image
+        that is not finite, which is then zero), "frames_failed", how many are not
+        "successful", and the background map's code in `["background_map"]["result"]`.
 
-    `hyperparameter`: unit-free, or "auto" (module docstring), or a method of
-    `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure"), chosen from all
-    frames at once. `difference`: "auto" (default), "calibrated" or "normalised" (module
-    docstring). `max_iterations`: the iteration limit of "gauss_newton" and "total_variation"
-    (None: theirs, 20 and 100).
-
-    **Failures.** Every frame gets a `diffeit.results.RESULTS` code: the solver's for
-    "gauss_newton" and "total_variation", `successful` for the direct "one_step" and "greit";
-    a frame whose image is not finite gets `nonfinite` (and, with `throw=False`, a zero image).
-    With `throw=True` (the default) a frame that failed raises `diffeit.results.SolverError`
-    naming the frames and the first failure's message, and so does a background map whose fit
-    failed (the frames would be imaged at it). With `throw=False` nothing raises: the codes
-    are in the metadata (below). A selection that ends at an end of its candidates never
-    raises, that of the hyperparameter ("auto" falls back by design) or of the background map
-    (`selection_at_boundary`: its misfit levelled off at the model's own error); their codes
-    are in the metadata too.
-
-    **Returns** the recording with `mesh`, `images` (T, E) and `image_quantity` filled in; its
-    frames and reference as recorded (a recording without one gets the reference it was imaged
-    against; `provenance["metadata"]["reference"]` says which). With volts (`voltage_unit="V"`)
-    the images are conductivity changes dsigma, S/sq; in any other unit, where no absolute
-    level is known, relative changes dsigma / sigma_h ("relative conductivity change",
-    unit-free). The provenance's metadata
-    holds the calibration (`ReferenceCalibration.summary`), the hyperparameter and how it was
-    chosen (with what each selection method gives and its code's name, "result"), every option,
-    and the outcome: "results", the name of each frame's code ("successful",
-    "max_iterations_reached", ...; one per frame), "frames_failed", how many are not
-    "successful", and the background map's code's name in `["background_map"]["result"]`.
-
-    Raises `ValueError` for a recording without frames, a bad option, or a reference the model
-    cannot be calibrated on; `diffeit.results.SolverError` as above.
+    Raises:
+        ValueError: For a recording without frames, a bad option, or a reference the model
+            cannot be calibrated on.
+        diffeit.results.SolverError: With `throw=True`, for a frame that failed or a background
+            map whose fit failed (a selection at an end of its candidates, of the
+            hyperparameter or of the map, never raises: its code is in the metadata).
     """
     start = time.perf_counter()
     if not isinstance(recording, Recording):
         raise ValueError(f"reconstruct takes a diffeit.io.Recording; got {type(recording).__name__}")
     if recording.n_frames == 0:
         raise ValueError("the recording holds no frames")
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
     if difference not in ("auto", "calibrated", "normalised"):
         raise ValueError(f'difference must be "auto", "calibrated" or "normalised"; got {difference!r}')
     if isinstance(hyperparameter, str) and hyperparameter not in SELECTION_METHODS:
         raise ValueError(
             f"hyperparameter must be a positive number or one of {SELECTION_METHODS}; got {hyperparameter!r}"
         )
-    if not isinstance(hyperparameter, str) and not (math.isfinite(hyperparameter) and hyperparameter > 0):
+    numeric = hyperparameter is not None and not isinstance(hyperparameter, str)
+    if numeric and not (math.isfinite(hyperparameter) and hyperparameter > 0):
         raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
-    if max_iterations is not None:
-        if method not in ("gauss_newton", "total_variation"):
-            raise ValueError(f"max_iterations applies to gauss_newton and total_variation, not {method}")
-        if int(max_iterations) != max_iterations or max_iterations < 1:
-            raise ValueError(f"max_iterations must be a positive integer; got {max_iterations}")
+    shorthand = solver is None
+    solver, method = _unbound_solver(method, solver, prior, max_iterations)
+    if shorthand:
+        prior = "noser" if prior is None else prior
+        hyperparameter = "auto" if hyperparameter is None else hyperparameter
+    else:
+        prior = getattr(solver, "prior", None)
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if recording.reference is not None or reference_frame is not None:
         reference = recording.reference_values(reference_frame)
@@ -715,13 +763,13 @@ def reconstruct(
     unsafe: list[int] = []
     if difference == "normalised":
         model, dv, unsafe = _normalised(model, dv, signed_reference, level, calibration)
-    if method == "greit" and hyperparameter == "auto":
-        value, choice = None, {"rule": "GREIT designed for noise figure 0.5", "method": "noise_figure"}
+    value, choice = _hyperparameter_of(solver, model, dv, hyperparameter, "noser" if prior is None else prior, level)
+    if isinstance(solver, GREIT) and hyperparameter == "auto":
+        solver = solver.bound(model, level, noise_figure=_GREIT_NOISE_FIGURE)
     else:
-        value, choice = _hyperparameter(model, dv, hyperparameter, prior, level)
-        if method == "gauss_newton" and hyperparameter == "auto":
-            value, choice = _GAUSS_NEWTON_FACTOR * value, {**choice, "gauss_newton_factor": _GAUSS_NEWTON_FACTOR}
-    images, value, codes = _images(model, dv, method, prior, value, level, max_iterations, progress)
+        solver = solver.bound(model, level, hyperparameter=value)
+    images, codes = _images(solver, dv, progress)
+    value = solver.hyperparameter
     codes = _nonfinite_marked(codes, images)
     if throw:
         throw_if_failed(images, codes, f"{method} reconstruction")
@@ -731,10 +779,10 @@ def reconstruct(
         images = images / level
     metadata = {
         "method": method,
-        "prior": prior,
+        "prior": prior if prior is None or isinstance(prior, str) else repr(prior),
         "hyperparameter": value,
         "hyperparameter_choice": choice,
-        "max_iterations": max_iterations,
+        "max_iterations": max_iterations if shorthand else getattr(solver, "max_iterations", None),
         "results": names(codes),
         "frames_failed": int(failed(codes).sum()),
         "difference": difference,
@@ -813,34 +861,76 @@ def _hyperparameter(model, dv, hyperparameter, prior, level) -> tuple[float, dic
     return choice[rule]["value"], {**choice, "method": rule}
 
 
-def _images(
-    model, dv, method, prior, hyperparameter, level, max_iterations, progress
-) -> tuple[np.ndarray, float, RESULTS]:
-    """(T, E) conductivity changes, S/sq, of the frames' differences `dv` at `level` (S/sq, a
-    scalar or a map), the hyperparameter used (GREIT's own when None), and the codes: the
-    solver's, one per frame, or one `RESULTS.successful` for all frames of the direct methods.
-    `max_iterations`: the iterative solvers' limit (None: their default)."""
-    limit = {} if max_iterations is None else {"max_iterations": max_iterations}
+def _unbound_solver(
+    method: str | None, solver: AbstractSolver | None, prior: str | None, max_iterations: int | None
+) -> tuple[AbstractSolver, str]:
+    """The solver `reconstruct` binds to the calibrated model (the one `method` names, or
+    `solver`) and the method's name for the metadata, after checking the options."""
+    if solver is not None:
+        if method is not None:
+            raise ValueError("give a method or a solver, not both")
+        if not isinstance(solver, AbstractSolver) or isinstance(solver, AbsoluteGaussNewton):
+            raise ValueError(
+                "solver must be a difference solver of diffeit.inverse (OneStep, GaussNewton, TotalVariation, "
+                f"GREIT); got {type(solver).__name__}"
+            )
+        if isinstance(solver, OneStep) and solver.normalised:
+            raise ValueError(
+                'reconstruct forms normalised differences itself (difference="normalised"): pass a OneStep with '
+                "normalised=False"
+            )
+        if prior is not None or max_iterations is not None:
+            raise ValueError("prior and max_iterations are settings of the solver object: set them there")
+        names = [name for name, kind in _METHOD_SOLVERS.items() if type(solver) is kind]
+        return solver, names[0] if names else type(solver).__name__
+    method = "one_step" if method is None else method
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    if max_iterations is not None:
+        if method not in ("gauss_newton", "total_variation"):
+            raise ValueError(f"max_iterations applies to gauss_newton and total_variation, not {method}")
+        if int(max_iterations) != max_iterations or max_iterations < 1:
+            raise ValueError(f"max_iterations must be a positive integer; got {max_iterations}")
+    limit = {} if max_iterations is None else {"max_iterations": int(max_iterations)}
+    prior = "noser" if prior is None else prior
     if method == "one_step":
-        solver = OneStep(model, prior=prior, hyperparameter=hyperparameter, background=level)
-        batches = range(0, len(dv), _BATCH)
-        bar = tqdm(batches, desc="reconstructing", unit="batch", disable=not progress or len(batches) < 2)
-        images = np.concatenate([np.asarray(solver.reconstruct(dv[i : i + _BATCH])) for i in bar])
-        return images, hyperparameter, RESULTS.successful
+        return OneStep(prior=prior), method
     if method == "gauss_newton":
-        result = GaussNewton(model, prior=prior, hyperparameter=hyperparameter, **limit).difference(
-            dv, background=level, throw=False
-        )
-        return np.atleast_2d(np.asarray(result.conductivity_change)), hyperparameter, result.result
-    if method == "greit":
-        greit = GREIT(
-            model, hyperparameter=hyperparameter, noise_figure=0.5 if hyperparameter is None else None, background=level
-        )
-        return greit.grid.to_elements(np.asarray(greit.reconstruct(dv))), greit.hyperparameter, RESULTS.successful
-    solver = TotalVariation(model, hyperparameter=hyperparameter, background=level, **limit)
-    solutions = [solver.solve(frame, throw=False) for frame in tqdm(dv, disable=not progress)]
-    codes = jax.tree_util.tree_map(lambda *frames: np.stack(frames), *(s.result for s in solutions))
-    return np.stack([np.asarray(s.conductivity_change) for s in solutions]), hyperparameter, codes
+        return GaussNewton(prior=prior, **limit), method
+    if method == "total_variation":
+        return TotalVariation(**limit), method
+    return GREIT(), method
+
+
+def _hyperparameter_of(
+    solver: AbstractSolver, model, dv, hyperparameter, prior, level
+) -> tuple[float | None, dict[str, Any]]:
+    """The hyperparameter to bind `solver` with (None: the solver's own, or GREIT's design for a
+    noise figure) and how it was chosen (module docstring, "Hyperparameter")."""
+    if hyperparameter is None:
+        return None, {"rule": "the solver's own"}
+    if isinstance(solver, GREIT) and hyperparameter == "auto":
+        return None, {"rule": f"GREIT designed for noise figure {_GREIT_NOISE_FIGURE}", "method": "noise_figure"}
+    value, choice = _hyperparameter(model, dv, hyperparameter, prior, level)
+    if isinstance(solver, GaussNewton) and hyperparameter == "auto":
+        value, choice = _GAUSS_NEWTON_FACTOR * value, {**choice, "gauss_newton_factor": _GAUSS_NEWTON_FACTOR}
+    return value, choice
+
+
+def _images(solver: AbstractSolver, dv: np.ndarray, progress: bool) -> tuple[np.ndarray, RESULTS]:
+    """(T, E) conductivity changes, S/sq, of the frames' differences `dv` by the bound
+    `solver`, and the solver's code of each frame; in chunks of frames (`_CHUNKS`), a progress
+    step each."""
+    size = next((size for kind, size in _CHUNKS.items() if isinstance(solver, kind)), len(dv))
+    starts = range(0, len(dv), size)
+    unit = "frame" if size == 1 else "batch"
+    bar = tqdm(starts, desc="reconstructing", unit=unit, disable=not progress or len(starts) < 2)
+    solutions = [solver.solve(dv[i : i + size], throw=False) for i in bar]
+    images = np.concatenate([np.asarray(solution.value) for solution in solutions])
+    codes = jax.tree_util.tree_map(
+        lambda *chunks: np.concatenate([np.asarray(chunk) for chunk in chunks]), *(s.result for s in solutions)
+    )
+    return images, codes
 
 
 def _nonfinite_marked(codes: RESULTS, images: np.ndarray) -> RESULTS:
@@ -849,4 +939,3 @@ def _nonfinite_marked(codes: RESULTS, images: np.ndarray) -> RESULTS:
     finite = np.all(np.isfinite(images), axis=1)
     codes = jax.tree_util.tree_map(lambda code: np.broadcast_to(code, finite.shape), codes)
     return jax.vmap(lambda ok, code: RESULTS.where(ok, code, RESULTS.nonfinite))(finite, codes)
-

@@ -62,7 +62,8 @@ class SolverError(RuntimeError):
 def failed(result: RESULTS) -> np.ndarray:
     """Boolean mask of the frames whose code is not `RESULTS.successful` (a concrete result;
     a 0-d mask for one frame)."""
-    return np.asarray(result != RESULTS.successful)
+    # NumPy on the concrete codes: an eager JAX comparison costs more than a small solve.
+    return np.asarray(result._value) != np.asarray(RESULTS.successful._value)
 
 
 def messages(result: RESULTS) -> list[str]:

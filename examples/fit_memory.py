@@ -84,7 +84,7 @@ def plain_images(found: fit.JointFit, model: de.ForwardModel, frames: np.ndarray
     fitted = de.ForwardModel(model.mesh, model.protocol, contact_impedance=np.asarray(found.contact_impedance))
     background = np.asarray(found.background)
     solver = de.inverse.OneStep(fitted, prior="noser", hyperparameter=HYPERPARAMETER, background=background)
-    return np.asarray(solver.reconstruct(frames - frames[0])) / background
+    return np.asarray(solver.solve(frames - frames[0]).value) / background
 
 
 @dataclasses.dataclass(frozen=True)

@@ -54,9 +54,14 @@ def reconstruct_montreal(
     # Normalised differences (V - V_ref) / V_ref cancel each channel's gain, and their ratio is
     # the same for the recorded magnitudes as for signed voltages.
     solver = de.inverse.OneStep(
-        model, prior="noser", hyperparameter=hyperparameter, background=BACKGROUND, normalised=True
+        model,
+        prior="noser",
+        hyperparameter=hyperparameter,
+        background=BACKGROUND,
+        normalised=True,
+        reference=recording.reference,
     )
-    images = np.asarray(solver.reconstruct(recording.difference(), reference=recording.reference))
+    images = np.asarray(solver.solve(recording.difference()).value)
     positions = np.array([de.metrics.half_amplitude_centroid(mesh, image) for image in images])
     return MontrealResult(images, mesh, positions, recording.times)
 

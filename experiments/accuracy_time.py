@@ -55,7 +55,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import diffeit as de
-from diffeit.inverse import GREIT, GaussNewton, OneStep, TotalVariation
+from diffeit.inverse import GREIT, AbsoluteGaussNewton, GaussNewton, OneStep, TotalVariation
 from diffeit.results import RESULTS, failed
 
 from ._study import (
@@ -111,7 +111,7 @@ def _converged(result: RESULTS) -> np.ndarray:
 def _one_step(prior: str) -> Method:
     def build(model):
         solver = OneStep(model, prior, HYPERPARAMETER, BACKGROUND)
-        return lambda frames, reference: (np.asarray(solver.reconstruct(frames - reference)) / BACKGROUND, None)
+        return lambda frames, reference: (np.asarray(solver.solve(frames - reference).value) / BACKGROUND, None)
 
     return Method(f"one-step {prior}", build, "one-step")
 
@@ -120,7 +120,7 @@ def _greit() -> Method:
     def build(model):
         solver = GREIT(model, noise_figure=0.5, background=BACKGROUND)
         return lambda frames, reference: (
-            solver.grid.to_elements(np.asarray(solver.reconstruct(frames - reference))) / BACKGROUND,
+            np.asarray(solver.solve(frames - reference).value) / BACKGROUND,  # pixels averaged onto the elements
             None,
         )
 
@@ -129,11 +129,18 @@ def _greit() -> Method:
 
 def _gauss_newton(iterations: int) -> Method:
     def build(model):
-        solver = GaussNewton(model, "laplace", HYPERPARAMETER, max_iterations=iterations, noise=NOISE_LEVELS["medium"])
+        solver = GaussNewton(
+            model,
+            "laplace",
+            HYPERPARAMETER,
+            background=BACKGROUND,
+            max_iterations=iterations,
+            noise=NOISE_LEVELS["medium"],
+        )
 
         def reconstruct(frames, reference):
-            result = solver.difference(frames - reference, background=BACKGROUND, throw=False)
-            return np.atleast_2d(np.asarray(result.conductivity_change)) / BACKGROUND, _converged(result.result)
+            solution = solver.solve(frames - reference, throw=False)
+            return np.atleast_2d(np.asarray(solution.value)) / BACKGROUND, _converged(solution.result)
 
         return reconstruct
 
@@ -142,12 +149,12 @@ def _gauss_newton(iterations: int) -> Method:
 
 def _absolute() -> Method:
     def build(model):
-        solver = GaussNewton(model, "laplace", HYPERPARAMETER, noise=NOISE_LEVELS["medium"])
+        solver = AbsoluteGaussNewton(model, "laplace", HYPERPARAMETER, noise=NOISE_LEVELS["medium"])
 
         def reconstruct(frames, reference):
-            result = solver.absolute(frames, throw=False)
-            sigma = np.atleast_2d(np.asarray(result.conductivity))
-            return sigma / np.median(sigma, axis=1, keepdims=True) - 1, _converged(result.result)
+            solution = solver.solve(frames, throw=False)
+            sigma = np.atleast_2d(np.asarray(solution.value))
+            return sigma / np.median(sigma, axis=1, keepdims=True) - 1, _converged(solution.result)
 
         return reconstruct
 
@@ -160,7 +167,7 @@ def _total_variation() -> Method:
 
         def reconstruct(frames, reference):
             solution = solver.solve(frames - reference, throw=False)
-            return np.asarray(solution.conductivity_change) / BACKGROUND, _converged(solution.result)
+            return np.asarray(solution.value) / BACKGROUND, _converged(solution.result)
 
         return reconstruct
 

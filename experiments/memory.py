@@ -118,17 +118,17 @@ def run(folder: Path, *, small: bool = False, progress: bool = True) -> Findings
     one_step = de.inverse.OneStep(reconstruction, "noser", HYPERPARAMETER, BACKGROUND)
 
     def images_of(frames: np.ndarray) -> np.ndarray:
-        return np.asarray(one_step.reconstruct(frames - frames[rest].mean(axis=0))) / BACKGROUND
+        return np.asarray(one_step.solve(frames - frames[rest].mean(axis=0)).value) / BACKGROUND
 
     # The memoryless press, noise-free: the simulation's model without the memory in between.
     data_model = model(simulation.mesh)
     fine_press = np.asarray(sc.stimulus(simulation.mesh, scene.touches, times[presses[0]][:1]))[0]
     ideal = (
         np.asarray(
-            one_step.reconstruct(
+            one_step.solve(
                 data_model.measure(BACKGROUND * (1 + fine_press))
                 - data_model.measure(np.full(fine_press.shape, BACKGROUND))
-            )
+            ).value
         )
         / BACKGROUND
     )

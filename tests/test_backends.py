@@ -78,10 +78,9 @@ for solver in ("dense_cholesky", "host_sparse"):
     reference = np.asarray(model.measure(np.full(mesh.n_elements, 0.01)))
     touched = np.asarray(model.measure(0.01 * (1 + change)))
     noise = np.random.default_rng(0).normal(0, 1e-3 * np.abs(reference).max(), (4, reference.size))
-    solution = de.inverse.GaussNewton(model, "laplace", 0.05, max_iterations=3).difference(
-        touched + noise - reference, background=0.01, throw=False
-    )
-    images.append(np.asarray(solution.conductivity_change))
+    solver = de.inverse.GaussNewton(model, "laplace", 0.05, background=0.01, max_iterations=3)
+    solution = solver.solve(touched + noise - reference, throw=False)
+    images.append(np.asarray(solution.value))
 print(np.abs(images[0] - images[1]).max() / np.abs(images[1]).max())
 """
 

@@ -124,7 +124,7 @@ def _plain_images(saved, mesh, recording) -> np.ndarray:
     from diffeit.cli._fit import fitted_one_step
 
     solver = fitted_one_step(saved, mesh, recording.protocol, ModelSettings())
-    return np.asarray(solver.reconstruct(recording.frames - recording.frames[0])) / np.asarray(saved.background)
+    return np.asarray(solver.solve(recording.frames - recording.frames[0]).value) / np.asarray(saved.background)
 
 
 @pytest.mark.slow
@@ -303,7 +303,7 @@ def test_live_memory_corrects_frame_by_frame_across_batches(scene, tmp_path):
 
 def _relative_images(viewer: _LiveViewer, batch: list, reference: np.ndarray) -> np.ndarray:
     differences = np.array([frame.values for frame in batch]) - reference
-    return np.asarray(viewer.solver.reconstruct(differences)) / np.asarray(viewer.fit.background)
+    return np.asarray(viewer.solver.solve(differences).value) / np.asarray(viewer.fit.background)
 
 
 @pytest.mark.slow

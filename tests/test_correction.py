@@ -3,6 +3,8 @@
 hand-made calibrations, the unit-free background, files."""
 
 import dataclasses
+import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +56,7 @@ def _touch_images(model, data_model, radius: float, intensity: float, draws: int
     frames = jnp.broadcast_to(clean, (draws, *clean.shape)).reshape(-1, clean.shape[-1])
     frames = add_noise(frames, reference, Noise.percent(MEDIUM_NOISE), jax.random.key(seed))
     reconstruction = de.inverse.OneStep(model, "noser", 0.05, background=BACKGROUND)
-    return np.asarray(reconstruction.reconstruct(frames)).reshape(draws, len(TEST_POSITIONS), -1)
+    return np.asarray(reconstruction.solve(frames).value).reshape(draws, len(TEST_POSITIONS), -1)
 
 
 def _relative_to_centre(mesh, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,12 +166,12 @@ def test_a_calibration_round_trips_through_a_file(calibration, tmp_path):
     np.testing.assert_array_equal(loaded.factors(points), calibration.factors(points))
 
     np.savez(tmp_path / "other.npz", schema=np.array("something else"), version=np.array(1))
-    with pytest.raises(ValueError, match="is not a diffeit calibration"):
+    with pytest.raises(ValueError, match=r"other\.npz: not a diffeit calibration"):
         correction.load(tmp_path / "other.npz")
     with np.load(path) as archive:
         fields = dict(archive)
     np.savez(tmp_path / "future.npz", **{**fields, "version": np.array(3)})
-    with pytest.raises(ValueError, match=r"format version 3; this diffeit reads 1\.\.2"):
+    with pytest.raises(ValueError, match=r"format version 3, a newer diffeit's; this diffeit reads 1\.\.2"):
         correction.load(tmp_path / "future.npz")
     # A version 1 file has no image positions: its factors are looked up at the true positions.
     old = {name: value for name, value in fields.items() if name != "image_positions"}
@@ -209,3 +211,93 @@ def test_bad_input_is_refused(models, calibration):
         dataclasses.replace(calibration, size_factor=-calibration.size_factor)
     with pytest.raises(ValueError, match=r"points must be finite \(x, y\) pairs"):
         calibration.factors(np.array([[np.nan, 0.0]]))
+
+
+# -- damaged calibration files ----------------------------------------------------------------
+
+
+def _hand_made() -> correction.Calibration:
+    """A small calibration (no simulation): 4 positions, 1 x 2 x 1 settings."""
+    rng = np.random.default_rng(9)
+    settings = correction.CalibrationSettings("noser", 0.05, (0.01,), (-0.4, -0.6), (0.2,), 0.5, 2, 0, 10, 20)
+    positions = np.array([[0.0, 0.0], [0.5, 0.0], [0.0, 0.5], [-0.4, -0.3]])
+    tables = [rng.uniform(0.5, 2.0, (1, 2, 1, 4)) for _ in range(2)]
+    return correction.Calibration(
+        positions, rng.uniform(0.5, 2.0, 4), rng.uniform(0.5, 2.0, 4), *tables, settings, positions * 0.9
+    )
+
+
+def _same(a: correction.Calibration, b: correction.Calibration) -> bool:
+    arrays = ("positions", "image_positions", "intensity_factor", "size_factor", "intensity_table", "size_table")
+    return a.settings == b.settings and all(np.array_equal(getattr(a, n), getattr(b, n)) for n in arrays)
+
+
+def test_a_calibration_file_cut_or_changed_anywhere_is_refused_or_read_whole(tmp_path):
+    """Every member of the .npz archive is read whole, so its CRC-32 is checked: a cut or a
+    flipped bit anywhere is refused naming the file, or changes nothing read (the archive's
+    local headers: times, the version needed, ...)."""
+    calibration = _hand_made()
+    data = calibration.save(tmp_path / "sound.npz").read_bytes()
+    assert _same(correction.load(tmp_path / "sound.npz"), calibration)
+    rng = np.random.default_rng(10)
+    path = tmp_path / "damaged.npz"
+    damaged = [data[:cut] for cut in [*range(0, len(data), 97), len(data) - 1]]
+    for offset, bit in zip(rng.integers(0, len(data), 300), rng.integers(0, 8, 300), strict=True):
+        flipped = bytearray(data)
+        flipped[offset] ^= 1 << bit
+        damaged.append(bytes(flipped))
+    refused = 0
+    for content in damaged:
+        path.write_bytes(content)
+        try:
+            assert _same(correction.load(path), calibration)
+        except ValueError as error:
+            assert str(error).startswith(f"{path}: ")
+            refused += 1
+    assert refused > 0.7 * len(damaged)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"version": np.array(3)}, r"format version 3, a newer diffeit's; this diffeit reads 1\.\.2"),
+        ({"version": np.array("2")}, "no format version"),
+        ({"schema": np.array("diffeit.frames")}, "not a diffeit calibration"),
+        ({"intensity_factor": np.ones(3)}, r"intensity_factor has shape \(3,\); expected \(4,\)"),
+        ({"intensity_table": np.ones((1, 1, 1, 4))}, r"intensity_table has shape \(1, 1, 1, 4\)"),
+        ({"size_factor": np.array(["a"] * 4)}, "size_factor holds <U1 values, not real numbers"),
+        ({"size_factor": np.ones(4, dtype=complex)}, "size_factor holds complex128 values"),
+        ({"size_factor": np.full(4, np.nan)}, "size_factor must be finite and positive"),
+        ({"positions": np.array([None] * 4)}, "'positions.npy' holds Python objects, which are not read"),
+        ({"settings": np.array("{")}, "settings are not JSON"),
+        ({"settings": np.array('{"prior": "noser"}')}, "settings are not the fields"),
+        ({"extra": np.ones(2)}, r"has no members \['extra'\]"),
+    ],
+)
+def test_a_calibration_file_of_other_fields_is_refused_naming_the_file(tmp_path, change, message):
+    path = _hand_made().save(tmp_path / "sound.npz")
+    with np.load(path) as archive:
+        fields = dict(archive)
+    np.savez(tmp_path / "changed.npz", **{**fields, **change})
+    with pytest.raises(ValueError, match=re.escape(str(tmp_path / "changed.npz")) + ": .*" + message):
+        correction.load(tmp_path / "changed.npz")
+
+
+def test_settings_of_another_type_and_other_files_are_refused(tmp_path):
+    path = _hand_made().save(tmp_path / "sound.npz")
+    with np.load(path) as archive:
+        fields = dict(archive)
+    settings = json.loads(str(fields["settings"]))
+    for name, value in (("noise_draws", 2.5), ("radii", [0.2, "big"]), ("prior", 3), ("seed", True)):
+        text = np.array(json.dumps({**settings, name: value}))
+        np.savez(tmp_path / "settings.npz", **{**fields, "settings": text})
+        with pytest.raises(ValueError, match=f"settings.npz: setting {name} = .* is not"):
+            correction.load(tmp_path / "settings.npz")
+    np.save(tmp_path / "array.npy", np.ones(3))
+    (tmp_path / "picture.npz").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    (tmp_path / "empty.npz").write_bytes(b"")
+    for name in ("array.npy", "picture.npz", "empty.npz"):
+        with pytest.raises(ValueError, match=f"{name}: not a readable .npz archive: BadZipFile"):
+            correction.load(tmp_path / name)
+    with pytest.raises(FileNotFoundError, match="no calibration file"):
+        correction.load(tmp_path / "missing.npz")

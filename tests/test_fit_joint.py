@@ -298,7 +298,7 @@ def test_three_presses_at_one_place_read_alike_without_ghosts():
     stimulus = np.asarray(result.stimulus)
     levels = touch_levels(stimulus)
     np.testing.assert_allclose(levels[1:] / levels[0], 1.0, atol=0.1)
-    plain = np.asarray(de.inverse.OneStep(model, "noser", 0.1, 0.01).reconstruct(frames - frames[0])) / 0.01
+    plain = np.asarray(de.inverse.OneStep(model, "noser", 0.1, 0.01).solve(frames - frames[0]).value) / 0.01
     assert ghost_energy(plain) >= 5 * ghost_energy(stimulus)
     assert result.misfit < 0.006
 

@@ -73,7 +73,7 @@ def test_grid_mask_and_areas(rec, model):
 
 
 def test_target_at_half_radius(rec, simulate):
-    image = np.asarray(rec.reconstruct(simulate((0.5, 0.0))))
+    image = np.asarray(rec.solve(simulate((0.5, 0.0))).stats["pixels"])
     assert image.shape == rec.shape and np.all(np.isfinite(image)) and np.all(image[~rec.grid.mask] == 0)
     error = de.metrics.position_error(rec.grid, image, (0.5, 0.0))
     assert error < POSITION_ERROR_LIMIT, error  # measured 0.010
@@ -81,7 +81,7 @@ def test_target_at_half_radius(rec, simulate):
     assert de.metrics.peak(image) == image[peak] > 0  # more conductive: a positive change
     assert np.linalg.norm(rec.grid.pixel_centres[peak] - [0.5, 0.0]) < 0.1
     # A less conductive target images with the opposite sign, at the same place.
-    darker = np.asarray(rec.reconstruct(simulate((0.5, 0.0), contrast=0.3)))
+    darker = np.asarray(rec.solve(simulate((0.5, 0.0), contrast=0.3)).stats["pixels"])
     assert de.metrics.peak(darker) < 0
     assert de.metrics.position_error(rec.grid, darker, (0.5, 0.0)) < POSITION_ERROR_LIMIT
 
@@ -92,7 +92,7 @@ def test_uniform_over_positions(rec, model, simulate):
     grid = pixel_grid(model.mesh, rec.shape)
     np.testing.assert_array_equal(grid.mask, rec.grid.mask)
     assert abs(grid.element_to_pixel - rec.grid.element_to_pixel).max() == 0
-    images = [np.asarray(rec.reconstruct(simulate(c, seed=i))) for i, c in enumerate(POSITIONS)]
+    images = [np.asarray(rec.solve(simulate(c, seed=i)).stats["pixels"]) for i, c in enumerate(POSITIONS)]
     errors = np.array([de.metrics.position_error(grid, image, c) for image, c in zip(images, POSITIONS, strict=True)])
     assert np.all(errors < POSITION_ERROR_LIMIT), errors
     assert np.ptp(errors) < POSITION_ERROR_SPREAD_LIMIT, errors
@@ -103,10 +103,15 @@ def test_uniform_over_positions(rec, model, simulate):
 
 def test_batch_equals_frames(rec, simulate):
     frames = np.stack([simulate(c, seed=i) for i, c in enumerate(POSITIONS[:3])])
-    batch = np.asarray(rec.reconstruct(frames))
-    assert batch.shape == (3, *rec.shape)
-    for frame, image in zip(frames, batch, strict=True):
-        np.testing.assert_allclose(image, np.asarray(rec.reconstruct(frame)), rtol=1e-12, atol=1e-15)
+    solution = rec.solve(frames)
+    batch = np.asarray(solution.stats["pixels"])
+    assert batch.shape == (3, *rec.shape) and de.results.names(solution.result) == ["successful"] * 3
+    # The value is on the mesh's elements: the pixels averaged onto them by their overlap areas.
+    np.testing.assert_allclose(solution.value, rec.grid.to_elements(batch), rtol=1e-10, atol=1e-12)
+    for frame, image, elements in zip(frames, batch, solution.value, strict=True):
+        alone = rec.solve(frame)
+        np.testing.assert_allclose(image, np.asarray(alone.stats["pixels"]), rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(elements, np.asarray(alone.value), rtol=1e-12, atol=1e-15)
 
 
 def test_jit_and_vmap_give_the_eager_images(rec, simulate):
@@ -115,26 +120,29 @@ def test_jit_and_vmap_give_the_eager_images(rec, simulate):
     import jax
 
     frames = jnp.asarray(np.stack([simulate(c, seed=i) for i, c in enumerate(POSITIONS[:3])]))
-    eager = np.asarray(rec.reconstruct(frames))
-    np.testing.assert_allclose(np.asarray(jax.jit(rec.reconstruct)(frames)), eager, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(np.asarray(jax.vmap(rec.reconstruct)(frames)), eager, rtol=1e-12, atol=1e-15)
-    single = rec.reconstruct(frames[0].astype(jnp.float32))
-    assert single.dtype == jnp.float32
-    np.testing.assert_allclose(np.asarray(single), eager[0], rtol=0, atol=1e-5 * np.abs(eager[0]).max())
+    eager = rec.solve(frames)
+    for solution in (jax.jit(rec.solve)(frames), jax.vmap(rec.solve)(frames)):
+        for name in ("value", "pixels"):
+            got, expected = (x.value if name == "value" else x.stats["pixels"] for x in (solution, eager))
+            np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-12, atol=1e-15)
+    single = rec.solve(frames[0].astype(jnp.float32))
+    assert single.value.dtype == single.stats["pixels"].dtype == jnp.float32
+    pixels = np.asarray(eager.stats["pixels"][0])
+    np.testing.assert_allclose(np.asarray(single.stats["pixels"]), pixels, rtol=0, atol=1e-5 * np.abs(pixels).max())
 
 
 def test_bad_voltages_are_refused(rec, model):
     n = model.n_measurements
     with pytest.raises(ValueError, match=r"shape \(207,\)"):
-        rec.reconstruct(np.zeros(n - 1))
+        rec.solve(np.zeros(n - 1))
     with pytest.raises(ValueError, match="expected"):
-        rec.reconstruct(np.zeros((2, 3, n)))
+        rec.solve(np.zeros((2, 3, n)))
     frames = np.zeros((4, n))
     frames[1, 5], frames[3, 0] = np.nan, np.inf
     with pytest.raises(ValueError, match=r"frame\(s\) \[1, 3\]"):
-        rec.reconstruct(frames)
+        rec.solve(frames)
     with pytest.raises(ValueError, match=r"frame\(s\) \[0\]"):
-        rec.reconstruct(np.full(n, np.nan))
+        rec.solve(np.full(n, np.nan))
     with pytest.raises(ValueError, match="shape"):
         de.metrics.position_error(rec.grid, np.zeros((3, 3)), (0, 0))
 
@@ -168,7 +176,7 @@ def test_finite_for_extreme_hyperparameters(model, simulate):
     for hyperparameter in (1e-8, 1e-4, 1e-1, 1e3):
         rec = GREIT(model, hyperparameter=hyperparameter, n_targets=200)
         assert np.all(np.isfinite(np.asarray(rec.matrix))), hyperparameter
-        image = np.asarray(rec.reconstruct(difference))
+        image = np.asarray(rec.solve(difference).stats["pixels"])
         assert np.all(np.isfinite(image)) and np.any(image != 0), hyperparameter
         assert np.isfinite(rec.noise_figure) and rec.noise_figure > 0
 
@@ -189,8 +197,8 @@ def test_unit_free_in_the_drive_current(model, simulate):
     """Voltages scale with the drive current; the normalised problem, hence the image, does not."""
     strong = de.ForwardModel(model.mesh, model.protocol, 0.01, drive_current=1.0)
     difference = simulate((0.0, 0.5))
-    image = np.asarray(GREIT(model, n_targets=200).reconstruct(difference))
-    scaled = np.asarray(GREIT(strong, n_targets=200).reconstruct(difference * 1e3))
+    image = np.asarray(GREIT(model, n_targets=200).solve(difference).stats["pixels"])
+    scaled = np.asarray(GREIT(strong, n_targets=200).solve(difference * 1e3).stats["pixels"])
     np.testing.assert_allclose(scaled, image, rtol=1e-8, atol=1e-10 * np.abs(image).max())
 
 
@@ -211,7 +219,22 @@ def test_rectangle_with_rectangular_grid():
     centre = (0.4, 0.1)
     sigma = 0.01 * (1 - 0.5 * de.mesh.disc_fraction(mesh, centre, 0.15))
     image = np.asarray(
-        rec.reconstruct(model.measure(jnp.asarray(sigma)) - model.measure(jnp.full(mesh.n_elements, 0.01)))
+        rec.solve(model.measure(jnp.asarray(sigma)) - model.measure(jnp.full(mesh.n_elements, 0.01))).stats["pixels"]
     )
     assert de.metrics.peak(image) < 0
     assert de.metrics.position_error(rec.grid, image, centre) < 0.1
+
+
+def test_a_design_for_a_noise_figure_is_kept_when_bound(model):
+    """Built without a model, GREIT keeps its design (a noise figure, or a hyperparameter) and
+    trains on the model it is bound to, as `diffeit.reconstruct` binds it."""
+    settings = GREIT(noise_figure=0.5, n_targets=200, grid=16)
+    assert settings.model is None and settings.shape == (16, 16) and settings.hyperparameter is None
+    with pytest.raises(ValueError, match="has no model"):
+        settings.solve(np.zeros(model.n_measurements))
+    bound = settings.bound(model, 2.0)
+    assert bound.noise_figure == pytest.approx(0.5, rel=1e-6) and bound.shape == (16, 16)
+    np.testing.assert_allclose(bound.problem.background, 2.0)
+    fixed = bound.bound(model, hyperparameter=0.3)
+    assert fixed.hyperparameter == 0.3 and not fixed.by_noise_figure
+    assert fixed.bound(model).hyperparameter == 0.3

@@ -88,7 +88,7 @@ def test_live_images_the_calibrated_relative_change(tmp_path, touch, capsys):
     assert viewer.calibration.correlation > 0.99
     assert viewer.calibration.conductivity == pytest.approx(scene.background.conductivity, rel=0.1)
     differences = viewer.calibration.signed(touch) - viewer.reference
-    images = np.asarray(viewer.solver.reconstruct(differences)) / viewer.calibration.conductivity
+    images = np.asarray(viewer.solver.solve(differences).value) / viewer.calibration.conductivity
     pressed = np.argmax(np.abs(images).max(axis=1))
     assert -1.0 < images[pressed].min() < -0.05  # a relative drop, not S/sq or volts
     # The untouched skin: only the reading noise (0.5%, against a reference of 2 frames).

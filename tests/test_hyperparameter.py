@@ -31,7 +31,7 @@ def _explicit(model, difference, hyperparameter):
     problem = LinearisedProblem(model, "noser")
     reconstruction = OneStep(model, "noser", hyperparameter)
     y = difference / problem.data_scale
-    x = np.asarray(reconstruction.reconstruct(difference))  # dsigma = x at background 1
+    x = np.asarray(reconstruction.solve(difference).value)  # dsigma = x at background 1
     residual = problem.jacobian @ x - y
     influence = problem.jacobian @ (np.asarray(reconstruction.matrix) * problem.data_scale)
     m = len(y)
@@ -142,7 +142,7 @@ def test_converted_hyperparameter_reproduces_pyeit_exactly(prior, method, expone
     solver = JAC(pyeit_mesh, pyeit_protocol.create(16, dist_exc=1, step_meas=1, parser_meas="std"))
     solver.setup(p=exponent, lamb=lamb, method=method, perm=background)
     theirs = np.real(solver.solve(v1=touched / model.drive_current, v0=reference / model.drive_current))
-    ours = np.asarray(reconstruction.reconstruct(touched - reference))
+    ours = np.asarray(reconstruction.solve(touched - reference).value)
     np.testing.assert_allclose(theirs, ours, rtol=1e-8, atol=1e-10 * np.abs(ours).max())
     back = de.inverse.from_external_hyperparameter(lamb, model, "pyeit", prior=prior, background=background)
     assert back == pytest.approx(0.1, rel=1e-12)

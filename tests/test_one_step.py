@@ -58,7 +58,7 @@ def test_the_issue_scene_beats_pyeit_with_a_selected_hyperparameter(scene):
     assert 2_700 <= model.n_elements <= 3_000
     selection = select_hyperparameter(model, difference, "gcv")
     reconstruction = OneStep(model, "noser", selection.value)
-    image = np.asarray(reconstruction.reconstruct(difference))
+    image = np.asarray(reconstruction.solve(difference).value)
     error, correlation = _figures(model, image, truth)
     assert error < 0.023 and correlation > 0.80, (error, correlation)
     lamb = de.inverse.to_external_hyperparameter(reconstruction, "pyeit")
@@ -81,7 +81,7 @@ def test_every_prior_with_every_selection_method_finds_the_inclusion(scene, prio
     """Measured position errors 0.001-0.052, correlations 0.74-0.88 over the 16 pairs."""
     model, difference, truth, _ = scene
     selection = select_hyperparameter(model, difference, method, prior=prior, noise=1.0)
-    image = np.asarray(OneStep(model, prior, selection.value).reconstruct(difference))
+    image = np.asarray(OneStep(model, prior, selection.value).solve(difference).value)
     error, correlation = _figures(model, image, truth)
     assert error < 0.07 and correlation > 0.7, (selection.value, error, correlation)
 
@@ -90,10 +90,10 @@ def test_the_hyperparameter_is_unit_free(scene):
     """Scaling the background conductivity or the drive current leaves the image of the
     relative change unchanged: the hyperparameter acts on the normalised problem."""
     model, difference, _, _ = scene
-    base = np.asarray(OneStep(model, "noser", 0.1).reconstruct(difference))
+    base = np.asarray(OneStep(model, "noser", 0.1).solve(difference).value)
     # sigma -> 50 sigma with z -> z / 50 and a 7x current: voltages scale by 7 / 50.
     scaled_model = de.ForwardModel(model.mesh, model.protocol, model.contact_impedance / 50, drive_current=7e-3)
-    scaled = np.asarray(OneStep(scaled_model, "noser", 0.1, background=50.0).reconstruct(difference * 7 / 50))
+    scaled = np.asarray(OneStep(scaled_model, "noser", 0.1, background=50.0).solve(difference * 7 / 50).value)
     np.testing.assert_allclose(scaled / 50, base, rtol=1e-8, atol=1e-10 * np.abs(base).max())
 
 
@@ -105,28 +105,33 @@ def test_normalised_differences_cancel_channel_gains(scene):
     gains = 1 + 0.05 * rng.standard_normal(model.n_measurements)
     reference = np.asarray(model.measure(jnp.ones(model.n_elements)))
     touched = np.asarray(model.measure(jnp.asarray(1 + truth)))
-    absolute = OneStep(model, "noser", 0.05).reconstruct(gains * (touched - reference))
-    normalised = OneStep(model, "noser", 0.05, normalised=True).reconstruct(
-        gains * (touched - reference), reference=gains * reference
-    )
-    ideal = OneStep(model, "noser", 0.05, normalised=True).reconstruct(touched - reference, reference=reference)
+    absolute = OneStep(model, "noser", 0.05).solve(gains * (touched - reference)).value
+    normalised = OneStep(model, "noser", 0.05, normalised=True, reference=gains * reference)
+    normalised = normalised.solve(gains * (touched - reference)).value
+    ideal = OneStep(model, "noser", 0.05, normalised=True, reference=reference).solve(touched - reference).value
     np.testing.assert_allclose(normalised, ideal, rtol=1e-10, atol=1e-12)
     assert de.metrics.correlation(model.mesh, truth, normalised) > de.metrics.correlation(model.mesh, truth, absolute)
     with pytest.raises(ValueError, match="pass reference"):
-        OneStep(model, "noser", 0.05, normalised=True).reconstruct(touched - reference)
+        OneStep(model, "noser", 0.05, normalised=True)
+    with pytest.raises(ValueError, match="only used for normalised differences"):
+        OneStep(model, "noser", 0.05, reference=reference)
+    with pytest.raises(ValueError, match=r"reference is zero at readings \[3\]"):
+        OneStep(model, "noser", 0.05, normalised=True, reference=np.where(np.arange(208) == 3, 0.0, reference))
 
 
 def test_a_batch_is_one_product_and_equals_frame_by_frame(scene):
     model, difference, _, _ = scene
     reconstruction = OneStep(model, "laplace", 0.05)
     frames = difference[None] * np.linspace(-1, 2, 7)[:, None]
-    batch = np.asarray(reconstruction.reconstruct(frames))
-    assert batch.shape == (7, model.n_elements)
+    solution = reconstruction.solve(frames)
+    batch = np.asarray(solution.value)
+    assert batch.shape == (7, model.n_elements) and de.results.names(solution.result) == ["successful"] * 7
+    assert solution.stats == {}
     for frame, image in zip(frames, batch, strict=True):
         np.testing.assert_allclose(
-            image, reconstruction.reconstruct(frame), rtol=1e-12, atol=1e-12 * np.abs(batch).max()
+            image, reconstruction.solve(frame).value, rtol=1e-12, atol=1e-12 * np.abs(batch).max()
         )
-    single = reconstruction.reconstruct(frames.astype(np.float32))
+    single = reconstruction.solve(frames.astype(np.float32)).value
     assert single.dtype == jnp.float32
     np.testing.assert_allclose(single, batch, rtol=1e-4, atol=1e-5 * np.abs(batch).max())
 
@@ -137,22 +142,23 @@ def test_jit_and_vmap_give_the_eager_images(scene):
     model, difference, _, reference = scene
     frames = jnp.asarray(difference[None] * np.linspace(-1, 2, 3)[:, None])
     absolute = OneStep(model, "laplace", 0.05)
-    eager = np.asarray(absolute.reconstruct(frames))
-    np.testing.assert_allclose(np.asarray(jax.jit(absolute.reconstruct)(frames)), eager, rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(np.asarray(jax.vmap(absolute.reconstruct)(frames)), eager, rtol=1e-12, atol=1e-15)
-    normalised = OneStep(model, "laplace", 0.05, normalised=True)
-    eager = np.asarray(normalised.reconstruct(frames, reference=reference))
-    jitted = jax.jit(normalised.reconstruct)(frames, jnp.asarray(reference))
-    np.testing.assert_allclose(np.asarray(jitted), eager, rtol=1e-12, atol=1e-15)
-    mapped = jax.vmap(normalised.reconstruct, in_axes=(0, None))(frames, jnp.asarray(reference))
-    np.testing.assert_allclose(np.asarray(mapped), eager, rtol=1e-12, atol=1e-15)
+    eager = np.asarray(absolute.solve(frames).value)
+    jitted = jax.jit(absolute.solve)(frames)
+    np.testing.assert_allclose(np.asarray(jitted.value), eager, rtol=1e-12, atol=1e-15)
+    assert de.results.names(jitted.result) == ["successful"] * 3
+    mapped = jax.vmap(absolute.solve)(frames)
+    np.testing.assert_allclose(np.asarray(mapped.value), eager, rtol=1e-12, atol=1e-15)
+    normalised = OneStep(model, "laplace", 0.05, normalised=True, reference=reference)
+    eager = np.asarray(normalised.solve(frames).value)
+    np.testing.assert_allclose(np.asarray(jax.jit(normalised.solve)(frames).value), eager, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(jax.vmap(normalised.solve)(frames).value), eager, rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.parametrize("hyperparameter", [1e-8, 1e-4, 1.0, 1e3])
 def test_extreme_hyperparameters_give_finite_images(scene, hyperparameter):
     model, difference, _, _ = scene
     for prior in ("noser", "laplace"):
-        image = np.asarray(OneStep(model, prior, hyperparameter).reconstruct(difference))
+        image = np.asarray(OneStep(model, prior, hyperparameter).solve(difference).value)
         assert np.all(np.isfinite(image)) and np.abs(image).max() > 0
 
 
@@ -165,13 +171,13 @@ def test_tiny_and_multiple_touches(scene):
     reference = np.asarray(model.measure(jnp.ones(model.n_elements)))
     reconstruction = OneStep(model, "noser", 0.05)
     tiny = 1 - 0.5 * de.mesh.disc_fraction(mesh, (0.3, 0.3), 0.025)
-    image = np.asarray(reconstruction.reconstruct(np.asarray(model.measure(jnp.asarray(tiny))) - reference))
+    image = np.asarray(reconstruction.solve(np.asarray(model.measure(jnp.asarray(tiny))) - reference).value)
     assert np.all(np.isfinite(image)) and de.metrics.peak(image) < 0
     assert de.metrics.position_error(mesh, image, (0.3, 0.3)) < 0.15
     centres = [(0.5, 0.0), (-0.25, 0.43), (-0.25, -0.43)]
     for count in (2, 3):
         touches = 1 - 0.5 * sum(de.mesh.disc_fraction(mesh, c, 0.15) for c in centres[:count])
-        image = np.asarray(reconstruction.reconstruct(np.asarray(model.measure(jnp.asarray(touches))) - reference))
+        image = np.asarray(reconstruction.solve(np.asarray(model.measure(jnp.asarray(touches))) - reference).value)
         assert np.all(np.isfinite(image))
         # Each touch has a half-amplitude component of its own within 0.3 m, and there is no other.
         figures = de.metrics.target_figures(mesh, image, centres[:count], max_distance=0.3)
@@ -182,11 +188,11 @@ def test_bad_frames_and_settings_are_refused(scene):
     model, difference, _, _ = scene
     reconstruction = OneStep(model, "noser", 0.1)
     with pytest.raises(ValueError, match=r"expected \(208,\) or \(T, 208\)"):
-        reconstruction.reconstruct(difference[:200])
+        reconstruction.solve(difference[:200])
     frames = np.stack([difference, difference, difference])
     frames[1, 5] = np.nan
     with pytest.raises(ValueError, match=r"not finite \(NaN or inf\) in frame\(s\) \[1\]"):
-        reconstruction.reconstruct(frames)
+        reconstruction.solve(frames)
     with pytest.raises(ValueError, match="hyperparameter must be finite and positive"):
         OneStep(model, "noser", 0.0)
     with pytest.raises(ValueError, match="unknown prior 'gauss'"):
@@ -195,3 +201,22 @@ def test_bad_frames_and_settings_are_refused(scene):
         OneStep(model, "noser", 0.1, background=-1.0)
     with pytest.raises(ValueError, match="correlation_length must be positive"):
         OneStep(model, Matern(0.0), 0.1)
+
+
+def test_a_solver_without_a_model_is_bound_later_and_an_overflow_is_a_failed_frame(scene):
+    """The settings alone, bound to a model and background later (as `diffeit.reconstruct`
+    does): the solver built on them directly. A frame whose image overflows is
+    `RESULTS.nonfinite`: raised with `throw=True`, returned with `throw=False`."""
+    model, difference, _, _ = scene
+    settings = OneStep(prior="laplace", hyperparameter=0.05)
+    assert settings.model is None and settings.matrix is None
+    with pytest.raises(ValueError, match="has no model"):
+        settings.solve(difference)
+    bound = settings.bound(model, 2.0)
+    direct = OneStep(model, "laplace", 0.05, background=2.0)
+    np.testing.assert_allclose(bound.solve(difference).value, direct.solve(difference).value, rtol=1e-12)
+    assert bound.bound(model, hyperparameter=0.1).hyperparameter == 0.1
+    frames = np.stack([difference, np.full(model.n_measurements, 1e308)])
+    with pytest.raises(de.results.SolverError, match=r"one-step reconstruction \(frames \[1\]\): a non-finite value"):
+        direct.solve(frames)
+    assert de.results.names(direct.solve(frames, throw=False).result) == ["successful", "nonfinite"]

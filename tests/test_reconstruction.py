@@ -257,8 +257,10 @@ def test_reading_by_reading_ratios_blow_up_where_the_default_does_not():
     assert any("normalised differences" in message for message in caught)
 
     model = de.ForwardModel(calibrated.mesh, protocol)
-    plain = de.inverse.OneStep(model, hyperparameter=0.05, background=0.01, normalised=True)
-    ratios = np.asarray(plain.reconstruct(recording.difference(), reference=recording.reference))
+    plain = de.inverse.OneStep(
+        model, hyperparameter=0.05, background=0.01, normalised=True, reference=recording.reference
+    )
+    ratios = np.asarray(plain.solve(recording.difference()).value)
 
     error = np.linalg.norm(de.metrics.half_amplitude_centroid(calibrated.mesh, -ratios[1]) - CENTRE)
     assert error > 0.3 > 0.12 > _position_error(calibrated)  # the ratios of near-zero readings lose the touch
@@ -469,3 +471,53 @@ def test_a_direct_method_marks_a_non_finite_image_and_a_selection_at_its_boundar
         de.reconstruct(noiseless, mesh=mesh, max_iterations=5, progress=False)
     with pytest.raises(ValueError, match="max_iterations must be a positive integer"):
         de.reconstruct(noiseless, mesh=mesh, method="gauss_newton", max_iterations=0, progress=False)
+
+
+def test_a_solver_object_is_bound_to_the_calibrated_model_with_its_own_settings():
+    """`solver=` takes any difference solver, built without a model (or on another one): its
+    settings, the calibrated model and level. The method's shorthand gives the same images."""
+    recording, mesh = _coarse_touch()
+    options = {"mesh": mesh, "progress": False}
+    shorthand = de.reconstruct(recording, method="one_step", prior="laplace", hyperparameter=0.05, **options)
+    unbound = de.reconstruct(recording, solver=de.inverse.OneStep(prior="laplace", hyperparameter=0.05), **options)
+    np.testing.assert_allclose(unbound.images, shorthand.images, rtol=1e-10, atol=1e-15)
+    metadata = unbound.provenance["metadata"]
+    assert metadata["method"] == "one_step" and metadata["prior"] == repr(de.inverse.Laplace())
+    assert metadata["hyperparameter"] == 0.05 and metadata["hyperparameter_choice"] == {"rule": "the solver's own"}
+    # Built on another model: re-bound; a hyperparameter given to reconstruct replaces the solver's.
+    other = de.ForwardModel(de.mesh.disc(16, h=0.3), recording.protocol)
+    bound = de.reconstruct(recording, solver=de.inverse.OneStep(other, "laplace", 0.3), hyperparameter=0.05, **options)
+    np.testing.assert_allclose(bound.images, shorthand.images, rtol=1e-10, atol=1e-15)
+    # An iterative solver's own limit, and its codes.
+    capped = de.reconstruct(
+        _coarse_touch(noise=0.0)[0],
+        solver=de.inverse.TotalVariation(hyperparameter=0.1, max_iterations=1),
+        throw=False,
+        **options,
+    )
+    assert capped.provenance["metadata"]["max_iterations"] == 1
+    assert capped.provenance["metadata"]["results"] == ["successful", "max_iterations_reached"]
+    # "auto" with a Gauss-Newton object: the selection, times four, as for the shorthand.
+    automatic = de.reconstruct(
+        recording, solver=de.inverse.GaussNewton(max_iterations=30), hyperparameter="auto", **options
+    )
+    assert automatic.provenance["metadata"]["hyperparameter_choice"]["gauss_newton_factor"] == 4.0
+
+
+def test_a_solver_object_that_does_not_fit_is_refused():
+    recording, mesh = _coarse_touch()
+    options = {"mesh": mesh, "progress": False}
+    with pytest.raises(ValueError, match="not both"):
+        de.reconstruct(recording, method="greit", solver=de.inverse.GREIT(), **options)
+    with pytest.raises(ValueError, match="settings of the solver object"):
+        de.reconstruct(recording, solver=de.inverse.OneStep(), prior="laplace", **options)
+    with pytest.raises(ValueError, match="settings of the solver object"):
+        de.reconstruct(recording, solver=de.inverse.TotalVariation(), max_iterations=3, **options)
+    with pytest.raises(ValueError, match="difference solver"):
+        de.reconstruct(recording, solver=de.inverse.AbsoluteGaussNewton(), **options)
+    with pytest.raises(ValueError, match="difference solver"):
+        de.reconstruct(recording, solver="one_step", **options)
+    model = de.ForwardModel(mesh, recording.protocol)
+    normalised = de.inverse.OneStep(model, normalised=True, reference=recording.reference)
+    with pytest.raises(ValueError, match="normalised differences itself"):
+        de.reconstruct(recording, solver=normalised, **options)

@@ -85,14 +85,14 @@ def test_sharper_than_one_step_laplace_at_the_same_data_fit(scene, solution):
     rather than -0.5: linearised at the background, a halving reads about as its logarithm."""
     model, difference, truth = scene
     mesh = model.mesh
-    tv_image = np.asarray(solution.conductivity_change)
-    residual = float(solution.residual_norm)
+    tv_image = np.asarray(solution.value)
+    residual = float(solution.stats["residual_norm"])
     noise_norm = NOISE / 100 * np.sqrt(model.n_measurements)
     selection = select_hyperparameter(
         model, difference, "discrepancy", prior="laplace", noise=NOISE, safety=residual / noise_norm
     )
     one_step = OneStep(model, "laplace", selection.value)
-    one_step_image = np.asarray(one_step.reconstruct(difference))
+    one_step_image = np.asarray(one_step.solve(difference).value)
     one_step_residual = np.linalg.norm(
         one_step.problem.jacobian @ one_step_image - one_step.problem.normalised_data(difference)
     )
@@ -124,51 +124,51 @@ def test_the_solution_is_the_minimiser(scene, reconstruction, solution):
     gradient of 1e-7 still leaves that much); at gradient_tolerance 1e-12 (16 iterations) the
     image is 7e-5 of its peak from L-BFGS's and f lower by 4e-12 of f."""
     model, difference, _ = scene
-    image = jnp.asarray(solution.conductivity_change)
+    image = jnp.asarray(solution.value)
     gradient = jax.jit(jax.grad(reconstruction.objective))
     scale = float(jnp.abs(gradient(jnp.zeros(model.n_elements), difference)).max())
     gradient_norm = float(jnp.abs(gradient(image, difference)).max()) / scale
     assert gradient_norm < reconstruction.gradient_tolerance
-    np.testing.assert_allclose(float(solution.gradient_norm), gradient_norm, rtol=1e-6)
+    np.testing.assert_allclose(float(solution.stats["gradient_norm"]), gradient_norm, rtol=1e-6)
 
     def objective(x, args):
         return reconstruction.objective(x, difference)
 
-    warm_start = OneStep(model, "laplace", reconstruction.hyperparameter).reconstruct(difference)
+    warm_start = OneStep(model, "laplace", reconstruction.hyperparameter).solve(difference).value
     solver = optx.LBFGS(rtol=1e-8, atol=1e-10, history_length=10)
     reference = optx.minimise(objective, solver, jnp.asarray(warm_start), max_steps=20_000, throw=False)
     assert reference.result == optx.RESULTS.successful
     lowest = float(objective(reference.value, None))
     peak = float(jnp.abs(reference.value).max())
-    assert float(solution.objective) <= lowest * (1 + 5e-9)
+    assert float(solution.stats["objective"]) <= lowest * (1 + 5e-9)
     np.testing.assert_allclose(image, reference.value, rtol=0, atol=5e-3 * peak)
 
     tight = TotalVariation(model, reconstruction.hyperparameter, gradient_tolerance=1e-12).solve(difference)
-    assert tight.result == RESULTS.successful and int(tight.iterations) <= 25
-    assert float(tight.objective) <= lowest * (1 + 1e-12)
-    np.testing.assert_allclose(tight.conductivity_change, reference.value, rtol=0, atol=5e-4 * peak)
+    assert tight.result == RESULTS.successful and int(tight.stats["iterations"]) <= 25
+    assert float(tight.stats["objective"]) <= lowest * (1 + 1e-12)
+    np.testing.assert_allclose(tight.value, reference.value, rtol=0, atol=5e-4 * peak)
 
 
 def test_objective_decreases_and_convergence_is_reported(scene, reconstruction, solution):
     """Tens of iterations, not hundreds (measured: 11), the objective lower than the warm
     start's, and an iteration limit reported as such."""
     model, difference, _ = scene
-    warm_start = OneStep(model, "laplace", reconstruction.hyperparameter).reconstruct(difference)
+    warm_start = OneStep(model, "laplace", reconstruction.hyperparameter).solve(difference).value
     start = float(reconstruction.objective(warm_start, difference))
-    final = float(solution.objective)
+    final = float(solution.stats["objective"])
     assert final < start < float(reconstruction.objective(jnp.zeros(model.n_elements), difference))
-    np.testing.assert_allclose(final, reconstruction.objective(solution.conductivity_change, difference), rtol=1e-12)
+    np.testing.assert_allclose(final, reconstruction.objective(solution.value, difference), rtol=1e-12)
     assert solution.result == RESULTS.successful
-    assert float(solution.gradient_norm) < reconstruction.gradient_tolerance
-    assert 5 <= int(solution.iterations) <= 20
+    assert float(solution.stats["gradient_norm"]) < reconstruction.gradient_tolerance
+    assert 5 <= int(solution.stats["iterations"]) <= 20
 
     short = TotalVariation(model, reconstruction.hyperparameter, max_iterations=3)
     cut = short.solve(difference, throw=False)
-    assert cut.result == RESULTS.max_iterations_reached and int(cut.iterations) == 3
-    assert float(cut.gradient_norm) > reconstruction.gradient_tolerance
-    assert final < float(cut.objective) < start  # every iteration decreases f
+    assert cut.result == RESULTS.max_iterations_reached and int(cut.stats["iterations"]) == 3
+    assert float(cut.stats["gradient_norm"]) > reconstruction.gradient_tolerance
+    assert final < float(cut.stats["objective"]) < start  # every iteration decreases f
     with pytest.raises(SolverError, match=r"total variation \(frames \[0\]\): the iteration limit was reached"):
-        short.reconstruct(difference[None])
+        short.solve(difference[None])
 
 
 @pytest.mark.slow
@@ -177,15 +177,17 @@ def test_a_batch_equals_frame_by_frame(small_model, small_frames):
     (the same iterations, to rounding: the batched products round differently)."""
     reconstruction = TotalVariation(small_model, 0.05)
     singles = [reconstruction.solve(frame) for frame in small_frames]
-    images = np.stack([single.conductivity_change for single in singles])
+    images = np.stack([single.value for single in singles])
     scale = np.abs(images).max()
     batch = reconstruction.solve(small_frames)
-    assert batch.conductivity_change.shape == (3, small_model.n_elements)
+    assert batch.value.shape == (3, small_model.n_elements)
     assert np.all(batch.result == RESULTS.successful)
-    np.testing.assert_array_equal(batch.iterations, [int(single.iterations) for single in singles])
-    np.testing.assert_allclose(batch.conductivity_change, images, rtol=0, atol=1e-9 * scale)
-    np.testing.assert_allclose(batch.objective, [float(single.objective) for single in singles], rtol=1e-12)
-    single = reconstruction.reconstruct(small_frames[0].astype(np.float32))
+    np.testing.assert_array_equal(batch.stats["iterations"], [int(single.stats["iterations"]) for single in singles])
+    np.testing.assert_allclose(batch.value, images, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(
+        batch.stats["objective"], [float(single.stats["objective"]) for single in singles], rtol=1e-12
+    )
+    single = reconstruction.solve(small_frames[0].astype(np.float32)).value
     assert single.dtype == jnp.float32
     np.testing.assert_allclose(single, images[0], rtol=0, atol=1e-6 * scale)
 
@@ -199,19 +201,19 @@ def test_the_backends_agree(small_disc, small_model, small_frames):
     host = TotalVariation(small_model, 0.05).solve(small_frames)
     dense = TotalVariation(dense_model, 0.05).solve(small_frames)
     assert np.all(dense.result == RESULTS.successful)
-    np.testing.assert_array_equal(dense.iterations, host.iterations)
-    scale = float(jnp.abs(host.conductivity_change).max())
-    np.testing.assert_allclose(dense.conductivity_change, host.conductivity_change, rtol=0, atol=1e-5 * scale)
+    np.testing.assert_array_equal(dense.stats["iterations"], host.stats["iterations"])
+    scale = float(jnp.abs(host.value).max())
+    np.testing.assert_allclose(dense.value, host.value, rtol=0, atol=1e-5 * scale)
 
 
 @pytest.mark.slow
 def test_the_hyperparameter_is_unit_free(small_model, small_frames):
     """A 50x background and a 7x drive current give the same relative image."""
-    base = TotalVariation(small_model, 0.05).reconstruct(small_frames[0])
+    base = TotalVariation(small_model, 0.05).solve(small_frames[0]).value
     scaled_model = de.ForwardModel(
         small_model.mesh, small_model.protocol, small_model.contact_impedance / 50, drive_current=7e-3
     )
-    scaled = TotalVariation(scaled_model, 0.05, background=50.0).reconstruct(small_frames[0] * 7 / 50)
+    scaled = TotalVariation(scaled_model, 0.05, background=50.0).solve(small_frames[0] * 7 / 50).value
     np.testing.assert_allclose(scaled / 50, base, rtol=0, atol=1e-4 * float(jnp.abs(base).max()))
 
 
@@ -224,13 +226,13 @@ def test_extreme_hyperparameters_give_finite_images(small_model, small_frames, h
     are finite, the report is consistent, and every frame converges."""
     reconstruction = TotalVariation(small_model, hyperparameter)
     solution = reconstruction.solve(small_frames)
-    image = np.asarray(solution.conductivity_change)
+    image = np.asarray(solution.value)
     assert np.all(np.isfinite(image)) and np.all(np.abs(image).max(axis=1) > 0)
-    assert np.all(np.isfinite(np.asarray(solution.objective)))
+    assert np.all(np.isfinite(np.asarray(solution.stats["objective"])))
     converged = ~failed(solution.result)
-    assert np.all(np.asarray(solution.gradient_norm)[converged] <= reconstruction.gradient_tolerance)
-    assert np.all(np.asarray(solution.iterations) <= reconstruction.max_iterations)
-    assert np.all(converged) and np.all(np.asarray(solution.iterations) <= 10)
+    assert np.all(np.asarray(solution.stats["gradient_norm"])[converged] <= reconstruction.gradient_tolerance)
+    assert np.all(np.asarray(solution.stats["iterations"]) <= reconstruction.max_iterations)
+    assert np.all(converged) and np.all(np.asarray(solution.stats["iterations"]) <= 10)
 
 
 def test_bad_frames_and_settings_are_refused(small_model, small_frames):
@@ -238,11 +240,11 @@ def test_bad_frames_and_settings_are_refused(small_model, small_frames):
     with pytest.raises(ValueError, match=r"expected \(208,\) or \(T, 208\)"):
         reconstruction.solve(small_frames[0, :200])
     with pytest.raises(ValueError, match=r"expected \(208,\) or \(T, 208\)"):
-        reconstruction.reconstruct(small_frames[None])
+        reconstruction.solve(small_frames[None])
     frames = small_frames.copy()
     frames[1, 5] = np.inf
     with pytest.raises(ValueError, match=r"not finite \(NaN or inf\) in frame\(s\) \[1\]"):
-        reconstruction.reconstruct(frames)
+        reconstruction.solve(frames)
     for settings, message in [
         ({"hyperparameter": 0.0}, "hyperparameter must be finite and positive"),
         ({"hyperparameter": np.nan}, "hyperparameter must be finite and positive"),
@@ -254,3 +256,9 @@ def test_bad_frames_and_settings_are_refused(small_model, small_frames):
     ]:
         with pytest.raises(ValueError, match=message):
             TotalVariation(small_model, **{"hyperparameter": 0.05, **settings})
+    settings = TotalVariation(hyperparameter=0.1, max_iterations=7, smoothing=1e-2)
+    with pytest.raises(ValueError, match="has no model"):
+        settings.solve(small_frames)
+    bound = settings.bound(small_model, 2.0)
+    assert (bound.hyperparameter, bound.max_iterations, bound.smoothing) == (0.1, 7, 1e-2)
+    np.testing.assert_allclose(bound.problem.background, 2.0)

@@ -200,7 +200,7 @@ def _fit_file(arguments: argparse.Namespace) -> int:
 
     reference = np.mean(recording.frames[: arguments.reference_frames], axis=0)
     solver = fitted_one_step(fit, mesh, recording.protocol, settings)
-    before = np.asarray(solver.reconstruct(recording.frames - reference)) / np.asarray(fit.background)
+    before = np.asarray(solver.solve(recording.frames - reference, throw=False).value) / np.asarray(fit.background)
     nonfinite = np.flatnonzero(~np.all(np.isfinite(before), axis=1))
     if nonfinite.size:
         failures["images_before"] = f"the one-step images of frames {name_indices(nonfinite)} are not finite"

@@ -380,9 +380,9 @@ class _LiveViewer:
         values = np.array([frame.values for frame in batch])
         if self.fit is None:
             differences = self.calibration.signed(values) - self.reference
-            images = np.asarray(self.solver.reconstruct(differences)) / self.calibration.conductivity
+            images = np.asarray(self.solver.solve(differences, throw=False).value) / self.calibration.conductivity
         else:
-            images = np.asarray(self.solver.reconstruct(values - self.reference))
+            images = np.asarray(self.solver.solve(values - self.reference, throw=False).value)
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()

@@ -72,13 +72,13 @@ class ModelSettings:
         silent = np.zeros((1, model.n_measurements))
         return select_hyperparameter(model, silent, "noise_figure", prior=self.prior, background=background).value
 
-    def solver(self, model: ForwardModel, *, hyperparameter: float | None = None, normalised: bool = False) -> OneStep:
+    def solver(self, model: ForwardModel, *, hyperparameter: float | None = None) -> OneStep:
         """The one-step solver on `model`; `hyperparameter`: the value a selection method chose,
         when the settings name one."""
         from ..inverse import OneStep
 
         value = self.hyperparameter if hyperparameter is None else hyperparameter
-        return OneStep(model, prior=self.prior, hyperparameter=value, background=self.background, normalised=normalised)
+        return OneStep(model, prior=self.prior, hyperparameter=value, background=self.background)
 
 
 _DEFAULTS = ModelSettings()

@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..inverse import GaussNewton, GaussNewtonResult, LinearisedProblem
+from ..inverse import AbsoluteGaussNewton, LinearisedProblem, Solution
 from ..inverse.linearised import check_frames
 from ..inverse.priors import AbstractPrior, prior_named
 from ..protocol import Protocol
@@ -177,29 +177,34 @@ def background(
     noise_std = _noise_std(frames, model.protocol, noise, needed=hyperparameter is None or estimate_gain)
     expected = noise_std * np.sqrt(model.n_measurements / len(frames))
 
-    def solve(value: float) -> GaussNewtonResult:
-        solver = GaussNewton(
+    def solve(value: float) -> Solution:
+        solver = AbsoluteGaussNewton(
             model,
             prior,
             value,
+            estimate_contact_impedance=estimate_contact_impedance,
             max_iterations=max_iterations,
             contact_impedance_spread=contact_impedance_spread,
         )
-        return solver.absolute(data, estimate_contact_impedance=estimate_contact_impedance, throw=False)
+        return solver.solve(data, throw=False)
 
     fit = solve(hyperparameter if hyperparameter is not None else _CANDIDATES[0])
-    objective = _Objective(model, prior, data, fit.reference, contact_impedance_spread)
+    objective = _Objective(model, prior, data, fit.stats["reference"], contact_impedance_spread)
     # GaussNewton's normalised misfit ||V - v|| / s_d in units of the expected noise norm.
     scale = objective.data_scale / expected
     if hyperparameter is None:
-        selection = _select(solve, lambda f: f.misfit * scale, fit, discrepancy_safety, estimate_gain, progress)
+
+        def ratio(solution: Solution) -> float:
+            return solution.stats["misfit"] * scale
+
+        selection = _select(solve, ratio, fit, discrepancy_safety, estimate_gain, progress)
     else:
-        selection = _Selection(hyperparameter, fit, [hyperparameter], [fit.misfit * scale], RESULTS.successful)
+        selection = _Selection(hyperparameter, fit, [hyperparameter], [fit.stats["misfit"] * scale], RESULTS.successful)
     fit = selection.fit
-    unknowns = {"s": np.log(fit.conductivity)}
+    unknowns = {"s": np.log(fit.value)}
     if estimate_contact_impedance:
-        unknowns["w"] = np.log(fit.contact_impedance)
-    objectives, result = np.asarray(fit.history), _first_failure(selection.result, fit.result)
+        unknowns["w"] = np.log(fit.stats["contact_impedance"])
+    objectives, result = np.asarray(fit.stats["history"]), _first_failure(selection.result, fit.result)
     norms = np.full(len(objectives), np.nan)
     # The gain's prior against the data term: the noise variance of v over s_d^2, per unit of
     # (ln g / gain_spread)^2.
@@ -233,7 +238,7 @@ def background(
         conductivity=conductivity,
         contact_impedance=contact_impedance,
         gain=gain,
-        homogeneous=float(fit.reference[0]),
+        homogeneous=float(fit.stats["reference"][0]),
         misfit=float(np.linalg.norm(voltages - data) / np.linalg.norm(data)),
         hyperparameter=float(selection.value),
         noise=float(noise_std),
@@ -306,16 +311,16 @@ class _Selection(eqx.Module):
     """The chosen hyperparameter, its fit, and every candidate's discrepancy ratio."""
 
     value: float
-    fit: GaussNewtonResult
+    fit: Solution
     candidates: list[float]
     discrepancy: list[float]
     result: RESULTS
 
 
 def _select(
-    solve: Callable[[float], GaussNewtonResult],
-    ratio: Callable[[GaussNewtonResult], float],
-    first: GaussNewtonResult,
+    solve: Callable[[float], Solution],
+    ratio: Callable[[Solution], float],
+    first: Solution,
     safety: float,
     levelling_expected: bool,
     progress: bool,

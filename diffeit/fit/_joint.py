@@ -962,7 +962,7 @@ def _one_step_images(
     fitted = eqx.tree_at(lambda m: m.contact_impedance, model, z)
     one_step = OneStep(fitted, "noser", hyperparameter, np.asarray(background))
     reference = jnp.mean(frames[:reference_frames], axis=0)
-    images = one_step.reconstruct(frames - reference) / background
+    images = one_step.solve(frames - reference).value / background
     gain = np.linalg.norm(np.asarray(one_step.matrix), axis=1) / np.asarray(background)
     return images, data_scale * np.sqrt(1 + 1 / reference_frames) * gain
 

@@ -1,7 +1,12 @@
-"""Reconstruction: conductivity images from boundary voltages."""
+"""Reconstruction: conductivity images from boundary voltages.
 
+Every method is a solver object (`OneStep`, `GREIT`, `GaussNewton`, `AbsoluteGaussNewton`,
+`TotalVariation`) holding its settings, with one call `solver.solve(data, throw=True)` that
+returns a `Solution` (`value`, `result`, `stats`).
+"""
+
+from .gauss_newton import AbsoluteGaussNewton as AbsoluteGaussNewton
 from .gauss_newton import GaussNewton as GaussNewton
-from .gauss_newton import GaussNewtonResult as GaussNewtonResult
 from .greit import GREIT as GREIT
 from .hyperparameter import HyperparameterSelection as HyperparameterSelection
 from .hyperparameter import from_external_hyperparameter as from_external_hyperparameter
@@ -13,5 +18,6 @@ from .priors import Laplace as Laplace
 from .priors import Matern as Matern
 from .priors import Noser as Noser
 from .priors import Tikhonov as Tikhonov
+from .solution import AbstractSolver as AbstractSolver
+from .solution import Solution as Solution
 from .total_variation import TotalVariation as TotalVariation
-from .total_variation import TotalVariationSolution as TotalVariationSolution

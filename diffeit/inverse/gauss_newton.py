@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from functools import partial
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -14,9 +14,10 @@ import scipy.linalg
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..results import RESULTS, throw_if_failed
+from ..results import RESULTS
 from .linearised import check_frames
 from .priors import AbstractPrior, PriorOperator, prior_named
+from .solution import AbstractSolver, Solution, finished, model_of
 
 # Armijo's sufficient-decrease constant, the step halvings tried, the largest change of
 # ln(sigma) in one step (a factor e^4 ~ 55: steps beyond it are scaled down, not taken), and the
@@ -28,42 +29,6 @@ _DAMPING_RETRIES = 6
 # A frame fitted to this relative RMS misfit (of the data scale) is fitted to rounding: no step
 # can lower its objective measurably, and it stops, successful (a frame equal to the reference).
 _EXACT_FIT = 1e-10
-
-
-class GaussNewtonResult(eqx.Module):
-    """What a Gauss-Newton reconstruction returns (for a batch of T frames, arrays gain a
-    leading T axis and `history` is a tuple with one array per frame).
-
-    - `conductivity`: (E,) the reconstructed sheet conductivity, S/sq (positive by construction).
-    - `contact_impedance`: (L,) ohm m: estimated when asked, else the model's.
-    - `reference`: (E,) the conductivity the prior is centred on: the best homogeneous fit
-      (absolute) or the background (difference); `conductivity - reference` is the change.
-    - `history`: the objective (data misfit plus prior, normalised, see `GaussNewton`) at every
-      iterate, the start included: it never rises.
-    - `iterations`: accepted steps.
-    - `misfit`: the final normalised data misfit ||V - v|| / s.
-    - `reached_discrepancy`: whether the misfit reached the noise level (the discrepancy
-      principle stopped the iteration; False without `noise`).
-    - `result`: `RESULTS.successful` when the discrepancy principle, stagnation (the
-      objective no longer decreases by a relative `stagnation_tolerance`) or a fit to rounding
-      (a frame equal to the reference) stopped the iteration;
-      `RESULTS.max_iterations_reached`; or `RESULTS.line_search_failed` when no step decreased
-      the objective, even damped. One code per frame for a batch.
-    """
-
-    conductivity: np.ndarray
-    contact_impedance: np.ndarray
-    reference: np.ndarray
-    history: np.ndarray | tuple[np.ndarray, ...]
-    iterations: int | np.ndarray
-    misfit: float | np.ndarray
-    reached_discrepancy: bool | np.ndarray
-    result: RESULTS
-
-    @property
-    def conductivity_change(self) -> np.ndarray:
-        """conductivity - reference, S/sq."""
-        return self.conductivity - self.reference
 
 
 class _Frame(NamedTuple):
@@ -111,41 +76,11 @@ class _Trial(NamedTuple):
     objective: float
 
 
-class GaussNewton(eqx.Module):
-    """Regularised Gauss-Newton on s = ln(sigma), with Levenberg-Marquardt damping and a
-    backtracking line search; every step is solved in measurement space (M x M).
+class _GaussNewtonIteration(AbstractSolver):
+    """The settings and the iteration `GaussNewton` and `AbsoluteGaussNewton` share (see
+    `GaussNewton`)."""
 
-    The objective, with v the data, s_d = RMS(V(sigma_0)) the data scale at the start and
-    s_ref the prior's centre (ln of the start for absolute imaging, of the background for
-    difference imaging):
-
-        Phi(s, w) = ||V(e^s, e^w) - v||^2 / s_d^2 + hyperparameter^2 (s - s_ref)^T (c P^-1) (s - s_ref)
-                    + (hyperparameter / contact_impedance_spread)^2 ||w - w_ref||^2
-
-    P is the prior of `diffeit.inverse.priors`, c its scale at the start (as in
-    `LinearisedProblem`: the hyperparameter is unit-free and means what it means for
-    `OneStep`); w = ln z enters only when the contact impedance is estimated. A step solves the
-    damped linearisation: with J_n = dV/ds / s_d and the damping mu,
-
-        delta = a + (P/c) J_n^T (J_n (P/c) J_n^T + (hyperparameter^2 + mu) I)^-1 (-r - J_n a),
-        a = -hyperparameter^2 (s - s_ref) / (hyperparameter^2 + mu)
-
-    (with an extra block for w), an M x M solve whatever the mesh size. mu shrinks after a
-    full step and grows after a shortened or failed one. The iteration stops at the noise
-    level when `noise` (percent of RMS(v)) is known (the discrepancy principle,
-    ||r|| <= `discrepancy_safety` x the expected noise norm), when the objective stagnates (a
-    relative decrease below `stagnation_tolerance`; 0 never stops for that), or after
-    `max_iterations`. The prior's sparse factorisations are made once, at construction.
-
-    `absolute(v)` and `difference(dv)` accept one frame (M,) or a batch (T, M): a batch runs
-    in one loop, every frame with its own step, damping and stop. Both take `throw=True` (the
-    default): a frame that stops at `max_iterations` or whose line search fails raises
-    `diffeit.results.SolverError`; with `throw=False` the result's `result` holds each frame's
-    `diffeit.results.RESULTS` code (a capped run, for instance, is
-    `RESULTS.max_iterations_reached`).
-    """
-
-    model: ForwardModel
+    model: ForwardModel | None
     prior: AbstractPrior
     hyperparameter: float = eqx.field(static=True)
     max_iterations: int = eqx.field(static=True)
@@ -153,21 +88,21 @@ class GaussNewton(eqx.Module):
     discrepancy_safety: float = eqx.field(static=True)
     contact_impedance_spread: float = eqx.field(static=True)
     stagnation_tolerance: float = eqx.field(static=True)
-    bound_prior: Callable[[np.ndarray], PriorOperator] = eqx.field(static=True, repr=False)
-    """The prior on the model's mesh, factorised once (`AbstractPrior.bind`)."""
+    bound_prior: Callable[[np.ndarray], PriorOperator] | None = eqx.field(static=True, repr=False)
+    """The prior on the model's mesh, factorised once (`AbstractPrior.bind`); None when unbound."""
 
-    def __init__(
+    def _set_up(
         self,
-        model: ForwardModel,
-        prior: str | AbstractPrior = "laplace",
-        hyperparameter: float = 1e-2,
-        *,
-        max_iterations: int = 20,
-        noise: float | None = None,
-        discrepancy_safety: float = 1.05,
-        contact_impedance_spread: float = 1.0,
-        stagnation_tolerance: float = 1e-6,
+        model: ForwardModel | None,
+        prior: str | AbstractPrior,
+        hyperparameter: float,
+        max_iterations: int,
+        noise: float | None,
+        discrepancy_safety: float,
+        contact_impedance_spread: float,
+        stagnation_tolerance: float,
     ) -> None:
+        """Check and set the shared settings (from a subclass's `__init__`)."""
         if not (np.isfinite(hyperparameter) and hyperparameter > 0):
             raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
         if max_iterations < 0:
@@ -188,51 +123,23 @@ class GaussNewton(eqx.Module):
         self.discrepancy_safety = float(discrepancy_safety)
         self.contact_impedance_spread = float(contact_impedance_spread)
         self.stagnation_tolerance = float(stagnation_tolerance)
-        self.bound_prior = self.prior.bind(model.mesh)
+        self.bound_prior = None if model is None else self.prior.bind(model.mesh)
 
-    @host_algebra
-    def absolute(
-        self,
-        voltages: jax.Array,
-        *,
-        initial: float | np.ndarray | None = None,
-        estimate_contact_impedance: bool = False,
-        throw: bool = True,
-    ) -> GaussNewtonResult:
-        """Absolute imaging of measured voltages `voltages` (M,) or (T, M), volts.
-
-        The start (and the prior's centre) is the best homogeneous conductivity, a closed-form
-        least-squares fit v ~ V(1) / sigma refined by three scalar Newton steps, unless
-        `initial` (S/sq, scalar or (E,)) is given. `estimate_contact_impedance` fits one
-        contact impedance per electrode jointly, starting from the model's. `throw`: see the
-        class docstring.
-        """
-        frames, single, dtype = self._frames(voltages)
-        if initial is None:
-            start = np.log(self._homogeneous_fit(frames))[:, None] * np.ones(self.model.n_elements)
-        else:
-            start = np.log(_positive_map(initial, self.model.n_elements))[None] * np.ones((len(frames), 1))
-        return self._solve(frames, start, estimate_contact_impedance, single, dtype, throw)
-
-    @host_algebra
-    def difference(
-        self, voltage_difference: jax.Array, *, background: float | np.ndarray = 1.0, throw: bool = True
-    ) -> GaussNewtonResult:
-        """Nonlinear difference imaging: the conductivity sigma with V(sigma) - V(background)
-        = `voltage_difference` (M,) or (T, M) volts, starting from and regularised towards the
-        `background` (S/sq, scalar or (E,)); `conductivity_change` is the image. `throw`: see
-        the class docstring."""
-        frames, single, dtype = self._frames(voltage_difference)
-        background = _positive_map(background, self.model.n_elements)
-        reference = np.asarray(self.model.measure(jnp.asarray(background)))
-        start = np.log(background)[None] * np.ones((len(frames), 1))
-        return self._solve(frames + reference, start, False, single, dtype, throw)
+    def _settings(self) -> dict[str, Any]:
+        """The shared keyword settings, to build another solver with."""
+        return {
+            "max_iterations": self.max_iterations,
+            "noise": self.noise,
+            "discrepancy_safety": self.discrepancy_safety,
+            "contact_impedance_spread": self.contact_impedance_spread,
+            "stagnation_tolerance": self.stagnation_tolerance,
+        }
 
     def _frames(self, frames: jax.Array) -> tuple[np.ndarray, bool, np.dtype]:
         """(T, M) float64 frames, whether one frame was given, and its dtype: the iteration runs
         in float64 (its line search compares objectives that differ in late digits), and the
         results come back in the input's precision."""
-        array = np.asarray(check_frames(frames, self.model.n_measurements, "frames"))
+        array = np.asarray(check_frames(frames, model_of(self).n_measurements, "frames"))
         return np.atleast_2d(array).astype(np.float64), array.ndim == 1, array.dtype
 
     def _homogeneous_fit(self, frames: np.ndarray) -> np.ndarray:
@@ -255,9 +162,7 @@ class GaussNewton(eqx.Module):
             level = level - np.sum(slope * (voltages - frames), axis=1) / np.sum(slope**2, axis=1)
         return np.exp(level)
 
-    def _solve(
-        self, data: np.ndarray, start: np.ndarray, estimate_z: bool, single: bool, dtype: np.dtype, throw: bool
-    ) -> GaussNewtonResult:
+    def _solve(self, data: np.ndarray, start: np.ndarray, estimate_z: bool) -> tuple[list[_Frame], list[_Iterate]]:
         """Iterate every frame of `data` (T, M) from the log-conductivities `start` (T, E) until
         each has stopped; the whole batch is evaluated at once (a fixed shape compiles once)."""
         frames, iterates = self._start(data, start, estimate_z)
@@ -277,8 +182,7 @@ class GaussNewton(eqx.Module):
         iterates = [
             it if it.result is not None else it._replace(result=RESULTS.max_iterations_reached) for it in iterates
         ]
-        result = _result(frames, iterates, single, dtype)
-        return throw_if_failed(result, result.result, "Gauss-Newton") if throw else result
+        return frames, iterates
 
     def _start(self, data: np.ndarray, start: np.ndarray, estimate_z: bool) -> tuple[list[_Frame], list[_Iterate]]:
         """Each frame's fixed part (data scale, prior operator and scale at the start, noise
@@ -317,7 +221,7 @@ class GaussNewton(eqx.Module):
         return frames, iterates
 
     def _objective(self, frame: _Frame, residual: np.ndarray, s: np.ndarray, w: np.ndarray) -> float:
-        """Phi(s, w) (class docstring) for the normalised `residual` at (s, w)."""
+        """Phi(s, w) (`GaussNewton`, `AbsoluteGaussNewton`) for the normalised `residual` at (s, w)."""
         deviation = s - frame.log_reference
         prior_term = frame.prior_scale * deviation @ frame.operator.precision(deviation)
         weight = self.hyperparameter**2
@@ -438,30 +342,248 @@ class GaussNewton(eqx.Module):
         ]
 
 
-def _result(frames: list[_Frame], iterates: list[_Iterate], single: bool, dtype: np.dtype) -> GaussNewtonResult:
-    """The iterates as one result (the first frame's alone when one frame was given)."""
-    result = GaussNewtonResult(
-        conductivity=np.exp(np.stack([it.log_conductivity for it in iterates])).astype(dtype),
-        contact_impedance=np.exp(np.stack([it.log_contact_impedance for it in iterates])).astype(dtype),
-        reference=np.exp(np.stack([f.log_reference for f in frames])).astype(dtype),
-        history=tuple(np.array(it.history) for it in iterates),
-        iterations=np.array([len(it.history) - 1 for it in iterates]),
-        misfit=np.array([np.linalg.norm(it.residual) for it in iterates]),
-        reached_discrepancy=np.array([it.reached_discrepancy for it in iterates]),
-        result=jax.tree_util.tree_map(lambda *codes: np.stack(codes), *(it.result for it in iterates)),
-    )
+class GaussNewton(_GaussNewtonIteration):
+    """Nonlinear difference imaging by regularised Gauss-Newton on s = ln(sigma).
+
+    Finds the conductivity sigma with V(sigma) - V(background) = dV, starting from and
+    regularised towards the `background`, by minimising
+
+        Phi(s) = ||V(e^s) - v||^2 / s_d^2 + hyperparameter^2 (s - s_ref)^T (c P^-1) (s - s_ref)
+
+    with v = V(background) + dV, s_d = RMS(V(background)) and s_ref = ln(background); P is the
+    prior, c its scale at the start (as in `LinearisedProblem`: the hyperparameter is unit-free
+    and means what it means for `OneStep`). Every step solves the damped linearisation in
+    measurement space (M x M, whatever the mesh size), with Levenberg-Marquardt damping and a
+    backtracking line search, so the objective never rises; the conductivity stays positive.
+    The iteration stops at the noise level when `noise` is known (the discrepancy principle),
+    when the objective stagnates, or after `max_iterations`. A batch of frames runs in one
+    loop, every frame with its own step, damping and stop. The equations are in
+    docs/science.md#gauss-newton; `AbsoluteGaussNewton` images absolute voltages.
+
+    Arguments:
+        model: The forward model of the reconstruction mesh; None for an unbound solver (see
+            `bound`).
+        prior: "tikhonov", "noser", "laplace", "matern" or a prior of `diffeit.inverse.priors`;
+            factorised once, at construction.
+        hyperparameter: lambda > 0, unit-free.
+        background: The reference conductivity the iteration starts from and is regularised
+            towards, S/sq, scalar or (E,).
+        max_iterations: The iteration limit (`RESULTS.max_iterations_reached` beyond it).
+        noise: The noise level, percent of RMS(v), for the discrepancy principle; None never
+            stops for it.
+        discrepancy_safety: The factor on the expected noise norm the misfit must reach.
+        contact_impedance_spread: The prior spread of ln z (`AbsoluteGaussNewton` only).
+        stagnation_tolerance: Stop when the objective decreases by less than this fraction in
+            a step; 0 never stops for that.
+
+    Raises:
+        ValueError: For settings out of range or an unknown prior.
+    """
+
+    background: float | np.ndarray = eqx.field(repr=False)
+    """The background conductivity as given (S/sq, scalar or (E,))."""
+
+    def __init__(
+        self,
+        model: ForwardModel | None = None,
+        prior: str | AbstractPrior = "laplace",
+        hyperparameter: float = 1e-2,
+        *,
+        background: float | np.ndarray = 1.0,
+        max_iterations: int = 20,
+        noise: float | None = None,
+        discrepancy_safety: float = 1.05,
+        contact_impedance_spread: float = 1.0,
+        stagnation_tolerance: float = 1e-6,
+    ) -> None:
+        self._set_up(
+            model,
+            prior,
+            hyperparameter,
+            max_iterations,
+            noise,
+            discrepancy_safety,
+            contact_impedance_spread,
+            stagnation_tolerance,
+        )
+        self.background = background if model is None else _positive_map(background, model.n_elements)
+
+    def bound(
+        self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
+    ) -> GaussNewton:
+        """This solver's settings on `model` (see `AbstractSolver.bound`)."""
+        return GaussNewton(
+            model,
+            self.prior,
+            self.hyperparameter if hyperparameter is None else hyperparameter,
+            background=self.background if background is None else background,
+            **self._settings(),
+        )
+
+    @host_algebra
+    def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
+        """Image voltage differences dV = V - V(background) (volts).
+
+        Arguments:
+            data: dV, (M,) or a batch (T, M), volts.
+            throw: Raise for a frame that failed (True), or return its code.
+
+        Returns:
+            The `Solution` (NumPy arrays, in the input's dtype): `value` dsigma = sigma -
+            background (E,) or (T, E), S/sq; `result` per frame `RESULTS.successful` (stopped
+            at the noise level, by stagnation, or fitted to rounding),
+            `RESULTS.max_iterations_reached` or `RESULTS.line_search_failed` (no step, even
+            damped, decreased the objective). `stats`: "iterations" (accepted steps),
+            "misfit" (the final normalised misfit ||V - v|| / s_d), "history" (the objective
+            at every iterate, the start included: it never rises; a tuple of arrays for a
+            batch) and "reached_discrepancy" (whether the misfit reached the noise level).
+
+        Raises:
+            ValueError: For data of the wrong shape or not finite, or an unbound solver.
+            diffeit.results.SolverError: With `throw=True`, for a frame that failed.
+        """
+        frames, single, dtype = self._frames(data)
+        background = np.broadcast_to(self.background, (self.model.n_elements,))
+        reference = np.asarray(self.model.measure(jnp.asarray(background)))
+        start = np.log(background)[None] * np.ones((len(frames), 1))
+        frames, iterates = self._solve(frames + reference, start, False)
+        collected = _collected(frames, iterates, single)
+        value = (collected.pop("conductivity") - background).astype(dtype)
+        del collected["contact_impedance"], collected["reference"]
+        result = collected.pop("result")
+        return finished(value, result, collected, "Gauss-Newton", throw)
+
+
+class AbsoluteGaussNewton(_GaussNewtonIteration):
+    """Absolute imaging by regularised Gauss-Newton on s = ln(sigma), optionally with one
+    contact impedance per electrode.
+
+    Fits the conductivity (and, with `estimate_contact_impedance`, w = ln z) to measured
+    voltages v: the objective of `GaussNewton` with s_ref the start, s_d = RMS(V(start)), plus
+    (hyperparameter / contact_impedance_spread)^2 ||w - w_ref||^2 (w_ref = ln of the model's
+    contact impedance). The start, and the prior's centre, is the best homogeneous
+    conductivity (a closed-form least-squares fit v ~ V(1) / sigma refined by three scalar
+    Newton steps) unless `initial` is given. Steps, stops and batches as `GaussNewton`'s;
+    docs/science.md#gauss-newton.
+
+    Arguments:
+        model: The forward model; None for an unbound solver (see `bound`).
+        prior: As `GaussNewton`'s.
+        hyperparameter: lambda > 0, unit-free.
+        initial: The start and the prior's centre, S/sq, scalar or (E,); None for the best
+            homogeneous conductivity of each frame.
+        estimate_contact_impedance: Fit one contact impedance per electrode jointly, starting
+            from the model's.
+        max_iterations: As `GaussNewton`'s.
+        noise: As `GaussNewton`'s (percent of RMS(v)).
+        discrepancy_safety: As `GaussNewton`'s.
+        contact_impedance_spread: The prior spread of ln z around the model's.
+        stagnation_tolerance: As `GaussNewton`'s.
+
+    Raises:
+        ValueError: For settings out of range or an unknown prior.
+    """
+
+    initial: float | np.ndarray | None = eqx.field(repr=False)
+    estimate_contact_impedance: bool = eqx.field(static=True)
+
+    def __init__(
+        self,
+        model: ForwardModel | None = None,
+        prior: str | AbstractPrior = "laplace",
+        hyperparameter: float = 1e-2,
+        *,
+        initial: float | np.ndarray | None = None,
+        estimate_contact_impedance: bool = False,
+        max_iterations: int = 20,
+        noise: float | None = None,
+        discrepancy_safety: float = 1.05,
+        contact_impedance_spread: float = 1.0,
+        stagnation_tolerance: float = 1e-6,
+    ) -> None:
+        self._set_up(
+            model,
+            prior,
+            hyperparameter,
+            max_iterations,
+            noise,
+            discrepancy_safety,
+            contact_impedance_spread,
+            stagnation_tolerance,
+        )
+        self.initial = initial if model is None or initial is None else _positive_map(initial, model.n_elements)
+        self.estimate_contact_impedance = bool(estimate_contact_impedance)
+
+    def bound(
+        self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
+    ) -> AbsoluteGaussNewton:
+        """This solver's settings on `model` (see `AbstractSolver.bound`); `background`, when
+        given, is the start (`initial`)."""
+        return AbsoluteGaussNewton(
+            model,
+            self.prior,
+            self.hyperparameter if hyperparameter is None else hyperparameter,
+            initial=self.initial if background is None else background,
+            estimate_contact_impedance=self.estimate_contact_impedance,
+            **self._settings(),
+        )
+
+    @host_algebra
+    def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
+        """Image measured voltages.
+
+        Arguments:
+            data: The readings v, (M,) or a batch (T, M), volts.
+            throw: Raise for a frame that failed (True), or return its code.
+
+        Returns:
+            The `Solution` (NumPy arrays, in the input's dtype): `value` the conductivity
+            sigma (E,) or (T, E), S/sq (positive); `result` per frame as `GaussNewton`'s.
+            `stats`: those of `GaussNewton` ("iterations", "misfit", "history",
+            "reached_discrepancy"), and "contact_impedance" (L,) ohm m (estimated, or the
+            model's) and "reference" (E,) the start and prior's centre, S/sq.
+
+        Raises:
+            ValueError: For data of the wrong shape or not finite, a frame that does not
+                correlate positively with the model's voltages, or an unbound solver.
+            diffeit.results.SolverError: With `throw=True`, for a frame that failed.
+        """
+        frames, single, dtype = self._frames(data)
+        n_elements = self.model.n_elements
+        if self.initial is None:
+            start = np.log(self._homogeneous_fit(frames))[:, None] * np.ones(n_elements)
+        else:
+            start = np.log(np.broadcast_to(self.initial, (n_elements,)))[None] * np.ones((len(frames), 1))
+        frames, iterates = self._solve(frames, start, self.estimate_contact_impedance)
+        collected = _collected(frames, iterates, single)
+        value = collected.pop("conductivity").astype(dtype)
+        for name in ("contact_impedance", "reference"):
+            collected[name] = collected[name].astype(dtype)
+        result = collected.pop("result")
+        return finished(value, result, collected, "Gauss-Newton", throw)
+
+
+def _collected(frames: list[_Frame], iterates: list[_Iterate], single: bool) -> dict[str, Any]:
+    """The iterates as arrays in float64 (the first frame's alone when one frame was given):
+    conductivity, contact_impedance, reference, history, iterations, misfit,
+    reached_discrepancy and result."""
+    collected = {
+        "conductivity": np.exp(np.stack([it.log_conductivity for it in iterates])),
+        "contact_impedance": np.exp(np.stack([it.log_contact_impedance for it in iterates])),
+        "reference": np.exp(np.stack([f.log_reference for f in frames])),
+        "history": tuple(np.array(it.history) for it in iterates),
+        "iterations": np.array([len(it.history) - 1 for it in iterates]),
+        "misfit": np.array([np.linalg.norm(it.residual) for it in iterates]),
+        "reached_discrepancy": np.array([it.reached_discrepancy for it in iterates]),
+        "result": jax.tree_util.tree_map(lambda *codes: np.stack(codes), *(it.result for it in iterates)),
+    }
     if not single:
-        return result
-    return GaussNewtonResult(
-        conductivity=result.conductivity[0],
-        contact_impedance=result.contact_impedance[0],
-        reference=result.reference[0],
-        history=result.history[0],
-        iterations=int(result.iterations[0]),
-        misfit=float(result.misfit[0]),
-        reached_discrepancy=bool(result.reached_discrepancy[0]),
-        result=iterates[0].result,
-    )
+        return collected
+    first = {name: values[0] for name, values in collected.items() if name != "result"}
+    first["iterations"] = int(first["iterations"])
+    first["misfit"] = float(first["misfit"])
+    first["reached_discrepancy"] = bool(first["reached_discrepancy"])
+    return {**first, "result": iterates[0].result}
 
 
 def _fitted(residual: np.ndarray, noise_norm: float | None) -> bool:

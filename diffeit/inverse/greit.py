@@ -22,13 +22,14 @@ import scipy.sparse
 import scipy.special
 from scipy.spatial import cKDTree
 
-from .._arrays import IdentityModule
 from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..mesh import Mesh, distance_to_segments, element_sample_points, locate
 from ..render import PixelGrid, pixel_grid
+from ..results import RESULTS
 from .linearised import LinearisedProblem, apply_matrix, check_frames
 from .priors import Tikhonov
+from .solution import AbstractSolver, Solution, finished, finite_codes, model_of
 
 DEFAULT_HYPERPARAMETER = 0.3
 _TRAININGS = ("linearised", "nonlinear")
@@ -40,119 +41,82 @@ _TARGET_SAMPLING_LEVEL = 8
 _NOISE_FIGURE_SCAN = np.logspace(-8, 4, 121)
 
 
-class GREIT(IdentityModule):
-    """GREIT-style linear difference reconstruction onto a fixed pixel grid.
+class GREIT(AbstractSolver):
+    """GREIT: linear difference reconstruction trained onto a fixed pixel grid.
 
-    **The grid.** `grid` x `grid` pixels (or `(n_rows, n_columns)`) tile the bounding box of the
-    mesh: after construction `grid` is that `diffeit.render.PixelGrid` (`pixel_grid(mesh, grid)`),
-    which gives the pixel centres, the mask, the pixel areas, the extent and the rendering of
-    element fields; `diffeit.metrics` (e.g. `position_error(rec.grid, image, centre)`) reads
-    GREIT images through it. `image[i, j]` is the pixel at x = `grid.pixel_centres[i, j, 0]`,
-    y = `grid.pixel_centres[i, j, 1]`, row 0 at the bottom (smallest y):
-    `plt.imshow(image, origin="lower", extent=rec.grid.extent)`. A pixel is in the image
-    (`grid.mask`) when at least half of its area lies in the domain (exact triangle-square
-    overlap areas). Pixels outside are exactly 0 in every image: EIDORS makes them NaN, but
-    diffeit returns no NaN; use `grid.mask` (e.g. `np.where(rec.grid.mask, image, np.nan)`
-    for a figure).
+    After Adler et al. (2009) and EIDORS's `mk_GREIT_model`. Instead of inverting the forward
+    model, the reconstruction matrix is fitted so that it maps the simulated voltages of
+    `n_targets` small disc targets, spread uniformly over the domain, onto desired images of
+    them on a `grid` of pixels: the targets blurred by a Gaussian of standard deviation
+    `blur`, so that every position gets the same point spread function, with a noise term
+    weighed by the hyperparameter. Pixels are the images of `stats["pixels"]`; the solution's
+    `value` is on the mesh's elements, each the overlap-weighted mean of the pixels it meets
+    (`grid.to_elements`). The method, the training, the units of the hyperparameter and the
+    noise figure are in docs/science.md#greit.
 
-    **Training.** `n_targets` discs of radius r = `target_radius` * R, where R is half the
-    larger side of the bounding box (R = 1 m on the unit disc), at positions drawn uniformly
-    (seeded by `seed`) among those whose disc lies wholly in the domain. Each target k is a
-    relative conductivity change x_k = dsigma / background on the mesh (element fractions
-    inside the disc), scaled to unit strength: the integral of x_k over the sheet equals the
-    sheet's area A. Its measurement is, in the normalised units of `LinearisedProblem`
-    (absolute differences),
+    The pixel grid (`grid`, a `diffeit.render.PixelGrid` after construction) tiles the mesh's
+    bounding box: `image[i, j]` is the pixel at `grid.pixel_centres[i, j]`, row 0 at the
+    bottom (`plt.imshow(image, origin="lower", extent=rec.grid.extent)`). A pixel is in the
+    image (`grid.mask`) when at least half of its area lies in the domain; pixels outside are
+    exactly 0 in every image (`np.where(rec.grid.mask, image, np.nan)` for a figure).
+    `diffeit.metrics` reads pixel images through the grid.
 
-        y_k = J_n x_k,  J_n = diag(1/s) J diag(background),  s = RMS(V(background))   ("linearised")
+    Arguments:
+        model: The forward model on which the targets are simulated (its mesh sets the
+            domain); None for an unbound solver (see `bound`).
+        grid: Pixels per side, or (n_rows, n_columns); at least 2 each.
+        hyperparameter: lambda > 0, unit-free: the standard deviation of the measurement noise
+            as a fraction of RMS(V_reference), per unit target strength; default 0.3 (noise
+            figure 0.87 on the 16-electrode unit disc) unless `noise_figure` is given.
+        noise_figure: NF > 0 to choose lambda by (EIDORS's usual way, e.g. 0.5); not
+            together with `hyperparameter`.
+        target_radius: Training target radius, a fraction of R, half the larger side of the
+            bounding box.
+        n_targets: Number of training targets K.
+        blur: Standard deviation of the desired Gaussian point spread function, a fraction of
+            R (0.15: half-amplitude diameter 0.35 R).
+        background: Reference conductivity, S/sq, scalar or (E,).
+        training: "linearised" (targets through the Jacobian) or "nonlinear" (simulated
+            differences at `contrast`).
+        contrast: Relative conductivity change of the nonlinear training targets, > -1, not 0.
+        seed: Seed of the target positions.
 
-    (one Jacobian for all targets), or, with `training="nonlinear"`, the simulated difference
-    (V(background (1 + contrast chi_k)) - V(background)) / s scaled by the same unit-strength
-    factor, all targets in one batched (`jax.vmap`) solve; `contrast` only matters there.
-    Its desired image d_k is the target convolved with a Gaussian of standard deviation
-    w = `blur` * R (the desired point spread function), averaged over each pixel exactly (the
-    disc enters as the Gaussian of equal second moments, variance w^2 + r^2 / 4, which is
-    accurate for r << w), so each desired image also integrates to A.
+    After construction on a model, `hyperparameter` and `noise_figure` hold the values in
+    effect, whichever was given.
 
-    **The matrix.** R_n minimises the mean training error plus the expected effect of noise,
-
-        (1/K) sum_k ||d_k - R_n y_k||^2 + lambda^2 ||R_n||_F^2
-            = E_k E_n ||d_k - R_n (y_k + n)||^2,  n ~ N(0, lambda^2 I),
-
-    summed over the pixels in the mask, so that
-
-        R_n = D Y^T (Y Y^T + K lambda^2 I)^-1 = D Y^T U diag(1 / (m_i + K lambda^2)) U^T,
-
-    with Y (n_meas, K) the training measurements, D (n_pixels, K) the desired images and
-    Y Y^T = U diag(m_i) U^T: a measurement-space computation (an n_meas x n_meas
-    eigenproblem), and no n_pixels x n_pixels or n_elem x n_elem matrix. Directions with m_i
-    at rounding level (reciprocal readings repeat each other) are dropped. Each
-    pixel's row is an independent ridge regression, so the number of pixels does not change
-    R_n, and dividing by K makes lambda independent of the number of targets.
-
-    **The hyperparameter** lambda is unit-free: it is the standard deviation of independent
-    measurement noise, as a fraction of RMS(V_reference) ("p%" noise, docs/science.md#noise, is lambda = p/100),
-    per unit target strength. An object whose relative change integrates to S times the sheet's
-    area (S = 9 * 0.04 = 0.36 for a disc of radius 0.2 and 10x conductivity on the unit disc,
-    linearised; its true response is weaker, about 1.6 / 9 of that) seen with p% noise is
-    matched by lambda = p / (100 S) (a touch of radius 0.1 and -30% on the unit disc, S = 0.003,
-    with 1% noise: lambda about 3). It does not move with the drive current, the background,
-    the number of targets or pixels, or (linearised) the target contrast. EIDORS's `weight` w
-    enters as (Y Y^T + (w mean|Y|)^2 I) with EIDORS's own normalisation (Y = V/V_ref - 1, no
-    1/K), so lambda ~ w mean|Y| / sqrt(K) only roughly; to carry a setting over, match the
-    noise figure instead.
-
-    **Noise figure.** Give `noise_figure` instead of `hyperparameter` (EIDORS's usual way,
-    e.g. 0.5) and lambda is chosen so that the reconstructor has that noise figure: the
-    training target nearest the domain's centroid is the signal y_0, and (Adler and Guardo 1996,
-    EIDORS `calc_noise_figure`, amplitude form, independent equal noise in normalised units)
-
-        NF = SNR_in / SNR_out = mean_m |y_0m| sqrt(mean_p sum_m R_pm^2) / mean_p |(R_n y_0)_p|
-
-    over the measurements m and the pixels p in the mask. Larger lambda, smaller NF. Either way,
-    both fields hold the values in effect after construction.
-
-    **Units.** `reconstruct` gives dsigma in S/sq per pixel: the relative change times the
-    pixel's background (the area-weighted mean of `background` over the pixel); `matrix` is in
-    S/sq per volt.
-
-    **Arguments:**
-
-    - `model`: the forward model on which the targets are simulated (its mesh sets the domain).
-    - `grid`: pixels per side, or (n_rows, n_columns); at least 2 each.
-    - `hyperparameter`: lambda > 0, unit-free (above); default 0.3 (noise figure 0.87 on the
-      16-electrode unit disc) unless `noise_figure` is given.
-    - `noise_figure`: NF > 0 to choose lambda by; not together with `hyperparameter`.
-    - `target_radius`: training target radius, a fraction of R (default 0.05).
-    - `n_targets`: number of training targets K (default 500).
-    - `blur`: standard deviation of the desired Gaussian point spread function, a fraction of
-      R (default 0.15: half-amplitude diameter 2.35 * 0.15 = 0.35 R).
-    - `background`: reference conductivity, scalar or (E,), S/sq (held by `problem`).
-    - `training`: "linearised" (default) or "nonlinear" (above).
-    - `contrast`: relative conductivity change of the nonlinear training targets, > -1, not 0.
-    - `seed`: seed of the target positions.
+    Raises:
+        ValueError: For settings out of range, a grid with no pixel in the domain, or targets
+            that do not fit in it; a noise figure out of reach.
     """
 
-    problem: LinearisedProblem = eqx.field(repr=False)
-    """The normalisation (J_n, s) at the background; its prior is not used."""
-    grid: PixelGrid = eqx.field(static=True, repr=False)
-    hyperparameter: float = eqx.field(static=True)
-    noise_figure: float = eqx.field(static=True)
+    problem: LinearisedProblem | None = eqx.field(repr=False)
+    """The normalisation (J_n, s) at the background; its prior is not used. None when unbound."""
+    grid: PixelGrid | int | tuple[int, int] = eqx.field(static=True, repr=False)
+    """The `PixelGrid` of the images (the requested size when unbound)."""
+    hyperparameter: float | None = eqx.field(static=True)
+    noise_figure: float | None = eqx.field(static=True)
+    by_noise_figure: bool = eqx.field(static=True, repr=False)
+    """Whether the noise figure chose the hyperparameter (and so chooses it again on `bound`)."""
     target_radius: float = eqx.field(static=True)
     n_targets: int = eqx.field(static=True)
     blur: float = eqx.field(static=True)
+    background: float | np.ndarray = eqx.field(repr=False)
+    """The background conductivity as given (S/sq, scalar or (E,))."""
     training: Literal["linearised", "nonlinear"] = eqx.field(static=True)
     contrast: float = eqx.field(static=True)
     seed: int = eqx.field(static=True)
-    matrix: jax.Array = eqx.field(repr=False)
+    matrix: jax.Array | None = eqx.field(repr=False)
     """(n_rows * n_columns, n_meas) reconstruction matrix, S/sq per volt; rows of pixels
     outside the mask are zero. Pixels are in row-major (C) order of the image."""
-    target_centres: np.ndarray = eqx.field(repr=False)
+    element_matrix: jax.Array | None = eqx.field(repr=False)
+    """(E, n_meas): `matrix` followed by `grid.to_elements`, S/sq per volt."""
+    target_centres: np.ndarray | None = eqx.field(repr=False)
     """(K, 2) centres of the training targets, metres."""
 
     @host_algebra
     def __init__(
         self,
-        model: ForwardModel,
+        model: ForwardModel | None = None,
         *,
         grid: int | tuple[int, int] = 32,
         hyperparameter: float | None = None,
@@ -168,6 +132,16 @@ class GREIT(IdentityModule):
         _check_settings(hyperparameter, noise_figure, target_radius, n_targets, blur, training, contrast)
         self.target_radius, self.n_targets, self.blur = float(target_radius), int(n_targets), float(blur)
         self.training, self.contrast, self.seed = training, float(contrast), seed
+        self.background = background
+        self.by_noise_figure = noise_figure is not None
+        if hyperparameter is None and noise_figure is None:
+            hyperparameter = DEFAULT_HYPERPARAMETER
+        if model is None:
+            self.grid = grid
+            self.hyperparameter = None if hyperparameter is None else float(hyperparameter)
+            self.noise_figure = None if noise_figure is None else float(noise_figure)
+            self.problem = self.matrix = self.element_matrix = self.target_centres = None
+            return
         mesh = model.mesh
         self.grid = _image_grid(mesh, grid)
         self.problem = LinearisedProblem(model, Tikhonov(), background)
@@ -178,30 +152,90 @@ class GREIT(IdentityModule):
         desired = _desired_images(self.grid, mesh, self.target_centres, radius, self.blur * size)
         fit = _RidgeFit(measurements, desired, _central_measurement(mesh, self.target_centres, measurements))
         if hyperparameter is None:
-            hyperparameter = DEFAULT_HYPERPARAMETER if noise_figure is None else fit.solve(noise_figure)
+            hyperparameter = fit.solve(noise_figure)
         self.hyperparameter = float(hyperparameter)
         self.noise_figure = fit.noise_figure(self.hyperparameter)
-        self.matrix = jnp.asarray(_pixel_matrix(self.grid, self.problem, fit.matrix(self.hyperparameter)))
+        matrix = _pixel_matrix(self.grid, self.problem, fit.matrix(self.hyperparameter))
+        self.matrix = jnp.asarray(matrix)
+        self.element_matrix = jnp.asarray(self.grid.to_elements(matrix.T.reshape(-1, *self.grid.shape)).T)
 
     @property
-    def model(self) -> ForwardModel:
-        """The forward model the targets are simulated on."""
-        return self.problem.model
+    def model(self) -> ForwardModel | None:
+        """The forward model the targets are simulated on (None when unbound)."""
+        return None if self.problem is None else self.problem.model
 
     @property
     def shape(self) -> tuple[int, int]:
         """(n_rows, n_columns) of an image."""
-        return self.grid.shape
+        if isinstance(self.grid, PixelGrid):
+            return self.grid.shape
+        return (self.grid, self.grid) if np.ndim(self.grid) == 0 else tuple(self.grid)
 
-    def reconstruct(self, voltage_difference: jax.Array) -> jax.Array:
-        """Conductivity change dsigma (S/sq) per pixel for dV = V - V_reference (volts).
+    def bound(
+        self,
+        model: ForwardModel,
+        background: float | np.ndarray | None = None,
+        *,
+        hyperparameter: float | None = None,
+        noise_figure: float | None = None,
+    ) -> GREIT:
+        """This solver's settings on `model` (see `AbstractSolver.bound`), trained afresh.
 
-        `voltage_difference` is (n_meas,) or a batch (T, n_meas); the result is one image
-        (n_rows, n_columns) or (T, n_rows, n_columns), exactly 0 outside the grid's mask, in the
-        input's dtype. Works under jit and vmap, as `OneStep.reconstruct` does.
+        A solver designed for a noise figure is designed for it again on `model`, unless
+        `hyperparameter` or `noise_figure` is given (not both) to replace the design.
         """
-        dv = check_frames(voltage_difference, self.model.n_measurements, "voltage differences")
-        return apply_matrix(self.matrix, dv).reshape(*dv.shape[:-1], *self.shape)
+        if hyperparameter is None and noise_figure is None:
+            if self.by_noise_figure:
+                noise_figure = self.noise_figure
+            else:
+                hyperparameter = self.hyperparameter
+        return GREIT(
+            model,
+            grid=self.shape,
+            hyperparameter=hyperparameter,
+            noise_figure=noise_figure,
+            target_radius=self.target_radius,
+            n_targets=self.n_targets,
+            blur=self.blur,
+            background=self.background if background is None else background,
+            training=self.training,
+            contrast=self.contrast,
+            seed=self.seed,
+        )
+
+    def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
+        """Reconstruct voltage differences dV = V - V_reference (volts) on the pixel grid and
+        on the mesh's elements.
+
+        Works under jit and vmap, in the input's dtype (float32 in, float32 out).
+
+        Arguments:
+            data: dV, (M,) or a batch (T, M), volts.
+            throw: Raise for a frame whose image is not finite (True), or return its code.
+
+        Returns:
+            The `Solution`: `value` dsigma (E,) or (T, E), S/sq, on the model's elements;
+            `result` per frame `RESULTS.successful`, or `RESULTS.nonfinite` for an image that
+            is not finite; `stats["pixels"]` the pixel images (n_rows, n_columns) or
+            (T, n_rows, n_columns), S/sq, exactly 0 outside `grid.mask`.
+
+        Raises:
+            ValueError: For data of the wrong shape or not finite, or an unbound solver.
+            diffeit.results.SolverError: With `throw=True`, for a frame whose image is not finite.
+        """
+        model = model_of(self)
+        dv = check_frames(data, model.n_measurements, "voltage differences")
+        images, pixels, codes = _images(self.element_matrix, self.matrix, dv)
+        pixels = pixels.reshape(*dv.shape[:-1], *self.shape)
+        return finished(images, codes, {"pixels": pixels}, "GREIT reconstruction", throw)
+
+
+@jax.jit
+def _images(element_matrix: jax.Array, matrix: jax.Array, frames: jax.Array) -> tuple[jax.Array, jax.Array, RESULTS]:
+    """The element images, the (flat) pixel images and the codes (`finite_codes`) of `frames`
+    (..., M): one compiled call."""
+    images = apply_matrix(element_matrix, frames)
+    return images, apply_matrix(matrix, frames), finite_codes(images)
 
 
 def _check_settings(hyperparameter, noise_figure, target_radius, n_targets, blur, training, contrast) -> None:
@@ -237,7 +271,7 @@ def _image_grid(mesh: Mesh, grid: int | tuple[int, int]) -> PixelGrid:
 def _training_measurements(
     problem: LinearisedProblem, centres: np.ndarray, radius: float, training: str, contrast: float
 ) -> np.ndarray:
-    """Y (n_meas, K): the normalised measurements of the unit-strength targets (class docstring)."""
+    """Y (n_meas, K): the normalised measurements of the unit-strength targets (docs/science.md#greit)."""
     mesh, model = problem.model.mesh, problem.model
     fractions, target_areas = _disc_fractions(mesh, centres, radius)  # (E, K) sparse, (K,)
     strength = mesh.element_areas.sum() / target_areas  # unit strength: each x_k integrates to the sheet's area
@@ -251,7 +285,7 @@ def _training_measurements(
 def _desired_images(grid: PixelGrid, mesh: Mesh, centres: np.ndarray, radius: float, width: float) -> np.ndarray:
     """D (pixels in the mask, K): each target disc of `radius` blurred by a Gaussian of standard
     deviation `width` (m), scaled to integrate to the sheet's area as the targets do; the disc
-    enters as the Gaussian of equal second moments (class docstring)."""
+    enters as the Gaussian of equal second moments (docs/science.md#greit)."""
     images = _pixel_gaussians(centres, np.sqrt(width**2 + radius**2 / 4), grid.x_edges, grid.y_edges)
     return images[grid.mask.ravel()] * mesh.element_areas.sum()
 
@@ -299,7 +333,7 @@ class _RidgeFit:
         return (self.projected * self.filter(hyperparameter)) @ self.left.T
 
     def noise_figure(self, hyperparameter: float) -> float:
-        """NF of R_n (class docstring of GREIT)."""
+        """NF of R_n (docs/science.md#greit)."""
         factors = self.filter(hyperparameter)
         noise = np.sqrt(self.column_norms @ factors**2 / len(self.projected))
         image = np.mean(np.abs(self.projected_signal @ factors))

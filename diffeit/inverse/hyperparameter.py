@@ -228,17 +228,30 @@ Tool = Literal["eidors", "pyeit"]
 
 
 def to_external_hyperparameter(reconstruction: OneStep, tool: Tool) -> float:
-    """The value another tool needs for the same one-step reconstruction as `reconstruction`.
+    """The value another tool needs for the same one-step reconstruction.
 
     Both tools solve min ||J dsigma - dV||^2 + w dsigma^T R dsigma with J for a 1 A drive:
     pyEIT's JAC takes w as `lamb` directly (a squared weight), EIDORS takes w = hp^2 and its
     `hyperparameter.value` is hp. diffeit's objective, multiplied out, is the same with
     w = lambda^2 c s^2 / (background^2 I^2) x (its P^-1 over their R), with s = RMS(V_0),
-    c the prior scale and I the drive current. The priors must be the same family:
-    `Noser(exponent=p)` is EIDORS's `prior_noser` (p = 0.5) and pyEIT's "kotre" with that p
-    (pyEIT's default p is 0.2); `Tikhonov()` is EIDORS's `prior_tikhonov` and pyEIT's "dgn".
-    Absolute differences and a uniform background only; the same mesh and protocol.
+    c the prior scale and I the drive current (docs/science.md#linearised-reconstruction). The
+    priors must be the same family: `Noser(exponent=p)` is EIDORS's `prior_noser` (p = 0.5) and
+    pyEIT's "kotre" with that p (pyEIT's default p is 0.2); `Tikhonov()` is EIDORS's
+    `prior_tikhonov` and pyEIT's "dgn". Absolute differences and a uniform background only; the
+    same mesh and protocol.
+
+    Arguments:
+        reconstruction: The `OneStep` solver, on a model.
+        tool: "pyeit" or "eidors".
+
+    Returns:
+        pyEIT's `lamb` (w), or EIDORS's hyperparameter value (hp).
+
+    Raises:
+        ValueError: For a solver without a model, or a prior or tool the other tool lacks.
     """
+    if reconstruction.problem is None:
+        raise ValueError("the OneStep has no model: bind it first (solver.bound(model, background))")
     weight = reconstruction.hyperparameter**2 * _weight_factor(reconstruction.problem, tool)
     return float(np.sqrt(weight) if tool == "eidors" else weight)
 

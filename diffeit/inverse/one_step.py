@@ -7,90 +7,151 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import IdentityModule, is_concrete
+from .._arrays import is_concrete
 from .._messages import name_indices
 from ..forward import ForwardModel
+from ..results import RESULTS
 from .linearised import LinearisedProblem, apply_matrix, check_frames, regularised_inverse
-from .priors import AbstractPrior
+from .priors import AbstractPrior, prior_named
+from .solution import AbstractSolver, Solution, finished, finite_codes, model_of
 
 
-class OneStep(IdentityModule):
-    """Linearised difference reconstruction dsigma = R dV, with R built once.
+class OneStep(AbstractSolver):
+    """One-step linearised difference reconstruction: dsigma = R dV, with R built once.
 
-    With the normalisation of `LinearisedProblem` (x = dsigma / background, y = dV / s,
-    J_n, P scaled to a unit-mean data-space covariance G = J_n P J_n^T):
+    Minimises ||J_n x - y||^2 + hyperparameter^2 x^T (P/c)^-1 x over the relative change
+    x = dsigma / background, on the normalised problem of `LinearisedProblem` (J_n the
+    normalised Jacobian, P/c the scaled prior covariance, y the normalised data), in
+    measurement space: x = (P/c) J_n^T (G + hyperparameter^2 I)^-1 y with G = J_n (P/c) J_n^T,
+    an eigendecomposition of the M x M matrix G and never anything E x E. `matrix` maps volts
+    to S/sq, so a batch of T frames is one (T, M) @ (M, E) product, under jit and vmap too.
+    The equations are in docs/science.md#linearised-reconstruction.
 
-        x = P J_n^T (G + hyperparameter^2 I)^-1 y
+    Arguments:
+        model: The forward model of the reconstruction mesh (it may differ from the mesh the
+            data came from); None for an unbound solver (see `bound`).
+        prior: "tikhonov", "noser", "laplace", "matern" or a prior of
+            `diffeit.inverse.priors` (e.g. `Matern(correlation_length=0.1)`).
+        hyperparameter: lambda > 0, unit-free: with p% noise (docs/science.md#noise) lambda
+            near p/100 balances noise and signal (`diffeit.inverse.select_hyperparameter`
+            chooses it; `to_external_hyperparameter` converts it for EIDORS and pyEIT).
+        background: The reference conductivity, S/sq, scalar or (E,).
+        normalised: Reconstruct from normalised differences dV / V_ref, which cancel
+            per-channel gain errors of an instrument; needs `reference`.
+        reference: The measured reference voltages V_ref (M,), volts, that normalised
+            differences divide by.
 
-    the minimiser of ||J_n x - y||^2 + hyperparameter^2 x^T P^-1 x, computed in measurement
-    space (an eigendecomposition of the M x M matrix G, never anything E x E). `matrix` maps volts to
-    S/sq, so a batch of T frames is one (T, M) @ (M, E) product.
-
-    **Arguments:**
-
-    - `model`: the forward model of the reconstruction mesh (it may differ from the mesh the
-      data came from).
-    - `prior`: "tikhonov", "noser", "laplace", "matern" or a prior instance of
-      `diffeit.inverse.priors` (e.g. `Matern(correlation_length=0.1)`).
-    - `hyperparameter`: lambda > 0, unit-free (see `diffeit.inverse.select_hyperparameter`, and
-      `diffeit.inverse.to_external_hyperparameter` for EIDORS's and pyEIT's values). With noise
-      of p% (docs/science.md#noise), lambda near p/100 balances noise and signal.
-    - `background`: the reference conductivity, scalar or (E,), S/sq.
-    - `normalised`: reconstruct from normalised differences dV / V_ref (pass the measured
-      reference to `reconstruct`), which cancels per-channel gain errors of an instrument.
-
-    The model, prior, background and `normalised` are those of `problem`.
+    Raises:
+        ValueError: For a hyperparameter, prior, background or reference out of range.
     """
 
-    problem: LinearisedProblem = eqx.field(repr=False)
+    prior: AbstractPrior
     hyperparameter: float = eqx.field(static=True)
-    matrix: jax.Array = eqx.field(repr=False)
+    background: float | np.ndarray = eqx.field(repr=False)
+    """The background conductivity as given (S/sq, scalar or (E,))."""
+    normalised: bool = eqx.field(static=True)
+    reference: jax.Array | None = eqx.field(repr=False)
+    """The measured reference V_ref (M,) of normalised differences, volts; else None."""
+    problem: LinearisedProblem | None = eqx.field(repr=False)
+    """The linearised problem on the model (None when unbound)."""
+    matrix: jax.Array | None = eqx.field(repr=False)
     """(E, M) reconstruction matrix: dsigma (S/sq) = matrix @ y, y = dV in volts (absolute
-    differences) or dV / V_ref (normalised differences)."""
+    differences) or dV / V_ref (normalised differences); None when unbound."""
 
     def __init__(
         self,
-        model: ForwardModel,
+        model: ForwardModel | None = None,
         prior: str | AbstractPrior = "noser",
         hyperparameter: float = 0.05,
         background: float | np.ndarray = 1.0,
         *,
         normalised: bool = False,
+        reference: jax.Array | np.ndarray | None = None,
     ) -> None:
         if not (np.isfinite(hyperparameter) and hyperparameter > 0):
             raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
         self.hyperparameter = float(hyperparameter)
-        self.problem = LinearisedProblem(model, prior, background, normalised=normalised)
+        self.prior = prior_named(prior) if isinstance(prior, str) else prior
+        if not isinstance(self.prior, AbstractPrior):
+            raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
+        self.background = background
+        self.normalised = bool(normalised)
+        if reference is not None and not normalised:
+            raise ValueError("a reference is only used for normalised differences (normalised=True)")
+        self.reference = None if model is None or reference is None else _checked_reference(reference, model)
+        if model is None:
+            self.problem, self.matrix = None, None
+            return
+        if normalised and reference is None:
+            raise ValueError("normalised differences divide by the measured reference: pass reference=V_ref (volts)")
+        self.problem = LinearisedProblem(model, self.prior, background, normalised=normalised)
         matrix = self.problem.background[:, None] * regularised_inverse(self.problem, self.hyperparameter)
         if not normalised:
             matrix = matrix / self.problem.data_scale  # volts in
         self.matrix = jnp.asarray(matrix)
 
     @property
-    def model(self) -> ForwardModel:
-        """The forward model of the reconstruction mesh."""
-        return self.problem.model
+    def model(self) -> ForwardModel | None:
+        """The forward model of the reconstruction mesh (None when unbound)."""
+        return None if self.problem is None else self.problem.model
 
-    def reconstruct(self, voltage_difference: jax.Array, reference: jax.Array | None = None) -> jax.Array:
-        """Conductivity change dsigma (S/sq) per element for dV = V - V_reference (volts).
+    def bound(
+        self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
+    ) -> OneStep:
+        """This solver's settings on `model` (see `AbstractSolver.bound`); a normalised solver
+        keeps its reference, which must fit the model's readings."""
+        return OneStep(
+            model,
+            self.prior,
+            self.hyperparameter if hyperparameter is None else hyperparameter,
+            self.background if background is None else background,
+            normalised=self.normalised,
+            reference=self.reference,
+        )
 
-        `voltage_difference` is (M,) or a batch (T, M); the result is (E,) or (T, E), in the
-        dtype of the input (float32 in, float32 out). Normalised reconstruction needs the
-        measured `reference` voltages (M,).
+    def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
+        """Reconstruct voltage differences dV = V - V_reference (volts).
+
+        Works under jit and vmap; the image is in the dtype of the input (float32 in, float32
+        out). `stats` is empty: the product is the whole method.
+
+        Arguments:
+            data: dV, (M,) or a batch (T, M), volts.
+            throw: Raise for a frame whose image is not finite (True), or return its code.
+
+        Returns:
+            The `Solution`: `value` dsigma (E,) or (T, E), S/sq; `result` per frame
+            `RESULTS.successful`, or `RESULTS.nonfinite` for an image that is not finite (an
+            overflow).
+
+        Raises:
+            ValueError: For data of the wrong shape or not finite, or an unbound solver.
+            diffeit.results.SolverError: With `throw=True`, for a frame whose image is not finite.
         """
-        n_meas = self.model.n_measurements
-        dv = check_frames(voltage_difference, n_meas, "voltage differences")
-        if self.problem.normalised:
-            if reference is None:
-                raise ValueError("normalised reconstruction divides by the reference: pass reference=V_ref (volts)")
-            reference = check_frames(reference, n_meas, "the reference")
-            if reference.ndim != 1:
-                raise ValueError(f"the reference must be one frame of shape ({n_meas},); got {reference.shape}")
-            if is_concrete(reference) and np.any(np.asarray(reference) == 0):
-                raise ValueError(
-                    f"the reference is zero at readings {name_indices(np.flatnonzero(np.asarray(reference) == 0))}"
-                )
-            dv = dv / reference
-        elif reference is not None:
-            raise ValueError("a reference is only used for normalised differences (normalised=True)")
-        return apply_matrix(self.matrix, dv)
+        model = model_of(self)
+        dv = check_frames(data, model.n_measurements, "voltage differences")
+        if self.normalised:
+            dv = dv / self.reference.astype(dv.dtype)
+        images, codes = _images(self.matrix, dv)
+        return finished(images, codes, {}, "one-step reconstruction", throw)
+
+
+@jax.jit
+def _images(matrix: jax.Array, frames: jax.Array) -> tuple[jax.Array, RESULTS]:
+    """The images of `frames` (..., M) by `matrix` (E, M) in the frames' dtype, and their
+    codes (`finite_codes`): one compiled call."""
+    images = apply_matrix(matrix, frames)
+    return images, finite_codes(images)
+
+
+def _checked_reference(reference: jax.Array | np.ndarray, model: ForwardModel) -> jax.Array:
+    """The measured reference (M,) of normalised differences, refused when of the wrong shape,
+    not finite or zero at some reading (concrete values)."""
+    n_meas = model.n_measurements
+    reference = check_frames(reference, n_meas, "the reference")
+    if reference.ndim != 1:
+        raise ValueError(f"the reference must be one frame of shape ({n_meas},); got {reference.shape}")
+    if is_concrete(reference) and np.any(np.asarray(reference) == 0):
+        zero = np.flatnonzero(np.asarray(reference) == 0)
+        raise ValueError(f"the reference is zero at readings {name_indices(zero)}")
+    return reference

@@ -3,85 +3,17 @@ problem, solved by the primal-dual Newton method of Chan, Golub and Mulet (1999)
 iterations, each a sparse solve and a small dense one; a batch of frames is one jitted call,
 vmapped over the frames.
 
-On the normalised linearised problem of `LinearisedProblem` (x = dsigma / background per
-element, unit-free; y = dV / s with s = RMS(V_0) volts; J_n = diag(1/s) J diag(background)),
-`TotalVariation` minimises the unit-free objective
+On the normalised linearised problem of `LinearisedProblem` (x = dsigma / background, y = dV / s,
+J_n), `TotalVariation` minimises the unit-free objective
 
     f(x) = ||J_n x - y||^2 + lambda^2 TV_beta(x),
     TV_beta(x) = sum_edges w_e (sqrt((x_i - x_j)^2 + beta^2) - beta),   w_e = l_e / l_ref,
 
-over the interior edges e shared by elements i and j, with l_e the edge's length (m) and
-l_ref = sqrt(A / pi) the radius of the disc with the sheet's area A (m; 1 on the unit disc).
-As beta -> 0, TV_beta(x) -> (1/l_ref) sum_e l_e |x_i - x_j| = (1/l_ref) int |grad x| dA, the
-jump of the relative change times the length of the jump set: a disc of radius r and relative
-contrast a has TV = 2 pi r |a| / l_ref whatever the mesh. So lambda, like `OneStep`'s, is
-unit-free and does not move with the drive current, the background level or the mesh size
-(edge-length weights, not edge counts: the best lambda was 0.05 on unit-disc meshes of h = 0.06,
-0.08 and 0.12 alike). On a touch on the unit disc with p% noise the best lambda (highest
-correlation with the truth) was 2 to 5 times p/100 (0.02-0.05 at 0.3%, 0.05 at 1%, 0.1 at
-3%): about twice the best one-step Laplace lambda, the same order, as both penalties are
-weighed against the same unit-free data misfit. The `- beta` only makes TV_beta(0) = 0; it
-changes no minimiser. beta is in the units of x (a relative change): 1e-3..1e-2 of the
-expected contrast keeps edges sharp; smaller makes the problem stiffer (more iterations).
-
-The method. With d = D x the edge differences ((D x)_e = x_i - x_j, D of shape (n_edges, E))
-and psi_e = sqrt(d_e^2 + beta^2), the gradient is
-
-    grad f(x) = 2 J_n^T (J_n x - y) + lambda^2 D^T W d / psi,   W = diag(w_e).
-
-The primal-dual Newton method adds a dual variable u_e per edge (|u_e| <= 1; u = d / psi at
-the minimiser) and linearises the pair of equations 2 J_n^T (J_n x - y) + lambda^2 D^T W u = 0
-and psi u - d = 0. Eliminating the dual step leaves, for the primal step delta,
-
-    (2 J_n^T J_n + lambda^2 D^T W K D) delta = -grad f(x),   K_e = (1 - u_e d_e / psi_e) / psi_e,
-
-and the dual step du = K D delta + d / psi - u. K_e > 0 while |u_e| <= 1, so the matrix is
-positive definite and delta a descent direction of f. At u = d / psi this is Newton's method on
-f (K_e = beta^2 / psi_e^3: tiny across an edge, which makes the plain Newton iteration crawl); at
-u = 0 it is the lagged-diffusivity (IRLS) step (K_e = 1 / psi_e, the curvature of a quadratic
-that majorises TV_beta: safe but linearly convergent). Here:
-
-- u starts at 0, and the iteration uses K_e = (1 - (1 - omega) u_e d_e / psi_e) / psi_e, the
-  blend omega / psi_e + (1 - omega) K_e of the two curvatures: omega starts at 1, is halved
-  after each iteration that took the full step and doubled (at most 1) after one whose step
-  had to be shortened. The early iterations, where the warm start's smooth slopes have to
-  become flat plateaus and jumps, no longer crawl: on the touch (2,894 triangles, four noise
-  draws) 11 to 15 iterations at lambda 0.05 (the plain primal-dual method, omega = 0: 13 to
-  15), 12 to 14 at lambda 0.02 (17 to 25), 18 to 24 at lambda 0.01 and beta 1e-4 (100 to 170).
-- The primal step is scaled by backtracking (halving from 1) until f decreases by at least
-  1e-4 of what the slope promises (Armijo): f decreases at every iteration.
-- Each edge's dual variable takes the full step du_e or 0.99 of the way to |u_e| = 1,
-  whichever is shorter.
-- The iteration stops when `gradient_norm` = max |grad f(x)| / max |grad f(0)| is at most
-  `gradient_tolerance`: the stop certifies the optimality condition, whatever the iteration
-  did to get there. Near the minimiser the gradient falls by 10 to 1,000 per iteration. The
-  minimum is flat: on the touch, 1e-6, the default, put the image within 1.5e-3 of its peak
-  from the minimiser's (found with the tolerance 1e-12), 1e-4 left up to 12%.
-
-L-BFGS, which this module used before, took about 700 to 2,500 steps on the same problem
-(unit-disc meshes of 700 to 8,000 triangles); benchmarks/inverse.py (table 6) compares the two.
-
-The linear system, without anything E x E. With A = lambda^2 D^T W K D + eps I (sparse, on the
-element-adjacency pattern plus the diagonal) and 2 J_n^T J_n replaced by 2 B^T B (B of shape
-(k, E), below), the Woodbury identity gives
-
-    delta = A^-1 r - A^-1 B^T (I / 2 + B A^-1 B^T)^-1 B A^-1 r,   r = -grad f(x):
-
-one sparse solve (`diffeit.linear_solve.solve_spd`, the model's solver backend) with k + 1
-right-hand sides and a k x k Cholesky factorisation per iteration. eps makes A invertible
-(D^T W K D vanishes on constant images): 1e-8 times the mean diagonal of 2 J_n^T J_n, or 1e-10
-times the largest diagonal entry of lambda^2 D^T W K D if that is more (which keeps A's
-condition number within what a factorisation in float64 resolves at huge lambda). B = Q^T J_n,
-Q an orthonormal basis of the eigenvectors of J_n J_n^T with eigenvalues of at least 1e-2
-lambda^2 (and above rounding) and of J_n 1, the data of a uniform change: B^T B is J_n^T J_n
-without the data's curvature that lambda^2 TV_beta dwarfs, but whole on constant images, where
-TV has none (k = 54 to 64 of the 104 independent adjacent readings at lambda 0.05 on unit-disc
-meshes of 700 to 8,000 triangles: fewer right-hand sides, a faster solve). Both change only
-the matrix, that is the step, never the gradient: the minimiser and the stopping test are
-exact.
-
-The warm start is the one-step Laplace solution at the same lambda (`OneStep`'s
-measurement-space formula).
+over the interior edges e shared by elements i and j (l_e the edge's length, l_ref = sqrt(A / pi)
+for the sheet's area A), so that lambda is unit-free and independent of the mesh. The
+primal-dual Newton step, its blend with the lagged-diffusivity step, the line search, the
+stopping test, the low-rank Woodbury solve of the Newton system and the measurements behind the
+defaults are in docs/science.md#total-variation.
 """
 
 from __future__ import annotations
@@ -94,17 +26,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import IdentityModule
 from .._threads import one_blas_thread_in_xla
 from ..forward import ForwardModel
 from ..linear_solve import AbstractLinearSolver, SparsityPattern, solve_spd
 from ..mesh import element_adjacency
-from ..results import RESULTS, throw_if_failed
+from ..results import RESULTS
 from .linearised import LinearisedProblem, check_frames, regularised_inverse
 from .priors import Laplace, Tikhonov
+from .solution import AbstractSolver, Solution, finished, model_of
 
 _RIDGE = 1e-8
-"""eps of the module docstring: at least this times the mean diagonal of 2 J_n^T J_n ..."""
+"""eps (docs/science.md#total-variation): at least this times the mean diagonal of 2 J_n^T J_n ..."""
 _CONDITION = 1e-10
 """... and at least this times the largest diagonal entry of lambda^2 D^T W K D."""
 _RANK_FRACTION = 1e-2
@@ -113,28 +45,10 @@ _ARMIJO = 1e-4
 _HALVINGS = 40
 
 
-class TotalVariationSolution(eqx.Module):
-    """What `TotalVariation.solve` returns; with a batch of T frames every field has a leading
-    T axis.
+class _Outcome(eqx.Module):
+    """One primal-dual Newton solve per frame, in relative units (see `TotalVariation.solve`)."""
 
-    - `conductivity_change`: (E,) dsigma in S/sq.
-    - `objective`: f(x) at the solution (unit-free, see the module docstring).
-    - `residual_norm`: ||J_n x - y||, the normalised data misfit (compare it with the noise
-      norm sqrt(M) p/100 for p% noise).
-    - `total_variation`: TV_beta(x) at the solution (unit-free).
-    - `gradient_norm`: max |grad f(x)| / max |grad f(0)| (max over elements), the convergence
-      certificate (1 at x = 0, 0 at the minimiser).
-    - `iterations`: primal-dual Newton iterations taken (linear systems solved).
-    - `result`: `RESULTS.successful` when `gradient_norm` <= the reconstruction's
-      `gradient_tolerance`; `RESULTS.max_iterations_reached` when the iteration limit came
-      first; `RESULTS.stalled` when no step along the Newton direction (down to 2^-40 of it)
-      decreased f enough (the Armijo test, allowing for rounding in f) before the gradient
-      test was met: the iteration has reached the rounding level of f; `RESULTS.nonfinite`
-      for a non-finite step (a linear solve that failed), the image then being the last
-      finite iterate. One code per frame for a batch.
-    """
-
-    conductivity_change: jax.Array
+    x: jax.Array
     objective: jax.Array
     residual_norm: jax.Array
     total_variation: jax.Array
@@ -163,58 +77,55 @@ class _Operator(eqx.Module):
     ridge: jax.Array
 
 
-class TotalVariation(IdentityModule):
-    """Smoothed total-variation difference reconstruction on the linearised problem.
+class TotalVariation(AbstractSolver):
+    """Smoothed total-variation difference reconstruction: sharp-edged changes (touches).
 
     Minimises f(x) = ||J_n x - y||^2 + hyperparameter^2 TV_smoothing(x) over the relative
-    change x = dsigma / background (see the module docstring for the normalisation, the edge
-    weights and the method) by the primal-dual Newton method, and returns dsigma =
-    background x in S/sq. Set-up builds J_n, the edge list, the sparsity pattern of the Newton
-    matrix, the low-rank factor of J_n^T J_n and the warm-start matrix once. `solve` runs one
-    jitted function, vmapped over the frames of a batch (compiled once per reconstruction
-    shape whatever the number of frames; the frames of a batch iterate together until the
-    slowest has stopped, each keeping its own result). The sparse solves use the model's
-    solver backend (`model.solver`): with the host backend each iteration sends the matrices
-    of all frames of a batch to the host in one callback, which factorises them one after
-    the other, so on CPU a batch costs about as much per frame as single calls (the batch
-    runs as many iterations as its slowest frame). Absolute differences only.
+    change x = dsigma / background on the normalised linearised problem of
+    `LinearisedProblem` (absolute differences), TV weighed by edge length so that the
+    hyperparameter is unit-free, by the primal-dual Newton method of Chan, Golub and Mulet
+    (1999): tens of iterations, each one sparse solve (the model's solver backend) and one
+    small dense one, starting from the one-step Laplace image at the same hyperparameter.
+    Set-up builds the Newton matrix's pattern, a low-rank factor of J_n^T J_n and the
+    warm-start matrix once; `solve` is one jitted function vmapped over the frames of a batch
+    (which iterate together until the slowest has stopped, each with its own result). The
+    objective, the method and measurements of its settings are in
+    docs/science.md#total-variation.
 
-    `solve` and `reconstruct` take `throw=True` (the default): a frame that does not converge
-    raises `diffeit.results.SolverError`; with `throw=False` the solution's `result` holds
-    each frame's `diffeit.results.RESULTS` code (see `TotalVariationSolution`).
+    Arguments:
+        model: The forward model of the reconstruction mesh; None for an unbound solver (see
+            `bound`).
+        hyperparameter: lambda > 0, unit-free. Larger flattens the image and lowers its
+            contrast; smaller lets noise through and needs more iterations. For p% noise start
+            near 2 to 5 times p/100.
+        smoothing: beta > 0, in units of the relative change (1e-3 = 0.1% of the background).
+        background: The reference conductivity, S/sq, scalar or (E,).
+        max_iterations: The iteration limit (`RESULTS.max_iterations_reached` beyond it).
+        gradient_tolerance: The largest gradient norm max |grad f(x)| / max |grad f(0)| that
+            counts as converged.
+        warm_start: Start from the one-step Laplace solution at the same lambda (True) or from
+            zero (False).
 
-    **Arguments:**
-
-    - `model`: the forward model of the reconstruction mesh.
-    - `hyperparameter`: lambda > 0, unit-free. Larger flattens the image and lowers its
-      contrast (TV's known bias); smaller lets noise through and needs more iterations. For
-      p% noise (docs/science.md#noise) start near 2 to 5 times p/100 (see the module docstring).
-    - `smoothing`: beta > 0, in units of the relative change (1e-3 = 0.1% of the background).
-    - `background`: the reference conductivity, scalar or (E,), S/sq (held by `problem`).
-    - `max_iterations`: the iteration limit (`RESULTS.max_iterations_reached` beyond it).
-      The touch at the default settings takes 9 to 15 iterations on meshes of 400 to 8,000
-      triangles; lambda = 0.01 (5 times below the advice for 1% noise) 15 to 25.
-    - `gradient_tolerance`: the largest `gradient_norm` (see `TotalVariationSolution`) that
-      counts as converged. Near the minimiser each iteration multiplies the gradient by
-      1e-1 to 1e-3, so a tighter tolerance costs one or two iterations.
-    - `warm_start`: start from the one-step Laplace solution at the same lambda (True) or from
-      zero (False).
+    Raises:
+        ValueError: For settings out of range, or a mesh without interior edges.
     """
 
-    problem: LinearisedProblem = eqx.field(repr=False)
-    """J_n and the data scale; its Laplace prior serves only the warm start."""
     hyperparameter: float = eqx.field(static=True)
     smoothing: float = eqx.field(static=True)
+    background: float | np.ndarray = eqx.field(repr=False)
+    """The background conductivity as given (S/sq, scalar or (E,))."""
     max_iterations: int = eqx.field(static=True)
     gradient_tolerance: float = eqx.field(static=True)
     warm_start: bool = eqx.field(static=True)
-    operator: _Operator = eqx.field(repr=False)
-    initial_matrix: jax.Array = eqx.field(repr=False)
+    problem: LinearisedProblem | None = eqx.field(repr=False)
+    """J_n and the data scale; its Laplace prior serves only the warm start. None when unbound."""
+    operator: _Operator | None = eqx.field(repr=False)
+    initial_matrix: jax.Array | None = eqx.field(repr=False)
     """(E, M) maps y to the warm start x_0 (zeros without `warm_start`)."""
 
     def __init__(
         self,
-        model: ForwardModel,
+        model: ForwardModel | None = None,
         hyperparameter: float = 0.05,
         smoothing: float = 1e-3,
         background: float | np.ndarray = 1.0,
@@ -235,6 +146,10 @@ class TotalVariation(IdentityModule):
         self.hyperparameter, self.smoothing = float(hyperparameter), float(smoothing)
         self.max_iterations, self.gradient_tolerance = int(max_iterations), float(gradient_tolerance)
         self.warm_start = bool(warm_start)
+        self.background = background
+        if model is None:
+            self.problem = self.operator = self.initial_matrix = None
+            return
         # J_n does not depend on the prior; Laplace's covariance serves only the warm start.
         self.problem = LinearisedProblem(model, Laplace() if warm_start else Tikhonov(), background)
         self.operator = _newton_operator(self.problem, self.hyperparameter)
@@ -245,59 +160,103 @@ class TotalVariation(IdentityModule):
         self.initial_matrix = jnp.asarray(initial)
 
     @property
-    def model(self) -> ForwardModel:
-        """The forward model of the reconstruction mesh."""
-        return self.problem.model
+    def model(self) -> ForwardModel | None:
+        """The forward model of the reconstruction mesh (None when unbound)."""
+        return None if self.problem is None else self.problem.model
+
+    def bound(
+        self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
+    ) -> TotalVariation:
+        """This solver's settings on `model` (see `AbstractSolver.bound`)."""
+        return TotalVariation(
+            model,
+            self.hyperparameter if hyperparameter is None else hyperparameter,
+            self.smoothing,
+            self.background if background is None else background,
+            max_iterations=self.max_iterations,
+            gradient_tolerance=self.gradient_tolerance,
+            warm_start=self.warm_start,
+        )
 
     def objective(self, conductivity_change: jax.Array, voltage_difference: jax.Array) -> jax.Array:
-        """f(x) (unit-free) for dsigma (E,) in S/sq and dV (M,) in volts, x = dsigma /
-        background: a pure JAX function (grad, jit and vmap work on it)."""
+        """The objective f(x) (unit-free) of an image, a pure JAX function (grad, jit and vmap
+        work on it).
+
+        Arguments:
+            conductivity_change: dsigma (E,), S/sq (x = dsigma / background).
+            voltage_difference: dV (M,), volts.
+
+        Returns:
+            f(x), a scalar.
+        """
+        model_of(self)
         x = jnp.asarray(conductivity_change) / self.problem.background
         y = jnp.asarray(voltage_difference) / self.problem.data_scale
         return _objective(x, (self.operator, y, self.hyperparameter, self.smoothing))
 
-    def solve(self, voltage_difference: jax.Array, *, throw: bool = True) -> TotalVariationSolution:
-        """Reconstruct dV = V - V_reference (volts), (M,) or a batch (T, M), and report the
-        solver's outcome per frame (see `TotalVariationSolution`). Non-finite or wrongly shaped
-        frames raise ValueError; with `throw=True` a frame that did not converge raises
-        `diffeit.results.SolverError` naming it. The solve runs in float64; dsigma is returned
-        in the input's dtype."""
-        dv = check_frames(voltage_difference, self.model.n_measurements, "voltage differences")
+    def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
+        """Reconstruct voltage differences dV = V - V_reference (volts).
+
+        The solve runs in float64; the image comes back in the input's dtype.
+
+        Arguments:
+            data: dV, (M,) or a batch (T, M), volts.
+            throw: Raise for a frame that did not converge (True), or return its code.
+
+        Returns:
+            The `Solution`: `value` dsigma (E,) or (T, E), S/sq; `result` per frame
+            `RESULTS.successful` when the gradient norm reached `gradient_tolerance`,
+            `RESULTS.max_iterations_reached`, `RESULTS.stalled` (no step along the Newton
+            direction, down to 2^-40 of it, decreased f: the iteration reached the rounding
+            level of f) or `RESULTS.nonfinite` (a failed linear solve; the image is then the
+            last finite iterate). `stats` (one value per frame): "objective" f(x) at the
+            solution; "residual_norm" ||J_n x - y||, the normalised data misfit (compare it
+            with sqrt(M) p/100 for p% noise); "total_variation" TV_beta(x); "gradient_norm"
+            max |grad f(x)| / max |grad f(0)| (1 at x = 0, 0 at the minimiser);
+            "iterations" the Newton iterations taken.
+
+        Raises:
+            ValueError: For data of the wrong shape or not finite, or an unbound solver.
+            diffeit.results.SolverError: With `throw=True`, for a frame that did not converge.
+        """
+        model = model_of(self)
+        dv = check_frames(data, model.n_measurements, "voltage differences")
         y = jnp.atleast_2d(dv).astype(jnp.float64) / self.problem.data_scale
         settings = jnp.asarray([self.hyperparameter, self.smoothing, self.gradient_tolerance], dtype=jnp.float64)
-        solution = _solve_frames(
+        outcome = _solve_frames(
             self.operator,
             y,
             self.initial_matrix,
             settings,
             max_iterations=self.max_iterations,
-            solver=self.model.solver,
+            solver=model.solver,
         )
-        change = (solution.conductivity_change * self.problem.background).astype(dv.dtype)
-        solution = eqx.tree_at(lambda s: s.conductivity_change, solution, change)
         if dv.ndim == 1:
-            solution = jax.tree_util.tree_map(lambda a: a[0], solution)
-        return throw_if_failed(solution, solution.result, "total variation") if throw else solution
-
-    def reconstruct(self, voltage_difference: jax.Array, *, throw: bool = True) -> jax.Array:
-        """dsigma (S/sq): (E,) for dV (M,) in volts, (T, E) for a batch (T, M), in the input's
-        dtype; `solve` returns the details, and `throw` is its."""
-        return self.solve(voltage_difference, throw=throw).conductivity_change
+            outcome = jax.tree_util.tree_map(lambda a: a[0], outcome)
+        value = (outcome.x * self.problem.background).astype(dv.dtype)
+        stats = {
+            "objective": outcome.objective,
+            "residual_norm": outcome.residual_norm,
+            "total_variation": outcome.total_variation,
+            "gradient_norm": outcome.gradient_norm,
+            "iterations": outcome.iterations,
+        }
+        return finished(value, outcome.result, stats, "total variation", throw)
 
 
 def _newton_operator(problem: LinearisedProblem, hyperparameter: float) -> _Operator:
     """The edges, their weights, the low-rank factor of J_n^T J_n and the sparsity pattern of
-    the Newton matrix (module docstring)."""
+    the Newton matrix (docs/science.md#total-variation)."""
     mesh = problem.model.mesh
     first, second, lengths = element_adjacency(mesh)
     if len(first) == 0:
         raise ValueError("the mesh has no interior edges: total variation is undefined")
-    # l_ref = sqrt(A / pi): TV is a length ratio, independent of the mesh size (module docstring).
+    # l_ref = sqrt(A / pi): TV is a length ratio, independent of the mesh size (docs/science.md#total-variation).
     reference_length = np.sqrt(mesh.element_areas.sum() / np.pi)
     n_elements = mesh.n_elements
     jacobian = problem.jacobian
     # B = Q^T J_n: B^T B = J_n^T Q Q^T J_n, J_n^T J_n without its smallest eigenvalues, but
-    # exact on constant images (module docstring).
+    # exact on constant images (docs/science.md#total-variation).
     eigenvalues, eigenvectors = np.linalg.eigh(jacobian @ jacobian.T)
     floor = max(_RANK_FRACTION * hyperparameter**2, len(eigenvalues) * np.finfo(float).eps * eigenvalues[-1])
     uniform = jacobian.sum(axis=1, keepdims=True)  # J_n 1
@@ -362,7 +321,7 @@ def _solve_frames(
     *,
     max_iterations: int,
     solver: AbstractLinearSolver,
-) -> TotalVariationSolution:
+) -> _Outcome:
     """One primal-dual Newton solve per row of y (T, M), vmapped; x in relative units.
     `settings` holds lambda, beta and the gradient tolerance: traced, so changing them does not
     compile again."""
@@ -447,7 +406,7 @@ def _solve_frames(
             stop=stop,
         )
 
-    def one(frame: jax.Array) -> TotalVariationSolution:
+    def one(frame: jax.Array) -> _Outcome:
         scale = jnp.max(jnp.abs(2 * jacobian.T @ frame))  # max |grad f(0)|
         scale = jnp.where(scale > 0, scale, 1.0)
         x = initial_matrix @ frame
@@ -485,8 +444,8 @@ def _solve_frames(
         # The figures afresh (the iteration updates the residual by increments).
         residual = jacobian @ state.x - frame
         total_variation = _total_variation(state.x, operator, smoothing)
-        return TotalVariationSolution(
-            conductivity_change=state.x,
+        return _Outcome(
+            x=state.x,
             objective=residual @ residual + hyperparameter**2 * total_variation,
             residual_norm=jnp.sqrt(residual @ residual),
             total_variation=total_variation,
