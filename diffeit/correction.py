@@ -5,53 +5,16 @@ Figs. 5.4, 5.5 and 5.9).
 A linear reconstruction does not image a touch the same everywhere: at the working point (one-step
 NOSER, hyperparameter 0.05, medium noise) a touch near the rim comes out with a larger peak and a
 smaller half-amplitude set than the same touch at the centre. The correction measures this once,
-on simulated data, and undoes it.
+on simulated data (`calibrate`), and undoes it (`correct`):
 
-## Calibration (`calibrate`)
-For every setting s = (background b, intensity a = dsigma/sigma, radius r) and every calibration
-position p_j (j = 0 is the reference, the domain's centroid by default), a touch (a smooth-edged
-disc, `diffeit.scene`) is simulated on the data model's (finer) mesh, noise is added
-(`noise_draws` seeded draws), and the frames are reconstructed by one-step difference imaging
-(`OneStep(model, prior, hyperparameter, background=b)`). With P_sj and R_sj the peak and the
-half-amplitude equivalent radius (`diffeit.metrics`) averaged over the draws,
+    intensity factor  g_I(p_j) = geometric mean over settings s of P_s0 / P_sj,
+    size factor       g_S(p_j) = geometric mean over settings s of R_s0 / R_sj,
+    corrected image   x'(y) = g_I x(c_j + (y - c_j) / g_S)  within target j,
 
-    intensity factor  g_I(p_j) = geometric mean over s of P_s0 / P_sj,
-    size factor       g_S(p_j) = geometric mean over s of R_s0 / R_sj,
-
-so g_I = g_S = 1 at the reference position. The per-setting ratios are kept (`intensity_table`,
-`size_table`): their spread shows how far one factor fits all intensities, sizes and backgrounds.
-A one-step image pulls a touch towards the middle (0.01-0.04 m at the working point), and the
-correction knows only the image, so the factors are tabulated where the touches appear: at
-q_j, the half-amplitude centroid of their images averaged over settings and draws
-(`image_positions`). Between these the factors are interpolated linearly (Delaunay triangles);
-outside their convex hull the nearest one's factor holds. (Looked up at the true positions
-instead, the factors under-corrected by up to 1.7% more in the test of the correction.)
-
-The batch: each setting's touch fields are one vmapped, jitted function of the centres, its
-voltages one vmapped, jitted forward solve, and all frames one reconstruction product; a progress
-bar (tqdm) counts the settings.
-
-## Correction (`correct`)
-On an element image x: the half-amplitude components (`diffeit.metrics.amplitude_components`)
-are the targets; every element belongs to the target whose centroid c_j is nearest its own
-centroid. Within target j, with (g_I, g_S) the factors for a target imaged at c_j,
-
-    x'(y) = g_I x(c_j + (y - c_j) / g_S),
-
-averaged over each element (the mean over 16 sample points, the centroids of its 4^2
-sub-triangles, each taking the value of the uncorrected element containing its pre-image; 0, no
-change, off the domain): the target is scaled in amplitude by g_I and in extent by g_S about its
-centroid. The peak scales by g_I and the half-amplitude area by g_S^2, to within the elements'
-resolution. Unit factors return the image unchanged. Components smaller than a quarter of the
-largest (specks of noise) are not targets of their own; their elements move with the nearest
-target.
-
-## Files (`Calibration.save`, `load`)
-An `.npz` archive (NumPy, no pickles): `schema` = "diffeit.calibration", `version` = 2, the
-arrays of `Calibration`, and `settings` as JSON (the `CalibrationSettings` it was made with).
-Version 1 files (no `image_positions`) still load: their factors are looked up at `positions`.
-`load` reads every member whole, so the CRC-32 that the archive keeps of each catches a file cut
-short or a changed byte; a newer version is refused by its number.
+P and R the peak and the half-amplitude equivalent radius of a touch at position p_j (j = 0 the
+reference), c_j a target's half-amplitude centroid. `Calibration.save` and `load` keep a
+calibration in a versioned `.npz` file. The method in full is in docs/science.md#spatial-correction,
+its use and the file in docs/tutorials/calibration.md#the-spatial-correction.
 """
 
 from __future__ import annotations
@@ -95,12 +58,17 @@ _WARP_LEVEL = 4
 class CalibrationSettings:
     """What a calibration was made with (stored in its file).
 
-    - `prior`, `hyperparameter`: the one-step reconstruction (hyperparameter unit-free).
-    - `backgrounds` (S/sq), `intensities` (dsigma/sigma under the touch, > -1), `radii` (m): the
-      simulated settings, every combination.
-    - `noise_percent`: Gaussian noise, percent of RMS(V_ref) (docs/science.md#noise); `noise_draws` per
-      touch; `seed` of the draws.
-    - `n_elements`, `n_data_elements`: the reconstruction and simulation meshes' sizes.
+    Attributes:
+        prior: The one-step reconstruction's prior.
+        hyperparameter: Its hyperparameter (unit-free).
+        backgrounds: The simulated backgrounds, S/sq.
+        intensities: The simulated intensities, dsigma/sigma under the touch (> -1).
+        radii: The simulated touch radii, m (every combination of the three is simulated).
+        noise_percent: Gaussian noise, percent of RMS(V_ref) (docs/science.md#noise).
+        noise_draws: Noise draws per touch.
+        seed: The seed of the draws.
+        n_elements: The reconstruction mesh's size.
+        n_data_elements: The simulation mesh's size.
     """
 
     prior: str
@@ -116,16 +84,27 @@ class CalibrationSettings:
 
 
 class Calibration(eqx.Module):
-    """Position-dependent correction factors (module docstring).
+    """Position-dependent correction factors for the intensity and size of imaged touches.
 
-    - `positions` (P, 2) m: the calibration positions (true touch centres); row 0 the reference.
-    - `intensity_factor`, `size_factor` (P,): g_I and g_S there (1 at the reference).
-    - `intensity_table`, `size_table` (B, I, R, P): the ratios of each setting (backgrounds x
-      intensities x radii of `settings`) whose geometric means the factors are.
-    - `settings`: `CalibrationSettings` (static).
-    - `image_positions` (P, 2) m: where the touches at `positions` appear, the mean
-      half-amplitude centroid of their images (default: `positions`). `factors` is looked up
-      by a reconstructed centroid, so it interpolates over these.
+    Made by `calibrate`, applied by `correct`, kept by `save` and `load`
+    (docs/science.md#spatial-correction).
+
+    Attributes:
+        positions: (P, 2) m, the calibration positions (true touch centres); row 0 the
+            reference.
+        intensity_factor: (P,) g_I there (1 at the reference).
+        size_factor: (P,) g_S there (1 at the reference).
+        intensity_table: (B, I, R, P) the intensity ratios of each setting (backgrounds x
+            intensities x radii of `settings`) whose geometric mean `intensity_factor` is.
+        size_table: (B, I, R, P) likewise for `size_factor`.
+        settings: `CalibrationSettings` (static).
+        image_positions: (P, 2) m, where the touches at `positions` appear, the mean
+            half-amplitude centroid of their images (default: `positions`). `factors` is looked
+            up by a reconstructed centroid, so it interpolates over these.
+
+    Raises:
+        ValueError: For positions that are not finite (P, 2), P >= 3, spanning the plane, and
+            factors or tables of the wrong shape or not finite and positive.
     """
 
     positions: np.ndarray
@@ -175,9 +154,20 @@ class Calibration(eqx.Module):
                 raise ValueError(f"{name} must be finite and positive")
 
     def factors(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(intensity g_I (N,), size g_S (N,)) for targets imaged at `points` (N, 2) or one
-        (x, y), metres: linear between the calibration's `image_positions`, the nearest one's
-        outside their hull."""
+        """The correction factors for targets imaged at `points`.
+
+        Linear between the calibration's `image_positions`, the nearest one's outside their
+        hull.
+
+        Arguments:
+            points: (N, 2) or one (x, y), metres.
+
+        Returns:
+            (intensity g_I (N,), size g_S (N,)).
+
+        Raises:
+            ValueError: For points that are not finite (x, y) pairs.
+        """
         points = np.atleast_2d(np.asarray(points, dtype=float))
         if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
             raise ValueError(f"points must be finite (x, y) pairs, shape (N, 2); got shape {np.shape(points)}")
@@ -188,7 +178,17 @@ class Calibration(eqx.Module):
         return result[:, 0], result[:, 1]
 
     def save(self, path: str | Path) -> Path:
-        """Write the calibration to `path` (.npz; module docstring); returns the path written."""
+        """Write the calibration to `path`.
+
+        An `.npz` archive (no pickles) with the schema, the format version, the arrays and the
+        settings as JSON (docs/tutorials/calibration.md#the-spatial-correction).
+
+        Arguments:
+            path: The file to write (replaced if it exists).
+
+        Returns:
+            The path written.
+        """
         path = Path(path)
         with path.open("wb") as file:
             np.savez(
@@ -205,13 +205,24 @@ _ARRAYS = ("positions", "intensity_factor", "size_factor", "intensity_table", "s
 
 
 def load(path: str | Path) -> Calibration:
-    """A calibration saved by `Calibration.save`.
+    """Read a calibration saved by `Calibration.save`.
 
-    Raises `FileNotFoundError` for a missing file and `ValueError` naming the file for one that
-    is not a calibration (not an .npz archive, another schema), of a format version this diffeit
-    does not read (a newer one named by its number), or damaged: cut short or a changed byte
-    (the archive is read whole, so every member's CRC-32 is checked), members missing, unknown
-    or of another dtype or shape, settings that are not `CalibrationSettings`' fields and types.
+    Version 1 files (no `image_positions`) still load: their factors are looked up at
+    `positions`.
+
+    Arguments:
+        path: The `.npz` file.
+
+    Returns:
+        The `Calibration`.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file, for one that is not a calibration (not an .npz archive,
+            another schema), of a format version this diffeit does not read (a newer one named
+            by its number), or damaged: cut short or a changed byte (the archive is read whole,
+            so every member's CRC-32 is checked), members missing, unknown or of another dtype
+            or shape, settings that are not `CalibrationSettings`' fields and types.
     """
     path = Path(path)
     if not path.is_file():
@@ -367,22 +378,38 @@ def calibrate(
     seed: int = 0,
     progress: bool = True,
 ) -> Calibration:
-    """Calibrate the correction factors (module docstring) for one-step reconstructions with
-    `model` (its mesh is the reconstruction mesh), from touches simulated with `data_model` (the
-    same domain, meshed finer: data from the reconstruction mesh itself would be an inverse
-    crime).
+    """Calibrate the spatial correction factors for one-step reconstructions with `model`.
 
-    - `prior`, `hyperparameter`: the reconstruction to calibrate (`OneStep`), one per background.
-    - `backgrounds` (S/sq, > 0), `intensities` (dsigma/sigma, in (-1, 0) or > 0), `radii` (m,
-      > 0): every combination is simulated at every position.
-    - `positions` (P, 2) m, row 0 the reference: default `default_positions(model.mesh)`.
-    - `noise_percent` (>= 0; 0.5 is "medium"), `noise_draws` (>= 1) per touch, `seed`. The
-      reference (centre) is the noisiest position (its touch changes the voltages least), and its
-      error enters every factor: 8 draws keep it to a few percent at medium noise.
-    - `progress`: a tqdm bar over the settings.
+    Touches (smooth-edged discs) are simulated with `data_model` at every position for every
+    combination of background, intensity and radius, with noise, reconstructed by `OneStep` on
+    `model`, and the ratios of their peaks and half-amplitude radii to the reference's are
+    tabulated where the touches appear in the images (docs/science.md#spatial-correction).
 
-    ValueError names a setting whose targets are lost (a peak of the wrong sign on average, so no
-    positive factor): raise the intensity or the hyperparameter, or lower the noise.
+    Arguments:
+        model: The reconstruction model (its mesh is the reconstruction mesh).
+        data_model: The simulation model: the same domain and protocol, meshed finer (data from
+            the reconstruction mesh itself would be an inverse crime).
+        prior: The prior of the reconstruction to calibrate (`OneStep`), one per background.
+        hyperparameter: Its hyperparameter (unit-free).
+        backgrounds: Background conductivities, S/sq, > 0.
+        intensities: Touch intensities dsigma/sigma, in (-1, 0) or > 0.
+        radii: Touch radii, m, > 0.
+        positions: (P, 2) m, row 0 the reference; default `default_positions(model.mesh)`.
+        noise_percent: Gaussian noise, percent of RMS(V_ref), >= 0 (0.5 is "medium").
+        noise_draws: Noise draws per touch (>= 1): the reference is the noisiest position and
+            its error enters every factor; 8 draws keep it to a few percent at medium noise.
+        seed: The seed of the draws.
+        progress: Show a tqdm bar over the settings.
+
+    Returns:
+        The `Calibration`.
+
+    Raises:
+        ValueError: For empty or invalid backgrounds, intensities or radii, a negative noise,
+            noise draws that are not a positive integer, models of different protocols, invalid
+            positions, and a setting whose targets are lost (a peak of the wrong sign on average,
+            so no positive factor: raise the intensity or the hyperparameter, or lower the
+            noise).
     """
     backgrounds, intensities, radii = (tuple(float(v) for v in values) for values in (backgrounds, intensities, radii))
     for name, values, valid in (
@@ -461,9 +488,23 @@ def _touch_fields(mesh: Mesh, centres: jax.Array, radius: float, intensity: floa
 
 
 def correct(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarray:
-    """The corrected image (module docstring) of an element image (E,) or a batch (T, E) on
-    `mesh`, in the image's unit: each half-amplitude target scaled by g_I in amplitude and g_S in
-    extent about its centroid, with the factors at that centroid."""
+    """Correct an element image for the position dependence of the reconstruction.
+
+    Each half-amplitude target is scaled by g_I in amplitude and g_S in extent about its
+    centroid, with the factors at that centroid; every element moves with the target whose
+    centroid is nearest (docs/science.md#spatial-correction).
+
+    Arguments:
+        calibration: The `Calibration`, made for this reconstruction.
+        mesh: The mesh of the image.
+        image: An element image (E,) or a batch (T, E), in any unit.
+
+    Returns:
+        The corrected image(s), same shape and unit.
+
+    Raises:
+        ValueError: For an image that is not (E,) or (T, E) on `mesh`.
+    """
     images = np.asarray(image, dtype=float)
     if images.ndim not in (1, 2) or images.shape[-1] != mesh.n_elements:
         raise ValueError(f"image has shape {images.shape}; expected ({mesh.n_elements},) or (T, {mesh.n_elements})")

@@ -36,29 +36,33 @@ _GAIN_RTOL, _GAIN_ATOL = 1e-6, 1e-5
 
 
 class BackgroundFit(eqx.Module):
-    """What `background` found (symbols as there).
+    """The result of `background`: the fitted map, contact impedances and gains, and how they were found.
 
-    - `conductivity`: (E,) the background sheet conductivity sigma, S/sq (positive).
-    - `contact_impedance`: (L,) z, ohm m: fitted when asked, else the model's.
-    - `gain`: (M,) the gain g per reading (dimensionless, near 1), or None when not fitted.
-    - `homogeneous`: sigma_h, the best homogeneous conductivity, S/sq: the start and the
-      prior's centre (and the uniform background to compare with).
-    - `misfit`: ||g V(sigma, z) - v|| / ||v||, v the mean of the frames.
-    - `hyperparameter`: the lambda used (chosen, or given).
-    - `noise`: sigma_n, the standard deviation of one reading of one frame, volts (given,
-      estimated from the frames' spread or from the redundant readings of one frame); NaN when
-      neither needed nor estimable.
-    - `candidates`: (K,) the lambdas fitted, in order; `discrepancy`: (K,) each fit's
-      ||V - v|| / (sqrt(M) sigma_v) (NaN without a noise level).
-    - `history`: `History`: Phi at the start and after every accepted step (the Gauss-Newton
-      steps at the chosen lambda, then the L-BFGS steps of the gain fit; it never rises), and
-      max |dPhi/dy| there, y = (s, w when fitted, gamma when fitted): NaN at the Gauss-Newton
-      steps but their last (GaussNewton does not report its iterates).
-    - `result`: `RESULTS.successful`; `RESULTS.selection_at_boundary` when the misfit levelled
-      off above the noise level or did not reach it within the candidates (without
-      `estimate_gain`); or the first code other than successful of the Gauss-Newton fit
-      (`max_iterations_reached`, `line_search_failed`) and of the gain fit
-      (`max_iterations_reached`, `stalled`, `nonfinite`).
+    Symbols as in `background` and docs/science.md#background-fit.
+
+    Attributes:
+        conductivity: (E,) the background sheet conductivity sigma, S/sq (positive).
+        contact_impedance: (L,) z, ohm m: fitted when asked, else the model's.
+        gain: (M,) the gain g per reading (dimensionless, near 1), or None when not fitted.
+        homogeneous: sigma_h, the best homogeneous conductivity, S/sq: the start and the
+            prior's centre (and the uniform background to compare with).
+        misfit: ||g V(sigma, z) - v|| / ||v||, v the mean of the frames.
+        hyperparameter: The lambda used (chosen, or given).
+        noise: sigma_n, the standard deviation of one reading of one frame, volts (given,
+            estimated from the frames' spread or from the redundant readings of one frame); NaN
+            when neither needed nor estimable.
+        candidates: (K,) the lambdas fitted, in order.
+        discrepancy: (K,) each candidate fit's ||V - v|| / (sqrt(M) sigma_v), sigma_v the
+            noise of one reading of the mean frame (NaN without a noise level).
+        history: `History`: Phi at the start and after every accepted step (the Gauss-Newton
+            steps at the chosen lambda, then the L-BFGS steps of the gain fit; it never rises),
+            and max |dPhi/dy| there, y = (s, w when fitted, gamma when fitted): NaN at the
+            Gauss-Newton steps but their last (GaussNewton does not report its iterates).
+        result: `RESULTS.successful`; `RESULTS.selection_at_boundary` when the misfit levelled
+            off above the noise level or did not reach it within the candidates (without
+            `estimate_gain`); or the first code other than successful of the Gauss-Newton fit
+            (`max_iterations_reached`, `line_search_failed`) and of the gain fit
+            (`max_iterations_reached`, `stalled`, `nonfinite`).
     """
 
     conductivity: np.ndarray
@@ -94,81 +98,50 @@ def background(
 ) -> BackgroundFit:
     """Fit the background conductivity map of `model`'s mesh to untouched reference frames.
 
-    `reference`: one frame (M,) or several untouched frames (T, M), volts, in the model's
-    protocol order and sign. T frames of one state fit as their mean v (the sum of the frames'
-    squared misfits is T times the mean's plus a constant).
+    Fits v ~ g V(sigma, z), v the mean of the frames, V the model's voltages, sigma = e^s the
+    sheet conductivity (S/sq), z = e^w the contact impedances (ohm m, when
+    `estimate_contact_impedance`) and g = e^gamma one gain per reading (when `estimate_gain`),
+    with a smoothness prior on ln sigma centred on the best homogeneous conductivity. Gauss-Newton
+    (`diffeit.inverse.AbsoluteGaussNewton`) fits (s, w); with `estimate_gain`, L-BFGS then fits
+    s, w and gamma jointly. The hyperparameter is chosen, unless given, by the discrepancy
+    principle on the nonlinear fits, with the noise given, taken from the frames' spread or
+    estimated from the redundant (reciprocal) readings of one frame. The objective, the choice
+    of the hyperparameter and the noise, and what the frames determine of z and g are in
+    docs/science.md#background-fit.
 
-    **Model.** v ~ g V(sigma, z), with V the model's voltages, sigma = e^s (E,) the sheet
-    conductivity (S/sq), z = e^w (L,) the contact impedances (ohm m) and g = e^gamma (M,) one
-    gain per reading (1 unless `estimate_gain`). The fit minimises
+    Arguments:
+        model: The forward model of the mesh to fit on.
+        reference: One frame (M,) or several untouched frames (T, M), volts, in the model's
+            protocol order and sign; T frames of one state fit as their mean.
+        prior: A name ("laplace", "matern", "noser", "tikhonov") or a prior of
+            `diffeit.inverse.priors`, on ln sigma.
+        hyperparameter: lambda > 0, unit-free; None chooses it by the discrepancy principle.
+        noise: The standard deviation of one reading of one frame, percent of RMS(v); None
+            estimates it from the frames.
+        estimate_contact_impedance: Fit z too (off by default: the readings of an adjacent
+            protocol see it little).
+        contact_impedance_spread: The prior's standard deviation of ln z around the model's,
+            weighed by lambda.
+        estimate_gain: Fit a gain per reading too (instruments that have one).
+        gain_spread: The prior's standard deviation of ln g around 0.
+        discrepancy_safety: tau of the discrepancy principle: the misfit aimed at is tau times
+            the expected noise norm.
+        max_iterations: Gauss-Newton steps per fit.
+        max_gain_steps: L-BFGS steps of the gain fit.
+        progress: Show progress bars.
+        throw: Raise for a result other than `RESULTS.successful` (True), or return it in
+            `result` (False).
 
-        Phi = ||g V(e^s, e^w) - v||^2 / s_d^2 + lambda^2 c (s - s_h)^T P^-1 (s - s_h)
-              + (lambda / contact_impedance_spread)^2 ||w - w_0||^2
-              + (sigma_v / (s_d gain_spread))^2 ||gamma||^2
+    Returns:
+        The `BackgroundFit`.
 
-    the objective of `diffeit.inverse.GaussNewton` plus the gain's prior: sigma_h = e^s_h the
-    best homogeneous conductivity (the start, and the prior's centre), s_d = RMS(V(sigma_h)),
-    P the `prior` covariance (default "laplace", a smoothness prior: neighbours'
-    log-conductivities alike), scaled by c as in `diffeit.inverse.LinearisedProblem` so that
-    lambda is unit-free, w_0 the model's contact impedance, sigma_v the noise of v (volts, see
-    below). ln g is a Gaussian of standard deviation `gain_spread` around 0; ln z one of about
-    `contact_impedance_spread` around ln z_0, weighed by lambda as in GaussNewton.
-
-    **Engine.** Gauss-Newton on (s, w) in measurement space (`GaussNewton.absolute`: an M x M
-    solve per step, the adjoint Jacobian) reaches the minimum in about ten steps; L-BFGS on the
-    same Phi needs hundreds of gradient steps (with a forward and an adjoint solve each) to the
-    same objective and map. GaussNewton has no gain block: with `estimate_gain`, L-BFGS
-    (`minimise` of `diffeit.fit`) then fits s, w and gamma jointly, from the Gauss-Newton fit
-    and gamma = 0; the gains trade off with the map (below), so it takes hundreds of steps.
-
-    **Hyperparameter.** `hyperparameter`, or (None, the default) the discrepancy principle on
-    the nonlinear fits: the largest lambda whose fit has ||V - v|| <= `discrepancy_safety`
-    sqrt(M) sigma_v. Candidates 1, 10^-0.5, ..., 10^-6 are fitted in turn until one meets the
-    level; three bisections in log(lambda) then refine it. `candidates` and `discrepancy` record
-    them. sigma_v, the noise of one reading of v, is sigma_n / sqrt(T), and sigma_n, that of one
-    reading of one frame (the result's `noise`):
-
-    - `noise` percent of RMS(v) when given;
-    - else, with several frames, their pooled frame-to-frame standard deviation;
-    - else the part of the one frame that no reciprocal sensor produces: the complete electrode
-      model is reciprocal, so every V(sigma, z) lies in the span of the readings of symmetric
-      transfer matrices, and what lies off it is noise (adjacent drives on 16 electrodes: 104 of
-      208 readings). A protocol without such redundancy needs several frames or `noise` (or,
-      without `estimate_gain`, `hyperparameter`).
-
-    That part of the noise no map can fit: the misfit of an adjacent protocol does not fall
-    below about 0.7 of the noise level, so a safety of 1 is safe. When the misfit levels off
-    above the noise (half a decade smaller lambda lowers it by less than 5%), the model's own
-    error (a coarse mesh, misplaced electrodes, gains) dominates: the fit is the last candidate
-    before it levelled off, and `result` is `RESULTS.selection_at_boundary`; with
-    `estimate_gain` that is expected (the gains take the rest) and successful. Not GCV or the
-    L-curve of the linearisation at sigma_h (`diffeit.inverse.select_hyperparameter`): the
-    background's contrast is far from linear, and they choose lambda one to three decades below
-    the discrepancy's, where the map breaks up.
-
-    **Identifiability.** z_l trades off with the conductivity next to electrode l (both set the
-    voltage drop there), and readings that leave out the driven electrodes (adjacent) see z
-    little: the map absorbs a wrong z near the electrodes, and a fitted z stays near the
-    model's. `estimate_contact_impedance` is therefore off by default, and its prior holds z
-    near the model's; readings on driven electrodes determine it better.
-
-    A free gain per reading explains any frame (M gains for M readings), and more untouched
-    frames do not change that: they repeat one state and differ by noise only. The gains are
-    therefore determined by their prior together with reciprocity (a pair of reciprocal
-    readings sees the same V, so their ratio measures the ratio of their gains): the fit gives
-    the gains what the smooth map cannot explain, shrunk by `gain_spread`. A common gain trades
-    off exactly with the level of sigma (V scales as 1 / sigma); the prior on ln g settles it
-    at g ~ 1.
-
-    **Options.** `prior`: a name ("laplace", "matern", "noser", "tikhonov") or a prior of
-    `diffeit.inverse.priors`. `max_iterations`: Gauss-Newton steps per fit; `max_gain_steps`:
-    L-BFGS steps of the gain fit. `progress`: progress bars. `throw`: a result other than
-    `RESULTS.successful` raises `diffeit.results.SolverError` (with False, see `result`).
-
-    Raises ValueError for a reference of the wrong shape or with non-finite values, a frame
-    that does not correlate positively with the model's voltages, invalid options, and, when
-    the noise is needed, identical frames or one frame of a protocol without redundant
-    readings.
+    Raises:
+        ValueError: For a reference of the wrong shape or with non-finite values, a frame that
+            does not correlate positively with the model's voltages, invalid options, and, when
+            the noise is needed, identical frames or one frame of a protocol without redundant
+            readings.
+        diffeit.results.SolverError: With `throw=True`, for a result other than
+            `RESULTS.successful`.
     """
     frames = np.atleast_2d(np.asarray(check_frames(reference, model.n_measurements, "reference frames"), np.float64))
     _check_options(hyperparameter, noise, contact_impedance_spread, gain_spread, discrepancy_safety, max_iterations)

@@ -1,144 +1,14 @@
 """The joint fit: background map, contact impedances, memory parameters and per-frame stimulus
 images together, every frame's misfit through the forward model with the memory model in the loop.
 
-## The model
-Frame k (time t_k, seconds) of T frames is measured from the sheet conductivity (S/sq)
-
-    sigma_k = b * (1 + r_k),   r = memory_response(a, times, p)
-
-with b the background map (E,), a the memoryless stimulus and r the skin's response (both
-dsigma/sigma, (T, E); `diffeit.memory.memory_response` integrates the memory model with
-parameters p from a rested skin at t_0), and one contact impedance z_l per electrode (ohm m)
-shared by all frames. The fit minimises
-
-    J = sum_k || (V(sigma_k, z) - v_k) / s ||^2 / M                         misfit
-      + w_b  sum_(i~j) (l_ij / d_ij) (ln b_i - ln b_j)^2                   smooth background
-      + w_t  sum_k sum_e (A_e / A) psi(phi(c_ke))                          few, sparse changes
-      + w_v  sum_k sum_(i~j) (l_ij / sqrt(A)) phi(c_ki - c_kj)             compact changes
-      + w_a  sum_k sum_e (A_e / A) phi(a_ke)                               sparse in every frame (off)
-      + w_p  sum_q mean (theta_q - theta_q0)^2                             memory near its start
-      + w_z  mean_l (ln z_l - ln z_l0)^2                                   contact near its start
-
-(the weights are the fields of `JointPriors`):
-
-- s, the data scale (volts): the readings' noise standard deviation. The misfit is about T at the
-  noise level, and every weight is in its units: one unit is one frame's misfit at the noise.
-- Elements i ~ j share an edge of length l_ij, their centroids d_ij apart; A_e is an element's
-  area and A the sheet's. The background term is the Dirichlet energy of ln b (a graph Laplacian
-  over the element adjacency): it does not depend on the mesh size or on the background's level.
-- c_k = a_k - a_(k-1) (a_(-1) = 0) is the stimulus' change at frame k: a press, a release, a
-  step of a ramp, and zero while a touch holds. The stimulus priors charge the changes, not the
-  stimulus itself, so a held touch pays once, when it is pressed and when it is released,
-  whatever its length. phi(x) = sqrt(x^2 + eps^2) - eps is a smoothed |x| (eps =
-  `JointPriors.smoothing`) and psi(x) = c ln(1 + x / c) (c = `JointPriors.change_scale`) is
-  like |x| for small changes and only logarithmically more for large ones, so one large change
-  costs less than the same change made in several steps: touches hold between presses and
-  releases, and a stimulus cannot cheaply fade to mimic a memory's relaxation or decay. The
-  sparsity term is per unit of area (a weight is the cost of a unit change over the whole
-  sheet); the compactness term is the changes' total variation in space (their jumps times the
-  length of the edges they cross, per unit of sqrt(A)): it makes a press a compact patch with an
-  edge rather than a few spikes (L1 alone is indifferent to that, and the memory model's fatigue
-  is not: a spike fatigues its elements differently from a patch).
-- The per-frame sparsity term (w_a, default 0) charges a held touch in every frame it lasts,
-  while memory modes that keep the response up cost nothing: with it on (w_a = 20, and w_v on
-  the stimulus itself rather than its changes), a 200-frame recording with an 8 s hold came out
-  with the held stimulus fading and a large, slow fast mode holding the response, at a lower
-  objective than the truth's (Identifiability). Without it the changes' sparsity alone keeps
-  untouched elements at zero, hence its weight w_t = 200 (20 beside the per-frame term).
-- theta: the free memory parameters (`memory_free`) in the unconstrained space of
-  `diffeit.fit.memory`: ln of the time constants (and gain, fatigue rate), logits of fractions,
-  and a multinomial logit of (fast_fraction, slow_fraction, 1 - both). theta_0 and ln z_0 are
-  the starting values (the initialisation's; a resumed fit keeps its own).
-
-The unknowns are ln b (E,), ln z (L,), theta and a (T, E), the stimulus left free in sign:
-touches lower the conductivity (a <= 0), but a sign constraint through a = -softplus(u) stalls
-elements at zero, where its gradient vanishes (tried: the fit went astray); the sparsity priors
-hold untouched elements near zero instead. `free` chooses the groups fitted; the others
-stay at their initial values. Every trial step of the optimiser is solvable: 1 + r enters
-through a smooth floor at 0.01 (exact to rounding above 0.2, far below any touch), and a
-conductivity is held within a factor e^15 of the median background.
-
-L-BFGS (optimistix, through the one optimisation loop of `diffeit.fit`) works in units of 1 / sqrt of the
-objective's curvature in each unknown at the start (the misfit's Gauss-Newton diagonal from
-the Jacobian at the mean conductivity, plus the priors' curvature): a diagonal preconditioner,
-without which the first step is as large as the gradient (millions) and weakly seen elements
-barely move. The memory model switches between loading and unloading where a stimulus holds
-(a_k = a_(k-1)), so the objective has kinks exactly where the temporal prior puts the minimum:
-the fit converges to a point where the steps no longer change it, which depends on the start.
-
-## Initialisation
-By default: the background map from the first `reference_frames` frames, which must be
-untouched (`diffeit.fit.background`; contact impedance the model's); one-step relative-change
-images of every frame against the mean reference frame (`diffeit.inverse.OneStep`, NOSER prior,
-hyperparameter 20 noise/100: calm images, not sharp ones); the memory parameters from images
-calmer still, of hyperparameter at least 0.3 (`diffeit.fit.memory`; over_foam when no element of
-the images rises above their noise); the stimulus from the first images' exact `correct_memory`
-with those parameters, soft-thresholded at 3 times its median |a|, positive parts dropped (a
-start with noise in every frame sits on the memory model's kinks). The memory fit's own
-stimulus, corrected with a dead band of 3 noise levels, was a worse start (the worked example's
-scene at 960 triangles: 2.4 times as many steps, and the presses' peaks 5-10% further apart).
-
-When the memory fit gives a mode that carries less than 5% of the response, or one that decays
-slower than the recording lasts, the images did not determine it (frames that never see a mode
-decay cannot tell it from a permanent offset), and the joint fit starts from over_foam instead:
-from such a start it stays near it (the worked example's scene at 960 triangles: slow fraction
-0.03 and slow time 480 s for a truth of 0.35 and 5 s, and the third press read 12% strong).
-
-When the memory fit's two time constants come out within a factor 2 of each other, the images
-did not tell the modes apart, and the joint fit starts them apart instead, by over_foam's ratio
-(7.7) around their geometric mean. Two equal time constants are a saddle of the joint objective:
-the model is symmetric in the two modes, so its gradient cannot part them, and a fit started
-there stays there (the worked example's scene at 960 triangles: both came out at 3.3-4 s for a
-truth of 1.5 s and 5 s, in 330 steps; started apart, 140 steps and peaks within 3%).
-
-The memory fit reads time courses element by element, and an element's noise in sharp images
-misleads it, while their blur does not: every element under a touch follows the same time
-course. On the varied-holds scene of `benchmarks/fit.py` at 960 triangles and 0.1% noise, five
-noise seeds, the memory fit's RMS errors (fast fraction, fast time, slow fraction, slow time,
-relaxation) were 61/97/22/44/94% from the images of hyperparameter 0.02 (20 noise/100), and
-15/13/12/13/26% at 0.3; at 0.5% noise, 50/35/24/24/19% at 0.3, the Cramer-Rao bound's size
-(`diffeit.fit.memory_uncertainty`; README, Fitting).
-
-`initial=` gives any of these parts instead, or a `JointFit` to resume from.
-
-## Identifiability
-- **Memory gain against stimulus amplitude.** r is g times the rest: only g a is seen. The gain
-  is never free (`memory_free` refuses it): the stimulus carries the amplitude.
-- **First-cycle offset and fatigue against the touches' depths.** A second press that reads
-  less is a fatigued skin or a lighter press; a baseline that stays shifted after the first
-  touch is the first-cycle offset or a faint held touch. Both are held at their start by
-  default (`memory_free` is `diffeit.fit.memory`'s default: the fractions, time constants and
-  relaxation). Free them with care: the memory prior is then all that holds them.
-- **Slow recovery against a faint held touch.** After a release the response decays over
-  seconds: a slower memory, or a stimulus that lingers. A lingering level costs a change more
-  (its own release, later); the temporal prior is concave in the size of a change, so a
-  staircase of small steps mimicking a decay costs more than one release. The data still leave
-  the fast mode's fraction, its time constant and the relaxation trading with each other at
-  frame rates of a few per fast time constant (README, Fitting: what the benchmark measures).
-- **A long held touch against a memory that holds it.** During a hold, a stimulus that fades
-  and memory modes that keep the response up read alike to a point. Priors charged per frame
-  favour the fade (a held stimulus pays for every frame it lasts); the priors here charge
-  changes only, so holding costs nothing and fading costs its steps. Measured on a 200-frame
-  recording whose Cramer-Rao bound is under 20% (README, Fitting): started at the truth, the fit
-  stays within 11% of it, at a lower objective than where the default start ends (a stimulus
-  fading over the hold: a local minimum, so the start decides).
-- **The two modes and the relaxation against each other, along a valley.** The memory model
-  answers a recording's presses almost alike all along a curved valley of its parameters: on
-  that recording, fast 0.46 at 2.5 s, slow 0.11 at 9.1 s, relaxation 0.16 and the truth's 0.25
-  at 1.5 s, 0.35 at 5 s, 0.2 differ by under 2.5% of the press depth in every frame. Started at
-  the truth's stimulus, the fit kept it and moved the memory from its start to near the first
-  of these, at the objective of the truth start to 0.1 of a frame's misfit: the stimulus and
-  background take up what is left. `diffeit.fit.memory_uncertainty` holds each press's pattern
-  fixed and so does not see this; at 0.5% noise the fitted memory stays near its start.
-- **Background level against contact impedance.** Near an electrode a lower conductivity and a
-  higher contact impedance change the readings alike, and readings that leave out the driven
-  electrodes (adjacent drives) see z little. The untouched frames fix the background's level
-  where the data see it, the smoothness prior carries it to the electrodes, and the contact
-  prior keeps ln z near its start: a fitted z is where the data and both priors balance, not an
-  independent measurement.
-- **Background against a permanent stimulus.** b (1 + r) is all the data see: a stimulus
-  present in every frame would be absorbed by the background. The reference frames are
-  untouched and the stimulus is sparse, so the background takes what does not change.
+Frame k is measured from sigma_k = b (1 + r_k), r = memory_response(a, times, p): b the
+background map, a the memoryless stimulus, r the response, p the memory parameters, and one
+contact impedance per electrode shared by all frames. `JointProblem` is the objective J (misfit
+plus the priors of `JointPriors`), `joint` minimises it by L-BFGS from a start taken from the
+data (`_initial_values`). The objective, its priors, the unknowns' transforms, the
+preconditioner and the initialisation, with the measurements behind each choice, are in
+docs/science.md#joint-fit; what the data determine is in
+docs/tutorials/fitting.md#identifiability.
 """
 
 from __future__ import annotations
@@ -184,7 +54,7 @@ GROUPS = ("background", "contact_impedance", "memory", "stimulus")
 # gives it: diffeit's "medium", the order of a skin readout's noise at rest.
 DEFAULT_NOISE = 0.5
 # The smooth floor of 1 + response, and how far (in ln) a trial step may take a conductivity
-# from the median background or a contact impedance from 1 ohm m (module docstring).
+# from the median background or a contact impedance from 1 ohm m (docs/science.md#joint-fit).
 _FLOOR = 0.01
 _CONTRAST = 15.0
 _CONTRAST_Z = 30.0
@@ -193,12 +63,12 @@ _CONTRAST_Z = 30.0
 _TINY_CURVATURE = 1e-12
 # The initial one-step images' hyperparameter per unit of noise fraction, the least
 # hyperparameter of the images the memory parameters start from, and the soft threshold of
-# image-derived stimuli in units of their median |a| (module docstring).
+# image-derived stimuli in units of their median |a| (docs/science.md#joint-fit, Initialisation).
 _IMAGE_REGULARISATION = 20.0
 _MEMORY_IMAGE_REGULARISATION = 0.3
 _THRESHOLD = 3.0
 # Time constants within this factor of each other are one mode split in two; a mode with a
-# smaller fraction is one the images did not show (Initialisation).
+# smaller fraction is one the images did not show (docs/science.md#joint-fit, Initialisation).
 _MERGED = 2.0
 _LEAST_FRACTION = 0.05
 _SCHEMA = "diffeit.joint_fit"
@@ -207,23 +77,29 @@ _SCHEMA_VERSION = 2
 
 
 class JointPriors(eqx.Module):
-    """The weights of the joint fit's priors (module docstring), in units of one frame's misfit
-    at the noise level.
+    """The weights of the joint fit's priors, in units of one frame's misfit at the noise level.
 
-    - `background`: w_b, smoothness of ln b (its Dirichlet energy, dimensionless).
-    - `stimulus_change`: w_t, sparsity of the stimulus' changes from frame to frame (presses,
-      releases): the cost of a unit change over the sheet.
-    - `stimulus_variation`: w_v, the changes' total variation in space (compact presses).
-    - `stimulus`: w_a, sparsity of the stimulus in every frame: the cost per frame of a unit
-      stimulus over the sheet. Default 0: it charges a held touch for every frame it lasts and
-      so biases the memory (module docstring).
-    - `memory`: w_p, the pull of each free memory parameter (unconstrained) to its start: a
-      deviation of 1/sqrt(w_p) costs one frame's misfit.
-    - `contact_impedance`: w_z, the pull of ln z to its start, likewise.
-    - `smoothing`: eps of the smoothed |x| (dsigma/sigma, > 0): the sparsity terms are quadratic
-      below it, which keeps the objective smooth for L-BFGS.
-    - `change_scale`: c of the temporal term's psi (dsigma/sigma, >= 0; 0 makes it the total
-      variation in time): changes larger than c cost only logarithmically more.
+    Each weight multiplies one prior term of the objective J of `joint` (the terms and the
+    symbols are in docs/science.md#joint-fit). Every field is a number >= 0.
+
+    Attributes:
+        background: w_b, smoothness of ln b (its Dirichlet energy, dimensionless).
+        stimulus: w_a, sparsity of the stimulus in every frame: the cost per frame of a unit
+            stimulus over the sheet. Default 0: it charges a held touch for every frame it
+            lasts and so biases the memory.
+        stimulus_variation: w_v, the changes' total variation in space (compact presses).
+        stimulus_change: w_t, sparsity of the stimulus' changes from frame to frame (presses,
+            releases): the cost of a unit change over the sheet.
+        memory: w_p, the pull of each free memory parameter (unconstrained) to its start: a
+            deviation of 1/sqrt(w_p) costs one frame's misfit.
+        contact_impedance: w_z, the pull of ln z to its start, likewise.
+        smoothing: eps of the smoothed |x| (dsigma/sigma, > 0): the sparsity terms are quadratic
+            below it, which keeps the objective smooth for L-BFGS.
+        change_scale: c of the temporal term's psi (dsigma/sigma, >= 0; 0 makes it the total
+            variation in time): changes larger than c cost only logarithmically more.
+
+    Raises:
+        ValueError: For a weight that is not a finite number >= 0, or a smoothing of 0.
     """
 
     background: float = eqx.field(default=0.1, static=True)
@@ -247,11 +123,12 @@ class JointPriors(eqx.Module):
 class JointParameters(eqx.Module):
     """The joint fit's unknowns in the unconstrained space the optimiser works in.
 
-    - `log_background`: (E,) ln of the background conductivity in S/sq.
-    - `log_contact_impedance`: (L,) ln of the contact impedance in ohm m.
-    - `memory`: the free memory parameters, unconstrained (`diffeit.fit.memory`'s transform),
-      by field name.
-    - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma (unconstrained as it is).
+    Attributes:
+        log_background: (E,) ln of the background conductivity in S/sq.
+        log_contact_impedance: (L,) ln of the contact impedance in ohm m.
+        memory: The free memory parameters, unconstrained (`diffeit.fit.memory`'s transform),
+            by field name.
+        stimulus: (T, E) the memoryless stimulus dsigma/sigma (unconstrained as it is).
     """
 
     log_background: jax.Array
@@ -279,12 +156,13 @@ _FIELDS = {
 class JointSettings(eqx.Module):
     """What defines the joint fit's objective besides the data, kept to resume a fit.
 
-    - `free`: the groups of `GROUPS` fitted.
-    - `memory_free`: the memory fields fitted when "memory" is free.
-    - `priors`: `JointPriors`.
-    - `data_scale`: s, volts (the noise standard deviation the misfit is measured in).
-    - `memory_centre`: the memory prior's centre (`MemoryParameters`; the fixed fields' values).
-    - `log_contact_impedance_centre`: (L,) the contact prior's centre, ln(ohm m).
+    Attributes:
+        free: The groups of `GROUPS` fitted.
+        memory_free: The memory fields fitted when "memory" is free.
+        priors: `JointPriors`.
+        data_scale: s, volts (the noise standard deviation the misfit is measured in).
+        memory_centre: The memory prior's centre (`MemoryParameters`; the fixed fields' values).
+        log_contact_impedance_centre: (L,) the contact prior's centre, ln(ohm m).
     """
 
     free: tuple[str, ...] = eqx.field(static=True)
@@ -304,13 +182,15 @@ class JointSettings(eqx.Module):
 class JointProgress:
     """A joint fit while it runs, as `joint` hands it to its `on_step`.
 
-    - `steps`: the accepted steps so far, a resumed fit's earlier ones included (its history's
-      length less one).
-    - `objective`: J at the current iterate (in units of one frame's misfit at the noise level).
-    - `fit`: builds the `JointFit` of the current iterate, its `result`
-      `RESULTS.max_iterations_reached` (unfinished): what `JointFit.save` writes as a
-      checkpoint, and `joint(..., initial=load(path))` resumes. Built when called, for about the
-      cost of one objective evaluation.
+    Attributes:
+        steps: The accepted steps so far, a resumed fit's earlier ones included (its history's
+            length less one).
+        objective: J at the current iterate (in units of one frame's misfit at the noise
+            level).
+        fit: Builds the `JointFit` of the current iterate, its `result`
+            `RESULTS.max_iterations_reached` (unfinished): what `JointFit.save` writes as a
+            checkpoint, and `joint(..., initial=load(path))` resumes. Built when called, for
+            about the cost of one objective evaluation.
     """
 
     steps: int
@@ -319,24 +199,27 @@ class JointProgress:
 
 
 class JointFit(eqx.Module):
-    """The result of `joint`.
+    """The result of `joint`: the fitted skin, the stimulus of every frame, and what resuming needs.
 
-    - `background`: (E,) background conductivity b, S/sq.
-    - `contact_impedance`: (L,) contact impedance per electrode, ohm m.
-    - `memory`: the memory parameters (`diffeit.memory.MemoryParameters`); with both modes
-      fitted, the quicker one is named fast (`diffeit.fit.ordered_modes`).
-    - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma per frame (touches < 0).
-    - `response`: (T, E) the skin's response dsigma/sigma, the memory model applied to the
-      stimulus: frame k's conductivity is background * (1 + response[k]).
-    - `times`: (T,) the frame times, seconds.
-    - `misfit`: the relative misfit ||V - v|| / ||v|| over all frames and readings.
-    - `history`: `History` (objective and gradient norm per accepted step; a resumed fit
-      continues the history of the fit it started from).
-    - `result`: `RESULTS.successful`, `max_iterations_reached`, `stalled` or `nonfinite`.
-    - `parameters` (`JointParameters`, the unconstrained unknowns) and `settings`
-      (`JointSettings`): what `joint(..., initial=fit)` resumes from.
+    `save(path)` writes the fit to an HDF5 file; `diffeit.fit.load(path)` reads it back, and
+    `joint(..., initial=fit)` resumes from it.
 
-    `save(path)` writes the fit to an HDF5 file; `diffeit.fit.load(path)` reads it back.
+    Attributes:
+        background: (E,) background conductivity b, S/sq.
+        contact_impedance: (L,) contact impedance per electrode, ohm m.
+        memory: The memory parameters (`diffeit.memory.MemoryParameters`); with both modes
+            fitted, the quicker one is named fast (`diffeit.fit.ordered_modes`).
+        stimulus: (T, E) the memoryless stimulus dsigma/sigma per frame (touches < 0).
+        response: (T, E) the skin's response dsigma/sigma, the memory model applied to the
+            stimulus: frame k's conductivity is background * (1 + response[k]).
+        times: (T,) the frame times, seconds.
+        misfit: The relative misfit ||V - v|| / ||v|| over all frames and readings.
+        history: `History`: objective and gradient norm per accepted step (a resumed fit
+            continues the history of the fit it started from).
+        result: `RESULTS.successful`, `max_iterations_reached`, `stalled` or `nonfinite`.
+        parameters: `JointParameters`, the unconstrained unknowns, what a resumed fit starts
+            from.
+        settings: `JointSettings`, what defines the objective besides the data (kept to resume).
     """
 
     background: jax.Array
@@ -354,14 +237,23 @@ class JointFit(eqx.Module):
     def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> Path:
         """Write the fit to `path` (HDF5, schema "diffeit.joint_fit") and return the path.
 
-        Refuses an existing file (`FileExistsError`) unless `overwrite=True`; the file is
-        written under a temporary name and renamed when complete, so an interrupted save leaves
-        the old file (or none) at `path`. Every dataset carries a checksum (`diffeit.io`).
-        Datasets: `background`, `contact_impedance`, `stimulus`, `response`, `times`,
+        The file is written under a temporary name and renamed when complete, so an interrupted
+        save leaves the old file (or none) at `path`. Every dataset carries a checksum
+        (`diffeit.io`). Datasets: `background`, `contact_impedance`, `stimulus`, `response`, `times`,
         `memory/<field>`, `history/objective`, `history/gradient_norm`, and what resuming needs:
         `parameters/...` (the unconstrained unknowns), `settings/memory_centre/<field>` and
         `settings/log_contact_impedance_centre`. Attributes: schema, schema_version, result
         (its name), misfit, free, memory_free, priors (JSON), data_scale (volts).
+
+        Arguments:
+            path: The file to write.
+            overwrite: Replace an existing file (True), or refuse it (False).
+
+        Returns:
+            The path written, as a `Path`.
+
+        Raises:
+            FileExistsError: For an existing file without `overwrite=True`.
         """
         settings, parameters = self.settings, self.parameters
 
@@ -397,13 +289,22 @@ class JointFit(eqx.Module):
 
 
 def load(path: str | os.PathLike) -> JointFit:
-    """A `JointFit` written by `JointFit.save`, read back (to inspect, or to resume with
-    `joint(..., initial=fit)`).
+    """Read back a `JointFit` written by `JointFit.save`.
 
-    Raises `FileNotFoundError` for a missing file and, promptly, `ValueError` naming the file
-    for anything but a sound joint fit: empty, not HDF5, truncated, altered bytes (a failed
-    checksum), another schema or version, missing or non-numeric datasets. A fit saved before
-    diffeit stored checksums reads with a `diffeit.io.NoChecksumWarning`.
+    To inspect a fit, or to resume it with `joint(..., initial=fit)`. A fit saved before diffeit
+    stored checksums reads with a `diffeit.io.NoChecksumWarning`.
+
+    Arguments:
+        path: The file `JointFit.save` wrote.
+
+    Returns:
+        The `JointFit`.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file, for anything but a sound joint fit: empty, not HDF5,
+            truncated, altered bytes (a failed checksum), another schema or version, missing or
+            non-numeric datasets.
     """
     path = Path(path)
 
@@ -501,7 +402,7 @@ def _smoothed_abs(x: jax.Array, eps: float) -> jax.Array:
 
 
 class JointProblem(eqx.Module):
-    """The joint fit's objective J (module docstring) as a function of `JointParameters`.
+    """The joint fit's objective J (docs/science.md#joint-fit) as a function of `JointParameters`.
 
     `problem(parameters)` is J; `problem.terms(parameters)` its parts by name (the misfit and
     each prior); `problem.state(parameters)` the background, contact impedance, memory and
@@ -545,7 +446,7 @@ class JointProblem(eqx.Module):
 
     def log_conductivity(self, parameters: JointParameters) -> jax.Array:
         """(T, E) ln of every frame's conductivity, ln(S/sq): ln b + ln(1 + r) through the smooth
-        floor, held within e^15 of the median background (module docstring)."""
+        floor, held within e^15 of the median background (docs/science.md#joint-fit)."""
         log_sigma = parameters.log_background + _log_floored(1 + self._response(parameters)[1])
         middle = jax.lax.stop_gradient(jnp.median(parameters.log_background))
         return jnp.clip(log_sigma, middle - _CONTRAST, middle + _CONTRAST)
@@ -585,7 +486,7 @@ class JointProblem(eqx.Module):
 
     def scales(self, parameters: JointParameters) -> JointParameters:
         """The optimiser's unit of each unknown: 1 / sqrt of the objective's curvature there at
-        `parameters` (module docstring): the misfit's Gauss-Newton diagonal from the Jacobian at
+        `parameters` (docs/science.md#joint-fit): the misfit's Gauss-Newton diagonal from the Jacobian at
         the frames' mean conductivity, plus the priors' curvature (the sparsity terms' largest,
         at zero)."""
         settings, priors = self.settings, self.settings.priors
@@ -652,48 +553,65 @@ def joint(
 ) -> JointFit:
     """Fit background, contact impedances, memory parameters and stimulus to `frames` jointly.
 
-    Minimises the objective of the module docstring (every frame's misfit through `model` with
-    the memory model in the loop, plus the priors) by L-BFGS, jitted, with a progress bar.
-
-    - `model`: the forward model of the fit's mesh; its contact impedance is the start unless
-      `initial` gives one.
-    - `frames`: (T, M) readings, volts; the first `reference_frames` (>= 1) are untouched.
-    - `times`: (T,) frame times, seconds, increasing.
-    - `free`: the groups fitted, of "background", "contact_impedance", "memory", "stimulus"
-      (default all); the others stay at their initial values.
-    - `memory_free`: the memory fields fitted when "memory" is free (default
-      `diffeit.fit.memory`'s: the fractions, the time constants and the relaxation; module
-      docstring, Identifiability). Never the gain; the two fractions together or not at all.
-    - `priors`: `JointPriors` (default `JointPriors()`).
-    - `noise`: the readings' noise standard deviation, percent of the RMS of the mean reference
-      frame: the data scale s of the misfit, which sets the balance of misfit and priors.
-      Default: the background fit's estimate when it runs, else 0.5 (diffeit's "medium").
-    - `initial`: the start. None: from the data (module docstring, Initialisation); a mapping
-      with any of "background" (E,) S/sq, "contact_impedance" (L,) or scalar ohm m, "memory"
-      (`MemoryParameters`) and "stimulus" (T, E) (the parts not given come from the data); or
-      a `JointFit` of the same frames and times, to resume from (L-BFGS starts afresh there).
-    - `max_steps`: L-BFGS steps (rejected trial steps included); `rtol`, `atol`: it stops when
-      three accepted steps in a row each lower the objective by less than atol + rtol |J| (by
-      default 1% of a frame's misfit at the noise level, about 1e-4 of J).
-    - `progress`: a tqdm progress bar; `throw`: a result other than `RESULTS.successful` raises
-      `diffeit.results.SolverError` (with False, see `result`).
-    - `on_step`: called with a `JointProgress` when the optimisation starts (after the
-      initialisation) and after every accepted step; its `fit()` is the fit so far, to save as
-      a checkpoint. What it raises stops the fit and propagates: the way to stop at a step,
-      with the state saved (`diffeit fit` saves every few steps, and on Ctrl-C at the next
-      step). A `KeyboardInterrupt` raised at any moment may arrive inside the forward model's
-      host solve, where XLA reports it as a runtime error: keep the last progress and save it
-      when that happens, or stop from `on_step`.
+    Every frame's misfit is taken through `model` with the memory model in the loop: frame k is
+    measured from sigma_k = background * (1 + response[k]), the response the memory model's
+    answer to the memoryless stimulus. The objective (misfit in units of the readings' noise,
+    plus the priors of `JointPriors`) is minimised by L-BFGS, jitted, one step at a time with a
+    progress bar, from a start taken from the data (`background`, one-step images, `memory`) or
+    given. The objective and the start are in docs/science.md#joint-fit; what the data
+    determine in docs/tutorials/fitting.md#identifiability.
 
     `free`, `memory_free`, `priors` and `noise` left None take a resumed fit's settings, else
-    the defaults above; a resumed fit keeps its prior centres. Returns a `JointFit`: resumed,
-    its history continues the one it started from; resumed from a checkpoint, the fit goes on
-    from there with its L-BFGS memory rebuilt (the next steps differ from the uninterrupted
-    fit's, the minimum agrees to the tolerances).
+    the defaults below; a resumed fit keeps its prior centres. Resumed from a checkpoint, the
+    fit goes on from there with its L-BFGS memory rebuilt (the next steps differ from the
+    uninterrupted fit's, the minimum agrees to the tolerances).
 
-    Raises ValueError for frames that are not finite or not (T, M), times that do not increase
-    or are not one per frame, `reference_frames` out of range, unknown groups or fields, initial
-    values of the wrong shape or out of range, and invalid memory parameters.
+    Arguments:
+        model: The forward model of the fit's mesh; its contact impedance is the start unless
+            `initial` gives one.
+        frames: (T, M) readings, volts.
+        times: (T,) frame times, seconds, increasing.
+        reference_frames: How many of the first frames are untouched (>= 1).
+        free: The groups fitted, of "background", "contact_impedance", "memory", "stimulus"
+            (default all); the others stay at their initial values.
+        memory_free: The memory fields fitted when "memory" is free (default `memory`'s: the
+            fractions, the time constants and the relaxation). Never the gain; the two
+            fractions together or not at all.
+        priors: `JointPriors` (default `JointPriors()`).
+        noise: The readings' noise standard deviation, percent of the RMS of the mean reference
+            frame: the data scale of the misfit, which sets the balance of misfit and priors.
+            Default: the background fit's estimate when it runs, else 0.5 (diffeit's "medium").
+        initial: The start. None: from the data; a mapping with any of "background" (E,) S/sq,
+            "contact_impedance" (L,) or scalar ohm m, "memory" (`MemoryParameters`) and
+            "stimulus" (T, E) dsigma/sigma (the parts not given come from the data); or a
+            `JointFit` of the same frames and times, to resume from (L-BFGS starts afresh
+            there).
+        max_steps: L-BFGS steps, rejected trial steps included.
+        rtol: With `atol`: the fit stops when three accepted steps in a row each lower the
+            objective by less than atol + rtol |J| (by default 1% of a frame's misfit at the
+            noise level, about 1e-4 of J).
+        atol: See `rtol`; in units of one frame's misfit at the noise level.
+        progress: Show a tqdm progress bar.
+        throw: Raise for a result other than `RESULTS.successful` (True), or return it in
+            `result` (False).
+        on_step: Called with a `JointProgress` when the optimisation starts (after the
+            initialisation) and after every accepted step; its `fit()` is the fit so far, to
+            save as a checkpoint. What it raises stops the fit and propagates: the way to stop
+            at a step with the state saved (`diffeit fit` saves every few steps, and on Ctrl-C
+            at the next step). A `KeyboardInterrupt` raised at any moment may arrive inside the
+            forward model's host solve, where XLA reports it as a runtime error: keep the last
+            progress and save it when that happens, or stop from `on_step`.
+
+    Returns:
+        The `JointFit`; resumed, its history continues the one it started from.
+
+    Raises:
+        ValueError: For frames that are not finite or not (T, M), times that do not increase
+            or are not one per frame, `reference_frames` out of range, unknown groups or
+            fields, initial values of the wrong shape or out of range, and invalid memory
+            parameters.
+        diffeit.results.SolverError: With `throw=True`, for a result other than
+            `RESULTS.successful`.
     """
     frames = check_frames(frames, model.n_measurements, "frames")
     if frames.ndim != 2:
@@ -845,7 +763,7 @@ def _initial_values(
     progress: bool,
 ) -> tuple[jax.Array, jax.Array, MemoryParameters, jax.Array, float]:
     """(background, contact impedance, memory, stimulus, data scale): the parts `initial` gives,
-    checked, and the others from the data (module docstring, Initialisation)."""
+    checked, and the others from the data (docs/science.md#joint-fit, Initialisation)."""
     unknown = sorted(set(initial) - set(GROUPS))
     if unknown:
         raise ValueError(f"initial: unknown parts {unknown}; parts are {list(GROUPS)}")
@@ -918,7 +836,7 @@ def _warn_if_failed(result: RESULTS, what: str) -> None:
 
 def _determined(memory: MemoryParameters, duration: float) -> MemoryParameters:
     """`memory`, or over_foam when a mode carries less than `_LEAST_FRACTION` of the response or
-    decays slower than the recording's `duration` (seconds) lasts (module docstring,
+    decays slower than the recording's `duration` (seconds) lasts (docs/science.md#joint-fit,
     Initialisation)."""
     fractions = (float(memory.fast_fraction), float(memory.slow_fraction))
     times = (float(memory.fast_time), float(memory.slow_time))
@@ -929,7 +847,7 @@ def _determined(memory: MemoryParameters, duration: float) -> MemoryParameters:
 
 def _modes_apart(memory: MemoryParameters, preset: MemoryParameters) -> MemoryParameters:
     """`memory` with its two time constants set apart by `preset`'s ratio around their geometric
-    mean when they are within a factor `_MERGED` of each other (module docstring, Initialisation)."""
+    mean when they are within a factor `_MERGED` of each other (docs/science.md#joint-fit, Initialisation)."""
     fast, slow = float(memory.fast_time), float(memory.slow_time)
     if max(fast, slow) >= _MERGED * min(fast, slow):
         return memory

@@ -2,42 +2,11 @@
 and the fit of its parameters and of the memoryless stimulus from a sequence of images (`memory`).
 
 Images, stimuli and responses are relative changes dsigma/sigma (dimensionless), per frame and
-element; times are in seconds. The memory model is `diffeit.memory.MemoryParameters` (equations
-in docs/science.md, Memory): every element evolves on its own, r = R_p(a).
-
-## The correction is an exact inverse, piece by piece
-At frame k the state is advanced to t_k with the previous stimulus a_prev held, the new stimulus
-a_k is applied, and the response is read. For that advanced state the response is a piecewise
-linear, increasing function of a_k, with knots at 0, a_prev and +-|a_max| (g the gain, F =
-f_fast + f_slow, kappa the sensitivity of the present load, s = 1 - phi, mu the first-cycle
-offset):
-
-- unloading, a_k between 0 and a_prev: slope g (1 - F) kappa (the modes do not move);
-- loading, on a_prev's side beyond it or on the other side (a fresh load from zero), up to
-  |a_max|: slope g s (the load enters at the present sensitivity and every mode takes it at
-  once);
-- loading to a new extreme, |a_k| > |a_max|: slope g s + mu (the first-cycle offset follows).
-
-The response is continuous except where a new extreme has the other sign than the old one: the
-offset mu a_max jumps there. An image inside that jump maps to the knot (the response's nearest
-value).
-`correct_memory_step` solves each piece's line for the image, keeps the solution that lies on
-its piece, and applies it: exact (to rounding) on data the model made.
-
-## Noise: a dead band
-The skin's memory is hysteretic: a load that eases and comes back moves the modes at once on the
-way back but not on the way out. Measurement noise read as such a chatter of the stimulus pumps
-the modes, and the exact inverse of noisy images drifts (a held press seems to fade). With
-`tolerance` (the noise level of the images, a few standard deviations), an image within
-`tolerance` of the response of the held stimulus keeps the stimulus (touches hold between
-changes); a deviation between `tolerance` and 2 `tolerance` is followed in part, linearly from 0
-to all of it, and a larger one in full: the correction stays continuous in the images and in the
-parameters, and real presses and releases pass unchanged.
-
-## The fit
-`memory` fits p and a stimulus that holds between a few changes per element (touches are sparse
-in time) to the images by least squares; its docstring says why the stimulus must be
-constrained and how.
+element; times are in seconds. The memory model is `diffeit.memory.MemoryParameters`
+(docs/science.md#memory): every element evolves on its own, r = R_p(a). The correction is an
+exact inverse of R_p, piece by piece of its piecewise linear response, with a dead band for
+noisy images (docs/science.md#memory-correction); the fit constrains the stimulus to hold between
+a few changes per element (docs/science.md#memory-fit).
 """
 
 from __future__ import annotations
@@ -102,12 +71,23 @@ def correct_memory_step(
     memory: MemoryParameters,
     tolerance: float | jax.Array = 0.0,
 ) -> tuple[jax.Array, MemoryState]:
-    """One frame of `correct_memory`: the stimulus (dsigma/sigma, one per element of `state`)
-    whose response at `time` (seconds, >= state.time) is `image`, and the state after it.
+    """One frame of `correct_memory`: the stimulus whose response is `image`, and the next state.
 
-    `tolerance` (dsigma/sigma, scalar or per element): the dead band of the module docstring.
     Pure JAX and unchecked: jit it for live use, frame by frame, starting from
-    `diffeit.memory.initial_state(n_elements, time=first_time)` for a rested skin.
+    `diffeit.memory.initial_state(n_elements, time=first_time)` for a rested skin. The inverse
+    and its dead band are in docs/science.md#memory-correction.
+
+    Arguments:
+        state: The skin's memory before this frame (`diffeit.memory.MemoryState`).
+        image: The frame's image dsigma/sigma, one value per element of `state`.
+        time: The frame's time, seconds, >= `state.time`.
+        memory: The memory parameters.
+        tolerance: The dead band (dsigma/sigma, scalar or per element): an image within it of
+            the held stimulus' response keeps the stimulus. 0: the exact inverse.
+
+    Returns:
+        (stimulus, state): the memoryless stimulus dsigma/sigma per element, and the state
+        after it.
     """
     held = advance(state, memory, time)
     previous, kappa, extreme = held.stimulus, held.sensitivity, held.extreme
@@ -118,7 +98,7 @@ def correct_memory_step(
     followed = jnp.where(size > 2 * tolerance, deviation, 2 * jnp.sign(deviation) * jnp.maximum(size - tolerance, 0))
     image = holding + followed
 
-    # The lines r = intercept + slope a of the pieces (module docstring), from -inf to +inf.
+    # The lines r = intercept + slope a of the pieces (docs/science.md#memory-correction), from -inf to +inf.
     fraction = memory.fast_fraction + memory.slow_fraction
     unloading = memory.gain * (1 - fraction) * kappa
     loading = memory.gain * (1 - held.fatigue)
@@ -155,26 +135,33 @@ def correct_memory(
     state: MemoryState | None = None,
     tolerance: float | jax.Array | np.ndarray = 0.0,
 ) -> jax.Array:
-    """(T, E) the memoryless stimulus (dsigma/sigma) whose memory response is `images`.
+    """The memoryless stimulus whose memory response is `images`, with known memory parameters.
 
-    The causal inverse of `diffeit.memory.memory_response` with known parameters `memory`: frame k
-    uses frames 0..k only, in closed form (module docstring), in one `jax.lax.scan`; jit, vmap
-    and grad (in the images and every parameter) work. With `tolerance=0`,
-    `memory_response(correct_memory(r)) == r` to rounding for any images the model can
-    produce, and for images the model made the stimulus is recovered to rounding.
+    The causal inverse of `diffeit.memory.memory_response`: frame k uses frames 0..k only, in
+    closed form, in one `jax.lax.scan`; jit, vmap and grad (in the images and every parameter)
+    work. With `tolerance=0`, `memory_response(correct_memory(r)) == r` to rounding for any
+    images the model can produce, and for images the model made the stimulus is recovered to
+    rounding. `correct_memory_step` continues frame by frame from any state (live use). The
+    inverse and its dead band are in docs/science.md#memory-correction.
 
-    - `images`: (T, E) relative changes dsigma/sigma per frame and element (for example one-step
-      images against the first frame).
-    - `times`: (T,) frame times, seconds, increasing.
-    - `state`: the skin's memory before the first frame (`diffeit.memory.initial_state`, or the
-      state `integrate_memory` returned); default a rested, virgin skin at times[0].
-      `correct_memory_step` continues frame by frame from any state (live use).
-    - `tolerance`: the dead band for noisy images (dsigma/sigma, >= 0, scalar or (E,); module
-      docstring); about 3 noise standard deviations of the images. 0: the exact inverse.
+    Arguments:
+        images: (T, E) relative changes dsigma/sigma per frame and element (for example
+            one-step images against the first frame).
+        times: (T,) frame times, seconds, increasing.
+        memory: The memory parameters (`diffeit.memory.MemoryParameters`).
+        state: The skin's memory before the first frame (`diffeit.memory.initial_state`, or the
+            state `integrate_memory` returned); default a rested, virgin skin at times[0].
+        tolerance: The dead band for noisy images (dsigma/sigma, >= 0, scalar or (E,)), about 3
+            noise standard deviations of the images. 0: the exact inverse.
 
-    Raises ValueError for concrete images that are not finite, times that do not increase (or
-    start before `state.time`), lengths that differ, a negative tolerance, and fractions with
-    f_fast + f_slow >= 1 (the unloading response would not depend on the stimulus).
+    Returns:
+        (T, E) the memoryless stimulus dsigma/sigma.
+
+    Raises:
+        ValueError: For concrete images that are not finite or not (T, E), times that do not
+            increase (or start before `state.time`), lengths that differ, a negative tolerance,
+            and fractions with f_fast + f_slow >= 1 (the unloading response would not depend
+            on the stimulus).
     """
     images, times = check_images(images, times)
     _check_invertible(memory)
@@ -328,22 +315,24 @@ def reported_memory(memory: MemoryParameters, fitted: Collection[str]) -> Memory
 
 
 class MemoryFit(eqx.Module):
-    """The result of `memory`.
+    """The result of `memory`: the fitted memory parameters, the stimulus and the response.
 
-    - `memory`: the fitted `diffeit.memory.MemoryParameters` (the free fields fitted, one value
-      shared by all elements; the others as given); with both modes free, the quicker one is
-      named fast (`ordered_modes`).
-    - `stimulus`: (T, E) the memoryless stimulus dsigma/sigma, `correct_memory` of the images with
-      the fitted parameters and the dead band at the images' noise level.
-    - `response`: (T, E) `memory_response(stimulus)`, the images as the fitted model explains them.
-    - `misfit`: ||images - response|| / ||images|| over all frames and elements (dimensionless;
-      about the noise level of the images relative to their size).
-    - `noise`: (E,) the noise standard deviation of each element's images (dsigma/sigma), as
-      given or estimated (`noise_level`).
-    - `elements`: (E,) bool, the elements whose images informed the parameters (see `memory`:
-      above the noise threshold, and not left out as outliers).
-    - `history`: `History` of the optimisation, the rounds one after the other.
-    - `result`: `RESULTS` of the last round's optimisation.
+    Attributes:
+        memory: The fitted `diffeit.memory.MemoryParameters` (the free fields fitted, one value
+            shared by all elements; the others as given); with both modes free, the quicker one
+            is named fast (`ordered_modes`).
+        stimulus: (T, E) the memoryless stimulus dsigma/sigma, `correct_memory` of the images
+            with the fitted parameters and the dead band at the images' noise level.
+        response: (T, E) `memory_response(stimulus)`, the images as the fitted model explains
+            them.
+        misfit: ||images - response|| / ||images|| over all frames and elements (dimensionless;
+            about the noise level of the images relative to their size).
+        noise: (E,) the noise standard deviation of each element's images (dsigma/sigma), as
+            given or estimated from the images.
+        elements: (E,) bool, the elements whose images informed the parameters (above the noise
+            threshold, and not left out as outliers).
+        history: `History` of the optimisation, the rounds one after the other.
+        result: `RESULTS` of the last round's optimisation.
     """
 
     memory: MemoryParameters
@@ -433,68 +422,51 @@ def memory(
     throw: bool = True,
     progress: bool = True,
 ) -> MemoryFit:
-    """Fit the memory model's parameters and recover the memoryless stimulus from a sequence of
-    relative-change images (for example one-step images against the first frame).
+    """Fit the memory model's parameters and the memoryless stimulus to a sequence of images.
 
-    **Model.** images_ke = R_p(a)_ke + noise, per element e and frame k: R_p is
-    `diffeit.memory.memory_response` from a rested, virgin skin at times[0], p the memory
-    parameters (free ones shared by all elements), a the memoryless stimulus (dsigma/sigma).
+    The images are relative changes (for example one-step images against the first frame),
+    modelled per element e and frame k as images_ke = R_p(a)_ke + noise: R_p the memory
+    response (`diffeit.memory.memory_response`) from a rested, virgin skin at times[0], p the
+    memory parameters (the free ones shared by all elements), a the memoryless stimulus. Any p
+    explains the images exactly with a free stimulus, so the stimulus is taken as constant within
+    segments of frames per element (touches hold between a few changes), and p and the segment
+    levels are fitted together by weighted least squares (L-BFGS), in `rounds` rounds that find
+    the segments again. The gain is never fitted (it trades exactly with the stimulus); the
+    first-cycle offset and fatigue trade with the presses' depths and are held by default. The
+    prior, the segments and the choice of elements are in docs/science.md#memory-fit.
 
-    **Identifiability, and the prior that settles it.** With a free stimulus per frame and
-    element any p explains the images exactly (`correct_memory` inverts R_p for any p): the
-    stimulus must be constrained. Touches are sparse in time: the stimulus changes at a few
-    frames (a press, a release, the steps of a ramp) and holds in between, while the memory
-    changes the response smoothly (relaxation under a held press, ghosts after a release). The
-    fit therefore takes the stimulus as constant within segments of frames, per element, and
-    fits p and the segment levels together by least squares (`MemoryObjective`, L-BFGS via
-    `minimise`, preconditioned by the Gauss-Newton diagonal): a ghost or a relaxation cannot be
-    a constant level, so only the memory explains them. A segment whose starting level is
-    smaller than `jump` / 2 of the element's largest, or of the other sign than its touch, is a
-    rest: its stimulus is exactly 0, so that no faint level lingers to trade with a slow
-    recovery. The segments start where the stimulus changes: where `correct_memory` of the images
-    (with a dead band of one noise level, using the current p) changes by more than
-    `jump` times the element's largest |stimulus|; after a fit, neighbouring segments whose
-    levels differ by less than `jump` / 2 of it are joined (noise, not a touch) and the fit runs
-    once more. The whole runs `rounds` times, each from the last p, with segments found again;
-    elements whose misfit after a round is far above the others' (a change missed) are left out
-    of the next.
-    - The gain g trades exactly with the stimulus levels (g a is what the images see): it is
-      fixed (`initial.gain`) and `free` refuses it.
-    - The first-cycle offset mu and the fatigue (limit, rate, recovery time) trade with the
-      levels of the presses they affect (the offset with the level after the first press,
-      fatigue with the depth of later presses): fixed by default at `initial`'s values. Free
-      them only with data that show them beyond a level change (repeated presses of a known,
-      equal depth are the usual case, and even then they are weakly determined).
-    - The fast time constant must span a few frames to be resolved; the slow one needs gaps
-      and holds of its order.
+    Arguments:
+        images: (T, E) relative changes dsigma/sigma, T >= 3.
+        times: (T,) frame times, seconds, increasing.
+        initial: The start and the fixed values (`MemoryParameters` of scalars for the free
+            fields); default `diffeit.memory.over_foam()`.
+        free: The fields fitted; default the fractions, time constants and relaxation. The two
+            fractions are free or fixed together (their sum stays below 1); never the gain.
+        jump: A segment starts where the stimulus changes by more than `jump` (in (0, 1)) times
+            the element's largest |stimulus|; a segment whose level is below `jump` / 2 of it is
+            a rest (stimulus 0), and neighbours whose levels differ by less are joined.
+        threshold: Elements whose largest |image| is below `threshold` times their noise level
+            take no part in the fit (they are still corrected).
+        tolerance: The dead band of the final correction, in noise levels (`correct_memory`).
+        rounds: How many rounds of segmentation and fit at most.
+        noise: The images' noise standard deviation (dsigma/sigma, a number or (E,)), when it is
+            known (for one-step images, from the readings' noise through the reconstruction
+            matrix); default estimated from the images' second differences in time.
+        max_elements: How many of the elements above the threshold (the strongest, by largest
+            |image| over noise) fit the parameters at most.
+        max_steps: The limit of each L-BFGS run (a round runs one or two).
+        throw: Raise for a fit that does not converge (True), or return it in `result` (False).
+        progress: Show progress bars.
 
-    **Elements.** Elements whose largest |image| is below `threshold` times their noise level
-    carry no memory signal: they take no part in the fit (they are still corrected); of the
-    others, the `max_elements` strongest (largest |image| over noise) fit the shared parameters.
-    Each chosen
-    element is weighted by 1 / its noise variance. The noise level of each element is `noise`,
-    or estimated from the images' second differences in time (`noise_level`).
+    Returns:
+        The `MemoryFit`.
 
-    **Arguments.**
-    - `images`: (T, E) dsigma/sigma; `times`: (T,) seconds, increasing.
-    - `initial`: the start and the fixed values (`MemoryParameters` of scalars for the free
-      fields); default `diffeit.memory.over_foam()`.
-    - `free`: the fields fitted; default the fractions, time constants and relaxation. The two
-      fractions are free or fixed together (their sum stays below 1).
-    - `jump`, `threshold`, `tolerance`, `rounds`: as above; `max_steps`: the limit of each
-      L-BFGS run (a round runs one or two).
-    - `max_elements`: how many of the elements above the threshold fit the parameters at most.
-    - `noise`: the images' noise standard deviation (dsigma/sigma, a number or (E,)), when it is
-      known (for one-step images, from the readings' noise through the reconstruction matrix);
-      default estimated from the images (`noise_level`).
-
-    **Result** (`MemoryFit`): `memory`, `stimulus` (T, E), `response` (T, E), `misfit`, `noise`,
-    `elements`, `history`, `result`. A fit that does not converge raises `SolverError` with
-    `throw=True`, and otherwise says so in `result`.
-
-    Raises ValueError for non-finite images, times that do not increase, images and times of
-    different lengths, invalid initial parameters, unknown or refused free names, and images in
-    which no element exceeds the noise threshold.
+    Raises:
+        ValueError: For non-finite images, fewer than 3 frames, times that do not increase,
+            images and times of different lengths, invalid initial parameters or options,
+            unknown or refused free names, and images in which no element exceeds the noise
+            threshold.
+        diffeit.results.SolverError: With `throw=True`, for a fit that does not converge.
     """
     images, times = check_images(images, times)
     initial = over_foam() if initial is None else initial

@@ -1,33 +1,11 @@
 """How well the frames determine a joint fit's memory parameters: their standard errors and
 correlations from the Fisher information of the misfit (`memory_uncertainty`).
 
-## The model of the uncertainty
-Around the fit, each free memory parameter p_i moves as p_i e^(delta_i) (so that delta_i is its
-relative change), and the stimulus as the fitted one scaled by c_s in each segment s of frames
-(1 at the fit). Segments start at the touches' changes (a press, a release) and are the only
-freedom the stimulus keeps: touches hold between changes, the prior the joint fit expresses by
-its temporal term. The readings' noise is independent, Gaussian, of standard deviation s (the
-fit's data scale), so the Fisher information of (delta, c) is F = G^T G, with G the Jacobian of
-the residuals (V - v) / s, and the covariance of delta is the (delta, delta) block of F^-1: the
-Cramer-Rao bound of an unbiased estimate, with the per-segment amplitudes as nuisances (their
-uncertainty widens the memory's). The priors are left out: this is what the data determine.
-
-What it leaves out, and why it is a lower bound: the stimulus' spatial pattern is held at the
-fit's, and the parameters the fit holds fixed (the gain, the first-cycle offset, fatigue) are
-taken as known. Freed, each only widens the errors, and the pattern can widen them far: the
-memory model answers presses almost alike along a valley of its parameters (memories 84% apart
-in the fast fraction, within 2.5% of the press depth in every frame), and on a recording whose
-errors here are 17% or less the joint fit, whose patterns are free, is level between the two
-(docs: Benchmarks). Large errors say the data do not determine a parameter; small ones do not
-prove that the joint fit will find it.
-
-## Reading it
-A relative error of 0.3 means the frames cannot tell the parameter from 30% more or less, at one
-standard deviation. Correlations near +-1 name trade-offs: the two mode fractions trade almost
-exactly with each other (their sum is determined better than either), and the fractions with the
-time constants (a share moved from one mode to the other is made up by their decay times). More
-frames, a lower noise, and holds and gaps that span both time constants narrow them; the noise
-widens them in proportion.
+Around the fit each free memory parameter moves by a relative change and the stimulus by one
+amplitude per segment of frames (segments start at the touches' changes); the covariance of
+the relative changes is the Cramer-Rao bound, with the amplitudes as nuisances and the priors
+left out. The model of the uncertainty, why it is a lower bound, and how to read it are in
+docs/science.md#memory-uncertainty.
 """
 
 from __future__ import annotations
@@ -56,18 +34,21 @@ _TOUCHED = 0.1
 
 
 class MemoryUncertainty(eqx.Module):
-    """The uncertainty of a joint fit's memory parameters (module docstring: a lower bound, the
-    data's alone).
+    """The uncertainty of a joint fit's memory parameters: a lower bound, the data's alone.
 
-    - `names`: the free memory fields, in `MemoryParameters` order.
-    - `values`: (P,) their fitted values.
-    - `relative_error`: (P,) the standard deviation of each, relative to its value (0.1: 10%);
-      inf for one the readings do not see (for example on its boundary: a relaxation of 0), and
-      for all when the rest trade exactly.
-    - `correlation`: (P, P) the correlations of their errors (0 with a parameter of infinite
-      error).
-    - `segments`: (T,) int, the segment of each frame (module docstring); `touched`: (S,) bool,
-      the segments whose stimulus had an amplitude.
+    What `memory_uncertainty` returns; `lines()` formats it. How it is computed and how to read
+    it: docs/science.md#memory-uncertainty.
+
+    Attributes:
+        names: The free memory fields, in `MemoryParameters` order.
+        values: (P,) their fitted values.
+        relative_error: (P,) the standard deviation of each, relative to its value (0.1: 10%);
+            inf for one the readings do not see (for example on its boundary: a relaxation of
+            0), and for all when the rest trade exactly.
+        correlation: (P, P) the correlations of their errors (0 with a parameter of infinite
+            error).
+        segments: (T,) int, the segment of each frame (segments start at the touches' changes).
+        touched: (S,) bool, the segments whose stimulus had an amplitude.
     """
 
     names: tuple[str, ...] = eqx.field(static=True)
@@ -97,11 +78,25 @@ class MemoryUncertainty(eqx.Module):
 
 
 def memory_uncertainty(model: ForwardModel, frames: jax.Array | np.ndarray, fit: JointFit) -> MemoryUncertainty:
-    """The standard errors and correlations of the memory parameters `fit` fitted to `frames`
-    (T, M) volts through `model` (the fit's): the module docstring's Cramer-Rao bound at the fit.
+    """The standard errors and correlations of the memory parameters a joint fit fitted.
 
-    Raises ValueError when the fit fitted no memory parameter or fitted one per element, and for
-    frames that are not the fit's shape or not finite.
+    The Cramer-Rao bound at the fit: each free memory parameter moves by a relative change, the
+    stimulus keeps the fit's pattern with one free amplitude per segment of frames, and the
+    readings' noise is the fit's data scale; the priors are left out. It is a lower bound (what
+    the data determine, whatever the estimator), and small errors do not prove that the joint
+    fit finds the parameters: docs/science.md#memory-uncertainty.
+
+    Arguments:
+        model: The fit's forward model.
+        frames: (T, M) the frames the fit was made on, volts.
+        fit: The `JointFit`.
+
+    Returns:
+        The `MemoryUncertainty`.
+
+    Raises:
+        ValueError: When the fit fitted no memory parameter or fitted one per element, and for
+            frames that are not the fit's shape or not finite.
     """
     names = fit.settings.memory_fitted
     if not names:
@@ -153,7 +148,7 @@ def memory_uncertainty(model: ForwardModel, frames: jax.Array | np.ndarray, fit:
 def _segments(
     frames: np.ndarray, stimulus: np.ndarray, model: ForwardModel, data_scale: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(T,) the segment of each frame, and (S,) which segments are touched (module docstring)."""
+    """(T,) the segment of each frame, and (S,) which segments are touched (docs/science.md#memory-uncertainty)."""
     change = np.linalg.norm(np.diff(frames, axis=0), axis=1)
     noise = _NOISE_CHANGES * data_scale * np.sqrt(2 * frames.shape[1])
     starts = (change > _CHANGE * change.max()) & (change > noise) if change.size else change.astype(bool)
