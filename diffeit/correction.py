@@ -349,10 +349,18 @@ def _checked_positions(positions: np.ndarray) -> np.ndarray:
 
 
 def default_positions(mesh: Mesh) -> np.ndarray:
-    """(P, 2) calibration positions: the domain's centroid, then rings about it at 0.25, 0.45,
-    0.6 and 0.72 of the half-size R (half the largest side of the bounding box), with about one
-    position per 0.45 R of circumference (at least 6 a ring), each ring turned half a step
-    against the previous. Metres."""
+    """The default calibration positions on a mesh: its centroid, then rings about it.
+
+    The rings sit at 0.25, 0.45, 0.6 and 0.72 of the half-size R (half the largest side of the
+    bounding box), with about one position per 0.45 R of circumference (at least 6 a ring),
+    each ring turned half a step against the previous.
+
+    Arguments:
+        mesh: The mesh of the domain.
+
+    Returns:
+        (P, 2) positions, metres: the area-weighted centroid first, then ring by ring.
+    """
     centre = mesh.element_areas @ mesh.element_centroids / mesh.element_areas.sum()
     size = 0.5 * float(np.max(mesh.nodes.max(axis=0) - mesh.nodes.min(axis=0)))
     points = [centre]

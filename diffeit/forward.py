@@ -29,16 +29,19 @@ from .results import RESULTS
 
 
 class Potentials(eqx.Module):
-    """The solution of every drive of a protocol (an equinox Module, as every result type).
+    """The solution of every drive of a protocol: nodal and electrode potentials, and checks.
 
-    - `nodal`: (n_drives, N) potentials at the mesh nodes, volts.
-    - `electrode`: (n_drives, L) electrode potentials U_l, volts, summing to zero per drive.
-    - `relative_residual`: (n_drives,) ||A x - b|| / ||b|| of the linear solve.
-    - `backward_error`: (n_drives,) componentwise backward error of the linear solve (see
-      `diffeit.linear_solve.backward_error`): near machine epsilon for a sound solve even
-      when extreme contact impedance or contrast makes the relative residual large.
-    - `result`: the solve's `diffeit.results.RESULTS` code: `linear_solve_not_converged` when
-      a conjugate-gradient solve with `throw=False` stopped at its iteration limit.
+    `ForwardModel.potentials` returns one. An equinox Module, as every result type.
+
+    Attributes:
+        nodal: (n_drives, N) potentials at the mesh nodes, volts.
+        electrode: (n_drives, L) electrode potentials U_l, volts, summing to zero per drive.
+        relative_residual: (n_drives,) ||A x - b|| / ||b|| of the linear solve.
+        backward_error: (n_drives,) componentwise backward error of the linear solve (see
+            `diffeit.linear_solve.backward_error`): near machine epsilon for a sound solve even
+            when extreme contact impedance or contrast makes the relative residual large.
+        result: The solve's `diffeit.results.RESULTS` code: `linear_solve_not_converged` when
+            a conjugate-gradient solve with `throw=False` stopped at its iteration limit.
     """
 
     nodal: jax.Array
@@ -59,34 +62,48 @@ def _name_elements(mask: np.ndarray) -> str:
 
 
 class ForwardModel(IdentityModule):
-    """Complete electrode model on a P1 triangle mesh of a sheet.
+    """Complete electrode model on a P1 triangle mesh of a sheet: conductivity in, voltages out.
 
-    Conventions: sheet conductivity sigma in S/sq, piecewise constant per element; contact
-    impedance z in ohm m (2D), a scalar or one per electrode; drive current in amperes, the
-    protocol's drive patterns are multiples of it (voltages and Jacobians are linear in it);
-    voltages in volts; electrode potentials sum to zero for every drive.
-
-    `solver` is a backend of `diffeit.linear_solve` or its name: "host_sparse" (SciPy on the
-    host, the CPU default), "dense_cholesky" (small meshes, accelerators) or
-    "conjugate_gradient" (matrix-free, large meshes on accelerators). `electrode_model` is
-    "complete" or "point" (current through one node per electrode, no contact impedance; see
-    `diffeit.assembly.PointElectrodeSystem`).
-
-    Precision follows the conductivity's dtype: float64 by default, float32 on request. The
-    host backend computes in float64 whatever the input; the JAX backends compute in the
-    input's dtype, and a concrete float32 call warns (`PrecisionWarning`) when one step of
-    iterative refinement estimates the relative voltage error above 1e-3.
+    Solves every drive of `protocol` on `mesh` for a sheet conductivity sigma (S/sq, piecewise
+    constant per element) and returns the protocol's readings (volts), the potentials, or the
+    Jacobian. Contact impedance z is in ohm m (2D); the protocol's drive patterns are multiples
+    of the drive current (amperes), so voltages and Jacobians are linear in it; electrode
+    potentials sum to zero for every drive. The equations are in docs/science.md#electrode-model.
 
     `measure`, `potentials` and `jacobian` are pure JAX functions of the conductivity (and of
     an optional contact impedance overriding the model's): jit, grad, jvp, vmap and jacrev
-    work on them. On concrete inputs they raise `ValueError` for a conductivity of the wrong
-    shape, non-finite or non-positive values.
+    work on them, and `jax.jit(model.measure)` works. Precision follows the conductivity's
+    dtype: float64 by default, float32 on request (docs/conventions.md#precision). A model is
+    an immutable `equinox.Module` whose one array leaf is `contact_impedance`; the rest is
+    static and compared by content, so a second model on an equal mesh and protocol compiles
+    nothing (docs/conventions.md#static-data-and-pytrees).
 
-    A model is an immutable `equinox.Module` whose one array leaf is `contact_impedance`;
-    everything else sits in static fields compared by content (mesh, protocol, drive current,
-    solver settings), so the compiled forward solve and Jacobian of one model serve every
-    model on an equal mesh and protocol: a second model compiles nothing. `jax.jit(model.measure)`
-    works.
+    Arguments:
+        mesh: The triangle mesh of the sheet, with its electrodes.
+        protocol: The drives and readings; it must address the mesh's number of electrodes.
+        contact_impedance: z, ohm m, a scalar or (L,) one per electrode, finite and positive.
+        drive_current: The current of a unit drive pattern, amperes (default 1 mA), finite
+            and nonzero.
+        solver: A backend of `diffeit.linear_solve` or its name: "host_sparse" (SciPy on the
+            host, the CPU default, also for None), "dense_cholesky" (small meshes,
+            accelerators) or "conjugate_gradient" (matrix-free, large meshes on accelerators).
+        electrode_model: "complete", or "point" (current through one node per electrode, no
+            contact impedance; see `diffeit.assembly.PointElectrodeSystem`).
+
+    Attributes:
+        mesh: The mesh (static).
+        protocol: The protocol (static).
+        contact_impedance: (L,) z, ohm m, the model's one array leaf.
+        drive_current: Amperes (static).
+        solver: The linear-solver backend (static).
+
+    Raises:
+        ValueError: For a protocol and mesh with different numbers of electrodes, a drive
+            current that is zero or not finite, an unknown solver or electrode model, or a
+            contact impedance of the wrong shape, not finite or not positive.
+
+    Warns:
+        diffeit.PrecisionWarning: When building the first model turns on `jax_enable_x64`.
     """
 
     mesh: Mesh = eqx.field(static=True)
@@ -131,26 +148,57 @@ class ForwardModel(IdentityModule):
 
     @property
     def n_measurements(self) -> int:
+        """M, the number of readings of the protocol."""
         return self.protocol.n_measurements
 
     @property
     def n_elements(self) -> int:
+        """E, the number of elements of the mesh."""
         return self.mesh.n_elements
 
     def potentials(self, conductivity: jax.Array, contact_impedance: jax.Array | None = None) -> Potentials:
-        """Nodal and electrode potentials of every drive (see `Potentials`).
+        """Nodal and electrode potentials of every drive.
 
-        **Arguments:**
+        Arguments:
+            conductivity: (E,) sheet conductivity per element, S/sq, finite and positive.
+            contact_impedance: Scalar or (L,), ohm m, overriding the model's; None uses the
+                model's.
 
-        - `conductivity`: (E,) sheet conductivity per element, S/sq.
-        - `contact_impedance`: scalar or (L,) in ohm m; default the model's.
+        Returns:
+            The `Potentials`, in the conductivity's dtype.
+
+        Raises:
+            ValueError: For a conductivity or contact impedance of the wrong shape, and (on
+                concrete input) not finite or not positive. Under an outer jit or vmap, bad
+                values and a failed linear solve raise a runtime error (`equinox.error_if`)
+                instead.
+
+        Warns:
+            diffeit.PrecisionWarning: For a concrete float32 call whose estimated relative
+                voltage error exceeds 1e-3 (docs/conventions.md#precision).
         """
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
         self._check_precision(conductivity, sigma, z)
         return _potentials(self, sigma, z)
 
     def measure(self, conductivity: jax.Array, contact_impedance: jax.Array | None = None) -> jax.Array:
-        """(n_measurements,) voltages of the protocol, volts, for conductivity (E,) in S/sq."""
+        """The protocol's readings, volts, for a conductivity.
+
+        Arguments:
+            conductivity: (E,) sheet conductivity per element, S/sq, finite and positive.
+            contact_impedance: Scalar or (L,), ohm m, overriding the model's; None uses the
+                model's.
+
+        Returns:
+            (n_measurements,) voltages, volts, in protocol order and sign, in the
+            conductivity's dtype.
+
+        Raises:
+            ValueError: As `potentials`.
+
+        Warns:
+            diffeit.PrecisionWarning: As `potentials`.
+        """
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
         self._check_precision(conductivity, sigma, z)
         return _measure(self, sigma, z)
@@ -164,16 +212,26 @@ class ForwardModel(IdentityModule):
     ) -> jax.Array:
         """The derivative of `measure`, by the fast adjoint path.
 
-        - `wrt="conductivity"`: (n_measurements, E) in V/(S/sq).
-        - `wrt="log_conductivity"`: (n_measurements, E) in V, dV/d(ln sigma) = sigma dV/dsigma.
-        - `wrt="contact_impedance"`: (n_measurements, L) in V/(ohm m), one column per
-          electrode (sum the columns for a shared scalar z); zero for point electrodes.
+        One factorisation and L-1 solves give every drive and measurement field, and
+        reciprocity gives the derivatives (docs/science.md#jacobian); the result equals
+        `jax.jacrev` of `measure` to rounding error.
 
-        One factorisation and one solve per electrode (unit current into electrode l, out of
-        the grounded one) give every drive and measurement field; then reciprocity gives
-        dV/dsigma_e = -area_e grad u_drive . grad u_measure, and
-        dV/dz_l = z_l^-2 int_(e_l) (u_drive - U_drive,l)(u_measure - U_measure,l) ds.
-        Equals `jax.jacrev` of `measure` to rounding error.
+        Arguments:
+            conductivity: (E,) sheet conductivity per element, S/sq, finite and positive.
+            contact_impedance: Scalar or (L,), ohm m, overriding the model's; None uses the
+                model's.
+            wrt: What to differentiate by: "conductivity", "log_conductivity" or
+                "contact_impedance".
+
+        Returns:
+            For `wrt="conductivity"`, (n_measurements, E) in V/(S/sq); for
+            `wrt="log_conductivity"`, (n_measurements, E) in V, dV/d(ln sigma) =
+            sigma dV/dsigma; for `wrt="contact_impedance"`, (n_measurements, L) in V/(ohm m),
+            one column per electrode (sum the columns for a shared scalar z), zero for point
+            electrodes.
+
+        Raises:
+            ValueError: For an unknown `wrt`, and as `potentials` for the inputs.
         """
         if wrt not in JacobianVariable.__args__:
             raise ValueError(f"wrt must be one of {JacobianVariable.__args__}; got {wrt!r}")

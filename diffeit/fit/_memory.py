@@ -283,12 +283,24 @@ def memory_from_unconstrained(values: Mapping[str, jax.Array], base: MemoryParam
 
 
 def ordered_modes(memory: MemoryParameters) -> MemoryParameters:
-    """`memory` with its two recovery modes named by their time constants: where the fast mode
-    came out slower than the slow one, their fractions and time constants are exchanged (per
-    element, for fields given per element). The memory model treats the two modes alike, so the
-    exchange changes no response: a fit can end with either labelling, and the fits report this
-    one. ValueError for anything but a `MemoryParameters` of values (not traced ones: call it
-    outside `jax.jit`)."""
+    """Name the two recovery modes of memory parameters by their time constants.
+
+    Where the fast mode came out slower than the slow one, their fractions and time constants
+    are exchanged (per element, for fields given per element). The memory model treats the two
+    modes alike, so the exchange changes no response: a fit can end with either labelling, and
+    the fits report this one.
+
+    Arguments:
+        memory: The memory parameters, of concrete values (call it outside `jax.jit`).
+
+    Returns:
+        The `MemoryParameters` with fast_time <= slow_time everywhere (`memory` itself when
+        they already are).
+
+    Raises:
+        ValueError: For anything but a `MemoryParameters`, for traced values, or for mode
+            fields that are not finite numbers.
+    """
     if not isinstance(memory, MemoryParameters):
         raise ValueError(f"ordered_modes takes a MemoryParameters; got {type(memory).__name__}")
     values = {name: concrete_floats(getattr(memory, name), f"MemoryParameters.{name}") for name in MODE_FIELDS}

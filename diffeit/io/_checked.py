@@ -105,13 +105,27 @@ def read_superblock(path: Path, what: str = "HDF5 file") -> Superblock:
 
 @contextlib.contextmanager
 def open_checked(path: str | os.PathLike, mode: str = "r", *, what: str = "HDF5 file") -> Iterator[h5py.File]:
-    """The HDF5 file at `path`, opened for reading (`mode` "r") or appending ("r+"), refusing
-    damage promptly (module docstring).
+    """Open an HDF5 file for reading or appending, refusing damage promptly.
 
-    A file a recorder is writing, or was writing when it was killed, reads through SWMR access.
-    `FileNotFoundError` for a missing file; `ValueError` naming the file for one that is empty,
-    not HDF5, truncated, damaged, or (for "r+") held open by a writer. Errors HDF5 raises inside
-    the `with` block (a failed checksum) become `ValueError`s naming the file too.
+    A context manager. Before HDF5 sees the file its superblock is read: a truncated file is
+    refused at once (a file a recorder holds open for SWMR writing gets `GROWTH_WAIT`
+    seconds to reach its recorded end). A file a recorder is writing, or was writing when it
+    was killed, reads through SWMR access. The discipline is in the docstring of this module
+    and of `diffeit.io`.
+
+    Arguments:
+        path: The HDF5 file.
+        mode: "r" to read, "r+" to append.
+        what: What the file is, for the error messages ("diffeit frames file").
+
+    Returns:
+        The open `h5py.File`, closed when the `with` block ends.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file, for one that is empty, not HDF5, truncated, damaged, or
+            (for "r+") marked open for writing; and for errors HDF5 raises inside the `with`
+            block (a failed checksum).
     """
     path = Path(path)
     if not path.is_file():
@@ -140,10 +154,29 @@ def open_checked(path: str | os.PathLike, mode: str = "r", *, what: str = "HDF5 
 def read_checked(
     path: str | os.PathLike, read: Callable[[h5py.File], Any], *, what: str = "HDF5 file", warn_unchecked: bool = True
 ) -> Any:
-    """`read(file)` on the file at `path` opened by `open_checked`, with a `NoChecksumWarning`
-    when its datasets carry no checksums (unless `warn_unchecked=False`). A file a writer holds
-    open may be caught mid-write (a chunk half rewritten fails its checksum): its reading is
-    tried again for up to `GROWTH_WAIT` seconds before the failure is reported."""
+    """Read an HDF5 file with `read(file)`, opened by `open_checked`.
+
+    A file a writer holds open may be caught mid-write (a chunk half rewritten fails its
+    checksum): its reading is tried again for up to `GROWTH_WAIT` seconds before the failure
+    is reported.
+
+    Arguments:
+        path: The HDF5 file.
+        read: Reads what is wanted from the open file.
+        what: What the file is, for the error messages.
+        warn_unchecked: Warn when the file's datasets carry no checksums.
+
+    Returns:
+        What `read` returns.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: As `open_checked`.
+
+    Warns:
+        diffeit.io.NoChecksumWarning: With `warn_unchecked`, when datasets of the file carry
+            no checksums.
+    """
     path = Path(path)
     deadline = time.monotonic() + GROWTH_WAIT
     while True:
@@ -160,9 +193,24 @@ def read_checked(
 
 
 def create_checked(group: h5py.Group, name: str, data: ArrayLike, **options: Any) -> h5py.Dataset:
-    """A dataset `name` in `group` holding `data`, checksummed: an array with Fletcher-32
-    (chunked; `options` such as `maxshape` and `chunks` are passed on), a scalar in compact
-    layout, where the object header's checksum covers it."""
+    """Create a checksummed dataset holding `data`.
+
+    An array gets HDF5's Fletcher-32 checksum (chunked); a scalar sits in compact layout,
+    where the object header's checksum covers it.
+
+    Arguments:
+        group: The HDF5 group (or file) to create the dataset in.
+        name: The dataset's name.
+        data: Its values.
+        **options: Passed on to `h5py.Group.create_dataset` for an array (such as `maxshape`
+            and `chunks`).
+
+    Returns:
+        The new `h5py.Dataset`.
+
+    Raises:
+        ValueError: For a scalar given `options`.
+    """
     values = np.asarray(data)
     if values.ndim == 0:
         if options:
@@ -216,11 +264,25 @@ def _warn_if_unchecked(file: h5py.File, path: Path) -> None:
 def write_atomically(
     path: str | os.PathLike, write: Callable[[h5py.File], None], *, overwrite: bool = False
 ) -> Path:
-    """Create the HDF5 file `path` by `write(file)` under a temporary name beside it, then
-    rename it into place, so an interrupted write leaves no half-written file at `path` (and,
-    with `overwrite=True`, the old file intact). `FileExistsError` for an existing `path`
-    unless `overwrite`; `FileNotFoundError` when its folder does not exist. The file is
-    flushed to disk (fsync) before it is renamed."""
+    """Create an HDF5 file by `write(file)` under a temporary name, then rename it into place.
+
+    An interrupted write leaves no half-written file at `path` (and, with `overwrite=True`,
+    the old file intact). The file is written in the HDF5 1.10 format and flushed to disk
+    (fsync) before it is renamed; without `overwrite`, a file that appears at `path`
+    meanwhile is never replaced.
+
+    Arguments:
+        path: The file to create.
+        write: Writes the contents into the open file (use `create_checked` for datasets).
+        overwrite: Replace an existing file at `path`.
+
+    Returns:
+        `path`, as a `Path`.
+
+    Raises:
+        FileExistsError: For an existing `path` without `overwrite`.
+        FileNotFoundError: When the folder of `path` does not exist.
+    """
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")

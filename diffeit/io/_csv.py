@@ -27,31 +27,38 @@ def read_csv(
 ) -> Recording:
     """Frames from a CSV file: one frame a row, one reading a column.
 
-    `header`: whether the first row holds column names; None (default) decides: a first row
-    that holds no number, or whose fields number the columns 0, 1, 2, ... or 1, 2, 3, ... (as
-    pandas writes them; after one name, `t,0,1,2,...`), is a header. Any other first row is
-    read as readings, so a row of readings with a damaged field is refused, not taken for a
-    header (pass `header=True` for other headers). A UTF-8 byte-order mark (Excel's "CSV
-    UTF-8") is skipped.
+    An optional first row of column names and an optional column of times; the other columns
+    are the readings, in the protocol's order and sign. A UTF-8 byte-order mark (Excel's "CSV
+    UTF-8") is skipped. A CSV file carries no checksum: what the reader can and cannot detect
+    is in docs/tutorials/real-recordings.md#what-the-readers-check.
 
-    `time_column` names (or numbers, from 0) a column of times in seconds; the other columns
-    are the readings, in `protocol`'s order and sign. Without a time column, frame t is at
-    t / `frame_rate` seconds.
+    Arguments:
+        path: The CSV file.
+        protocol: The protocol of the readings; None chooses it from the number of reading
+            columns: n(n-3) is `adjacent(n)` (208: 16 electrodes, EIDORS's order), n * n the
+            full layout `adjacent(n, measure_driven=True)` (256;
+            `diffeit.protocol.from_full_layout` drops the driven pairs).
+        time_column: The name (or number, from 0) of a column of times, seconds; None: frame
+            t is at t / `frame_rate` seconds.
+        frame_rate: Frames per second, without a time column.
+        delimiter: The field separator.
+        voltage_unit: The unit of the readings (see `Recording`).
+        header: Whether the first row holds column names; None decides: a first row that holds
+            no number, or whose fields number the columns 0, 1, 2, ... or 1, 2, 3, ... (as pandas
+            writes them; after one name, `t,0,1,2,...`), is a header, and any other first row
+            is read as readings (pass `header=True` for other headers).
 
-    Without `protocol`, the number of reading columns chooses it: n(n-3) is `adjacent(n)`
-    (208: 16 electrodes, EIDORS's order), n * n is the full layout `adjacent(n,
-    measure_driven=True)` (256; `diffeit.protocol.from_full_layout` drops the driven pairs).
-    Anything else needs `protocol`.
+    Returns:
+        The `Recording`, with `provenance["metadata"]` naming the file, the time column and
+        the column names.
 
-    **Raises:** `FileNotFoundError`; `ValueError` naming the file, row and column for rows of
-    another length, non-numbers, non-finite values, an unknown time column, readings that fit
-    no protocol; naming the file for text that is not UTF-8 or not CSV (a field over the csv
-    module's limit, 128 kB), and a last row without its newline: the file is cut short, or
-    its writer left the newline out (every CSV writer ends the last row too), as the reader
-    cannot tell a row cut within its last number from a whole one.
-
-    A CSV file carries no checksum: a digit changed to another digit, or a file cut at the end
-    of a row, reads as what the file now says.
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file, row and column for rows of another length, non-numbers,
+            non-finite values, an unknown time column, readings that fit no protocol (or not
+            the one given); naming the file for text that is not UTF-8 or not CSV (a field over
+            the csv module's limit, 128 kB), and a last row without its newline (a file cut
+            short); and for a frame rate that is not positive.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:

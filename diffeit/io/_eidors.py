@@ -37,78 +37,57 @@ def read_eidors_mat(
 ) -> Recording | dict[str, Recording]:
     """Adjacent-drive frames from a MATLAB .mat file as EIDORS data sets store them.
 
-    Each variable holds frames of either layout:
+    Each variable holds frames of either layout: the full n x n layout (256 values for 16
+    electrodes; value n * k + m is drive k (in at k+1, out at k), pair (m, m+1), U_m - U_(m+1),
+    with zeros where the pair touches a driven electrode unless the system measured there),
+    which is `adjacent(n, measure_driven=True)`'s order and sign (see
+    `diffeit.protocol.to_full_layout`); or n(n-3) values (208), `adjacent(n)`'s order and sign
+    (EIDORS's `mk_stim_patterns(16, 1, '{ad}', '{ad}', {'no_meas_current'}, 1)`). A matrix
+    whose first dimension has a frame's length is read column by column (EIDORS's one frame per
+    column; a (256, 256) matrix too), otherwise one whose second dimension has it row by row; a
+    vector is one frame. The layouts, complex values, the driven pairs and what the reader can
+    and cannot detect of a damaged file are in
+    docs/tutorials/real-recordings.md#what-the-readers-check.
 
-    - the full n x n layout (256 values for 16 electrodes): value n * k + m is drive k (in at
-      k+1, out at k), pair (m, m+1), U_m - U_(m+1), for every m, with zeros where the pair
-      touches electrode k or k+1 unless the system measured there (EIDORS 'meas_current'). This
-      is `adjacent(n, measure_driven=True)`'s order and sign (see
-      `diffeit.protocol.to_full_layout`);
-    - n(n-3) values (208), `adjacent(n)`'s order and sign (EIDORS's `mk_stim_patterns(16, 1,
-      '{ad}', '{ad}', {'no_meas_current'}, 1)`).
+    Arguments:
+        path: The .mat file (MATLAB v4 to v7.2, what `scipy.io.loadmat` reads; v7.3 files,
+            HDF5, are refused: save with '-v7').
+        variable: The variable to read; None reads every variable holding frames (others,
+            such as ECG traces, are skipped).
+        reference: A variable holding one frame, the reference of every recording returned.
+        n_electrodes: Electrodes of the adjacent protocol.
+        frame_rate: Frames per second; the files carry no times, so frame t is at
+            t / frame_rate seconds (the Montreal sets: 7 frames/s).
+        strict: With the driven pairs dropped, refuse frames whose driven-pair values are not
+            zero.
+        complex_part: How complex values are read: "real" (default, the in-phase part) or
+            "magnitude" (|V|, read as `readings="magnitude"`).
+        driven_readings: The 3n readings on pairs that touch a driven electrode: "auto"
+            (default) keeps them (protocol `adjacent(n, measure_driven=True)`, n * n readings)
+            when every one is non-zero in every frame of the variable and of the reference,
+            and drops them otherwise (protocol `adjacent(n)`); "keep" keeps them (refusing a
+            variable or reference that holds none: n(n-3) values or zeros throughout); "drop"
+            drops them, accepting non-zero values there unless `strict=True`.
+        readings: "signed", "magnitude", or None (default) to decide from the values:
+            "magnitude" when complex values are read as magnitudes or when every value of the
+            variable and the reference, as read, is >= 0; "signed" otherwise (see `Recording`).
 
-    Orientation: EIDORS stores one frame per matrix column (the Montreal set: (256, T)), so
-    a matrix whose first dimension has a frame's length is read column by column; otherwise
-    one whose second dimension has it is read row by row (a (256, 256) matrix is taken as
-    columns). A vector is one frame.
+    Returns:
+        A `Recording` (float64 frames, no mesh, `voltage_unit="arbitrary"`: EIDORS files
+        store device units, the Montreal sets ADC magnitudes), or with `variable=None` a dict
+        of them by variable name. `provenance["metadata"]` records the layout, orientation,
+        `complex_part` (None for real values), `driven_pair_values` ("zero", "non-zero" or
+        "some zero"; absent for n(n-3) values) and `driven_readings` ("kept", "dropped", or
+        "absent" for n(n-3) values).
 
-    Complex values (EIDORS files hold complex voltages, e.g. the IIRC 2006 set): by default the
-    real, in-phase part is read. diffeit's model is resistive, so the in-phase part is what a
-    conductivity model predicts; the magnitude adds the quadrature (capacitive) part and loses
-    the sign. `complex_part="magnitude"` reads |V| all the same, as `readings="magnitude"`.
-
-    Driven pairs, the 3n readings on pairs that touch a driven electrode: EIDORS files hold
-    zeros there, unless the system measured them ('meas_current': the IIRC 2006 set; the
-    Montreal stomach frames), where they are dominated by the contact impedance.
-    `driven_readings="auto"` keeps them (protocol `adjacent(n, measure_driven=True)`, n * n
-    readings) when every one of them is non-zero in every frame of the variable and of the
-    reference, and drops them otherwise (protocol `adjacent(n)`); "keep" keeps them (refusing
-    a variable or reference that holds none: n(n-3) values or zeros throughout); "drop" drops
-    them, and then accepts non-zero values there unless `strict=True`. What is refused always:
-    non-zero driven pairs together with readings that are zero in every frame, as that means
-    zeros sit elsewhere: a different layout (rotated measurements, another drive).
-
-    Readings (see `Recording`): `readings=None` decides from the values: "magnitude" when
-    complex values are read as magnitudes, or when every value of the variable and the
-    reference, as read, is >= 0 (signed adjacent-drive frames always hold negative readings:
-    U_m - U_(m+1) changes sign round the boundary); "signed" otherwise. "signed" or
-    "magnitude" overrides.
-
-    **Arguments:**
-
-    - `path`: the .mat file (MATLAB v4 to v7.2, what `scipy.io.loadmat` reads).
-    - `variable`: the variable to read; None reads every variable holding frames (others,
-      such as ECG traces, are skipped).
-    - `reference`: a variable holding one frame, the reference of every recording returned.
-    - `n_electrodes`: electrodes of the adjacent protocol.
-    - `frame_rate`: frames per second; the files carry no times, so frame t is at
-      t / frame_rate seconds (the Montreal sets: 7 frames/s).
-    - `strict`: with the driven pairs dropped, refuse frames whose driven-pair values are not zero.
-    - `complex_part`: "real" (default) or "magnitude", how complex values are read.
-    - `driven_readings`: "auto" (default), "keep" or "drop".
-    - `readings`: None (default: from the values), "signed" or "magnitude".
-
-    **Returns:** a `Recording` (float64 frames, no mesh, `voltage_unit="arbitrary"`: EIDORS
-    files store device units, the Montreal sets ADC magnitudes), or with `variable=None` a dict
-    of them by variable name. `provenance["metadata"]` records the layout, orientation,
-    `complex_part` (None for real values), `driven_pair_values` ("zero", "non-zero" or "some
-    zero"; absent for n(n-3) values) and `driven_readings` ("kept", "dropped", or "absent" for
-    n(n-3) values).
-
-    **Raises:** `FileNotFoundError` for a missing file; `ValueError` naming the file and the
-    problem for an unreadable file, an unknown variable, a shape of neither layout, non-finite
-    values, a misplaced layout, a reference of more than one frame, driven readings to keep
-    that are not there, negative values read as magnitudes.
-
-    Damaged files: a v5 file's structure is checked before scipy reads it, and only its numeric
-    variables are read (cells, structs, text, sparse matrices and objects are named, never
-    read), so a file cut short anywhere, an element whose data type or size does not fit its
-    place, or a compressed variable (MATLAB's default since v7) whose zlib stream fails its
-    checksum is refused as a whole, never read in part. What no check can see: MAT files carry
-    no checksum of uncompressed data, so a changed byte among the values of an uncompressed
-    variable (v4 files; v5 files saved with '-v6' or by scipy without compression) reads as
-    another number, and a file cut short at the end of a variable reads as the variables
-    before it. v7.3 files (HDF5) are refused: save with '-v7'.
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file and the problem, for an unreadable or damaged file, an
+            unknown variable or one that is not numeric, a shape of neither layout, non-finite
+            values, a misplaced layout (non-zero driven pairs together with readings that are
+            zero in every frame), a reference of more than one frame, driven readings to keep
+            that are not there, negative values read as magnitudes; and for an option out of
+            range (frame rate, `complex_part`, `driven_readings`, `readings`).
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:

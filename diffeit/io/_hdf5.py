@@ -31,13 +31,28 @@ _WHAT = "diffeit frames file"
 
 
 def write_frames(path: str | os.PathLike, recording: Recording, *, overwrite: bool = False) -> Path:
-    """Write `recording` to a new frames file at `path` (HDF5) and return the path.
+    """Write a recording to a new frames file (HDF5) and return its path.
 
-    Refuses an existing file (`FileExistsError`) unless `overwrite=True`: nothing recorded is
-    lost by accident. The file is written under a temporary name beside `path` and renamed
-    when complete, so an interrupted write leaves no half-written file at `path` (and, with
-    `overwrite=True`, the old file intact). Fills in `provenance["created_utc"]` (now) and
-    `provenance["diffeit_version"]` when the recording has none.
+    Refuses an existing file unless `overwrite=True`: nothing recorded is lost by accident.
+    The file is written under a temporary name beside `path` and renamed when complete
+    (`write_atomically`), so an interrupted write leaves no half-written file at `path` (and,
+    with `overwrite=True`, the old file intact). Fills in `provenance["created_utc"]` (now)
+    and `provenance["diffeit_version"]` when the recording has none. The layout is in the
+    docstring of `diffeit.io` and docs/conventions.md#the-frames-file.
+
+    Arguments:
+        path: The file to write.
+        recording: The `Recording` to write.
+        overwrite: Replace an existing file at `path`.
+
+    Returns:
+        `path`, as a `Path`.
+
+    Raises:
+        ValueError: For a `recording` that is not a `Recording`, or provenance metadata that
+            is not JSON-serialisable (before anything is created).
+        FileExistsError: For an existing `path` without `overwrite=True`.
+        FileNotFoundError: When the folder of `path` does not exist.
     """
     if not isinstance(recording, Recording):
         raise ValueError(f"write_frames needs a diffeit.io.Recording; got {type(recording).__name__}")
@@ -48,15 +63,27 @@ def write_frames(path: str | os.PathLike, recording: Recording, *, overwrite: bo
 def read_frames(path: str | os.PathLike) -> Recording:
     """Read a frames file written by `write_frames` (and perhaps grown by `append_frames`).
 
-    Returns the file's data as written: all of it, or of a file a recorder is writing (or was
-    writing when it was killed) the frames it committed. Every dataset's checksum is verified;
-    a file written before diffeit stored checksums reads with a `NoChecksumWarning`.
+    Returns the file's data as written: all of it, or, of a file a recorder is writing (or
+    was writing when it was killed), the frames it committed. Every dataset's checksum is
+    verified, and damage is refused promptly, never read as data (`open_checked`).
 
-    Raises `FileNotFoundError` for a missing file and, promptly, `ValueError` naming the file and
-    the problem for anything else: empty, not HDF5, truncated, altered bytes (a failed
-    checksum), not a frames file, a newer schema version, missing datasets, wrong dtypes,
-    shapes that disagree (frames wider or narrower than the protocol's readings, times not one
-    per frame, images not one per frame and element), non-finite values.
+    Arguments:
+        path: The frames file.
+
+    Returns:
+        The `Recording`.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file and the problem, for anything else: empty, not HDF5,
+            truncated, altered bytes (a failed checksum), not a frames file, a newer schema
+            version, missing datasets, wrong dtypes, shapes that disagree (frames wider or
+            narrower than the protocol's readings, times not one per frame, images not one
+            per frame and element), non-finite values.
+
+    Warns:
+        diffeit.io.NoChecksumWarning: For a file written before diffeit stored checksums
+            (schema version 1).
     """
     path = Path(path)
 
@@ -70,12 +97,28 @@ def read_frames(path: str | os.PathLike) -> Recording:
 
 
 def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) -> int:
-    """Append frames (k, n_meas) (or one frame (n_meas,)) and their times (k,) in seconds to
-    the frames file at `path`; returns the number of frames the file now holds.
+    """Append frames and their times to a frames file; return how many frames it now holds.
 
-    The file must hold no images (they would no longer match the frames). Frames and times
-    are checked for shape and finiteness, and frames of a file of magnitudes (frames attribute
-    readings = "magnitude") for negative values, first (`ValueError`); the file is unchanged then.
+    Frames and times are checked first (shape, finiteness, and, for a file of magnitudes,
+    whose frames attribute `readings` is "magnitude", no negative values); the file is
+    unchanged when they fail. The file must hold no images: they would no longer match the
+    frames.
+
+    Arguments:
+        path: A frames file written by `write_frames`.
+        frames: (k, n_meas) frames, or one frame (n_meas,), in the file's units, protocol
+            order and sign.
+        times: (k,) their times, seconds.
+
+    Returns:
+        The number of frames the file holds after appending.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: For a file that is damaged or not a frames file, one marked open for
+            writing (a recorder holds it, or was killed before closing it), one that holds
+            images or uncommitted rows of an interrupted recorder; and for frames or times of
+            the wrong shape, not finite, or negative for a file of magnitudes.
     """
     path = Path(path)
     frames = np.array(frames, dtype=np.float64)

@@ -27,33 +27,32 @@ def read_openeit(
     """Frames from an OpenEIT text log (what its dashboard records from the serial port).
 
     Each frame is one line `magnitudes: v1 , v2 , ... ,` (the label and a trailing comma
-    optional). OpenEIT's imaging firmware drives opposite electrodes, pyEIT's
-    `eit_scan_lines(n, n/2)`: drive i puts current into electrode i and out of electrode i+n/2
-    (all n drives), and reads adjacent pairs (m, m+1), m increasing from 0, skipping pairs on a
-    driven electrode, as V(m+1) - V(m): 16 electrodes give 192 values (8: 32, 32: 896). Both
-    signs are the negation of diffeit's `opposite(n)` (current into i+n/2 and out of i,
-    reading U_m - U_(m+1)), so the frames are `opposite(n)`'s readings value for value.
+    optional); lines without a comma (the firmware's messages such as "mode 3: imaging") and
+    blank lines are skipped. OpenEIT's imaging firmware drives opposite electrodes, and its
+    frames are `opposite(n)`'s readings value for value (16 electrodes: 192 values; 8: 32;
+    32: 896). The board prints magnitudes, so the sign of each reading is lost: the recording
+    has `readings="magnitude"` (a reconstruction restores the signs from the calibrated
+    model's predicted readings) and `voltage_unit="arbitrary"`. The layout, and what the
+    reader can and cannot detect of a damaged log, are in
+    docs/tutorials/real-recordings.md#what-the-readers-check.
 
-    The board prints magnitudes (impedance magnitudes in its own units, never negative), so the
-    sign of each reading is lost: the Recording has `readings="magnitude"` (a reconstruction
-    restores the signs from the calibrated model's predicted readings) and
-    `voltage_unit="arbitrary"`.
+    Arguments:
+        path: The log file.
+        n_electrodes: 8, 16 or 32; None chooses from the number of values per line.
+        frame_rate: Frames per second (logs carry no times: frame t is at t / frame_rate s).
+        skip_malformed: Drop lines of another length or with non-numbers, and a last line
+            without its newline, instead of refusing the file (their line numbers go in
+            `provenance["metadata"]["skipped_lines"]`).
 
-    **Arguments:** `n_electrodes` (8, 16 or 32; default: from the number of values per line),
-    `frame_rate` in frames per second (logs carry no times: frame t is at t / frame_rate s),
-    `skip_malformed`: drop lines of another length or with non-numbers, and a last line
-    without its newline, instead of refusing the file (their line numbers go in
-    `provenance["metadata"]["skipped_lines"]`). Lines without a comma (the firmware's messages
-    such as "mode 3: imaging") and blank lines are always skipped.
+    Returns:
+        The `Recording` under `opposite(n_electrodes)`.
 
-    **Raises:** `FileNotFoundError`; `ValueError` naming the file and the lines for an empty
-    log, malformed lines (unless skipped), non-finite or negative values, an unknown layout, a
-    last line of values without its newline (unless skipped): the log was cut short (or is
-    still being written), and a line cut within its last number would read as another number,
-    or a line cut after 32 of 192 values as an 8-electrode frame.
-
-    A log carries no checksum: a digit changed to another digit, or a log cut at the end of a
-    line, reads as what the file now says.
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: Naming the file and the lines, for an empty log, malformed lines (unless
+            skipped), non-finite or negative values, an unknown layout, a last line of values
+            without its newline (unless skipped: the log was cut short, or is still being
+            written); and for a frame rate that is not positive.
     """
     path = Path(path)
     if not math.isfinite(frame_rate) or frame_rate <= 0:

@@ -25,39 +25,47 @@ READINGS = ("signed", "magnitude")
 class Recording(eqx.Module):
     """Frames of boundary voltages, simulated, recorded or reconstructed, with what they need.
 
-    Arrays are stored as read-only float64 copies; construction checks shapes and finiteness
-    and raises `ValueError` naming the problem.
+    Built from keyword arguments named as the attributes. Arrays are stored as read-only
+    float64 copies; construction checks shapes and finiteness. A recording is an
+    `equinox.Module`: the arrays, geometry and provenance are its leaves; protocol, mesh,
+    image_quantity, voltage_unit and readings are static fields. `write_frames` and
+    `read_frames` store it (docs/conventions.md#the-frames-file).
 
-    **Fields:**
+    Attributes:
+        frames: (T, n_meas) voltages, one row per frame, in `protocol`'s order and sign; T may
+            be 0 (a recording that frames will be appended to).
+        times: (T,) seconds, the acquisition (or simulation) time of each frame.
+        protocol: The `diffeit.protocol.Protocol` the frames were taken under.
+        reference: (n_meas,) the reference frame of difference imaging (a homogeneous tank,
+            the untouched skin), or None.
+        mesh: The sheet's `Mesh`, or None; it must have the protocol's number of electrodes.
+        geometry: A description of the sheet for a mesh generator, or None: `{"kind": "disc",
+            ...}` with the keyword arguments of `diffeit.mesh.disc` (likewise "rectangle",
+            "polygon"), for example `{"kind": "disc", "n_electrodes": 16, "electrode_width":
+            0.2, "h": 0.05, "radius": 1.0}` (lengths in metres). See `resolve_mesh`.
+        provenance: `source` (str, what made the frames), `created_utc` (ISO 8601 UTC, when),
+            `diffeit_version` (str), `metadata` (a JSON-serialisable dict, free-form); all
+            optional, no other keys; `write_frames` fills in `created_utc` and
+            `diffeit_version` when absent.
+        images: (T, E) element-wise images of the frames on `mesh` (E = mesh.n_elements),
+            S/sq, or None. A recording with images needs its mesh.
+        image_quantity: What `images` hold: "conductivity change" (difference imaging,
+            against the reference) or "conductivity"; None without images.
+        voltage_unit: The unit of `frames` and `reference`: "V" (volts, the default) for
+            diffeit's simulations and calibrated hardware, "arbitrary" for data in device
+            units (EIDORS files, ADC counts).
+        readings: What a value of `frames` and `reference` is: "signed" (default), the reading
+            in `protocol`'s sign; or "magnitude", its absolute value |V|, from instruments that
+            report magnitudes and lose the sign (OpenEIT-class boards, the Montreal 1995 EIDORS
+            set), never negative. A reconstruction restores the signs from a calibrated model.
 
-    - `frames`: (T, n_meas) voltages, one row per frame, in `protocol`'s order and sign; T may
-      be 0 (a recording that frames will be appended to).
-    - `times`: (T,) seconds, the acquisition (or simulation) time of each frame.
-    - `protocol`: the `diffeit.protocol.Protocol` the frames were taken under.
-    - `reference`: (n_meas,) the reference frame of difference imaging (a homogeneous tank,
-      the untouched skin), or None.
-    - `mesh`: the sheet's `Mesh`, or None.
-    - `geometry`: a description of the sheet for a mesh generator, or None: `{"kind": "disc",
-      ...}` with the keyword arguments of `diffeit.mesh.disc` (likewise "rectangle",
-      "polygon"), for example `{"kind": "disc", "n_electrodes": 16, "electrode_width": 0.2,
-      "h": 0.05, "radius": 1.0}` (lengths in metres). See `resolve_mesh`.
-    - `provenance`: `source` (str, what made the frames), `created_utc` (ISO 8601 UTC, when),
-      `diffeit_version` (str), `metadata` (a JSON-serialisable dict, free-form); all optional,
-      `write_frames` fills in `created_utc` and `diffeit_version` when absent.
-    - `images`: (T, E) element-wise images of the frames on `mesh` (E = mesh.n_elements), S/sq,
-      or None. A recording with images needs its mesh.
-    - `image_quantity`: what `images` hold: "conductivity change" (difference imaging, against
-      the reference) or "conductivity"; None without images.
-    - `voltage_unit`: unit of `frames` and `reference`: "V" (volts) for diffeit's simulations
-      and calibrated hardware, "arbitrary" for data in device units (EIDORS files, ADC counts).
-    - `readings`: what a value of `frames` and `reference` is: "signed" (default), the reading
-      in `protocol`'s sign; or "magnitude", its absolute value |V|, from instruments that report
-      magnitudes and lose the sign (OpenEIT-class boards, the Montreal 1995 EIDORS set). A
-      reconstruction restores the signs from a calibrated model. Magnitudes are never negative:
-      a negative value raises `ValueError`.
-
-    A recording is an `equinox.Module`: the arrays, geometry and provenance are its leaves;
-    protocol, mesh, image_quantity, voltage_unit and readings are static fields.
+    Raises:
+        ValueError: Naming the problem, for a protocol or mesh of the wrong type, a mesh
+            whose electrodes the protocol does not address, arrays of the wrong shape or not
+            finite, an unknown geometry kind, provenance keys outside the schema or of the
+            wrong type, images without a mesh or without `image_quantity` (or the quantity
+            without images), an empty `voltage_unit`, an unknown `readings`, or negative
+            values with `readings="magnitude"`.
     """
 
     frames: np.ndarray
@@ -135,18 +143,29 @@ class Recording(eqx.Module):
 
     @property
     def n_frames(self) -> int:
+        """T, the number of frames."""
         return self.frames.shape[0]
 
     @property
     def n_measurements(self) -> int:
+        """n_meas, the number of readings a frame."""
         return self.frames.shape[1]
 
     def difference(self, *, reference_frame: int | None = None, relative: bool = False) -> np.ndarray:
-        """(T, n_meas) frame minus reference, in `voltage_unit`; relative: over the reference
-        (unit-free), the "relative (normalised) difference" (V - V_ref) / V_ref.
+        """The frames minus the reference, absolute or relative.
 
-        The reference is `reference`, or frame `reference_frame` when given. Raises
-        `ValueError` when there is no reference, or (relative) when it has zero entries.
+        Arguments:
+            reference_frame: The index of the frame to use as the reference; None uses
+                `reference`.
+            relative: Return the relative (normalised) difference (V - V_ref) / V_ref,
+                unit-free, instead of V - V_ref in `voltage_unit`.
+
+        Returns:
+            (T, n_meas) differences.
+
+        Raises:
+            ValueError: When there is no reference, the reference frame is out of range, or
+                (relative) the reference has zero entries.
         """
         reference = self.reference_values(reference_frame)
         difference = self.frames - reference
@@ -158,7 +177,17 @@ class Recording(eqx.Module):
         return difference / reference
 
     def reference_values(self, reference_frame: int | None = None) -> np.ndarray:
-        """(n_meas,) the reference: frame `reference_frame` when given, else `reference`."""
+        """The reference frame of difference imaging.
+
+        Arguments:
+            reference_frame: The index of the frame to use; None uses `reference`.
+
+        Returns:
+            (n_meas,) the reference, in `voltage_unit`.
+
+        Raises:
+            ValueError: When there is no reference or the frame is out of range.
+        """
         if reference_frame is None:
             if self.reference is None:
                 raise ValueError("the recording has no reference frame; name one of its frames as the reference")
@@ -170,7 +199,12 @@ class Recording(eqx.Module):
     def resolve_mesh(self) -> Mesh:
         """The sheet's mesh: `mesh` when present, else generated from `geometry`.
 
-        Raises `ValueError` when the recording has neither.
+        Returns:
+            The `Mesh`.
+
+        Raises:
+            ValueError: When the recording has neither, or the geometry does not fit its
+                generator.
         """
         if self.mesh is not None:
             return self.mesh

@@ -99,18 +99,31 @@ def _float_tuple(blocks: Any) -> tuple:
 class Scene(eqx.Module):
     """What to simulate: a skin, its background, touches over time, and the effects.
 
-    - `skin`: `Skin`; `background`: `Background` (S/sq); `touches`: `Touch`es (dsigma/sigma
-      over time; see `diffeit.scene.Touch`).
-    - `frame_rate` (frames per second) and `duration` (seconds): frames at k / frame_rate for
-      k = 0 .. n_frames - 1, n_frames = floor(duration x frame_rate) (at least 1).
-    - `effects`: instances of the types in `EFFECTS`, at most one of each; only these are
-      simulated (`diffeit.scene.pipeline`).
-    - `name`, `description`: free text.
+    A scene is data: an immutable `equinox.Module` built from keyword arguments, whose
+    continuous parameters (contact impedance, background values and regions, every touch
+    parameter, memory, noise and drift parameters) are leaves, so `jax.grad` differentiates a
+    `simulate` with respect to them; `frame_rate`, `duration`, `name` and `description` are
+    static. `from_toml` and `to_toml` read and write scene files (their format is in the
+    docstring of `diffeit.scene` and docs/tutorials/scenes.md).
 
-    `frame_rate`, `duration`, `name` and `description` are static.
-    Construction checks everything concrete and raises `ValueError` naming the field (a touch
-    whose centre is off the skin, a duplicated effect, ...). `Scene.from_toml(path)` and
-    `scene.to_toml(path)` read and write scene files (module docstring).
+    Attributes:
+        skin: The `Skin`: sheet, electrodes, contact impedance, drive current, protocol.
+        background: The `Background` conductivity, S/sq.
+        touches: The `Touch`es: dsigma/sigma over time (see `diffeit.scene.Touch`).
+        frame_rate: Frames per second: frames at k / frame_rate for k = 0 .. n_frames - 1.
+        duration: Seconds; n_frames = floor(duration x frame_rate), at least 1.
+        effects: Instances of the types in `EFFECTS`, at most one of each; only these are
+            simulated (`diffeit.scene.pipeline`).
+        name: Free text.
+        description: Free text.
+
+    Raises:
+        ValueError: Naming the field, for anything concrete out of range: a skin or
+            background of the wrong type, a frame rate or duration that is not positive, an
+            effect that is not one or is given twice, open electrodes the skin lacks,
+            electrode position offsets not one per electrode (or moving electrodes off the
+            sheet), a contact drift rate of the wrong length or taking z to zero, a touch off
+            the skin.
     """
 
     _: KW_ONLY
@@ -186,6 +199,7 @@ class Scene(eqx.Module):
 
     @property
     def n_frames(self) -> int:
+        """T, the number of frames: floor(duration x frame_rate), at least 1."""
         return max(1, math.floor(self.duration * self.frame_rate + 1e-9))
 
     @property
@@ -225,7 +239,19 @@ class Scene(eqx.Module):
         return cls(**scene_arguments(data))
 
     def to_toml(self, path: str | FilePath, *, overwrite: bool = False) -> FilePath:
-        """Write the scene as TOML to `path` (refusing to replace a file unless `overwrite`)."""
+        """Write the scene to a TOML file (SI numbers).
+
+        Arguments:
+            path: The file to write.
+            overwrite: Replace an existing file at `path`.
+
+        Returns:
+            `path`, as a `Path`.
+
+        Raises:
+            FileExistsError: For an existing `path` without `overwrite=True`.
+            ValueError: For what TOML cannot hold (see `to_dict`).
+        """
         import tomli_w
 
         path = FilePath(path)
@@ -235,14 +261,33 @@ class Scene(eqx.Module):
         return path
 
     def to_toml_string(self) -> str:
+        """The scene as TOML text (see `to_toml`)."""
         import tomli_w
 
         return tomli_w.dumps(self.to_dict())
 
     @classmethod
     def from_toml(cls, path: str | FilePath) -> Scene:
-        """Read a scene file (`read_scene_file` says which files it refuses); ValueError naming
-        the file and the field."""
+        """Read a scene from a TOML file.
+
+        Numbers are in SI units, or strings that name their unit (`radius = "5 mm"`); the
+        format is in the docstring of `diffeit.scene`. A scene file carries no checksum: a
+        digit changed to another digit, or a file cut at the end of a line, reads as what the
+        file now says (the keys cut off take their defaults).
+
+        Arguments:
+            path: The scene file.
+
+        Returns:
+            The `Scene`.
+
+        Raises:
+            FileNotFoundError: For a missing file.
+            ValueError: Naming the file, for one that is not UTF-8 text, not TOML, holds no
+                key, or whose last line does not end in a newline (cut short); and naming the
+                file and the field for an unknown key or effect, a unit of the wrong kind, or
+                a value the `Scene` refuses.
+        """
         path = FilePath(path)
         data = read_scene_file(path)
         try:
@@ -252,6 +297,7 @@ class Scene(eqx.Module):
 
     @classmethod
     def from_toml_string(cls, text: str, *, source: str = "scene") -> Scene:
+        """The scene of TOML text (see `from_toml`); `source` names it in errors."""
         import tomllib
 
         try:

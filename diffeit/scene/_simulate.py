@@ -348,10 +348,26 @@ def read_simulation(path: str | FilePath) -> Simulation:
 
 
 def simulate(scene: Scene, *, progress: bool = True) -> Simulation:
-    """Simulate `scene`: build its `pipeline` and run the stages in order.
+    """Simulate a scene: the frames a skin would record, with the ground truth.
 
-    Returns a `Simulation`. Differentiable in the scene's continuous parameters (module
-    docstring); `progress` shows a bar over the forward solves of long scenes.
+    Builds the scene's `pipeline` (only the stages its touches and effects call for) and runs
+    the stages in order: touches, memory, conductivity, contact impedance, one forward solve
+    per distinct state, then the instrument (noise, common-mode drift, lost readings). The
+    reference frame is the untouched skin at the first frame time, measured like a frame.
+    Differentiable in every continuous parameter of the scene (a `Scene` is a pytree):
+    `jax.grad(lambda s: loss(simulate(s).frames))(scene)`. The order and its reasons are in
+    docs/science.md#simulation-order.
+
+    Arguments:
+        scene: The `Scene` to simulate.
+        progress: Show a progress bar over the forward solves of long scenes.
+
+    Returns:
+        The `Simulation`: frames (T, M) and reference (M,) in volts, times in seconds, the true
+        conductivity (T, E) in S/sq on the simulation mesh.
+
+    Raises:
+        ValueError: For a `scene` that is not a `Scene`.
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"simulate needs a diffeit.Scene; got {type(scene).__name__}")

@@ -31,17 +31,29 @@ GEOMETRY_KEYS = {
 
 
 class Skin(eqx.Module):
-    """The sheet, its electrodes and how it is driven.
+    """The sheet, its electrodes and how it is driven; meshed on demand.
 
-    - `geometry`: the sheet for a `diffeit.mesh` generator: `kind` ("disc", "rectangle",
-      "polygon") and that generator's keyword arguments (lengths in metres) except `h`, e.g.
-      `{"kind": "disc", "radius": 1.0, "n_electrodes": 16, "electrode_width": 0.2}`; held as
-      nested tuples (static).
-    - `h`: element size of the reconstruction mesh, metres.
-    - `simulation_h`: element size of the simulation mesh, metres; default h / 2, so simulated
-      data never come from the mesh they are reconstructed on.
-    - `contact_impedance`: ohm m, a scalar or one value per electrode (a leaf).
-    - `drive_current`: amperes. `protocol`: "adjacent", "opposite" or "skip K".
+    Built from keyword arguments named as the attributes. Lengths in metres, contact
+    impedance in ohm m, current in amperes. Both meshes are generated (and cached) at
+    construction, so a geometry that cannot be meshed fails here.
+
+    Attributes:
+        geometry: The sheet for a `diffeit.mesh` generator: `kind` ("disc", "rectangle",
+            "polygon") and that generator's keyword arguments (lengths in metres) except `h`,
+            e.g. `{"kind": "disc", "radius": 1.0, "n_electrodes": 16, "electrode_width":
+            0.2}`; given as a dict, held as nested tuples (static).
+        h: Element size of the reconstruction mesh, metres.
+        simulation_h: Element size of the simulation mesh, metres; default h / 2, so
+            simulated data never come from the mesh they are reconstructed on.
+        contact_impedance: Ohm m, a scalar or one value per electrode (a leaf).
+        drive_current: Amperes.
+        protocol: "adjacent", "opposite" or "skip K".
+
+    Raises:
+        ValueError: Naming the field, for an unknown kind or geometry key, an `h`,
+            `simulation_h` or drive current that is not a positive number, a contact
+            impedance of the wrong shape, not finite or not positive, an unknown protocol or
+            one the electrodes do not allow, or a geometry that cannot be meshed.
     """
 
     geometry: tuple = eqx.field(static=True)
@@ -105,10 +117,12 @@ class Skin(eqx.Module):
 
     @property
     def kind(self) -> str:
+        """The sheet's kind: "disc", "rectangle" or "polygon"."""
         return dict(self.geometry)["kind"]
 
     @property
     def n_electrodes(self) -> int:
+        """L, the number of electrodes (16 unless the geometry says)."""
         return int(dict(self.geometry).get("n_electrodes", 16))
 
     def mesh(self, h: float | None = None, electrode_offsets: tuple[float, ...] | None = None) -> Mesh:
@@ -117,6 +131,7 @@ class Skin(eqx.Module):
         return _mesh(self.geometry, self.h if h is None else h, electrode_offsets)
 
     def make_protocol(self) -> Protocol:
+        """The `diffeit.protocol.Protocol` that `protocol` names, on the skin's electrodes."""
         return protocol_of(self.protocol, self.n_electrodes)
 
     def contact_impedances(self) -> jax.Array:
