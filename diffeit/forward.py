@@ -336,7 +336,7 @@ def _readings(model: ForwardModel, electrode: jax.Array) -> jax.Array:
     return jnp.sum(weights * electrode[model.protocol.drive_index], axis=-1)
 
 
-@eqx.filter_jit
+@jax.jit  # its one number is read at once (float()), so a run-time error surfaces there
 def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
     """Estimated relative 2-norm error of float32 voltages: one step of iterative refinement,
     the residual taken in float64, the correction solved with the float32 system."""
