@@ -1,3 +1,5 @@
+import gc
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -19,6 +21,27 @@ def pytest_configure(config: pytest.Config) -> None:
     jax.config.update("jax_compilation_cache_dir", str(cache.mkdir("jax-compilation-cache")))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# Every compiled XLA program keeps its machine code in memory mappings of its own, and JAX keeps
+# every program it compiled. The whole suite compiles enough of them to pass Linux's limit of
+# 65,530 mappings a process (vm.max_map_count), and the next compilation then crashes inside
+# LLVM (a segmentation fault, first seen in test_float32 in clean clones). Past this many
+# mappings JAX's caches are emptied between tests (the programs of later tests compile again,
+# from the persistent cache where they can).
+_MAPPINGS_BEFORE_CLEARING = 30_000
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> None:
+    try:
+        with open("/proc/self/maps") as maps:
+            mappings = sum(1 for _ in maps)
+    except OSError:  # not Linux: no such limit to keep under
+        return
+    if mappings > _MAPPINGS_BEFORE_CLEARING:
+        jax.clear_caches()
+        gc.collect()
 
 
 # An L-shaped sheet (metres) whose electrodes sit every 0.5 m from vertex 0: six of them straddle
