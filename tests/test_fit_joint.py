@@ -43,18 +43,13 @@ def _start(model: de.ForwardModel, n_frames: int = len(TIMES)) -> dict:
     }
 
 
+# The capped fit's settings: a test that follows its path step by step uses the same ones.
+CAPPED = {"noise": 0.2, "max_steps": 10, "progress": False}
+
+
 @pytest.fixture(scope="module")
 def capped(coarse_model, coarse_frames) -> fit.JointFit:
-    return fit.joint(
-        coarse_model,
-        coarse_frames,
-        TIMES,
-        initial=_start(coarse_model),
-        noise=0.2,
-        max_steps=10,
-        throw=False,
-        progress=False,
-    )
+    return fit.joint(coarse_model, coarse_frames, TIMES, initial=_start(coarse_model), throw=False, **CAPPED)
 
 
 def test_gradient_matches_central_differences_in_every_group(coarse_model, coarse_frames):
@@ -190,16 +185,7 @@ def test_on_step_hands_out_the_fit_so_far_and_stops_the_fit_by_raising(coarse_mo
             raise KeyboardInterrupt  # what `diffeit fit` raises when asked to stop
 
     with pytest.raises(KeyboardInterrupt):
-        fit.joint(
-            coarse_model,
-            coarse_frames,
-            TIMES,
-            initial=_start(coarse_model),
-            noise=0.2,
-            max_steps=10,
-            progress=False,
-            on_step=on_step,
-        )
+        fit.joint(coarse_model, coarse_frames, TIMES, initial=_start(coarse_model), on_step=on_step, **CAPPED)
     assert [progress.steps for progress in seen] == [0, 1, 2, 3, 4]
     np.testing.assert_allclose([p.objective for p in seen], capped.history.objective[:5], rtol=1e-12)
     so_far = seen[-1].fit()
