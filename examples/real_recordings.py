@@ -69,9 +69,9 @@ def centroids(result: de.io.Recording) -> np.ndarray:
 
 def reconstruct_quietly(recording: de.io.Recording, **options) -> tuple[de.io.Recording, list[str]]:
     with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", de.reconstruction.CalibrationWarning)
+        warnings.simplefilter("always", de.calibration.CalibrationWarning)
         result = de.reconstruct(recording, progress=False, **options)
-    return result, [str(w.message) for w in caught if issubclass(w.category, de.reconstruction.CalibrationWarning)]
+    return result, [str(w.message) for w in caught if issubclass(w.category, de.calibration.CalibrationWarning)]
 
 
 def main(argv: list[str] | None = None) -> None:

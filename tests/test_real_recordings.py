@@ -12,7 +12,7 @@ DATA = Path(__file__).resolve().parent / "data"
 
 
 def _positions(recording: de.io.Recording) -> tuple[np.ndarray, de.io.Recording]:
-    with pytest.warns(de.reconstruction.CalibrationWarning):  # both tanks differ from the model (see below)
+    with pytest.warns(de.calibration.CalibrationWarning):  # both tanks differ from the model (see below)
         result = de.reconstruct(recording, progress=False)
     # A non-conductive rod: the image's most negative part.
     positions = np.array([de.metrics.half_amplitude_centroid(result.mesh, -image) for image in result.images])

@@ -51,6 +51,8 @@ def every_effect_scene() -> Scene:
             ContactDrift(rate=np.linspace(0.0, 0.02, 16), kind="linear"),
             OpenElectrodes((3,), fill=0.0),
             ElectrodePositionError.random(16, 0.01, seed=3),
+            de.scene.ReadoutMixing.random(16, 0.3, seed=1),
+            de.scene.ReadingGains.random(208, 0.2, seed=2),
         ),
         name="every effect",
         description="one of each",

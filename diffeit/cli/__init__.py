@@ -44,8 +44,9 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     same), else 0."""
     from .. import io
     from .._messages import name_indices
+    from ..calibration import CalibrationWarning
     from ..plotting import plot_image_strip
-    from ..reconstruction import SELECTION_METHODS, CalibrationWarning, reconstruct
+    from ..reconstruction import SELECTION_METHODS, reconstruct
 
     start = time.perf_counter()
     source = Path(arguments.frames)

@@ -296,7 +296,7 @@ class _LiveViewer:
     (R, M), shown in a window or saved as a PNG, on a fixed colour scale (+-`colour_limit`).
 
     Without a joint fit: the model is calibrated to the reference
-    (`diffeit.reconstruction.calibrate_to_reference`: the level and unit, the orientation and drive
+    (`diffeit.calibration.calibrate_to_reference`: the level and unit, the orientation and drive
     sign, broken readings masked; its summary is printed), the hyperparameter "auto" is the noise
     figure's (the frames to come are unknown), and the viewer shows dsigma/sigma at the calibrated
     level. With a joint fit (`--memory`): the images are linearised at the fit's background and
@@ -353,8 +353,8 @@ class _LiveViewer:
 
     def _calibrate(self, protocol: Protocol, settings: ModelSettings, reference: np.ndarray) -> None:
         """The calibrated model and its solver (class docstring); prints what the calibration found."""
+        from ..calibration import calibrate_to_reference
         from ..inverse import OneStep
-        from ..reconstruction import calibrate_to_reference
 
         calibration = calibrate_to_reference(
             settings.model(self.mesh, protocol), reference, background=settings.background

@@ -5,9 +5,11 @@ A `Scene` holds a `Skin` (sheet, electrodes, contact impedance, protocol), a `Ba
 with smooth edges; time courses `Press`, `Ramp`, `Path`), a frame rate and duration, and the
 effects to simulate (`EFFECTS`): the skin's memory (`MemoryParameters`), measurement noise
 (`MeasurementNoise` of a `Noise`), common-mode drift (`CommonModeDrift`), contact impedance
-drift (`ContactDrift`), open electrodes (`OpenElectrodes`) and electrode position error
-(`ElectrodePositionError`). Scenes load from and save to TOML (`Scene.from_toml`,
-`Scene.to_toml`); `example(name)` gives the shipped scenes of `EXAMPLES`.
+drift (`ContactDrift`), open electrodes (`OpenElectrodes`), electrode position error
+(`ElectrodePositionError`), readout mixing (`ReadoutMixing`: each reading mixes in other
+electrodes' potentials, `diffeit.readout.Readout`) and reading gains (`ReadingGains`). Scenes
+load from and save to TOML (`Scene.from_toml`, `Scene.to_toml`); `example(name)` gives the
+shipped scenes of `EXAMPLES`.
 
 `simulate(scene)` runs the `pipeline` of the stages the scene declares and returns a
 `Simulation` (frames, times, reference, ground truth), saved to and read from the frames file
@@ -38,6 +40,8 @@ from ._instrument import ElectrodePositionError as ElectrodePositionError
 from ._instrument import MeasurementNoise as MeasurementNoise
 from ._instrument import Noise as Noise
 from ._instrument import OpenElectrodes as OpenElectrodes
+from ._instrument import ReadingGains as ReadingGains
+from ._instrument import ReadoutMixing as ReadoutMixing
 from ._instrument import add_drift as add_drift
 from ._instrument import add_noise as add_noise
 from ._instrument import contact_impedance as contact_impedance

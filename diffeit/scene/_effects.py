@@ -5,7 +5,15 @@ from __future__ import annotations
 from typing import Any
 
 from ..memory import MemoryParameters
-from ._instrument import CommonModeDrift, ContactDrift, ElectrodePositionError, MeasurementNoise, OpenElectrodes
+from ._instrument import (
+    CommonModeDrift,
+    ContactDrift,
+    ElectrodePositionError,
+    MeasurementNoise,
+    OpenElectrodes,
+    ReadingGains,
+    ReadoutMixing,
+)
 
 # Names of the effects in scene files, and their types.
 EFFECTS: dict[str, type] = {
@@ -15,6 +23,8 @@ EFFECTS: dict[str, type] = {
     "contact_drift": ContactDrift,
     "open_electrode": OpenElectrodes,
     "electrode_position_error": ElectrodePositionError,
+    "readout_mixing": ReadoutMixing,
+    "reading_gains": ReadingGains,
 }
 EFFECT_NAMES = tuple(EFFECTS)
 

@@ -1,12 +1,13 @@
 """The instrument's effects: measurement noise, common-mode drift, contact impedance drift, open
-electrodes, electrode position error.
+electrodes, electrode position error, readout mixing and reading gains.
 
 Each effect is a small pure JAX function of its own parameters, and an `equinox.Module` that a
 scene declares (`MeasurementNoise`, `CommonModeDrift`, `ContactDrift`, `OpenElectrodes`,
-`ElectrodePositionError`); every continuous parameter (noise scale, drift offsets and rates,
-contact impedances and their rates) is a leaf, so `jax.grad` differentiates through it. Units:
-voltages in volts, times in seconds, contact impedance in ohm m (as `diffeit.ForwardModel`),
-rates per second.
+`ElectrodePositionError`, `ReadoutMixing`, `ReadingGains`); every continuous parameter (noise
+scale, drift offsets and rates, contact impedances and their rates, mixing weights, gains) is a
+leaf, so `jax.grad` differentiates through it. Units: voltages in volts, times in seconds,
+contact impedance in ohm m (as `diffeit.ForwardModel`), rates per second; mixing weights and
+gains are unit-free.
 
 ## Measurement noise (docs/science.md#noise)
 "p%" noise is independent Gaussian noise of standard deviation sigma = p/100 x RMS(V_ref) on
@@ -53,6 +54,20 @@ reconstructions can drop them. The fault is discrete: the mask has no gradient.
 The electrodes of the simulation mesh sit along the boundary off their nominal positions by
 given offsets (metres, counter-clockwise), while the reconstruction mesh keeps the nominal ones.
 It changes the mesh, so it has no gradient.
+
+## Readout mixing and reading gains
+The board's readout as `diffeit.readout.Readout` models it (its module docstring has the
+formula). Mixing: reading m of drive d becomes `sum_l (W_ml + X_ml) U_dl` instead of the
+protocol's `sum_l W_ml U_dl`, U the electrode potentials (volts), with
+`X_m = source e_s(d) + sink e_k(d) + sum_j offsets[j] e_((p_m + j) mod L)`: a little of the
+drive's current-source electrode s(d), its sink k(d), and the electrode j places on from the
+measuring pair's positive electrode p_m (`offsets[L // 2]`, the far electrode); weights relative
+to the pair's (1). Gains: reading m is multiplied by `gains[m]` (1 nominal). The simulator
+applies them in the board's order: mixing of the potentials, then gains, then noise (its scale
+the reference as the board reads it). The simulator's readings are signed; a board that
+reports magnitudes takes |.| after the gains and before the noise. All zero mixing weights and
+unit gains: the protocol's readings, to rounding (formed from the electrode potentials rather
+than by `ForwardModel.measure`).
 """
 
 from __future__ import annotations
@@ -69,6 +84,7 @@ import numpy as np
 
 from .._arrays import concrete_floats
 from ..protocol import Protocol
+from ..readout import Readout
 
 ArrayLike = float | jax.Array | np.ndarray
 
@@ -360,3 +376,153 @@ class ElectrodePositionError(eqx.Module):
         if not (math.isfinite(std) and std >= 0):
             raise ValueError(f"effects.electrode_position_error.std must be >= 0 (metres); got {std}")
         return cls(tuple(np.random.default_rng(seed).normal(0.0, std, n_electrodes)))
+
+
+# --- Readout mixing and reading gains ------------------------------------------------------------
+
+
+def _float_array(value: Any) -> Any:
+    """Numbers and lists of them as one float64 NumPy array leaf, as in code, whatever JAX's
+    precision setting (JAX arrays, traced or not, and anything else pass through, for
+    `__check_init__` to refuse with the field's name)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | list | tuple | np.ndarray | np.generic):
+        return value
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        return value
+
+
+class ReadoutMixing(eqx.Module):
+    """The effect "readout_mixing": each reading mixes in other electrodes' potentials.
+
+    The model is `diffeit.readout.Readout` (its module docstring, and this module's): reading m
+    of drive d becomes `sum_l (W_ml + X_ml) U_dl`, U the electrode potentials in volts.
+
+    Arguments:
+        source: The weight of the drive's current-source electrode, relative to the measuring
+            pair's (1); unit-free, a scalar.
+        sink: The weight of the drive's current-sink electrode; unit-free, a scalar.
+        offsets: (L,) the weight of the electrode j places on from the measuring pair's
+            positive electrode (counter-clockwise in electrode order); `offsets[L // 2]` is
+            the far electrode. Unit-free.
+
+    Every field is a float array leaf (differentiable). All zero: the protocol's readings.
+
+    Raises:
+        ValueError: Naming the field, for a source or sink that is not one number, offsets
+            that are not one number per electrode (a 1-D array of at least 2), or any value
+            that is not finite. The scene checks that there is one offset per electrode.
+    """
+
+    source: ArrayLike = eqx.field(converter=_float_array)
+    sink: ArrayLike = eqx.field(converter=_float_array)
+    offsets: ArrayLike = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        for name in ("source", "sink"):
+            value = concrete_floats(getattr(self, name), f"effects.readout_mixing.{name}")
+            if value is not None and value.shape != ():
+                raise ValueError(f"effects.readout_mixing.{name} must be one number; got shape {value.shape}")
+        offsets = concrete_floats(self.offsets, "effects.readout_mixing.offsets")
+        if offsets is not None and (offsets.ndim != 1 or len(offsets) < 2):
+            raise ValueError(
+                f"effects.readout_mixing.offsets must be one weight per electrode, (L,); got shape {offsets.shape}"
+            )
+
+    @classmethod
+    def random(cls, n_electrodes: int, largest: float = 0.3, seed: int = 0) -> ReadoutMixing:
+        """A random mixing of the source's and the far electrode's weights, the largest in practice.
+
+        Draws, from `numpy.random.default_rng(seed)`, first `source` and then the far
+        electrode's weight `offsets[n_electrodes // 2]`, each uniform in [0, largest); the sink
+        and every other offset are 0.
+
+        Arguments:
+            n_electrodes: L, the number of electrodes (>= 2).
+            largest: The largest weight, unit-free (relative to the measuring pair's), >= 0.
+            seed: The seed of the random generator (an integer).
+
+        Returns:
+            The `ReadoutMixing`.
+
+        Raises:
+            ValueError: For fewer than 2 electrodes or a `largest` that is negative or not
+                finite.
+        """
+        if not isinstance(n_electrodes, int | np.integer) or isinstance(n_electrodes, bool) or n_electrodes < 2:
+            raise ValueError(f"effects.readout_mixing: n_electrodes must be an integer >= 2; got {n_electrodes!r}")
+        if not (isinstance(largest, int | float | np.floating) and math.isfinite(largest) and largest >= 0):
+            raise ValueError(f"effects.readout_mixing.largest must be finite and >= 0 (unit-free); got {largest}")
+        rng = np.random.default_rng(seed)
+        source, far = rng.uniform(0.0, largest, 2)
+        offsets = np.zeros(int(n_electrodes))
+        offsets[n_electrodes // 2] = far
+        return cls(float(source), 0.0, offsets)
+
+    def readout(self, protocol: Protocol) -> Readout:
+        """The `diffeit.readout.Readout` of this mixing on `protocol` (unit gains).
+
+        Arguments:
+            protocol: The protocol whose readings it mixes; L electrodes.
+
+        Returns:
+            The `Readout`.
+
+        Raises:
+            ValueError: For offsets not one per electrode of `protocol`.
+        """
+        offsets = jnp.asarray(self.offsets)
+        if offsets.shape != (protocol.n_electrodes,):
+            raise ValueError(
+                f"effects.readout_mixing.offsets has shape {offsets.shape}; the protocol has "
+                f"{protocol.n_electrodes} electrodes"
+            )
+        return Readout(protocol, self.source, self.sink, offsets)
+
+
+class ReadingGains(eqx.Module):
+    """The effect "reading_gains": every reading multiplied by a unit-free gain of its own.
+
+    A channel's amplifier, a drive's current: `gains[m]` multiplies reading m (1 nominal), after
+    the readout mixing and before the noise.
+
+    Arguments:
+        gains: (M,) one gain per reading of the skin's protocol, unit-free; any sign (a
+            negative gain is a reversed channel).
+
+    `gains` is a float array leaf (differentiable). All 1: no change.
+
+    Raises:
+        ValueError: Naming the field, for gains that are not a 1-D array or not finite. The
+            scene checks that there is one gain per reading.
+    """
+
+    gains: ArrayLike = eqx.field(converter=_float_array)
+
+    def __check_init__(self) -> None:
+        gains = concrete_floats(self.gains, "effects.reading_gains.gains")
+        if gains is not None and (gains.ndim != 1 or len(gains) == 0):
+            raise ValueError(f"effects.reading_gains.gains must be one gain per reading, (M,); got shape {gains.shape}")
+
+    @classmethod
+    def random(cls, n_measurements: int, spread: float = 0.2, seed: int = 0) -> ReadingGains:
+        """Independent gains, uniform in [1 - spread, 1 + spread) (linear, not log-uniform).
+
+        Arguments:
+            n_measurements: M, the number of readings of the skin's protocol (>= 1).
+            spread: The largest relative departure from 1, unit-free, in [0, 1) so that every
+                gain is positive.
+            seed: The seed of `numpy.random.default_rng`.
+
+        Returns:
+            The `ReadingGains`.
+
+        Raises:
+            ValueError: For fewer than one reading or a `spread` outside [0, 1).
+        """
+        if not isinstance(n_measurements, int | np.integer) or isinstance(n_measurements, bool) or n_measurements < 1:
+            raise ValueError(f"effects.reading_gains: n_measurements must be an integer >= 1; got {n_measurements!r}")
+        if not (isinstance(spread, int | float | np.floating) and math.isfinite(spread) and 0 <= spread < 1):
+            raise ValueError(f"effects.reading_gains.spread must be in [0, 1) (unit-free); got {spread}")
+        return cls(np.random.default_rng(seed).uniform(1.0 - spread, 1.0 + spread, int(n_measurements)))

@@ -1,9 +1,9 @@
 """`Scene`: a skin, its background, touches over time and the effects to simulate, with TOML files.
 
 A scene is data: immutable, an `equinox.Module` whose continuous parameters (contact impedance,
-background values and regions, every touch parameter, memory, noise and drift parameters) are
-leaves, so `jax.grad` differentiates a simulation with respect to them. Its structure (the
-skin's geometry, the frame times, which effects) is static.
+background values and regions, every touch parameter, memory, noise, drift, readout mixing and
+gain parameters) are leaves, so `jax.grad` differentiates a simulation with respect to them. Its
+structure (the skin's geometry, the frame times, which effects) is static.
 
 ## The TOML file
 Numbers are in SI units (lengths in metres, times in seconds, sheet conductivity in S/sq,
@@ -52,7 +52,10 @@ centre), as `diffeit.scene.Ramp` and `Path`; envelopes are `{kind = "press", ...
 The effects (`EFFECT_NAMES`): "memory" (`MemoryParameters` fields, or `preset = "bare_skin" |
 "over_foam"`), "noise", "common_mode_drift" (`CommonModeDrift` fields), "contact_drift"
 (`rate`, `kind`), "open_electrode" (`electrodes`, `fill`), "electrode_position_error"
-(`offsets` per electrode, or `std` and `seed`).
+(`offsets` per electrode, or `std` and `seed`), "readout_mixing" (`source`, `sink` and
+`offsets` per electrode, unit-free; or `largest` and `seed`, `ReadoutMixing.random`),
+"reading_gains" (`gains` per reading of the protocol, unit-free; or `spread` and `seed`,
+`ReadingGains.random`).
 """
 
 from __future__ import annotations
@@ -101,10 +104,10 @@ class Scene(eqx.Module):
 
     A scene is data: an immutable `equinox.Module` built from keyword arguments, whose
     continuous parameters (contact impedance, background values and regions, every touch
-    parameter, memory, noise and drift parameters) are leaves, so `jax.grad` differentiates a
-    `simulate` with respect to them; `frame_rate`, `duration`, `name` and `description` are
-    static. `from_toml` and `to_toml` read and write scene files (their format is in the
-    docstring of `diffeit.scene` and docs/tutorials/scenes.md).
+    parameter, memory, noise, drift, readout mixing and gain parameters) are leaves, so
+    `jax.grad` differentiates a `simulate` with respect to them; `frame_rate`, `duration`,
+    `name` and `description` are static. `from_toml` and `to_toml` read and write scene files
+    (their format is in the docstring of `diffeit.scene` and docs/tutorials/scenes.md).
 
     Attributes:
         skin: The `Skin`: sheet, electrodes, contact impedance, drive current, protocol.
@@ -122,8 +125,9 @@ class Scene(eqx.Module):
             background of the wrong type, a frame rate or duration that is not positive, an
             effect that is not one or is given twice, open electrodes the skin lacks,
             electrode position offsets not one per electrode (or moving electrodes off the
-            sheet), a contact drift rate of the wrong length or taking z to zero, a touch off
-            the skin.
+            sheet), a contact drift rate of the wrong length or taking z to zero, readout
+            mixing offsets not one per electrode, reading gains not one per reading of the
+            skin's protocol, a touch off the skin.
     """
 
     _: KW_ONLY
@@ -173,6 +177,7 @@ class Scene(eqx.Module):
                 f"{self.skin.n_electrodes} electrodes"
             )
         self._check_contact_drift()
+        self._check_readout()
         try:
             mesh = self.simulation_mesh()
         except ValueError as error:
@@ -196,6 +201,23 @@ class Scene(eqx.Module):
                 f"effects.contact_drift: a linear rate of {rate.min():.4g} 1/s takes the contact impedance to "
                 f'z0 (1 + rate t) <= 0 by t = {last:g} s; use a smaller rate or kind = "exponential"'
             )
+
+    def _check_readout(self) -> None:
+        """One mixing offset per electrode and one gain per reading of the skin's protocol."""
+        mixing = self.effect("readout_mixing")
+        if mixing is not None and np.shape(mixing.offsets) != (self.skin.n_electrodes,):
+            raise ValueError(
+                f"effects.readout_mixing.offsets has shape {np.shape(mixing.offsets)}; give one weight per "
+                f"electrode ({self.skin.n_electrodes})"
+            )
+        gains = self.effect("reading_gains")
+        if gains is not None:
+            n_measurements = self.skin.make_protocol().n_measurements
+            if np.shape(gains.gains) != (n_measurements,):
+                raise ValueError(
+                    f"effects.reading_gains.gains has shape {np.shape(gains.gains)}; give one gain per reading of "
+                    f"the protocol {self.skin.protocol!r} ({n_measurements})"
+                )
 
     @property
     def n_frames(self) -> int:

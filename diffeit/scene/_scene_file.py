@@ -25,6 +25,8 @@ from ._instrument import (
     MeasurementNoise,
     Noise,
     OpenElectrodes,
+    ReadingGains,
+    ReadoutMixing,
 )
 from ._shapes import AbstractShape, Disc, Ellipse, Polygon
 from ._skin import GEOMETRY_KEYS, SKIN_KINDS, Skin, thawed
@@ -256,7 +258,8 @@ def _touch(table: _Table) -> Touch:
     return touch
 
 
-def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
+def _effect(name: str, table: _Table, skin: Skin) -> Any:
+    n_electrodes = skin.n_electrodes
     with _naming(table.path):
         if name == "memory":
             preset = _word(table, "preset", "over_foam")
@@ -287,15 +290,44 @@ def _effect(name: str, table: _Table, n_electrodes: int) -> Any:
             made = ContactDrift(_leaf(table.get("rate", "rate", 0.0)), _word(table, "kind", "exponential"))
         elif name == "open_electrode":
             made = OpenElectrodes(table.raw("electrodes"), table.get("fill", "voltage", 0.0))
-        else:
+        elif name == "electrode_position_error":
             if table.has("offsets") == table.has("std"):
                 raise ValueError("give either offsets (one per electrode, metres) or std (metres) and seed")
             if table.has("offsets"):
                 made = ElectrodePositionError(tuple(table.get("offsets", "length")))
             else:
                 made = ElectrodePositionError.random(n_electrodes, table.get("std", "length"), table.raw("seed", 0))
+        elif name == "readout_mixing":
+            if table.has("largest") == any(table.has(key) for key in ("source", "sink", "offsets")):
+                raise ValueError(
+                    "give either source, sink and offsets (one per electrode; unit-free weights) or largest and seed"
+                )
+            if table.has("largest"):
+                made = ReadoutMixing.random(n_electrodes, table.get("largest", "ratio"), _seed(table))
+            else:
+                made = ReadoutMixing(
+                    table.get("source", "ratio", 0.0),
+                    table.get("sink", "ratio", 0.0),
+                    _required(table, "offsets", "ratio"),
+                )
+        else:
+            if table.has("gains") == table.has("spread"):
+                raise ValueError("give either gains (one per reading; unit-free) or spread and seed")
+            if table.has("gains"):
+                made = ReadingGains(table.get("gains", "ratio"))
+            else:
+                n_measurements = skin.make_protocol().n_measurements
+                made = ReadingGains.random(n_measurements, table.get("spread", "ratio"), _seed(table))
     table.done()
     return made
+
+
+def _seed(table: _Table) -> int:
+    """The integer `seed` of a random effect (default 0)."""
+    seed = table.raw("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise ValueError(f"{table.field('seed')} must be an integer; got {seed!r}")
+    return seed
 
 
 def scene_arguments(data: Mapping[str, Any]) -> dict[str, Any]:
@@ -314,7 +346,7 @@ def scene_arguments(data: Mapping[str, Any]) -> dict[str, Any]:
     for name, value in effects_table.items():
         if name not in EFFECTS:
             raise ValueError(f"effects.{name}: unknown effect; effects are {EFFECT_NAMES}")
-        effects.append(_effect(name, _Table(value, f"effects.{name}"), skin.n_electrodes))
+        effects.append(_effect(name, _Table(value, f"effects.{name}"), skin))
     for key in ("name", "description"):
         if not isinstance(top.raw(key, ""), str):
             raise ValueError(f"{key} must be a string")

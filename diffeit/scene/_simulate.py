@@ -2,16 +2,17 @@
 
 `pipeline(scene)` builds the stages from the scene alone: touches, then the memory effect, the
 conductivity per frame, the contact impedance per frame (drift, open electrodes), one forward
-solve per distinct state, then the instrument (noise, common-mode drift, lost readings). A stage
-exists only when the scene calls for it: a scene without memory never runs the integrator, one
-without noise returns exact voltages, and a static scene costs one forward solve. Each stage is
+solve per distinct state, then the instrument (readout mixing, reading gains, noise, common-mode
+drift, lost readings). A stage exists only when the scene calls for it: a scene without memory
+never runs the integrator, one without noise returns exact voltages, one without readout mixing
+keeps no electrode potentials, and a static scene costs one forward solve. Each stage is
 a small `equinox.Module`, a pure function of the `State` flowing through (`stage(state) ->
 state`), so `simulate` is differentiable in every continuous parameter of the scene (a
 `Scene` is a pytree): `jax.grad(lambda s: loss(simulate(s).frames))(scene)`.
 
 Conventions: conductivity in S/sq, times in seconds, voltages in volts, contact impedance in
 ohm m. The reference frame is the untouched skin (its background) at the first frame time,
-measured like a frame (noise, drift and lost readings apply to it too).
+measured like a frame (mixing, gains, noise, drift and lost readings apply to it too).
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ from ._instrument import (
     ContactDrift,
     MeasurementNoise,
     OpenElectrodes,
+    ReadingGains,
+    ReadoutMixing,
     add_drift,
     add_noise,
     contact_impedance,
@@ -61,6 +64,8 @@ class State(eqx.Module):
     - `response` (T, E): the skin's dsigma/sigma after its memory (the stimulus without memory).
     - `conductivity` (T, E) S/sq; `contact_impedance` (T, L) ohm m (None: the skin's, constant).
     - `frames` (T, M) and `reference` (M,) volts; `lost` (M,) readings lost to open electrodes.
+    - `electrode` (T, D, L) and `reference_electrode` (D, L): the electrode potentials of every
+      drive, volts, kept only when the readout mixes them (None otherwise).
     - `solves`: forward solves run (distinct states, reference included).
     """
 
@@ -73,6 +78,8 @@ class State(eqx.Module):
     reference_contact_impedance: jax.Array | None = None
     frames: jax.Array | None = None
     reference: jax.Array | None = None
+    electrode: jax.Array | None = None
+    reference_electrode: jax.Array | None = None
     lost: np.ndarray | None = None
     solves: int = eqx.field(default=0, static=True)
 
@@ -148,11 +155,15 @@ class Forward(eqx.Module):
 
     On concrete inputs, frames whose conductivity and contact impedance are equal bit for bit
     share one solve (a static scene costs one); traced inputs (under jax.grad or jit) solve every
-    frame. Solves run in batches of `_SOLVES_PER_BATCH` with a progress bar when there are many."""
+    frame. Solves run in batches of `_SOLVES_PER_BATCH` with a progress bar when there are many.
+    With `potentials` (static; a readout that mixes needs them), the solves keep the electrode
+    potentials of every drive (`State.electrode`, volts) and the readings are formed from them
+    with the protocol's weights."""
 
     name: ClassVar[str] = "forward"
     model: ForwardModel
     progress: bool = eqx.field(default=True, static=True)
+    potentials: bool = eqx.field(default=False, static=True)
 
     def __call__(self, state: State) -> State:
         conductivity = jnp.concatenate([state.background[None], state.conductivity])
@@ -167,10 +178,24 @@ class Forward(eqx.Module):
         else:
             voltages = self._solve(conductivity, z)
             solves = len(conductivity)
-        return state.replace(reference=voltages[0], frames=voltages[1:], solves=solves)
+        if not self.potentials:
+            return state.replace(reference=voltages[0], frames=voltages[1:], solves=solves)
+        protocol = self.model.protocol
+        readings = jnp.sum(jnp.asarray(protocol.measure, voltages.dtype) * voltages[:, protocol.drive_index], axis=-1)
+        return state.replace(
+            reference=readings[0],
+            frames=readings[1:],
+            reference_electrode=voltages[0],
+            electrode=voltages[1:],
+            solves=solves,
+        )
 
     def _solve(self, conductivity: jax.Array, z: jax.Array) -> jax.Array:
-        measure = jax.vmap(self.model.measure)
+        """(K, M) readings, or with `potentials` (K, D, L) electrode potentials, volts, of K states."""
+        if self.potentials:
+            measure = jax.vmap(lambda sigma, z: self.model.potentials(sigma, z).electrode)
+        else:
+            measure = jax.vmap(self.model.measure)
         starts = range(0, len(conductivity), _SOLVES_PER_BATCH)
         bar = tqdm(
             starts, desc="forward solves", unit="batch", disable=True if len(starts) < 8 or not self.progress else None
@@ -178,6 +203,33 @@ class Forward(eqx.Module):
         return jnp.concatenate(
             [measure(conductivity[k : k + _SOLVES_PER_BATCH], z[k : k + _SOLVES_PER_BATCH]) for k in bar]
         )
+
+
+class MixReadout(eqx.Module):
+    """Frames and reference read from the electrode potentials through the mixing readout.
+
+    `diffeit.readout.Readout.readings` with unit gains (the gains are a stage of their own)."""
+
+    name: ClassVar[str] = "readout mixing"
+    protocol: Protocol = eqx.field(static=True)
+    mixing: ReadoutMixing
+
+    def __call__(self, state: State) -> State:
+        readout = self.mixing.readout(self.protocol)
+        frames = jax.vmap(lambda electrode: readout.readings(self.protocol, electrode))(state.electrode)
+        reference = readout.readings(self.protocol, state.reference_electrode)
+        return state.replace(frames=frames, reference=reference)
+
+
+class ApplyGains(eqx.Module):
+    """Every reading of the frames and of the reference multiplied by its gain (unit-free)."""
+
+    name: ClassVar[str] = "reading gains"
+    gains: ReadingGains
+
+    def __call__(self, state: State) -> State:
+        gains = jnp.asarray(self.gains.gains, state.frames.dtype)
+        return state.replace(frames=gains * state.frames, reference=gains * state.reference)
 
 
 class AddDrift(eqx.Module):
@@ -222,7 +274,18 @@ class LostReadings(eqx.Module):
         )
 
 
-Stage = Touches | Memory | Conductivity | ContactImpedance | Forward | AddDrift | AddNoise | LostReadings
+Stage = (
+    Touches
+    | Memory
+    | Conductivity
+    | ContactImpedance
+    | Forward
+    | MixReadout
+    | ApplyGains
+    | AddDrift
+    | AddNoise
+    | LostReadings
+)
 
 
 def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
@@ -243,7 +306,16 @@ def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
         )
     )
     model = ForwardModel(mesh, skin.make_protocol(), skin.contact_impedances(), drive_current=skin.drive_current)
-    stages.append(Forward(model, progress))
+    mixing = scene.effect("readout_mixing")
+    stages.append(Forward(model, progress, potentials=mixing is not None))
+    # The board's order: mixing of the potentials, then each reading's gain (then |.| on a
+    # board of magnitudes: the simulator's readings are signed), then noise, whose scale is the
+    # reference as the board reads it.
+    if mixing is not None:
+        stages.append(MixReadout(model.protocol, mixing))
+    gains = scene.effect("reading_gains")
+    if gains is not None:
+        stages.append(ApplyGains(gains))
     # Noise before drift: its scale is the percentage of RMS(V_ref) of the drift-free reference.
     noise = scene.effect("noise")
     if noise is not None:
@@ -352,8 +424,9 @@ def simulate(scene: Scene, *, progress: bool = True) -> Simulation:
 
     Builds the scene's `pipeline` (only the stages its touches and effects call for) and runs
     the stages in order: touches, memory, conductivity, contact impedance, one forward solve
-    per distinct state, then the instrument (noise, common-mode drift, lost readings). The
-    reference frame is the untouched skin at the first frame time, measured like a frame.
+    per distinct state, then the instrument (readout mixing, reading gains, noise, common-mode
+    drift, lost readings). The reference frame is the untouched skin at the first frame time,
+    measured like a frame.
     Differentiable in every continuous parameter of the scene (a `Scene` is a pytree):
     `jax.grad(lambda s: loss(simulate(s).frames))(scene)`. The order and its reasons are in
     docs/science.md#simulation-order.

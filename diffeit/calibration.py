@@ -1,0 +1,1418 @@
+"""Calibrating the model of a real skin and board: `calibrate` (a `SkinCalibration`) and its
+first stage, `calibrate_to_reference` (a `ReferenceCalibration`).
+
+A nominal model (the sheet's mesh, the protocol, a contact impedance) reproduces a real board's
+reference frame only roughly: the board's voltage unit, the contacts, the readout and the gains
+differ. `calibrate` fits what the reference frames determine, in two stages, and with labelled
+presses maps the reconstructed touch positions onto the labels.
+
+## First stage (`calibrate_to_reference`)
+
+A real instrument's reference frame v (a homogeneous tank, an untouched skin) is compared with
+the model V(sigma, z) before anything is imaged. The model's voltages scale as
+V(sigma, z) = V(1, z sigma) / sigma, so one factor c with v ~ c V(sigma_0, z_0) fixes the
+conductivity level sigma_h = sigma_0 / c together with an unknown voltage unit (ADC counts):
+the contact impedance moves with it (z_h = c z_0), keeping the contact length z sigma (m) of
+the nominal model. c is a closed-form least-squares fit. In order:
+
+1. **Broken readings** in the reference: exactly zero, or saturated (the largest magnitude,
+   held by two or more readings whose model magnitudes differ: a clipped rail).
+2. **Orientation.** The misfit ||v - c V|| / ||v|| is computed for the electrodes as recorded,
+   numbered the other way round, and with the first electrode one on or one back, each with
+   either sign of c (the drive's sign flipped; not for magnitudes). An alternative is adopted,
+   with a warning naming it, when it at least halves the misfit as recorded; a symmetric sheet
+   (a uniform disc) cannot tell rotations apart, and then the recording's own order stays.
+3. **Magnitudes** (`readings="magnitude"`, boards that report |V|): each reading takes the sign
+   of the model's reading, so that d|V| = sign(V) dV. Readings whose model value is under 5% of
+   the model's RMS reading have an uncertain sign (a small model error flips it) and are masked.
+4. **Readings on driven electrodes** (EIDORS 'meas_current') are dominated by the contact
+   impedance: with them, a common factor of the contact impedance is fitted too (a 1-D search
+   in log z). `driven_readings="auto"` keeps them when the fitted model reproduces them about
+   as well as the others (relative misfit at most twice theirs, or 5%) once they have
+   determined one contact impedance per electrode (Levenberg-Marquardt on ln z, from the
+   common factor), and otherwise drops them with a warning; "keep" and "drop" force the
+   choice.
+5. **Outliers:** a reading whose residual exceeds both six robust standard deviations of the
+   residuals (1.4826 MAD) and half the model's reading (or half of 10% of the RMS reading,
+   when that is larger) is masked: a broken channel is off by a factor, a model's error by a
+   few percent. An electrode with half or more of the readings it takes part in (driving or
+   measuring) masked is broken, worst first: every reading that uses it is masked.
+
+The result reports the relative misfit and the Pearson correlation between v and the
+calibrated model on the readings used, and warns (`CalibrationWarning`) when the correlation
+is under 0.9: the model does not reproduce the reference, whatever the images show.
+
+The first stage fits no gains; the refinement below does.
+
+## Refinement (`calibrate`)
+
+After the first stage, one regularised least-squares fit (Levenberg-Marquardt, priors on
+every group) refines, against the reference's readings in use:
+
+- the level (with the voltage unit): a factor c, prior 1;
+- one contact impedance per electrode, ln z, prior standard deviation 1;
+- the readout's mixing (`diffeit.readout.Readout`: source, sink and offset weights), prior
+  standard deviation 0.3 of the pair's weight;
+- gains per drive and per measuring channel (ln g), prior standard deviation 0.5: a drive's
+  current source, a channel's amplifier.
+
+Each group comes with standard errors from the posterior covariance (the misfit's scale
+estimated from the residual), and a parameter whose standard error is over 70% of its prior's
+is reported as not determined by the data. What the fit leaves is then read as a gain per
+reading (prior standard deviation 0.2, shrunk against the reference's noise) when the fitted
+model reproduces the reference (correlation at least 0.9), and ignored otherwise: a ratio of
+a model that misses the reference to the reference is model error, not gain.
+
+The calibrated `ForwardModel` folds the mixing into its protocol's reading weights; the
+gains divide the recorded frames (`SkinCalibration.signed`). Electrode positions are the
+mesh's (not fitted).
+
+## Presses
+
+With labelled presses (`diffeit.io.Presses`), each press's frames are imaged at the
+calibrated model, the touch is read from the image (`diffeit.touch`), and a smooth map from
+read positions to labelled ones is fitted: a polynomial of degree 1 (affine: the skin's
+orientation, scale and offset against the labels' frame), 2 or 3, the degree chosen by
+leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+import equinox as eqx
+import h5py
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._messages import name_indices
+from .forward import ForwardModel
+from .inverse import LinearisedProblem, OneStep, select_hyperparameter
+from .io import Presses, Recording, create_checked, mesh_from_geometry, read_checked, write_atomically
+from .mesh import Mesh, disc
+from .protocol import Protocol
+from .readout import Readout, roles
+from .results import RESULTS, names
+from .touch import read
+
+DrivenReadings = Literal["auto", "keep", "drop"]
+
+# A recording without a reference is calibrated on the mean of at most this many first frames.
+REFERENCE_FRAMES = 5
+# Adopt another orientation when it cuts the misfit as recorded by at least this factor.
+_ORIENTATION_GAIN = 2.0
+# A magnitude's sign is uncertain where the model's reading is under this fraction of its RMS.
+_UNCERTAIN_SIGN = 0.05
+# Outliers: a residual above this many robust standard deviations and above this fraction of the
+# model's reading (itself at least the floor times the RMS reading): off by a factor, not by model error.
+_OUTLIER_DEVIATIONS, _OUTLIER_RELATIVE, _OUTLIER_FLOOR = 6.0, 0.5, 0.1
+# An electrode is broken when at least this fraction of the readings that use it are masked.
+_BROKEN_ELECTRODE = 0.5
+# Driven readings stay when their relative misfit is at most this factor times the others' (or the floor).
+_DRIVEN_FACTOR, _DRIVEN_FLOOR = 2.0, 0.05
+# The model does not reproduce the reference below this correlation.
+_LEAST_CORRELATION = 0.9
+# Contact impedance factors searched (log-spaced) before a golden-section refinement, and the
+# most Levenberg-Marquardt steps of the per-electrode fit that follows.
+_CONTACT_GRID = np.logspace(-3, 3, 25)
+_CONTACT_STEPS = 20
+
+
+class CalibrationWarning(UserWarning):
+    """The model does not reproduce a recording's reference well, or the calibration changed
+    how the recording is read (orientation, masked readings): the images may mislead."""
+
+
+class ReferenceCalibration(eqx.Module):
+    """The model calibrated to a recording's reference (module docstring, "First stage").
+
+    - `model`: the calibrated `ForwardModel`: the orientation's protocol restricted to the
+      readings used, with the fitted contact impedance `contact_impedance` (ohm m, per electrode).
+    - `conductivity`: sigma_h, the fitted level, S/sq in the recording's voltage unit (with an
+      arbitrary unit, only its ratio to the contact impedance is physical).
+    - `used`: (M,) bool, the recording's readings that are imaged.
+    - `reading_sign`: (M,) +-1, what a recorded reading is multiplied by to match the model: the
+      drive's sign, times the model's sign for magnitudes.
+    - `orientation`: "as recorded", or the alternative adopted (see `orientations`, the misfit
+      of each alternative tried).
+    - `misfit`: ||v - V|| / ||v|| and `correlation` (Pearson) on the readings used.
+    - `masked`: reason -> reading indices ("zero", "saturated", "uncertain sign",
+      "driven electrode", "outlier", "broken electrode"); `broken_electrodes`.
+    - `driven_readings`: "none" (the protocol reads no driven electrode), "kept" or "dropped".
+    - `warnings`: what the calibration warns about, in words.
+    """
+
+    model: ForwardModel
+    conductivity: float
+    contact_impedance: np.ndarray
+    used: np.ndarray
+    reading_sign: np.ndarray
+    orientation: str = eqx.field(static=True)
+    orientations: dict[str, float]
+    misfit: float
+    correlation: float
+    masked: dict[str, tuple[int, ...]]
+    broken_electrodes: tuple[int, ...]
+    driven_readings: str = eqx.field(static=True)
+    warnings: tuple[str, ...]
+
+    def signed(self, frames: np.ndarray) -> np.ndarray:
+        """(..., M_used): recorded frames (..., M) in the calibrated model's order and sign."""
+        return (np.asarray(frames, np.float64) * self.reading_sign)[..., self.used]
+
+    def summary(self) -> dict[str, Any]:
+        """The calibration in JSON-serialisable form, for provenance."""
+        return {
+            "orientation": self.orientation,
+            "orientations_misfit": {name: round(value, 6) for name, value in self.orientations.items()},
+            "conductivity": self.conductivity,
+            "contact_impedance": float(np.mean(self.contact_impedance)),
+            "contact_impedance_per_electrode": [float(z) for z in self.contact_impedance],
+            "misfit": self.misfit,
+            "correlation": self.correlation,
+            "readings_used": int(self.used.sum()),
+            "masked": {reason: list(indices) for reason, indices in self.masked.items()},
+            "broken_electrodes": list(self.broken_electrodes),
+            "driven_readings": self.driven_readings,
+            "warnings": list(self.warnings),
+        }
+
+
+def calibrate_to_reference(
+    model: ForwardModel,
+    reference: np.ndarray,
+    *,
+    readings: str = "signed",
+    background: float = 1.0,
+    driven_readings: DrivenReadings = "auto",
+    fit: bool = True,
+) -> ReferenceCalibration:
+    """Calibrate a model to a recording's reference frame.
+
+    Fits the conductivity level (with the voltage unit), the orientation, the signs of
+    magnitudes, the readings on driven electrodes and the broken channels, in the order of the
+    module docstring ("First stage"); docs/tutorials/calibration.md shows it at work.
+
+    Arguments:
+        model: The nominal model: the sheet's mesh, the recording's protocol, the nominal
+            contact impedance.
+        reference: The reference frame (M,), or several untouched frames (T, M) whose mean is
+            used, in the recording's units.
+        readings: "signed" or "magnitude" (the recording's).
+        background: sigma_0, S/sq: the nominal level whose contact length z_0 sigma_0 the fit
+            keeps.
+        driven_readings: "auto", "keep" or "drop" the readings on driven electrodes.
+        fit: False keeps the nominal model as it is (level, contact impedance, orientation,
+            every reading), signing magnitudes only.
+
+    Returns:
+        The `ReferenceCalibration`.
+
+    Raises:
+        ValueError: For a reference of the wrong shape or with non-finite values, an unknown
+            option, or a reference left without readings.
+    """
+    v = _reference_mean(reference, model.n_measurements)
+    if readings not in ("signed", "magnitude"):
+        raise ValueError(f'readings must be "signed" or "magnitude"; got {readings!r}')
+    if driven_readings not in ("auto", "keep", "drop"):
+        raise ValueError(f'driven_readings must be "auto", "keep" or "drop"; got {driven_readings!r}')
+    if not (math.isfinite(background) and background > 0):
+        raise ValueError(f"background must be a positive conductivity, S/sq; got {background}")
+    protocol = model.protocol
+    magnitude = readings == "magnitude"
+    if magnitude and np.any(v < 0):
+        raise ValueError(
+            f"readings are magnitudes, yet the reference is negative at {name_indices(np.flatnonzero(v < 0))}"
+        )
+    z0 = np.broadcast_to(np.asarray(model.contact_impedance, np.float64), (protocol.n_electrodes,))
+    driven = _driven(protocol)
+    masked: dict[str, np.ndarray] = {}
+    notes: list[str] = []
+    if not fit:
+        nominal = _voltages(model, protocol, background, z0)
+        sign = np.sign(nominal) if magnitude else np.ones_like(v)
+        sign[sign == 0] = 1.0
+        used = np.ones(len(v), bool)
+        return _calibration(model, protocol, used, sign, 1.0, 1.0, background, z0, v, masked, "as recorded", {}, [])
+
+    masked["zero"] = np.abs(v) <= 1e-12 * np.max(np.abs(v))
+    masked["saturated"] = _saturated(model, v, background, z0)
+    usable = ~(masked["zero"] | masked["saturated"])
+    if not usable.any():
+        raise ValueError("every reading of the reference is zero or saturated: nothing to calibrate on")
+
+    orientations, choice = _orientation(model, protocol, v, usable & ~driven, magnitude, background, z0)
+    protocol, orientation_sign, orientation = choice
+    if orientation != "as recorded":
+        notes.append(
+            f"the reference fits the model {orientations['as recorded'] / orientations[orientation]:.1f}x better "
+            f"with {orientation}: check the electrode order and the drive's sign; imaging as if so"
+        )
+    nominal = _voltages(model, protocol, background, z0)
+    if magnitude:
+        sign = np.where(nominal < 0, -1.0, 1.0)
+        masked["uncertain sign"] = np.abs(nominal) < _UNCERTAIN_SIGN * _rms(nominal)
+    else:
+        sign = np.full(len(v), orientation_sign)
+    signed = sign * v
+
+    none = np.zeros(len(v), bool)
+    masked["outlier"], masked["broken electrode"] = none, none
+    # First the readings off the driven electrodes, which the contact impedance barely moves.
+    used = usable & ~masked.get("uncertain sign", none) & ~driven
+    for _ in range(2):  # fit, mask outliers and broken electrodes, refit
+        voltages = _voltages(model, protocol, background, z0)
+        scale = _scale(voltages[used], signed[used])
+        used = _mask_outliers(protocol, signed, scale * voltages, used, usable, masked)
+    factor = 1.0
+    if driven.any() and driven_readings == "drop":
+        masked["driven electrode"] = driven & usable
+    elif driven.any():
+        with_driven = used | (driven & usable)
+        factor = _contact_factor(model, protocol, signed, with_driven, background, z0)
+        voltages = _voltages(model, protocol, background, z0 * factor)
+        # Driven readings of another sign than the model's spoil the level itself: a misfit of 100%.
+        misfit_driven, contact = 1.0, z0 * factor
+        if voltages[with_driven] @ signed[with_driven] > 0:
+            contact, scale_driven = _electrode_contact_impedances(
+                model, protocol, signed, with_driven, background, contact
+            )
+            voltages = _voltages(model, protocol, background, contact)
+            misfit_driven = _relative(
+                signed[driven & usable] - scale_driven * voltages[driven & usable], signed[driven & usable]
+            )
+        # Against the others' misfit without them: a fit the driven readings spoil misfits both.
+        misfit_others = _relative(signed[used] - scale * _voltages(model, protocol, background, z0)[used], signed[used])
+        if driven_readings == "auto" and misfit_driven > max(_DRIVEN_FACTOR * misfit_others, _DRIVEN_FLOOR):
+            notes.append(
+                f"readings on driven electrodes dropped: the model with fitted contact impedances misses them by "
+                f"{misfit_driven:.0%}, the others by {misfit_others:.0%}"
+            )
+            masked["driven electrode"] = driven & usable
+            factor = 1.0
+        elif misfit_driven < 1.0 or driven_readings == "keep":
+            scale, factor = (scale_driven, contact / z0) if misfit_driven < 1.0 else (scale, factor)
+            used = _mask_outliers(protocol, signed, scale * voltages, with_driven, usable, masked)
+    masked = {reason: mask & ~_earlier(masked, reason) for reason, mask in masked.items()}
+    lost = {reason: mask for reason, mask in masked.items() if mask.any() and reason != "driven electrode"}
+    if lost:
+        notes.append(
+            "masked readings: "
+            + "; ".join(f"{reason} {name_indices(np.flatnonzero(mask))}" for reason, mask in lost.items())
+        )
+    return _calibration(
+        model, protocol, used, sign, scale, factor, background, z0, v, masked, orientation, orientations, notes
+    )
+
+
+def _mask_outliers(protocol, data, voltages, used, usable, masked) -> np.ndarray:
+    """`used` less the outliers of `data` against the model's `voltages` and the readings of
+    broken electrodes (module docstring, step 5); records them in `masked`."""
+    residual = data - voltages
+    deviation = 1.4826 * np.median(np.abs(residual[used] - np.median(residual[used])))
+    floor = np.maximum(np.abs(voltages), _OUTLIER_FLOOR * _rms(voltages[used]))
+    outlier = (
+        used & (np.abs(residual) > _OUTLIER_DEVIATIONS * deviation) & (np.abs(residual) > _OUTLIER_RELATIVE * floor)
+    )
+    masked["outlier"] = masked["outlier"] | outlier
+    broken = _uses(protocol, _broken_electrodes(protocol, ~usable | masked["outlier"]))
+    masked["broken electrode"] = masked["broken electrode"] | (broken & usable & ~masked["outlier"])
+    used = used & ~masked["outlier"] & ~masked["broken electrode"]
+    if not used.any():
+        raise ValueError("every reading of the reference is broken or an outlier: nothing to calibrate on")
+    return used
+
+
+def _calibration(
+    model, protocol, used, sign, scale, factor, background, z0, v, masked, orientation, orientations, notes
+):
+    """Assemble the `ReferenceCalibration` of a fitted scale c and contact factor."""
+    contact_impedance = z0 * factor * scale
+    conductivity = background / scale
+    calibrated = _with(model, protocol.select(used), contact_impedance)
+    voltages = np.asarray(calibrated.measure(jnp.full(model.n_elements, conductivity)))
+    data = (sign * v)[used]
+    misfit = _relative(data - voltages, data)
+    correlation = float(np.corrcoef(data, voltages)[0, 1]) if len(data) > 1 else 1.0
+    notes = list(notes)
+    if correlation < _LEAST_CORRELATION:
+        notes.insert(
+            0,
+            f"the model does not reproduce the reference (correlation {correlation:.2f}, misfit {misfit:.0%}): "
+            "check the protocol (electrode order, first electrode, drive sign), the sheet's geometry and the "
+            "instrument's gains",
+        )
+    electrodes = np.flatnonzero(
+        _broken_electrodes(protocol, ~used & ~masked.get("driven electrode", np.zeros_like(used)))
+    )
+    return ReferenceCalibration(
+        model=calibrated,
+        conductivity=float(conductivity),
+        contact_impedance=np.asarray(contact_impedance),
+        used=used,
+        reading_sign=sign,
+        orientation=orientation,
+        orientations=dict(orientations),
+        misfit=float(misfit),
+        correlation=correlation,
+        masked={reason: tuple(np.flatnonzero(mask).tolist()) for reason, mask in masked.items() if mask.any()},
+        broken_electrodes=tuple(electrodes.tolist()),
+        driven_readings="none"
+        if not _driven(protocol).any()
+        else ("kept" if (used & _driven(protocol)).any() else "dropped"),
+        warnings=tuple(notes),
+    )
+
+
+def _saturated(model: ForwardModel, v: np.ndarray, background: float, z0: np.ndarray) -> np.ndarray:
+    """(M,) bool: readings at the largest magnitude when two or more share it (a clipped rail),
+    unless the model gives them equal magnitudes too (a symmetric sheet without noise)."""
+    peak = np.abs(v) == np.max(np.abs(v))
+    if np.count_nonzero(peak) < 2:
+        return np.zeros(len(v), bool)
+    expected = np.abs(_voltages(model, model.protocol, background, z0))
+    return peak if np.ptp(expected[peak]) > 1e-6 * np.max(expected) else np.zeros(len(v), bool)
+
+
+def _reference_mean(reference: np.ndarray, n_measurements: int) -> np.ndarray:
+    array = np.asarray(reference, np.float64)
+    if array.ndim not in (1, 2) or array.shape[-1] != n_measurements:
+        raise ValueError(
+            f"the reference has shape {array.shape}; expected ({n_measurements},) or (T, {n_measurements})"
+        )
+    if not np.all(np.isfinite(array)):
+        raise ValueError("the reference holds non-finite values (NaN or inf): it cannot calibrate the model")
+    return np.atleast_2d(array).mean(axis=0)
+
+
+def _voltages(model: ForwardModel, protocol: Protocol, background: float, contact_impedance: np.ndarray) -> np.ndarray:
+    """(M,) the voltages of a uniform sheet of `background` S/sq under `protocol`."""
+    return np.asarray(_with(model, protocol, contact_impedance).measure(jnp.full(model.n_elements, background)))
+
+
+def _with(model: ForwardModel, protocol: Protocol, contact_impedance: np.ndarray) -> ForwardModel:
+    """`model` under another protocol and contact impedance (same mesh, drive current and solver)."""
+    return ForwardModel(model.mesh, protocol, contact_impedance, drive_current=model.drive_current, solver=model.solver)
+
+
+def _scale(voltages: np.ndarray, data: np.ndarray) -> float:
+    """c > 0 minimising ||data - c V||; raises `ValueError` when the data do not correlate
+    positively with the model's voltages (no positive level explains them)."""
+    scale = float(voltages @ data / (voltages @ voltages))
+    if not scale > 0:
+        raise ValueError(
+            "the reference does not correlate positively with the model's voltages in any orientation tried: "
+            "check the protocol (its order and sign, diffeit.protocol.convert) and the reference frame"
+        )
+    return scale
+
+
+def _relative(residual: np.ndarray, data: np.ndarray) -> float:
+    return float(np.linalg.norm(residual) / max(np.linalg.norm(data), 1e-300)) if len(data) else 0.0
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+def _driven(protocol: Protocol) -> np.ndarray:
+    """(M,) bool: readings that use an electrode their drive applies current through."""
+    return np.any((protocol.measure != 0) & (protocol.drive[protocol.drive_index] != 0), axis=1)
+
+
+def _uses(protocol: Protocol, electrodes: np.ndarray) -> np.ndarray:
+    """(M,) bool: readings that drive or measure through any electrode in the mask `electrodes`."""
+    involved = (protocol.measure != 0) | (protocol.drive[protocol.drive_index] != 0)
+    return np.any(involved & electrodes, axis=1)
+
+
+def _broken_electrodes(protocol: Protocol, bad: np.ndarray) -> np.ndarray:
+    """(L,) bool: broken electrodes, those with at least half of the readings that use them in
+    `bad`. Worst first: the readings a broken electrode spoils no longer count against its
+    neighbours, which share many of them."""
+    involved = (protocol.measure != 0) | (protocol.drive[protocol.drive_index] != 0)
+    broken = np.zeros(protocol.n_electrodes, bool)
+    while True:
+        counted = involved & ~np.any(involved & broken, axis=1, keepdims=True)
+        counts = counted.sum(axis=0)
+        fraction = (counted & bad[:, None]).sum(axis=0) / np.maximum(counts, 1)
+        fraction[broken | (counts == 0)] = 0.0
+        worst = int(np.argmax(fraction))
+        if fraction[worst] < _BROKEN_ELECTRODE:
+            return broken
+        broken[worst] = True
+
+
+def _earlier(masked: Mapping[str, np.ndarray], reason: str) -> np.ndarray:
+    """Readings masked for a reason listed before `reason`: each reading is reported once."""
+    before = np.zeros(len(next(iter(masked.values()))), bool)
+    for name, mask in masked.items():
+        if name == reason:
+            return before
+        before = before | mask
+    return before
+
+
+def _orientation(model, protocol, v, usable, magnitude, background, z0):
+    """The misfit of each orientation, and the one adopted: (protocol, sign, name)."""
+    n = protocol.n_electrodes
+    labels = np.arange(n)
+    relabellings = {
+        "as recorded": labels,
+        "the electrodes numbered the other way round": (-labels) % n,
+        "the first electrode one on": (labels + 1) % n,
+        "the first electrode one back": (labels - 1) % n,
+    }
+    misfits: dict[str, float] = {}
+    candidates: dict[str, tuple[Protocol, float]] = {}
+    data = v[usable]
+    for name, position in relabellings.items():
+        relabelled = protocol if name == "as recorded" else protocol.relabel(position)
+        voltages = _voltages(model, relabelled, background, z0)[usable]
+        if magnitude:
+            voltages = np.abs(voltages)
+        projection = float(voltages @ data / (voltages @ voltages))
+        for sign, label in ((1.0, name), (-1.0, "the drive's sign flipped" if name == "as recorded" else None)):
+            if label is None:
+                label = f"{name}, the drive's sign flipped"
+            if magnitude and sign < 0:
+                continue
+            scale = max(sign * projection, 0.0)
+            misfits[label] = _relative(data - sign * scale * voltages, data)
+            candidates[label] = (relabelled, sign)
+    best = min(misfits, key=misfits.get)
+    if misfits[best] * _ORIENTATION_GAIN > misfits["as recorded"]:
+        best = "as recorded"
+    return misfits, (*candidates[best], best)
+
+
+def _contact_factor(model, protocol, data, used, background, z0) -> float:
+    """The common factor f of the contact impedances minimising min_c ||data - c V(z0 f)|| on `used`."""
+    uniform = _with(model, protocol, z0)
+    sigma = jnp.full(model.n_elements, background)
+    measure = jax.vmap(lambda factor: uniform.measure(sigma, jnp.asarray(z0) * factor))
+
+    def misfits(factors: np.ndarray) -> np.ndarray:
+        voltages = np.asarray(measure(jnp.asarray(factors)))[:, used]
+        scales = np.maximum(np.sum(voltages * data[used], axis=1) / np.sum(voltages**2, axis=1), 0.0)
+        return np.linalg.norm(data[used] - scales[:, None] * voltages, axis=1)
+
+    grid = misfits(_CONTACT_GRID)
+    best = int(np.argmin(grid))
+    low, high = np.log(_CONTACT_GRID[max(best - 1, 0)]), np.log(_CONTACT_GRID[min(best + 1, len(grid) - 1)])
+    ratio = (math.sqrt(5) - 1) / 2
+    for _ in range(12):  # golden section in log f
+        a, b = high - ratio * (high - low), low + ratio * (high - low)
+        left, right = misfits(np.exp([a, b]))
+        low, high = (low, b) if left <= right else (a, high)
+    return float(np.exp(0.5 * (low + high)))
+
+
+def _electrode_contact_impedances(
+    model: ForwardModel, protocol: Protocol, data: np.ndarray, used: np.ndarray, background: float, start: np.ndarray
+) -> tuple[np.ndarray, float]:
+    """One contact impedance per electrode (ohm m, at `background`) and the scale c minimising
+    ||data - c V(z)|| on `used`, from `start`: Levenberg-Marquardt on ln z, c in closed form at
+    every step. The readings on driven electrodes determine each z; a weak pull (1% of the
+    curvature's mean) towards `start` keeps an electrode they do not see where it was."""
+    uniform = _with(model, protocol, start)
+    sigma = jnp.full(model.n_elements, background)
+    log_z, anchor = np.log(start), np.log(start)
+
+    def evaluate(log_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+        z = jnp.asarray(np.exp(log_z))
+        voltages = np.asarray(uniform.measure(sigma, z))[used]
+        slope = np.asarray(uniform.jacobian(sigma, z, wrt="contact_impedance"))[used] * np.exp(log_z)
+        scale = float(voltages @ data[used] / (voltages @ voltages))
+        return voltages, slope, scale, float(np.sum((data[used] - scale * voltages) ** 2))
+
+    voltages, slope, scale, cost = evaluate(log_z)
+    damping = 1e-3
+    for _ in range(_CONTACT_STEPS):
+        design = scale * slope
+        curvature = design.T @ design
+        pull = 0.01 * np.trace(curvature) / len(curvature)
+        gradient = design.T @ (data[used] - scale * voltages) - pull * (log_z - anchor)
+        step = np.linalg.solve(
+            curvature + (pull + damping * np.trace(curvature) / len(curvature)) * np.eye(len(log_z)), gradient
+        )
+        trial = evaluate(log_z + step)
+        if trial[3] < cost:
+            log_z, (voltages, slope, scale, cost) = log_z + step, trial
+            damping = max(damping / 10, 1e-6)
+            if np.max(np.abs(step)) < 1e-4:
+                break
+        else:
+            damping *= 10
+    return np.exp(log_z), scale
+
+
+# ---------------------------------------------------------------------------------------------
+# The refinement and the skin's calibration
+
+# Prior standard deviations of the refined groups (module docstring, "Refinement").
+PRIORS = {"contact_impedance": 1.0, "mixing": 0.3, "drive_gains": 0.5, "channel_gains": 0.5, "reading_gains": 0.2}
+# A parameter whose standard error exceeds this fraction of its prior's is not determined by the data.
+_UNDETERMINED = 0.7
+# Levenberg-Marquardt steps of the refinement, and the rounds that re-estimate the misfit's scale.
+_REFINE_STEPS, _REFINE_ROUNDS = 25, 2
+# Per-reading gains are kept within this factor of 1.
+_LARGEST_READING_GAIN = 2.0
+# Degrees of the position map tried by cross-validation (None: no map).
+_MAP_DEGREES = (None, 0, 1, 2, 3)
+# A press's touch is read down to this many robust standard deviations (it is known to be there).
+_PRESS_THRESHOLD = 3.0
+
+
+class PositionMap(eqx.Module):
+    """A smooth map from touch positions read from images (the mesh's frame) to the labels'.
+
+    A polynomial in x and y of total degree `degree` for each coordinate, fitted by least
+    squares on labelled presses, the degree chosen by leave-one-out cross-validation (degree
+    0 shifts, 1 is affine: the labels' orientation, scale and offset; `degree=None` is the
+    identity).
+
+    Attributes:
+        degree: The polynomial's degree, or None for the identity.
+        coefficients: (n_terms, 2) the polynomial's coefficients, on positions divided by
+            `length`.
+        length: The length, m, positions are divided by (the presses' spread).
+        errors: Degree (str; "none" for the identity) -> the median leave-one-out distance, m,
+            between mapped and labelled positions.
+    """
+
+    degree: int | None = eqx.field(static=True)
+    coefficients: np.ndarray
+    length: float
+    errors: dict[str, float]
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(..., 2) the labels'-frame positions, m, of positions `points` (..., 2) read in the
+        mesh's frame; NaN stays NaN."""
+        points = np.asarray(points, np.float64)
+        if self.degree is None:
+            return points.copy()
+        return _terms(points / self.length, self.degree) @ self.coefficients * self.length
+
+    @classmethod
+    def fit(cls, read: np.ndarray, labelled: np.ndarray) -> PositionMap:
+        """The map from `read` (K, 2) to `labelled` (K, 2) positions, m, its degree chosen by
+        leave-one-out cross-validation among those that K presses determine with two to spare."""
+        read, labelled = np.asarray(read, np.float64), np.asarray(labelled, np.float64)
+        errors = {"none": float(np.median(_leave_one_out_errors(read, labelled, None)))}
+        degree = None
+        for candidate in _MAP_DEGREES[1:]:
+            if len(read) < _terms(read[:1], candidate).shape[1] + 2:
+                break
+            errors[str(candidate)] = float(np.median(_leave_one_out_errors(read, labelled, candidate)))
+            if errors[str(candidate)] < errors["none" if degree is None else str(degree)]:
+                degree = candidate
+        length = _spread(labelled)
+        coefficients = np.zeros((0, 2))
+        if degree is not None:
+            coefficients, *_ = np.linalg.lstsq(_terms(read / length, degree), labelled / length, rcond=None)
+        return cls(degree, coefficients, length, errors)
+
+
+def _spread(points: np.ndarray) -> float:
+    """The RMS distance, m, of `points` (K, 2) from their mean (at least 1 um)."""
+    return float(max(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))), 1e-6))
+
+
+def _terms(points: np.ndarray, degree: int) -> np.ndarray:
+    """(..., n_terms) the monomials x^i y^j, i + j <= degree, of positions (..., 2)."""
+    x, y = points[..., 0], points[..., 1]
+    return np.stack([x**i * y ** (total - i) for total in range(degree + 1) for i in range(total + 1)], axis=-1)
+
+
+class SkinCalibration(eqx.Module):
+    """The model of one skin and board, fitted to a calibration session by `calibrate`.
+
+    Attributes:
+        model: The calibrated `ForwardModel`: the readings used, in the orientation found,
+            the readout's mixing folded into its reading weights, the fitted contact
+            impedances, in the recording's voltage unit at `conductivity`.
+        conductivity: sigma_h, the fitted level, S/sq in the recording's voltage unit.
+        contact_impedance: (L,) ohm m, in the same unit.
+        electrode_centres: (L,) the electrodes' centres as arc length along the boundary, m,
+            counter-clockwise from the first node of electrode 0 (the mesh's: not fitted).
+        readout: The fitted `diffeit.readout.Readout` on the readings used (its gains: the
+            drive, channel and per-reading gains that `signed` divides by).
+        used: (M,) bool, the recording's readings that are imaged.
+        reading_sign: (M,) +-1, what a recorded reading is multiplied by to match the model.
+        standard_errors: Group -> (n,) standard errors of the fitted parameters, as `values`.
+        values: Group -> (n,) the fitted parameters: "level" (ln c), "contact_impedance"
+            (ln z / z_first), "mixing" (source, sink, offsets), "drive_gains" and
+            "channel_gains" (ln g).
+        undetermined: Names of the fitted parameters the data did not determine.
+        misfit: ||v - V|| / ||v|| of the refined model before per-reading gains, and
+            `correlation` (Pearson) on the readings used.
+        reading_gains_used: Whether the per-reading gains divide the frames.
+        position_map: The `PositionMap` fitted on labelled presses, or None.
+        press_errors: (K,) leave-one-out distances, m, between mapped and labelled press
+            positions (NaN for a press no touch was read at), or None.
+        hyperparameter: The one-step hyperparameter the presses were imaged at (images to be
+            read through the position map are best made at it), or None.
+        first_stage: The `ReferenceCalibration` the refinement started from (orientation,
+            masked readings).
+        warnings: What the calibration warns about, in words.
+        protocol: The recording's protocol; `readings` its kind ("signed" or "magnitude").
+    """
+
+    model: ForwardModel
+    conductivity: float
+    contact_impedance: np.ndarray
+    electrode_centres: np.ndarray
+    readout: Readout
+    used: np.ndarray
+    reading_sign: np.ndarray
+    standard_errors: dict[str, np.ndarray]
+    values: dict[str, np.ndarray]
+    undetermined: tuple[str, ...]
+    misfit: float
+    correlation: float
+    reading_gains_used: bool
+    position_map: PositionMap | None
+    press_errors: np.ndarray | None
+    hyperparameter: float | None
+    first_stage: ReferenceCalibration
+    warnings: tuple[str, ...]
+    protocol: Protocol = eqx.field(static=True)
+    readings: str = eqx.field(static=True)
+
+    @property
+    def driven_readings(self) -> str:
+        """"none", "kept" or "dropped": the first stage's choice of the readings on driven electrodes."""
+        return self.first_stage.driven_readings
+
+    def signed(self, frames: np.ndarray) -> np.ndarray:
+        """(..., M_used): recorded frames (..., M) in the calibrated model's order, sign and
+        gain: what the calibrated model's `measure` predicts."""
+        frames = np.asarray(frames, np.float64)
+        if frames.shape[-1] != self.protocol.n_measurements:
+            raise ValueError(
+                f"frames have {frames.shape[-1]} readings; this calibration's protocol has "
+                f"{self.protocol.n_measurements}"
+            )
+        return (frames * self.reading_sign)[..., self.used] / np.asarray(self.readout.gains)
+
+    def summary(self) -> dict[str, Any]:
+        """The calibration in JSON-serialisable form, for provenance."""
+        first = self.first_stage.summary()
+        return {
+            **first,
+            "conductivity": self.conductivity,
+            "contact_impedance": float(np.mean(self.contact_impedance)),
+            "contact_impedance_per_electrode": [float(z) for z in self.contact_impedance],
+            "misfit": self.misfit,
+            "correlation": self.correlation,
+            "first_stage_misfit": first["misfit"],
+            "first_stage_correlation": first["correlation"],
+            "mixing": [float(w) for w in self.values["mixing"]],
+            "reading_gains_used": self.reading_gains_used,
+            "undetermined": list(self.undetermined),
+            "position_map_degree": None if self.position_map is None else self.position_map.degree,
+            "press_error_median": None if self.press_errors is None else float(np.median(self.press_errors)),
+            "warnings": list(self.warnings),
+        }
+
+    def lines(self) -> list[str]:
+        """The calibration's report, a line per finding."""
+        first = self.first_stage
+        mixing = self.values["mixing"]
+        gains = np.exp(np.concatenate([self.values["drive_gains"], self.values["channel_gains"]]))
+        lines = [
+            f"readings used: {int(self.used.sum())} of {len(self.used)} ({first.orientation})",
+            f"model against reference: misfit {first.misfit:.1%} -> {self.misfit:.1%}, "
+            f"correlation {first.correlation:.3f} -> {self.correlation:.3f}",
+            f"level sigma_h: {self.conductivity:.4g} S/sq (in the recording's unit)",
+            "contact impedance per electrode, ohm m: " + " ".join(f"{z:.3g}" for z in self.contact_impedance),
+            f"readout mixing: source {mixing[0]:+.3f} +- {self.standard_errors['mixing'][0]:.3f}, "
+            f"sink {mixing[1]:+.3f} +- {self.standard_errors['mixing'][1]:.3f}, largest offset weight "
+            f"{np.max(np.abs(mixing[2:])):.3f}",
+            f"drive and channel gains: {gains.min():.3f} to {gains.max():.3f}",
+            "per-reading gains: "
+            + (
+                f"used ({np.min(self.readout.gains):.3f} to {np.max(self.readout.gains):.3f} in all)"
+                if self.reading_gains_used
+                else "not used"
+            ),
+            "electrode positions: the mesh's (not fitted)",
+        ]
+        if self.undetermined:
+            lines.append(f"not determined by the data ({len(self.undetermined)}): " + ", ".join(self.undetermined))
+        if self.position_map is not None:
+            errors = ", ".join(f"{degree}: {1e3 * error:.1f} mm" for degree, error in self.position_map.errors.items())
+            lines.append(
+                f"position map: degree {self.position_map.degree} (leave-one-out median error by degree: {errors})"
+            )
+        lines.extend(f"warning: {note}" for note in self.warnings)
+        return lines
+
+    def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
+        """Write the calibration to an HDF5 file (schema "diffeit.calibration"), atomically and
+        checksummed; `load` reads it.
+
+        Arguments:
+            path: The file to write (by convention `SKIN.cal.h5`).
+            overwrite: Replace an existing file.
+
+        Returns:
+            The path written.
+        """
+        return _save(self, Path(path), overwrite)
+
+
+def reference_frames(
+    recording: Recording, reference_frame: int | None = None, presses: Presses | None = None
+) -> tuple[np.ndarray, str]:
+    """The frames a recording's model is calibrated on, and where they come from.
+
+    The recording's reference; else its frame `reference_frame`; else, with presses, the
+    frames before the first press (or, when there are none, those outside every hold); else
+    the first `REFERENCE_FRAMES` frames.
+
+    Arguments:
+        recording: The recording.
+        reference_frame: A frame to use instead of the recording's reference.
+        presses: The session's labelled presses, if any.
+
+    Returns:
+        (T, M) the reference frames, and a description of them.
+    """
+    if recording.reference is not None or reference_frame is not None:
+        source = "recording" if reference_frame is None else f"frame {reference_frame}"
+        return np.atleast_2d(recording.reference_values(reference_frame)), source
+    if presses is not None:
+        before = recording.times < presses.times[:, 0].min()
+        if before.any():
+            return recording.frames[before], f"the {int(before.sum())} frames before the first press"
+        pressed = np.zeros(recording.n_frames, bool)
+        for frames in presses.frames(recording.times):
+            pressed[frames] = True
+        if (~pressed).any():
+            return recording.frames[~pressed], f"the {int((~pressed).sum())} frames outside the presses"
+    count = min(REFERENCE_FRAMES, recording.n_frames)
+    return recording.frames[:count], f"mean of the first {count} frames"
+
+
+def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
+    """The sheet a recording is imaged on.
+
+    Its geometry (a simulation's geometry names the reconstruction mesh, coarser than the one
+    it was simulated on), else its mesh, else a unit disc with the protocol's electrodes
+    (width min(0.2, pi / L)).
+
+    Arguments:
+        recording: The recording.
+        h: The element size, m, of the geometry's mesh or the default disc (default 0.08 for
+            the disc); not for a recording that brings its mesh.
+
+    Returns:
+        The `diffeit.Mesh`.
+
+    Raises:
+        ValueError: For `h` given with a recording that brings its mesh.
+    """
+    if recording.geometry is not None:
+        geometry = dict(recording.geometry)
+        if h is not None:
+            geometry["h"] = h
+        return mesh_from_geometry(geometry)
+    if recording.mesh is not None:
+        if h is not None:
+            raise ValueError("h applies to a recording's geometry or the default disc; this recording brings its mesh")
+        return recording.mesh
+    n = recording.protocol.n_electrodes
+    return disc(n, electrode_width=min(0.2, math.pi / n), h=0.08 if h is None else h)
+
+
+def calibrate(
+    recording: Recording,
+    presses: Presses | None = None,
+    *,
+    mesh: Mesh | None = None,
+    h: float | None = None,
+    reference_frame: int | None = None,
+    background: float = 1.0,
+    contact_impedance: float = 0.01,
+    driven_readings: DrivenReadings = "auto",
+    priors: Mapping[str, float] | None = None,
+    hyperparameter: float | None = None,
+) -> SkinCalibration:
+    """Calibrate the model of a real skin and board from a calibration session.
+
+    From the reference frames (`reference_frames`): the first stage (`calibrate_to_reference`:
+    level and voltage unit, orientation, signs of magnitudes, driven readings, broken
+    channels), then the refinement (module docstring): contact impedance per electrode, the
+    readout's mixing, drive and channel gains, with standard errors, and per-reading gains.
+    With labelled `presses`: each press is imaged at the calibrated model (`diffeit.inverse.
+    OneStep`, NOSER prior), read as a touch (`diffeit.touch.read`), and a `PositionMap`
+    from read to labelled positions is fitted, its degree chosen by cross-validation.
+
+    Arguments:
+        recording: The session: untouched frames (or a reference) and, with presses, the
+            pressed frames; its protocol and `readings` are the board's.
+        presses: The labelled presses (`diffeit.io.Presses`), times on the recording's clock.
+        mesh: The sheet; None for `default_mesh(recording, h)`.
+        h: Element size of the default mesh, m.
+        reference_frame: Calibrate on this frame instead of the recording's reference.
+        background: The nominal background conductivity, S/sq.
+        contact_impedance: The nominal contact impedance, ohm m.
+        driven_readings: "auto", "keep" or "drop" the readings on driven electrodes.
+        priors: Prior standard deviations replacing those of `PRIORS` (by group name).
+        hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
+            it from the presses' frames (`auto_hyperparameter`).
+
+    Returns:
+        The `SkinCalibration`.
+
+    Raises:
+        ValueError: For a recording without frames, presses outside the skin or outside the
+            recording's time, an unknown prior group, or a reference the model cannot be
+            calibrated on.
+    """
+    if not isinstance(recording, Recording):
+        raise ValueError(f"calibrate takes a diffeit.io.Recording; got {type(recording).__name__}")
+    if recording.n_frames == 0 and recording.reference is None:
+        raise ValueError("the recording holds no frames and no reference: nothing to calibrate on")
+    if presses is not None and not isinstance(presses, Presses):
+        raise ValueError(f"presses must be a diffeit.io.Presses; got {type(presses).__name__}")
+    priors = {**PRIORS, **({} if priors is None else dict(priors))}
+    unknown = set(priors) - set(PRIORS)
+    if unknown:
+        raise ValueError(f"unknown prior group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
+    if not all(math.isfinite(value) and value > 0 for value in priors.values()):
+        raise ValueError(f"prior standard deviations must be finite and positive; got {priors}")
+    mesh = default_mesh(recording, h) if mesh is None else mesh
+    if presses is not None:
+        _check_presses(presses, recording, mesh)
+    reference, source = reference_frames(recording, reference_frame, presses)
+    nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
+    first = calibrate_to_reference(
+        nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
+    )
+    calibration = _refine(first, reference, priors, recording, source)
+    if presses is None:
+        return calibration
+    return _with_position_map(calibration, recording, presses, reference, hyperparameter)
+
+
+def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
+    """ValueError for presses outside the recording's time or far outside the skin."""
+    times = recording.times
+    if len(times) == 0:
+        raise ValueError("presses need the recording's frames; the recording holds none")
+    step = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    late = (presses.times[:, 1] < times[0] - step) | (presses.times[:, 0] > times[-1] + step)
+    if late.any():
+        raise ValueError(
+            f"press(es) {name_indices(np.flatnonzero(late))} are outside the recording's time "
+            f"({times[0]:.3f} to {times[-1]:.3f} s)"
+        )
+    centre = mesh.nodes.mean(axis=0)
+    size = float(np.max(np.linalg.norm(mesh.nodes - centre, axis=1)))
+    outside = np.linalg.norm(presses.centres - centre, axis=1) > 1.5 * size
+    if outside.any():
+        raise ValueError(
+            f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
+            f"radius ({size:.3g} m) from its centre"
+        )
+
+
+def _refine(
+    first: ReferenceCalibration, reference: np.ndarray, priors: Mapping[str, float], recording: Recording, source: str
+) -> SkinCalibration:
+    """The refinement (module docstring): regularised Levenberg-Marquardt from the first stage."""
+    model = first.model
+    protocol = model.protocol
+    frames = np.atleast_2d(np.asarray(reference, np.float64))
+    data = first.signed(frames.mean(axis=0))
+    noise = first.signed(frames.std(axis=0) / math.sqrt(len(frames))) if len(frames) > 1 else None
+    fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance)
+    n = protocol.n_electrodes
+    sizes = {
+        "level": 1,
+        "contact_impedance": n,
+        "mixing": 2 + n,
+        "drive_gains": protocol.n_drives,
+        "channel_gains": len(protocol.measure_patterns),
+    }
+    spread = np.concatenate([np.full(size, 1.0 if name == "level" else priors[name]) for name, size in sizes.items()])
+    fixed = np.zeros(len(spread), bool)
+    fixed[3 + n : 3 + 2 * n][fit.pair_offsets] = True  # offsets on the measuring pair are its gain
+    theta = np.zeros(len(spread))
+    scale = max(first.misfit, 1e-4) * _rms(data)
+    for _ in range(_REFINE_ROUNDS):
+        theta, curvature = _levenberg_marquardt(fit, theta, data, scale, spread, fixed)
+        residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
+        free = int(np.count_nonzero(~fixed))
+        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - free, 1))), 1e-9 * _rms(data))
+    values = dict(zip(sizes, np.split(theta, np.cumsum(list(sizes.values()))[:-1]), strict=True))
+    covariance = np.zeros((len(theta), len(theta)))
+    covariance[np.ix_(~fixed, ~fixed)] = np.linalg.inv(curvature[np.ix_(~fixed, ~fixed)])
+    errors = dict(zip(sizes, np.split(np.sqrt(np.diag(covariance)), np.cumsum(list(sizes.values()))[:-1]), strict=True))
+    names = [f"{name}[{i}]" if size > 1 else name for name, size in sizes.items() for i in range(size)]
+    undetermined = tuple(
+        name
+        for name, error, prior, off in zip(names, np.sqrt(np.diag(covariance)), spread, fixed, strict=True)
+        if not off and name != "level" and error > _UNDETERMINED * prior
+    )
+    fitted = np.asarray(fit.readings(jnp.asarray(theta)))
+    misfit = _relative(data - fitted, data)
+    correlation = float(np.corrcoef(data, fitted)[0, 1]) if len(data) > 1 else 1.0
+    notes = list(first.warnings)
+    structured = np.exp(values["drive_gains"][protocol.drive_index] + values["channel_gains"][protocol.pattern_index])
+    reading_gains = np.ones(len(data))
+    use_reading_gains = correlation >= _LEAST_CORRELATION
+    if use_reading_gains:
+        ratio = data / fitted
+        relative_noise = np.zeros(len(data)) if noise is None else noise / np.maximum(np.abs(data), 1e-300)
+        shrink = priors["reading_gains"] ** 2 / (priors["reading_gains"] ** 2 + relative_noise**2)
+        log_gain = np.where(ratio > 0, np.log(np.where(ratio > 0, ratio, 1.0)), 0.0) * shrink
+        reading_gains = np.exp(np.clip(log_gain, -math.log(_LARGEST_READING_GAIN), math.log(_LARGEST_READING_GAIN)))
+    else:
+        notes.append(
+            f"the refined model does not reproduce the reference (correlation {correlation:.2f}): per-reading gains "
+            "are not used"
+        )
+    level = first.conductivity / math.exp(values["level"][0])
+    contact = first.contact_impedance * np.exp(values["contact_impedance"]) * math.exp(values["level"][0])
+    readout = Readout(
+        protocol,
+        source=values["mixing"][0],
+        sink=values["mixing"][1],
+        offsets=values["mixing"][2:],
+        gains=structured * reading_gains,
+    )
+    mixed = _mixed_protocol(protocol, np.asarray(protocol.measure) + np.asarray(readout.mixing(protocol)))
+    calibrated = ForwardModel(model.mesh, mixed, contact, drive_current=model.drive_current, solver=model.solver)
+    return SkinCalibration(
+        model=calibrated,
+        conductivity=float(level),
+        contact_impedance=np.asarray(contact),
+        electrode_centres=_electrode_centres(model.mesh),
+        readout=readout,
+        used=first.used,
+        reading_sign=first.reading_sign,
+        standard_errors=errors,
+        values=values,
+        undetermined=undetermined,
+        misfit=float(misfit),
+        correlation=correlation,
+        reading_gains_used=use_reading_gains,
+        position_map=None,
+        press_errors=None,
+        hyperparameter=None,
+        first_stage=first,
+        warnings=tuple(notes),
+        protocol=recording.protocol,
+        readings=recording.readings,
+    )
+
+
+class _ReadoutFit(eqx.Module):
+    """The refined model's readings as a function of the refined parameters (module docstring)."""
+
+    model: ForwardModel
+    conductivity: jax.Array
+    contact_impedance: jax.Array
+    source: jax.Array
+    sink: jax.Array
+    offset: jax.Array
+    pair_offsets: np.ndarray
+
+    @classmethod
+    def of(cls, model: ForwardModel, level: float, contact_impedance: np.ndarray) -> _ReadoutFit:
+        source, sink, offset = roles(model.protocol)
+        # An offset j every reading measures through is the pair's own weight: a channel gain.
+        on_pair = np.all(np.sum(offset * (model.protocol.measure != 0), axis=2) > 0, axis=1)
+        return cls(
+            model,
+            jnp.full(model.n_elements, level),
+            jnp.asarray(contact_impedance, float),
+            jnp.asarray(source),
+            jnp.asarray(sink),
+            jnp.asarray(offset),
+            on_pair,
+        )
+
+    def readings(self, theta: jax.Array) -> jax.Array:
+        return _readings(self, theta)
+
+    def jacobian(self, theta: jax.Array) -> jax.Array:
+        return _readings_jacobian(self, theta)
+
+
+@eqx.filter_jit
+def _readings(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
+    protocol = fit.model.protocol
+    n, drives = protocol.n_electrodes, protocol.n_drives
+    log_c, log_z = theta[0], theta[1 : 1 + n]
+    mixing = theta[1 + n : 3 + 2 * n]
+    log_drive = theta[3 + 2 * n : 3 + 2 * n + drives]
+    log_channel = theta[3 + 2 * n + drives :]
+    electrode = fit.model.potentials(fit.conductivity, fit.contact_impedance * jnp.exp(log_z)).electrode
+    weights = (
+        jnp.asarray(protocol.measure)
+        + mixing[0] * fit.source
+        + mixing[1] * fit.sink
+        + jnp.einsum("j,jml->ml", mixing[2:], fit.offset)
+    )
+    gain = jnp.exp(log_c + log_drive[protocol.drive_index] + log_channel[protocol.pattern_index])
+    return gain * jnp.sum(weights * electrode[protocol.drive_index], axis=-1)
+
+
+@eqx.filter_jit
+def _readings_jacobian(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
+    return jax.jacfwd(lambda t: _readings(fit, t))(theta)
+
+
+def _levenberg_marquardt(
+    fit: _ReadoutFit, start: np.ndarray, data: np.ndarray, scale: float, spread: np.ndarray, fixed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The minimiser of ||data - V(theta)||^2 / scale^2 + ||theta / spread||^2 over the free
+    parameters, and the curvature (Gauss-Newton Hessian with the prior) there."""
+    theta = start.copy()
+    precision = 1.0 / spread**2
+
+    def cost_of(theta: np.ndarray) -> float:
+        residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
+        return float(np.sum(residual**2) / scale**2 + np.sum(precision * theta**2))
+
+    cost, damping = cost_of(theta), 1e-3
+    for _ in range(_REFINE_STEPS):
+        design = np.asarray(fit.jacobian(jnp.asarray(theta))) / scale
+        residual = (data - np.asarray(fit.readings(jnp.asarray(theta)))) / scale
+        curvature = design.T @ design + np.diag(precision)
+        gradient = design.T @ residual - precision * theta
+        free = ~fixed
+        while True:
+            block = curvature[np.ix_(free, free)]
+            step = np.zeros_like(theta)
+            step[free] = np.linalg.solve(block + damping * np.diag(np.diag(block)), gradient[free])
+            trial = cost_of(theta + step)
+            if trial <= cost:
+                theta, cost, damping = theta + step, trial, max(damping / 10, 1e-9)
+                break
+            damping *= 10
+            if damping > 1e8:
+                break
+        if damping > 1e8 or np.max(np.abs(step)) < 1e-6:
+            break
+    design = np.asarray(fit.jacobian(jnp.asarray(theta))) / scale
+    return theta, design.T @ design + np.diag(precision)
+
+
+def _mixed_protocol(protocol: Protocol, weights: np.ndarray) -> Protocol:
+    """`protocol` with its reading weights replaced by `weights` (M, L)."""
+    return Protocol(protocol.drive, [weights[protocol.drive_index == d] for d in range(protocol.n_drives)])
+
+
+def _electrode_centres(mesh: Mesh) -> np.ndarray:
+    """(L,) each electrode's midpoint as arc length along its boundary, m, counter-clockwise
+    from the first node of electrode 0 (NaN for an electrode on another boundary loop)."""
+    following = dict(mesh.boundary_edges.tolist())
+    start = int(mesh.electrodes[0][0])
+    arc, node, position = 0.0, start, {start: 0.0}
+    while True:
+        step = following[node]
+        arc += float(np.linalg.norm(mesh.nodes[step] - mesh.nodes[node]))
+        if step == start:
+            break
+        node, position[step] = step, arc
+    centres = []
+    for nodes in mesh.electrodes:
+        if int(nodes[0]) not in position:
+            centres.append(math.nan)
+            continue
+        first = position[int(nodes[0])]
+        length = np.sum(np.linalg.norm(np.diff(mesh.nodes[nodes], axis=0), axis=1))
+        centres.append((first + 0.5 * length) % arc)
+    return np.array(centres)
+
+
+def auto_hyperparameter(
+    model: ForwardModel, dv: np.ndarray, prior: Any, level: float | np.ndarray, rule: str = "auto"
+) -> tuple[float, dict[str, Any]]:
+    """The one-step hyperparameter for differences `dv` (T, M), and how it was chosen.
+
+    "auto": the L-curve's corner, or the noise figure 0.5 when the corner sits at an end of
+    the candidates (`diffeit.reconstruction`'s docstring, "Hyperparameter auto"); a method of
+    `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure") is used as given.
+
+    Arguments:
+        model: The calibrated model.
+        dv: (T, M) or (M,) differences in the model's units.
+        prior: The one-step prior (a name or a `diffeit.inverse` prior).
+        level: The background conductivity the problem is linearised at, S/sq.
+        rule: "auto" or a selection method's name.
+
+    Returns:
+        The value, and how it was chosen: the rule, and the value and code of each selection
+        method evaluated (one linearisation shared between them).
+    """
+    problem = LinearisedProblem(model, prior, level)
+
+    def select(name: str) -> dict[str, Any]:
+        selection = select_hyperparameter(model, dv, name, prior=prior, background=level, throw=False, problem=problem)
+        return {
+            "value": float(selection.value),
+            "at_boundary": bool(selection.result != RESULTS.successful),
+            "result": names(selection.result)[0],
+        }
+
+    if rule != "auto":
+        chosen = select(rule)
+        return chosen["value"], {rule: chosen, "rule": "given method", "method": rule}
+    choice = {"lcurve": select("lcurve"), "rule": "auto"}
+    method = "lcurve" if not choice["lcurve"]["at_boundary"] else "noise_figure"
+    if method == "noise_figure":
+        choice["noise_figure"] = select("noise_figure")
+    return choice[method]["value"], {**choice, "method": method}
+
+
+def _with_position_map(
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses,
+    reference: np.ndarray,
+    hyperparameter: float | None,
+) -> SkinCalibration:
+    """`calibration` with the position map fitted on the presses (module docstring, "Presses")."""
+    signed_reference = calibration.signed(np.atleast_2d(reference).mean(axis=0))
+    frames = presses.frames(recording.times)
+    dv = np.stack([calibration.signed(recording.frames[chosen]).mean(axis=0) for chosen in frames]) - signed_reference
+    level = calibration.conductivity
+    if hyperparameter is None:
+        hyperparameter, _ = auto_hyperparameter(calibration.model, dv, "noser", level)
+    solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
+    images = np.asarray(solver.solve(dv, throw=True).value) / level
+    found = read(calibration.model.mesh, images, max_touches=1, threshold=_PRESS_THRESHOLD)
+    seen = found.count > 0
+    notes = list(calibration.warnings)
+    if not seen.all():
+        notes.append(f"no touch read at press(es) {name_indices(np.flatnonzero(~seen))}: left out of the position map")
+    if seen.sum() < 3:
+        notes.append("fewer than 3 presses read: no position map")
+        return eqx.tree_at(lambda c: c.warnings, calibration, tuple(notes))
+    read_positions, labelled = found.position[seen, 0], presses.centres[seen]
+    mapping = PositionMap.fit(read_positions, labelled)
+    errors = np.full(presses.n_presses, np.nan)
+    errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree)
+    return eqx.tree_at(
+        lambda c: (c.position_map, c.press_errors, c.warnings, c.hyperparameter),
+        calibration,
+        (mapping, errors, tuple(notes), float(hyperparameter)),
+        is_leaf=lambda node: node is None,
+    )
+
+
+def _leave_one_out_errors(read: np.ndarray, labelled: np.ndarray, degree: int | None) -> np.ndarray:
+    """(K,) the distance, m, between each labelled position and the map of degree `degree`
+    fitted without it."""
+    if degree is None:
+        return np.linalg.norm(read - labelled, axis=1)
+    length = _spread(labelled)
+    terms = _terms(read / length, degree)
+    coefficients, *_ = np.linalg.lstsq(terms, labelled / length, rcond=None)
+    hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
+    residual = (labelled / length - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
+    return np.linalg.norm(residual, axis=1) * length
+
+
+# ---------------------------------------------------------------------------------------------
+# Files
+
+SCHEMA = "diffeit.calibration"
+SCHEMA_VERSION = 1
+
+
+def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
+    """Write `calibration` (see `SkinCalibration.save`)."""
+    model = calibration.model
+    mesh = model.mesh
+    arrays = {
+        "mesh/nodes": mesh.nodes,
+        "mesh/triangles": mesh.triangles,
+        "mesh/electrode_nodes": np.concatenate(mesh.electrodes),
+        "mesh/electrode_offsets": np.cumsum([0, *(len(e) for e in mesh.electrodes)]),
+        "protocol/drive": calibration.protocol.drive,
+        "protocol/measure": calibration.protocol.measure,
+        "protocol/drive_index": calibration.protocol.drive_index,
+        "model/measure": model.protocol.measure,
+        "contact_impedance": calibration.contact_impedance,
+        "used": calibration.used.astype(np.int8),
+        "reading_sign": calibration.reading_sign,
+        "readout/gains": np.asarray(calibration.readout.gains),
+        "readout/weights": np.concatenate(
+            [
+                np.atleast_1d(calibration.readout.source),
+                np.atleast_1d(calibration.readout.sink),
+                calibration.readout.offsets,
+            ]
+        ),
+        **{f"values/{name}": value for name, value in calibration.values.items()},
+        **{f"standard_errors/{name}": value for name, value in calibration.standard_errors.items()},
+    }
+    if calibration.position_map is not None:
+        arrays["position_map/coefficients"] = calibration.position_map.coefficients
+    if calibration.press_errors is not None:
+        arrays["press_errors"] = calibration.press_errors
+    attributes = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "readings": calibration.readings,
+        "drive_current": model.drive_current,
+        "conductivity": calibration.conductivity,
+        "misfit": calibration.misfit,
+        "correlation": calibration.correlation,
+        "reading_gains_used": int(calibration.reading_gains_used),
+        "hyperparameter": -1.0 if calibration.hyperparameter is None else calibration.hyperparameter,
+        "json": json.dumps(
+            {
+                "undetermined": list(calibration.undetermined),
+                "warnings": list(calibration.warnings),
+                "first_stage": calibration.first_stage.summary(),
+                "position_map": None
+                if calibration.position_map is None
+                else {
+                    "degree": calibration.position_map.degree,
+                    "length": calibration.position_map.length,
+                    "errors": calibration.position_map.errors,
+                },
+            }
+        ),
+    }
+
+    def write(file: h5py.File) -> None:
+        file.attrs.update(attributes)
+        for name, value in arrays.items():
+            create_checked(file, name, np.asarray(value))
+
+    return write_atomically(path, write, overwrite=overwrite)
+
+
+def load(path: str | Path, *, recording: Recording | None = None) -> SkinCalibration:
+    """Read a calibration written by `SkinCalibration.save`.
+
+    Arguments:
+        path: The file.
+        recording: When given, the calibration must be for its protocol (and its mesh, when
+            it brings one): a `ValueError` otherwise.
+
+    Returns:
+        The `SkinCalibration` (its first stage restored as far as the file keeps it: the
+        orientation, masks and fit figures are in `first_stage_summary` of `summary()`).
+
+    Raises:
+        ValueError: For a file that is not a calibration, is damaged, has another schema or
+            a newer version, or is for another protocol or mesh than `recording`'s.
+    """
+    path = Path(path)
+
+    def read(file: h5py.File) -> tuple[dict, dict]:
+        schema = file.attrs.get("schema")
+        if schema != SCHEMA:
+            raise ValueError(f"{path} is not a diffeit calibration (schema {schema!r}, expected {SCHEMA!r})")
+        version = int(file.attrs.get("schema_version", -1))
+        if version > SCHEMA_VERSION:
+            raise ValueError(
+                f"{path} is a calibration of schema version {version}, newer than this diffeit reads "
+                f"({SCHEMA_VERSION}): update diffeit"
+            )
+        if version != SCHEMA_VERSION:
+            raise ValueError(f"{path} has calibration schema version {version}; this diffeit reads {SCHEMA_VERSION}")
+        arrays: dict[str, np.ndarray] = {}
+        file.visititems(
+            lambda name, item: arrays.__setitem__(name, item[()]) if isinstance(item, h5py.Dataset) else None
+        )
+        return arrays, dict(file.attrs)
+
+    arrays, attributes = read_checked(path, read, what="calibration file")
+    try:
+        return _from_stored(arrays, attributes, recording, path)
+    except (KeyError, ValueError, TypeError, json.JSONDecodeError) as error:
+        if isinstance(error, ValueError) and str(error).startswith(str(path)):
+            raise
+        raise ValueError(f"{path} is not a readable diffeit calibration: {error}") from error
+
+
+def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, path: Path) -> SkinCalibration:
+    offsets = arrays["mesh/electrode_offsets"]
+    nodes = arrays["mesh/electrode_nodes"]
+    mesh = Mesh(arrays["mesh/nodes"], arrays["mesh/triangles"], [nodes[a:b] for a, b in itertools.pairwise(offsets)])
+    drive, drive_index = arrays["protocol/drive"], arrays["protocol/drive_index"]
+    protocol = Protocol(drive, [arrays["protocol/measure"][drive_index == d] for d in range(len(drive))])
+    if recording is not None:
+        if recording.protocol != protocol:
+            raise ValueError(f"{path} calibrates another protocol than the recording's")
+        if recording.mesh is not None and recording.mesh != mesh:
+            raise ValueError(f"{path} calibrates another mesh than the recording's")
+    used = arrays["used"].astype(bool)
+    measure = arrays["model/measure"]
+    selected = protocol.select(used)
+    model_protocol = Protocol(selected.drive, [measure[selected.drive_index == d] for d in range(selected.n_drives)])
+    model = ForwardModel(
+        mesh, model_protocol, arrays["contact_impedance"], drive_current=float(attributes["drive_current"])
+    )
+    weights = arrays["readout/weights"]
+    readout = Readout(selected, source=weights[0], sink=weights[1], offsets=weights[2:], gains=arrays["readout/gains"])
+    stored = json.loads(attributes["json"])
+    mapping = stored["position_map"]
+    position_map = None
+    if mapping is not None:
+        position_map = PositionMap(
+            mapping["degree"],
+            arrays.get("position_map/coefficients", np.zeros((0, 2))),
+            mapping["length"],
+            mapping["errors"],
+        )
+    values = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("values/")}
+    errors = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("standard_errors/")}
+    first = stored["first_stage"]
+    first_stage = ReferenceCalibration(
+        model=model,
+        conductivity=float(first["conductivity"]),
+        contact_impedance=np.asarray(first["contact_impedance_per_electrode"]),
+        used=used,
+        reading_sign=arrays["reading_sign"],
+        orientation=first["orientation"],
+        orientations=first["orientations_misfit"],
+        misfit=float(first["misfit"]),
+        correlation=float(first["correlation"]),
+        masked={reason: tuple(indices) for reason, indices in first["masked"].items()},
+        broken_electrodes=tuple(first["broken_electrodes"]),
+        driven_readings=first["driven_readings"],
+        warnings=tuple(first["warnings"]),
+    )
+    hyperparameter = float(attributes["hyperparameter"])
+    return SkinCalibration(
+        model=model,
+        conductivity=float(attributes["conductivity"]),
+        contact_impedance=arrays["contact_impedance"],
+        electrode_centres=_electrode_centres(mesh),
+        readout=readout,
+        used=used,
+        reading_sign=arrays["reading_sign"],
+        standard_errors=errors,
+        values=values,
+        undetermined=tuple(stored["undetermined"]),
+        misfit=float(attributes["misfit"]),
+        correlation=float(attributes["correlation"]),
+        reading_gains_used=bool(attributes["reading_gains_used"]),
+        position_map=position_map,
+        press_errors=arrays.get("press_errors"),
+        hyperparameter=None if hyperparameter < 0 else hyperparameter,
+        first_stage=first_stage,
+        warnings=tuple(stored["warnings"]),
+        protocol=protocol,
+        readings=str(attributes["readings"]),
+    )

@@ -1,0 +1,83 @@
+"""Labelled presses of a calibration session: where the skin was pressed, how wide, and when."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+from numpy.typing import ArrayLike
+
+
+class Presses(eqx.Module):
+    """Presses at known places (a robot or an indenter), for `diffeit.calibrate`.
+
+    Arguments:
+        centres: (K, 2) where each press was centred, metres, in the labels' frame (which may
+            be rotated, scaled and offset against the mesh's: calibration fits the map).
+        radius: The contact radius, metres: one for all presses or (K,) one each.
+        times: (K,) the instant each press is held, seconds on the recording's clock, or
+            (K, 2) the start and end of each hold.
+
+    Attributes:
+        centres: (K, 2) float64, metres.
+        radius: (K,) float64, metres.
+        times: (K, 2) float64, seconds: each hold's start and end (equal for an instant).
+
+    Raises:
+        ValueError: For shapes that do not match, values that are not finite, a radius that
+            is not positive, or a hold that ends before it starts.
+    """
+
+    centres: np.ndarray
+    radius: np.ndarray
+    times: np.ndarray
+
+    def __init__(self, centres: ArrayLike, radius: ArrayLike, times: ArrayLike) -> None:
+        centres = np.array(centres, dtype=np.float64)
+        if centres.ndim != 2 or centres.shape[1] != 2 or len(centres) == 0:
+            raise ValueError(f"presses: centres has shape {centres.shape}; expected (K, 2), K >= 1, metres")
+        count = len(centres)
+        radius = np.array(radius, dtype=np.float64)
+        if radius.ndim > 1 or (radius.ndim == 1 and radius.shape != (count,)):
+            raise ValueError(f"presses: radius has shape {radius.shape}; expected one value or ({count},)")
+        times = np.array(times, dtype=np.float64)
+        if times.shape == (count,):
+            times = np.stack([times, times], axis=1)
+        if times.shape != (count, 2):
+            raise ValueError(f"presses: times has shape {times.shape}; expected ({count},) or ({count}, 2), seconds")
+        for name, values in (("centres", centres), ("radius", radius), ("times", times)):
+            bad = ~np.isfinite(values.reshape(count, -1) if values.ndim else values[None]).all(axis=-1)
+            if bad.any():
+                raise ValueError(
+                    f"presses: {name} is not finite (NaN or inf) at press(es) {np.flatnonzero(bad).tolist()}"
+                )
+        radius = np.broadcast_to(radius, (count,)).copy()
+        if np.any(radius <= 0):
+            raise ValueError(
+                f"presses: radius must be positive, metres; it is not at {np.flatnonzero(radius <= 0).tolist()}"
+            )
+        if np.any(times[:, 1] < times[:, 0]):
+            raise ValueError(
+                f"presses: a hold ends before it starts at {np.flatnonzero(times[:, 1] < times[:, 0]).tolist()}"
+            )
+        for array in (centres, radius, times):
+            array.flags.writeable = False
+        self.centres, self.radius, self.times = centres, radius, times
+
+    @property
+    def n_presses(self) -> int:
+        """K, the number of presses."""
+        return len(self.centres)
+
+    def frames(self, times: np.ndarray) -> list[np.ndarray]:
+        """The indices of the frames of each press: those within its hold, or the frame nearest
+        to an instant (or to a hold no frame falls in)."""
+        times = np.asarray(times, np.float64)
+        chosen = []
+        for start, end in self.times:
+            inside = np.flatnonzero((times >= start) & (times <= end))
+            chosen.append(inside if len(inside) else np.array([int(np.argmin(np.abs(times - 0.5 * (start + end))))]))
+        return chosen
+
+    def select(self, which: ArrayLike) -> Presses:
+        """The presses `which` (indices or a boolean mask) of these."""
+        return Presses(self.centres[which], self.radius[which], self.times[which])

@@ -1,0 +1,242 @@
+"""From images to touches: where the skin was touched, how large the contact was and how hard.
+
+`touches(recording)` (`diffeit.touches`) reads every image of a reconstructed recording (`diffeit.reconstruct`);
+`read(mesh, images)` is the same on bare arrays.
+
+## The rule
+
+A touch lowers the sheet's conductivity (`polarity=-1`; +1 for a sheet whose conductivity a
+touch raises): in each image a = polarity * change, the touches are the hills of a.
+
+1. **Noise.** sigma_t = 1.4826 * MAD of a over the elements (a touch covers few of them, so
+   this is the image's noise and artefacts); a hill counts only when its peak exceeds
+   `threshold` * sigma_t (default 6): an untouched frame has no touch.
+2. **Hills.** The local maxima of a (at least every element sharing an edge), highest
+   first. Each claims the connected elements at or above half its peak (its half-amplitude
+   set). A maximum whose half-amplitude set reaches a set already claimed is the same touch
+   (two maxima whose valley stays above half the lower peak merge); otherwise it is a touch of
+   its own, up to `max_touches`.
+3. **Readout.** Position: the centroid of the half-amplitude set, weighted by a times area,
+   m, mapped by the calibration's `PositionMap` when there is one; radius: sqrt(area / pi) of
+   the set, m; depth: the peak relative change (negative for a press with polarity -1);
+   pressure, kPa, from the depth through a foam stack's map
+   (`diffeit.scene.pressure_to_change`) when one is given.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import equinox as eqx
+import numpy as np
+import scipy.sparse
+from numpy.typing import ArrayLike
+from scipy.sparse.csgraph import breadth_first_order
+
+from .io import Recording
+from .mesh import Mesh
+from .scene import FoamStack
+
+# A hill counts when its peak exceeds this many robust standard deviations of the image.
+THRESHOLD = 6.0
+
+
+class Touches(eqx.Module):
+    """The touches of each frame, at most `max_touches`, strongest first.
+
+    Attributes:
+        count: (T,) int, the touches found in each frame.
+        position: (T, K, 2) centres, m, in the skin's frame (the labels' frame after a
+            calibration's position map); NaN where a frame has fewer than K touches.
+        radius: (T, K) contact radius, m: sqrt(area / pi) of the half-amplitude set.
+        depth: (T, K) the peak relative conductivity change dsigma / sigma (negative for a
+            touch that lowers it).
+        pressure: (T, K) kPa through the given foam stack's map, or None.
+        noise: (T,) the robust standard deviation of each image, in relative change.
+    """
+
+    count: np.ndarray
+    position: np.ndarray
+    radius: np.ndarray
+    depth: np.ndarray
+    pressure: np.ndarray | None
+    noise: np.ndarray
+
+    def lines(self, frame: int) -> list[str]:
+        """Frame `frame`'s touches, a line each: position in mm, radius in mm, depth (and pressure)."""
+        lines = []
+        for k in range(int(self.count[frame])):
+            x, y = 1e3 * self.position[frame, k]
+            line = f"touch {k}: ({x:+.1f}, {y:+.1f}) mm, radius {1e3 * self.radius[frame, k]:.1f} mm, "
+            line += f"depth {self.depth[frame, k]:+.3f}"
+            if self.pressure is not None:
+                line += f", {self.pressure[frame, k]:.1f} kPa"
+            lines.append(line)
+        return lines
+
+
+def touches(
+    recording: Recording,
+    calibration: Any = None,
+    *,
+    max_touches: int = 6,
+    threshold: float = THRESHOLD,
+    polarity: int = -1,
+    stack: FoamStack | None = None,
+) -> Touches:
+    """The touches of every image of a reconstructed recording (module docstring, "The rule").
+
+    Arguments:
+        recording: A recording with images (`diffeit.reconstruct`'s result), relative changes
+            or conductivity changes (then divided by the calibrated level in its provenance).
+        calibration: A `diffeit.calibration.SkinCalibration` whose position map (from labelled
+            presses) maps the positions into the labels' frame; None reads them in the mesh's.
+        max_touches: The most touches reported per frame.
+        threshold: A touch's peak must exceed this many robust standard deviations of its image.
+        polarity: -1 when a touch lowers the conductivity, +1 when it raises it.
+        stack: The skin's foam stack (`diffeit.scene.FoamStack`): pressures are then read
+            from the depths.
+
+    Returns:
+        The `Touches`.
+
+    Raises:
+        ValueError: For a recording without images, or a bad option.
+    """
+    if not isinstance(recording, Recording) or recording.images is None or recording.mesh is None:
+        raise ValueError("touches reads a reconstructed recording (diffeit.reconstruct's result, with images)")
+    images = np.asarray(recording.images, np.float64)
+    if recording.image_quantity == "conductivity change":
+        level = recording.provenance.get("metadata", {}).get("calibration", {}).get("conductivity")
+        if level is None:
+            raise ValueError("the recording's images are conductivity changes without the level they are relative to")
+        images = images / level
+    mapping = None if calibration is None else calibration.position_map
+    return read(
+        recording.mesh,
+        images,
+        max_touches=max_touches,
+        threshold=threshold,
+        polarity=polarity,
+        position_map=mapping,
+        stack=stack,
+    )
+
+
+def read(
+    mesh: Mesh,
+    images: ArrayLike,
+    *,
+    max_touches: int = 6,
+    threshold: float = THRESHOLD,
+    polarity: int = -1,
+    position_map: Any = None,
+    stack: FoamStack | None = None,
+) -> Touches:
+    """The touches of relative-change images on a mesh (module docstring, "The rule").
+
+    Arguments:
+        mesh: The sheet the images are on.
+        images: (T, E) or (E,) relative conductivity changes dsigma / sigma per element.
+        max_touches: The most touches reported per frame.
+        threshold: A touch's peak must exceed this many robust standard deviations of its image.
+        polarity: -1 when a touch lowers the conductivity, +1 when it raises it.
+        position_map: A callable from (..., 2) read positions to the labels' frame
+            (`diffeit.calibration.PositionMap`), or None.
+        stack: A foam stack whose map gives pressures from depths, or None.
+
+    Returns:
+        The `Touches` (T = 1 for one image).
+
+    Raises:
+        ValueError: For images of the wrong shape or not finite, or a bad option.
+    """
+    images = np.atleast_2d(np.asarray(images, np.float64))
+    if images.ndim != 2 or images.shape[1] != mesh.n_elements:
+        raise ValueError(f"images have shape {images.shape}; expected (T, {mesh.n_elements}), one value per element")
+    if not np.all(np.isfinite(images)):
+        raise ValueError("images hold non-finite values (NaN or inf): no touches can be read")
+    if int(max_touches) != max_touches or max_touches < 1:
+        raise ValueError(f"max_touches must be a positive integer; got {max_touches}")
+    if polarity not in (-1, 1):
+        raise ValueError(f"polarity must be -1 (a touch lowers the conductivity) or +1; got {polarity}")
+    if not (np.isfinite(threshold) and threshold > 0):
+        raise ValueError(f"threshold must be a positive number of standard deviations; got {threshold}")
+    count = np.zeros(len(images), int)
+    position = np.full((len(images), max_touches, 2), np.nan)
+    radius = np.full((len(images), max_touches), np.nan)
+    depth = np.full((len(images), max_touches), np.nan)
+    noise = np.zeros(len(images))
+    for t, image in enumerate(images):
+        hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold)
+        count[t] = len(hills)
+        for k, (centre, size, peak) in enumerate(hills):
+            position[t, k], radius[t, k], depth[t, k] = centre, size, polarity * peak
+    if position_map is not None:
+        position = position_map(position)
+    pressure = None if stack is None else _pressure(depth, stack)
+    return Touches(count, position, radius, depth, pressure, noise)
+
+
+def _hills(mesh: Mesh, values: np.ndarray, max_touches: int, threshold: float) -> tuple[list, float]:
+    """The touches of one image `values` (a touch positive): (centre, radius, peak) each, and
+    the image's robust standard deviation."""
+    noise = 1.4826 * float(np.median(np.abs(values - np.median(values))))
+    adjacency = _adjacency(mesh)
+    neighbour_max = _neighbour_max(adjacency, values)
+    maxima = np.flatnonzero((values >= neighbour_max) & (values > threshold * noise))
+    claimed = np.zeros(len(values), bool)
+    areas, centroids = mesh.element_areas, mesh.element_centroids
+    hills = []
+    for element in maxima[np.argsort(-values[maxima])]:
+        if claimed[element] or len(hills) == max_touches:
+            continue
+        peak = values[element]
+        above = values >= 0.5 * peak
+        order = breadth_first_order(_restricted(adjacency, above), element, directed=False, return_predecessors=False)
+        if claimed[order].any():
+            claimed[order] = True
+            continue
+        claimed[order] = True
+        weight = values[order] * areas[order]
+        centre = weight @ centroids[order] / weight.sum()
+        hills.append((centre, float(np.sqrt(areas[order].sum() / np.pi)), float(peak)))
+    return hills, noise
+
+
+def _restricted(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray) -> scipy.sparse.csr_matrix:
+    """The adjacency with the edges of elements outside `keep` removed."""
+    mask = scipy.sparse.diags(keep.astype(float))
+    return (mask @ adjacency @ mask).tocsr()
+
+
+def _neighbour_max(adjacency: scipy.sparse.csr_matrix, values: np.ndarray) -> np.ndarray:
+    """(E,) the largest value among each element's edge neighbours."""
+    rows = np.repeat(np.arange(adjacency.shape[0]), np.diff(adjacency.indptr))
+    result = np.full(len(values), -np.inf)
+    np.maximum.at(result, rows, values[adjacency.indices])
+    return result
+
+
+@functools.lru_cache(maxsize=16)
+def _adjacency(mesh: Mesh) -> scipy.sparse.csr_matrix:
+    """(E, E) the elements sharing an edge."""
+    edges = np.sort(mesh.triangles[:, [[0, 1], [1, 2], [2, 0]]], axis=2).reshape(-1, 2)
+    owner = np.repeat(np.arange(mesh.n_elements), 3)
+    key = edges[:, 0] * mesh.n_nodes + edges[:, 1]
+    order = np.argsort(key, kind="stable")
+    shared = np.flatnonzero(key[order][1:] == key[order][:-1])
+    a, b = owner[order][shared], owner[order][shared + 1]
+    matrix = scipy.sparse.coo_matrix((np.ones(len(a)), (a, b)), shape=(mesh.n_elements,) * 2)
+    return (matrix + matrix.T).tocsr()
+
+
+def _pressure(depth: np.ndarray, stack: FoamStack) -> np.ndarray:
+    """kPa from relative changes dsigma / sigma through the stack's bilinear map (the inverse
+    of `diffeit.scene.pressure_to_change`); 0 for a depth that is not a decrease."""
+    x = np.maximum(-depth / (1.0 + depth), 0.0)
+    knee = float(stack.knee) * float(stack.sensitivity)
+    below = x / float(stack.sensitivity)
+    above = float(stack.knee) + (x - knee) / float(stack.sensitivity_above)
+    return np.where(x <= knee, below, above)

@@ -1,0 +1,60 @@
+"""diffeit.touch: touches read from images (where, how large, how deep, how hard)."""
+
+import numpy as np
+import pytest
+
+import diffeit as de
+from diffeit.scene import FoamStack, pressure_to_change
+
+MESH = de.mesh.disc(16, electrode_width=0.2, h=0.05)
+
+
+def disc_image(centre, radius, depth):
+    return depth * np.asarray(de.mesh.disc_fraction(MESH, tuple(centre), radius))
+
+
+def test_two_separate_touches_are_read_where_they_are_with_their_size_and_depth():
+    image = disc_image((0.4, 0.1), 0.2, -0.3) + disc_image((-0.3, -0.3), 0.15, -0.2)
+    found = de.touch.read(MESH, image)
+    assert found.count.tolist() == [2]
+    np.testing.assert_allclose(found.position[0, 0], (0.4, 0.1), atol=0.02)
+    np.testing.assert_allclose(found.position[0, 1], (-0.3, -0.3), atol=0.02)
+    np.testing.assert_allclose(found.radius[0, :2], (0.2, 0.15), rtol=0.15)
+    np.testing.assert_allclose(found.depth[0, :2], (-0.3, -0.2), rtol=1e-6)
+    assert np.all(np.isnan(found.position[0, 2:]))
+
+
+def test_an_untouched_frame_has_no_touch_and_a_touch_stands_out_of_noise():
+    rng = np.random.default_rng(0)
+    noise = 0.01 * rng.standard_normal((20, MESH.n_elements))
+    assert de.touch.read(MESH, noise).count.tolist() == [0] * 20
+    touched = noise + disc_image((0.2, 0.2), 0.2, -0.3)
+    assert np.all(de.touch.read(MESH, touched).count == 1)
+
+
+def test_touches_whose_valley_stays_above_half_the_lower_peak_merge():
+    overlapping = disc_image((0.1, 0.0), 0.2, -0.3) + disc_image((-0.1, 0.0), 0.2, -0.3)
+    assert de.touch.read(MESH, overlapping).count.tolist() == [1]
+    apart = disc_image((0.5, 0.0), 0.15, -0.3) + disc_image((-0.5, 0.0), 0.15, -0.3)
+    assert de.touch.read(MESH, apart).count.tolist() == [2]
+
+
+def test_pressures_invert_the_foam_stacks_map_and_the_count_is_capped():
+    stack = FoamStack()
+    pressures = np.array([10.0, 60.0])
+    depths = np.asarray(pressure_to_change(pressures, stack))
+    image = disc_image((0.5, 0.0), 0.15, depths[0]) + disc_image((-0.5, 0.0), 0.15, depths[1])
+    found = de.touch.read(MESH, image, stack=stack)
+    np.testing.assert_allclose(np.sort(found.pressure[0, :2]), pressures, rtol=1e-6)
+    assert de.touch.read(MESH, image, max_touches=1).count.tolist() == [1]
+
+
+def test_bad_images_and_options_are_refused():
+    with pytest.raises(ValueError, match="images have shape"):
+        de.touch.read(MESH, np.zeros(5))
+    with pytest.raises(ValueError, match="non-finite"):
+        de.touch.read(MESH, np.full(MESH.n_elements, np.nan))
+    with pytest.raises(ValueError, match="polarity"):
+        de.touch.read(MESH, np.zeros(MESH.n_elements), polarity=0)
+    with pytest.raises(ValueError, match="reconstructed recording"):
+        de.touches(de.io.Recording(frames=np.ones((1, 208)), times=[0.0], protocol=de.protocol.adjacent(16)))
