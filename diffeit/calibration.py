@@ -574,15 +574,15 @@ _PRESS_THRESHOLD = 3.0
 class PositionMap(eqx.Module):
     """A smooth map from touch positions read from images (the mesh's frame) to the labels'.
 
-    A polynomial in x and y of total degree `degree` for each coordinate, fitted by least
-    squares on labelled presses, the degree chosen by leave-one-out cross-validation (degree
-    0 shifts, 1 is affine: the labels' orientation, scale and offset; `degree=None` is the
-    identity).
+    The read position plus a displacement polynomial in x and y of total degree `degree`,
+    fitted by least squares on labelled presses, the degree chosen by leave-one-out
+    cross-validation (degree 0 shifts, 1 is affine: the labels' orientation, scale and offset;
+    `degree=None` is the identity).
 
     Attributes:
         degree: The polynomial's degree, or None for the identity.
-        coefficients: (n_terms, 2) the polynomial's coefficients, on positions divided by
-            `length`.
+        coefficients: (n_terms, 2) the displacement polynomial's coefficients, on positions
+            and displacements divided by `length`.
         length: The length, m, positions are divided by (the presses' spread).
         errors: Degree (str; "none" for the identity) -> the median leave-one-out distance, m,
             between mapped and labelled positions.
@@ -599,7 +599,7 @@ class PositionMap(eqx.Module):
         points = np.asarray(points, np.float64)
         if self.degree is None:
             return points.copy()
-        return _terms(points / self.length, self.degree) @ self.coefficients * self.length
+        return points + _terms(points / self.length, self.degree) @ self.coefficients * self.length
 
     @classmethod
     def fit(cls, read: np.ndarray, labelled: np.ndarray) -> PositionMap:
@@ -617,7 +617,8 @@ class PositionMap(eqx.Module):
         length = _spread(labelled)
         coefficients = np.zeros((0, 2))
         if degree is not None:
-            coefficients, *_ = np.linalg.lstsq(_terms(read / length, degree), labelled / length, rcond=None)
+            shift = (labelled - read) / length
+            coefficients, *_ = np.linalg.lstsq(_terms(read / length, degree), shift, rcond=None)
         return cls(degree, coefficients, length, errors)
 
 
@@ -1222,9 +1223,10 @@ def _leave_one_out_errors(read: np.ndarray, labelled: np.ndarray, degree: int | 
         return np.linalg.norm(read - labelled, axis=1)
     length = _spread(labelled)
     terms = _terms(read / length, degree)
-    coefficients, *_ = np.linalg.lstsq(terms, labelled / length, rcond=None)
+    shift = (labelled - read) / length
+    coefficients, *_ = np.linalg.lstsq(terms, shift, rcond=None)
     hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
-    residual = (labelled / length - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
+    residual = (shift - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
     return np.linalg.norm(residual, axis=1) * length
 
 

@@ -34,8 +34,11 @@ class Readout(eqx.Module):
 
     Arguments:
         protocol: The protocol whose readings it forms (for the shapes; not kept).
-        source, sink, offsets, gains: As the attributes; scalars broadcast. The defaults are
-            the ideal readout.
+        source: The source electrode's weight (default 0: the ideal readout).
+        sink: The sink electrode's weight (default 0).
+        offsets: (L,) or a scalar for all, the weights by place from the measuring pair's
+            positive electrode (default 0).
+        gains: (M,) or a scalar for all, each reading's gain (default 1).
 
     Attributes:
         source: The weight of the drive's current-source electrode, relative to the pair's.

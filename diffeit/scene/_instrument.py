@@ -399,7 +399,7 @@ class ReadoutMixing(eqx.Module):
     The model is `diffeit.readout.Readout` (its module docstring, and this module's): reading m
     of drive d becomes `sum_l (W_ml + X_ml) U_dl`, U the electrode potentials in volts.
 
-    Arguments:
+    Attributes:
         source: The weight of the drive's current-source electrode, relative to the measuring
             pair's (1); unit-free, a scalar.
         sink: The weight of the drive's current-sink electrode; unit-free, a scalar.
@@ -487,7 +487,7 @@ class ReadingGains(eqx.Module):
     A channel's amplifier, a drive's current: `gains[m]` multiplies reading m (1 nominal), after
     the readout mixing and before the noise.
 
-    Arguments:
+    Attributes:
         gains: (M,) one gain per reading of the skin's protocol, unit-free; any sign (a
             negative gain is a reversed channel).
 
