@@ -659,6 +659,8 @@ class SkinCalibration(eqx.Module):
         position_map: The `PositionMap` fitted on labelled presses, or None.
         press_errors: (K,) leave-one-out distances, m, between mapped and labelled press
             positions (NaN for a press no touch was read at), or None.
+        press_positions: (K, 2) where each press was read, m, through the position map (NaN
+            for a press no touch was read at), or None.
         hyperparameter: The one-step hyperparameter the presses were imaged at (images to be
             read through the position map are best made at it), or None.
         first_stage: The `ReferenceCalibration` the refinement started from (orientation,
@@ -682,6 +684,7 @@ class SkinCalibration(eqx.Module):
     reading_gains_used: bool
     position_map: PositionMap | None
     press_errors: np.ndarray | None
+    press_positions: np.ndarray | None
     hyperparameter: float | None
     first_stage: ReferenceCalibration
     warnings: tuple[str, ...]
@@ -1011,6 +1014,7 @@ def _refine(
         reading_gains_used=use_reading_gains,
         position_map=None,
         press_errors=None,
+        press_positions=None,
         hyperparameter=None,
         first_stage=first,
         warnings=tuple(notes),
@@ -1209,9 +1213,9 @@ def _with_position_map(
     errors = np.full(presses.n_presses, np.nan)
     errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree)
     return eqx.tree_at(
-        lambda c: (c.position_map, c.press_errors, c.warnings, c.hyperparameter),
+        lambda c: (c.position_map, c.press_errors, c.press_positions, c.warnings, c.hyperparameter),
         calibration,
-        (mapping, errors, tuple(notes), float(hyperparameter)),
+        (mapping, errors, mapping(found.position[:, 0]), tuple(notes), float(hyperparameter)),
         is_leaf=lambda node: node is None,
     )
 
@@ -1268,6 +1272,7 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         arrays["position_map/coefficients"] = calibration.position_map.coefficients
     if calibration.press_errors is not None:
         arrays["press_errors"] = calibration.press_errors
+        arrays["press_positions"] = calibration.press_positions
     attributes = {
         "schema": SCHEMA,
         "schema_version": SCHEMA_VERSION,
@@ -1412,6 +1417,7 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         reading_gains_used=bool(attributes["reading_gains_used"]),
         position_map=position_map,
         press_errors=arrays.get("press_errors"),
+        press_positions=arrays.get("press_positions"),
         hyperparameter=None if hyperparameter < 0 else hyperparameter,
         first_stage=first_stage,
         warnings=tuple(stored["warnings"]),

@@ -45,12 +45,14 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     from .. import io
     from .._messages import name_indices
     from ..calibration import CalibrationWarning
+    from ..calibration import load as load_calibration
     from ..plotting import plot_image_strip
     from ..reconstruction import SELECTION_METHODS, reconstruct
 
     start = time.perf_counter()
     source = Path(arguments.frames)
-    outputs = _output_paths(arguments.output, (".png", ".h5"), arguments.overwrite)
+    suffixes = (".png", ".h5", ".touches.csv") if arguments.touches else (".png", ".h5")
+    outputs = _output_paths(arguments.output, suffixes, arguments.overwrite)
     hyperparameter = _hyperparameter(arguments.hyperparameter, SELECTION_METHODS)
     if source.suffix.lower() == ".mat":
         if arguments.variable is None:
@@ -65,6 +67,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     if recording.n_frames == 0:
         raise ValueError(f"{source} holds no frames")
 
+    skin = None if arguments.calibration is None else load_calibration(arguments.calibration, recording=recording)
     # A simulated file's scene names its background and contact impedance; the options win.
     given = {"background": arguments.background, "contact_impedance": arguments.contact_impedance}
     model = {**_scene_settings(recording), **{name: value for name, value in given.items() if value is not None}}
@@ -84,6 +87,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
             max_iterations=arguments.max_iterations,
             progress=True,
             throw=False,
+            calibration=skin,
             **model,
         )
     notes = []
@@ -104,7 +108,8 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     mesh, images, quantity = reconstructed.mesh, reconstructed.images, reconstructed.image_quantity
     relative = quantity == "relative conductivity change"
     value, choice = metadata["hyperparameter"], metadata["hyperparameter_choice"]
-    chosen = "given" if isinstance(hyperparameter, float) else choice["method"]
+    # Without a method in the choice, the calibration's hyperparameter (its presses were imaged at it) was used.
+    chosen = "given" if isinstance(hyperparameter, float) else choice.get("method", "the calibration's")
     chosen = f"auto: {chosen}" if hyperparameter == "auto" else chosen
     prior = "" if arguments.method in ("total_variation", "greit") else f" {arguments.prior}"  # they have none
     described = arguments.method.replace("_", " ") + prior
@@ -118,6 +123,8 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         label="dsigma / sigma" if relative else "dsigma (S/sq)",
     )
     io.write_frames(outputs[1], reconstructed, overwrite=arguments.overwrite)
+    if arguments.touches:
+        _report_touches(reconstructed, skin, outputs[2])
     calibration = metadata["calibration"]
     peak = images.flat[np.argmax(np.abs(images))]
     print(
@@ -128,6 +135,7 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
         f"{quantity}: peak {peak:.3e}{'' if relative else ' S/sq'}\n"
         f"reconstructed in {time.perf_counter() - start:.1f} s; "
         f"wrote {outputs[0]} ({len(shown)} panels) and {outputs[1]} (images {images.shape})"
+        + (f" and {outputs[2]}" if arguments.touches else "")
     )
     # Failed solves: on stderr, after the files they concern are written.
     results = np.array(metadata["results"])
@@ -162,6 +170,27 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     return 1 if metadata["frames_failed"] or map_failed else 0
+
+
+def _report_touches(reconstructed: Recording, calibration: Any, path: Path) -> None:
+    """Print every frame's touches (`diffeit.touches`, through the calibration's position map when
+    it has one) and write them to the CSV file `path`: a header, then one row per touch (frame,
+    time_s, count, touch, x_m, y_m, radius_m, depth); a frame without touches has no row."""
+    from ..touch import touches
+
+    found = touches(reconstructed, calibration)
+    rows = ["frame,time_s,count,touch,x_m,y_m,radius_m,depth"]
+    for frame in range(reconstructed.n_frames):
+        lines = found.lines(frame)
+        print(f"frame {frame} (t = {reconstructed.times[frame]:.3f} s): " + ("; ".join(lines) or "no touch"))
+        for k in range(int(found.count[frame])):
+            x, y = found.position[frame, k]
+            measured = (x, y, found.radius[frame, k], found.depth[frame, k])
+            rows.append(
+                f"{frame},{float(reconstructed.times[frame])!r},{int(found.count[frame])},{k},"
+                + ",".join(repr(float(value)) for value in measured)
+            )
+    path.write_text("\n".join(rows) + "\n")
 
 
 def _message(code: str) -> str:
@@ -338,6 +367,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     reconstruct.add_argument("--variable", help=".mat files: the variable holding the frames")
     reconstruct.add_argument("--reference-variable", help=".mat files: the variable holding the reference frame")
     reconstruct.add_argument("--frame-rate", type=float, default=1.0, help=".mat files: frames per second")
+    reconstruct.add_argument(
+        "--calibration",
+        help="a calibration file of this skin and board (from `diffeit calibrate`): images at its model, and "
+        "touches read through its position map",
+    )
+    reconstruct.add_argument(
+        "--touches",
+        action="store_true",
+        help="read the touches of every frame (diffeit.touches), print them frame by frame and write "
+        "OUT.touches.csv: a header, then one row per touch: frame,time_s,count,touch,x_m,y_m,radius_m,depth "
+        "(metres; depth the peak relative change; a frame without touches has no row)",
+    )
     reconstruct.add_argument("--overwrite", action="store_true", help="replace existing output files")
     reconstruct.set_defaults(run=reporting_user_errors("reconstruct", _reconstruct_file))
     experiment = commands.add_parser(
@@ -357,6 +398,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._fit import add_command as add_fit
 
     add_fit(commands)
+    from ._calibrate import add_command as add_calibrate
+
+    add_calibrate(commands)
     from ._hardware import add_commands
 
     add_commands(commands)

@@ -74,5 +74,6 @@ from ._hdf5 import read_frames as read_frames
 from ._hdf5 import write_frames as write_frames
 from ._openeit import read_openeit as read_openeit
 from ._presses import Presses as Presses
+from ._presses_csv import read_presses as read_presses
 from ._recording import Recording as Recording
 from ._recording import mesh_from_geometry as mesh_from_geometry

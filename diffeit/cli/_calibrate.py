@@ -1,0 +1,142 @@
+"""`diffeit calibrate SESSION.h5 [--presses PRESSES.csv] -o SKIN.cal.h5`: calibrate a skin and
+board from a calibration session, and write the calibration file and its figure."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._errors import reporting_user_errors
+
+if TYPE_CHECKING:
+    from ..calibration import SkinCalibration
+    from ..io import Presses
+
+
+def add_command(commands: argparse._SubParsersAction) -> None:
+    """Add `calibrate` to the subcommands `commands` of the `diffeit` parser."""
+    calibrate = commands.add_parser(
+        "calibrate",
+        help="calibrate a skin and board from a session file (and labelled presses): write SKIN.cal.h5",
+        description="diffeit.calibrate on a session's recording: the first stage (level, orientation, broken "
+        "readings) on its untouched frames, then the contact impedance of every electrode, the readout's mixing "
+        "and its drive and channel gains, with standard errors; with --presses, the presses are imaged and read "
+        "and a position map from read to labelled positions is fitted. Prints the calibration's report, writes "
+        "the calibration file OUT (pass it to `diffeit reconstruct --calibration`) and a figure beside it "
+        "(OUT with .png for .h5): the mesh and its electrodes, the mixing weights and the gains with their "
+        "standard errors, and, with presses, each labelled position with an arrow to where it was read "
+        "(through the position map). Exit status 2 for bad input or options.",
+    )
+    calibrate.add_argument("session", help="the session: a diffeit frames file (.h5), untouched frames first")
+    calibrate.add_argument(
+        "--presses",
+        help="labelled presses, CSV: a header x_m,y_m,radius_m,time_s (or start_s,end_s for holds), one press a "
+        "row, times on the session's clock (diffeit.io.read_presses)",
+    )
+    calibrate.add_argument("-o", "--output", required=True, help="the calibration file to write (SKIN.cal.h5)")
+    calibrate.add_argument(
+        "--reference-frame", type=int, help="calibrate on this frame instead of the file's reference"
+    )
+    calibrate.add_argument("--h", type=float, help="element size (m) of the mesh built from the file's geometry")
+    calibrate.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    calibrate.set_defaults(run=reporting_user_errors("calibrate", _calibrate_file))
+
+
+def _calibrate_file(arguments: argparse.Namespace) -> int:
+    from .. import io
+    from ..calibration import calibrate
+
+    output = Path(arguments.output)
+    figure = output.with_suffix(".png") if output.suffix.lower() == ".h5" else output.with_name(output.name + ".png")
+    for path in (output, figure):
+        if path.exists() and not arguments.overwrite:
+            raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
+    recording = io.read_frames(arguments.session)
+    presses = None if arguments.presses is None else io.read_presses(arguments.presses)
+    calibration = calibrate(recording, presses, h=arguments.h, reference_frame=arguments.reference_frame)
+    calibration.save(output, overwrite=arguments.overwrite)
+    plot_calibration(figure, calibration, presses)
+    print("\n".join([*calibration.lines(), f"wrote {output} and {figure}"]))
+    return 0
+
+
+def plot_calibration(
+    path: str | Path,
+    calibration: SkinCalibration,
+    presses: Presses | None = None,
+) -> Path:
+    """The figure of a calibration: its mesh with the electrodes, the readout's mixing weights and
+    the drive and channel gains (with one-standard-error bars), and, with `presses`, every
+    labelled position with an arrow to its read position (through the position map).
+
+    Arguments:
+        path: The PNG to write.
+        calibration: The calibration.
+        presses: The session's labelled presses, or None.
+
+    Returns:
+        The path written.
+    """
+    from matplotlib.figure import Figure
+
+    values, errors = calibration.values, calibration.standard_errors
+    mesh = calibration.model.mesh
+    panels = 4 if presses is not None else 3
+    figure = Figure(figsize=(4.2 * panels, 4.2), layout="constrained")
+    axes = figure.subplots(1, panels)
+    axes[0].triplot(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles, color="0.75", linewidth=0.3)
+    for index, chain in enumerate(mesh.electrodes):
+        xy = mesh.nodes[chain]
+        axes[0].plot(xy[:, 0], xy[:, 1], color="0.1", linewidth=4, solid_capstyle="butt")
+        axes[0].annotate(str(index), 1.1 * xy[len(xy) // 2], ha="center", va="center", fontsize=7)
+    axes[0].set_aspect("equal")
+    axes[0].set_axis_off()
+    axes[0].set_title(f"mesh: {mesh.n_elements} triangles, {len(mesh.electrodes)} electrodes")
+
+    mixing = np.asarray(values["mixing"])
+    axes[1].bar(np.arange(len(mixing)), mixing, yerr=np.asarray(errors["mixing"]), capsize=2, color="C0")
+    axes[1].set_xlabel("weight (source, sink, offsets)")
+    axes[1].set_title("readout mixing weights")
+    axes[1].axhline(0.0, color="0.5", linewidth=0.5)
+
+    for name, offset, colour in (("drive_gains", -0.2, "C1"), ("channel_gains", 0.2, "C2")):
+        log_gains = np.asarray(values[name])
+        gains = np.exp(log_gains)
+        spread = gains * np.asarray(errors[name])  # d exp(x) = exp(x) dx
+        axes[2].bar(
+            np.arange(len(gains)) + offset,
+            gains,
+            width=0.4,
+            yerr=spread,
+            capsize=1,
+            color=colour,
+            label=name.replace("_", " "),
+        )
+    axes[2].axhline(1.0, color="0.5", linewidth=0.5)
+    axes[2].set_xlabel("electrode")
+    axes[2].set_title("gains")
+    axes[2].legend(fontsize=8)
+
+    if presses is not None:
+        labelled = presses.centres
+        ax = axes[3]
+        ax.plot(*labelled.T, "o", color="C0", markersize=4, label="labelled")
+        found = calibration.press_positions
+        for start, end in zip(labelled, found, strict=True):
+            if np.all(np.isfinite(end)):
+                ax.annotate("", end, start, arrowprops={"arrowstyle": "->", "color": "C3", "linewidth": 0.8})
+        ax.plot([], [], color="C3", label="to the read position")
+        median = (
+            ""
+            if calibration.press_errors is None
+            else (f": median error {1e3 * np.nanmedian(calibration.press_errors):.1f} mm (left out)")
+        )
+        ax.set_title(f"{presses.n_presses} presses{median}", fontsize=9)
+        ax.set_aspect("equal")
+        ax.legend(fontsize=8)
+    figure.suptitle(f"calibration: misfit {calibration.misfit:.3g}, correlation {calibration.correlation:.4f}")
+    figure.savefig(path, dpi=110)
+    return Path(path)

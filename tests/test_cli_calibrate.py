@@ -1,0 +1,150 @@
+"""`diffeit calibrate SESSION.h5 --presses PRESSES.csv -o SKIN.cal.h5`, `diffeit reconstruct
+--calibration SKIN.cal.h5 --touches`, and `diffeit.io.read_presses`."""
+
+import csv
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffeit as de
+from diffeit.cli import main
+from diffeit.readout import Readout
+
+PROTOCOL = de.protocol.adjacent(16)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """A session file and its presses CSV (tests/test_calibration.py's skin): a board with drive
+    and channel gains up to 25%, contact impedances spread 3x, 0.1% noise; 10 untouched frames,
+    then 30 presses (radius 0.15, dsigma/sigma = -0.3) at known places."""
+    rng = np.random.default_rng(4)
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
+    truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.55, 0.55, 16)))
+    gains = (
+        np.exp(rng.uniform(-0.25, 0.25, 16))[PROTOCOL.drive_index]
+        * np.exp(rng.uniform(-0.25, 0.25, 16))[PROTOCOL.pattern_index]
+    )
+    readout = Readout(PROTOCOL, gains=gains)
+
+    def board(sigma):
+        return 1e3 * np.asarray(readout.readings(PROTOCOL, truth.potentials(jnp.asarray(sigma)).electrode))
+
+    reference = board(np.ones(mesh.n_elements))
+    noise = 1e-3 * np.sqrt(np.mean(reference**2))
+    angles = rng.uniform(0, 2 * np.pi, 30)
+    radii = 0.6 * np.sqrt(rng.uniform(0, 1, 30))
+    centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
+    pressed = [board(1 - 0.3 * de.mesh.disc_fraction(mesh, tuple(c), 0.15)) for c in centres]
+    frames = np.concatenate([np.tile(reference, (10, 1)), pressed]) + noise * rng.standard_normal((40, len(reference)))
+    times = 0.1 * np.arange(40)
+    recording = de.io.Recording(frames=frames, times=times, protocol=PROTOCOL, mesh=mesh, voltage_unit="arbitrary")
+    folder = tmp_path_factory.mktemp("session")
+    path = de.io.write_frames(folder / "session.h5", recording)
+    presses = folder / "presses.csv"
+    with open(presses, "w", newline="") as file:
+        writer = csv.writer(file, lineterminator="\n")
+        writer.writerow(["x_m", "y_m", "radius_m", "time_s", "label"])
+        for k, ((x, y), t) in enumerate(zip(centres, times[10:], strict=True)):
+            writer.writerow([repr(float(x)), repr(float(y)), 0.15, repr(float(t)), f"press {k}"])
+    return path, presses, centres
+
+
+@pytest.fixture(scope="module")
+def calibrated(session, tmp_path_factory):
+    path, presses, _ = session
+    output = tmp_path_factory.mktemp("calibration") / "skin.cal.h5"
+    status = main(["calibrate", str(path), "--presses", str(presses), "-o", str(output)])
+    return status, output
+
+
+def test_calibrate_writes_a_calibration_file_and_its_figure(session, calibrated, capsys):
+    path, _, _ = session
+    status, output = calibrated
+    assert status == 0
+    skin = de.calibration.load(output, recording=de.io.read_frames(path))
+    assert skin.position_map is not None and skin.press_errors is not None
+    assert np.nanmedian(skin.press_errors) < 0.1
+    assert output.with_suffix(".png").stat().st_size > 10_000  # skin.cal.png, beside it
+    # An existing output is refused, with the other commands' one-line error.
+    assert main(["calibrate", str(path), "-o", str(output)]) == 2
+    assert "diffeit calibrate: error:" in capsys.readouterr().err
+
+
+def test_reconstruct_with_the_calibration_places_the_touches_at_the_presses(session, calibrated, tmp_path, capsys):
+    path, _, centres = session
+    _, calibration = calibrated
+    out = tmp_path / "images"
+    capsys.readouterr()
+    arguments = ["reconstruct", str(path), "-o", str(out), "--calibration", str(calibration), "--touches"]
+    assert main(arguments) == 0
+    printed = capsys.readouterr().out
+    assert "frame 10 (t = 1.000 s): touch 0:" in printed
+    with open(tmp_path / "images.touches.csv", newline="") as file:
+        rows = list(csv.DictReader(file))
+    first = {int(row["frame"]): row for row in reversed(rows) if row["touch"] == "0"}  # each frame's strongest
+    assert set(range(10, 40)) <= set(first)
+    found = np.array([[float(first[t]["x_m"]), float(first[t]["y_m"])] for t in range(10, 40)])
+    errors = np.linalg.norm(found - centres, axis=1)
+    assert np.median(errors) < 0.1, np.median(errors)
+    assert all(float(row["radius_m"]) > 0 and float(row["depth"]) < 0 for row in rows)
+    metadata = de.io.read_frames(tmp_path / "images.h5").provenance["metadata"]
+    assert metadata["calibrated"]
+
+
+def test_read_presses_reads_instants_and_holds(tmp_path):
+    instants = tmp_path / "instants.csv"
+    instants.write_text("\ufeffx_m,y_m,radius_m,time_s\n0.1,-0.2,0.05,1.5\n\n0,0.3,0.1,2\n")
+    presses = de.io.read_presses(instants)
+    np.testing.assert_array_equal(presses.centres, [[0.1, -0.2], [0.0, 0.3]])
+    np.testing.assert_array_equal(presses.radius, [0.05, 0.1])
+    np.testing.assert_array_equal(presses.times, [[1.5, 1.5], [2.0, 2.0]])
+    holds = tmp_path / "holds.csv"
+    holds.write_text("end_s,start_s,x_m,y_m,radius_m\r\n2.0,1.0,0,0,0.1\r\n")
+    np.testing.assert_array_equal(de.io.read_presses(holds).times, [[1.0, 2.0]])
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("x_m,y_m,time_s\n0,0,1\n", r"line 1 \(the header\) lacks column\(s\) radius_m"),
+        ("x_m,y_m,radius_m\n0,0,0.1\n", r"lacks column\(s\) time_s \(or start_s and end_s\)"),
+        ("x_m,y_m,radius_m,start_s\n0,0,0.1,1\n", r"lacks column\(s\) end_s"),
+        ("x_m,y_m,radius_m,time_s,start_s,end_s\n0,0,0.1,1,1,2\n", "both time_s and start_s/end_s"),
+        ("x_m,y_m,radius_m,time_s\n0,0,0.1,1\n0,zero,0.1,2\n", r"line 3, column y_m is not a number: 'zero'"),
+        ("x_m,y_m,radius_m,time_s\n0,nan,0.1,1\n", "line 2, column y_m is not finite: 'nan'"),
+        ("x_m,y_m,radius_m,time_s\n0,0,inf,1\n", "line 2, column radius_m is not finite"),
+        ("x_m,y_m,radius_m,time_s\n0,0,0.1,1\n0,0,0.1", "line 3, the last, does not end in a newline"),
+        ("x_m,y_m,radius_m,time_s\n0,0,0.1\n", "line 2 has 3 columns; the header has 4"),
+        ("x_m,y_m,radius_m,time_s\n0,0,0,1\n", "line 2: radius_m must be positive"),
+        ("x_m,y_m,radius_m,start_s,end_s\n0,0,0.1,2,1\n", "line 2: the hold ends"),
+        ("x_m,y_m,radius_m,time_s\n", "holds a header but no presses"),
+        ("", "is empty"),
+    ],
+)
+def test_read_presses_refuses_bad_files_naming_the_file_and_line(tmp_path, text, message):
+    path = tmp_path / "presses.csv"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message) as raised:
+        de.io.read_presses(path)
+    assert str(path) in str(raised.value)
+
+
+def test_read_presses_refuses_text_that_is_not_utf8_and_a_missing_file(tmp_path):
+    path = tmp_path / "presses.csv"
+    path.write_bytes(b"x_m,y_m,radius_m,time_s\n\xff\xfe,0,0.1,1\n")
+    with pytest.raises(ValueError, match="line 2 is not UTF-8"):
+        de.io.read_presses(path)
+    with pytest.raises(FileNotFoundError, match="no such presses file"):
+        de.io.read_presses(tmp_path / "missing.csv")
+
+
+def test_calibrate_reports_bad_presses_in_one_line(session, tmp_path, capsys):
+    path, _, _ = session
+    presses = tmp_path / "bad.csv"
+    presses.write_text("x_m,y_m,radius_m\n0,0,0.1\n")
+    assert main(["calibrate", str(path), "--presses", str(presses), "-o", str(tmp_path / "skin.cal.h5")]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("diffeit calibrate: error:") and "lacks column(s) time_s" in error
+    assert not (tmp_path / "skin.cal.h5").exists()
