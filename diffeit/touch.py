@@ -8,9 +8,16 @@
 A touch lowers the sheet's conductivity (`polarity=-1`; +1 for a sheet whose conductivity a
 touch raises): in each image a = polarity * change, the touches are the hills of a.
 
-1. **Noise.** sigma_t = 1.4826 * MAD of a over the elements (a touch covers few of them, so
-   this is the image's noise and artefacts); a hill counts only when its peak exceeds
-   `threshold` * sigma_t (default 6): an untouched frame has no touch.
+1. **Is the frame touched?** With a calibration that knows the readings' noise (from its
+   reference frames), a frame is touched when its differences dv (in the calibrated model's
+   units) stand out of that noise: z > `detection` (default 5), z the standardised sum over
+   the readings of (dv_m / s_m)^2 / (1 + 1/n), each F(1, n - 1) distributed for an untouched
+   frame (s_m estimated from n reference frames, dv against their mean). A
+   touched frame reports its strongest hill however low, and the others above `low`
+   (default 3) robust standard deviations of its image; an untouched frame reports none.
+   Without it, a hill counts when its peak exceeds `threshold` (default 6) robust standard
+   deviations of the image: sigma_t = 1.4826 * MAD of a over the elements (a touch covers few
+   of them, so this is the image's noise and artefacts).
 2. **Hills.** The local maxima of a (at least every element sharing an edge), highest
    first. Each claims the connected elements at or above half its peak (its half-amplitude
    set). A maximum whose half-amplitude set reaches a set already claimed is the same touch
@@ -38,8 +45,11 @@ from .io import Recording
 from .mesh import Mesh
 from .scene import FoamStack
 
-# A hill counts when its peak exceeds this many robust standard deviations of the image.
-THRESHOLD = 6.0
+# A hill counts when its peak exceeds this many robust standard deviations of the image; in a
+# frame the voltage test finds touched, a further hill needs LOW of them.
+THRESHOLD, LOW = 6.0, 3.0
+# The voltage test's statistic z above which a frame is touched.
+DETECTION = 5.0
 
 
 class Touches(eqx.Module):
@@ -82,6 +92,7 @@ def touches(
     *,
     max_touches: int = 6,
     threshold: float = THRESHOLD,
+    detection: float = DETECTION,
     polarity: int = -1,
     stack: FoamStack | None = None,
 ) -> Touches:
@@ -93,7 +104,9 @@ def touches(
         calibration: A `diffeit.calibration.SkinCalibration` whose position map (from labelled
             presses) maps the positions into the labels' frame; None reads them in the mesh's.
         max_touches: The most touches reported per frame.
-        threshold: A touch's peak must exceed this many robust standard deviations of its image.
+        threshold: Without the calibration's noise, a touch's peak must exceed this many
+            robust standard deviations of its image.
+        detection: With it, the voltage test's z above which a frame is touched.
         polarity: -1 when a touch lowers the conductivity, +1 when it raises it.
         stack: The skin's foam stack (`diffeit.scene.FoamStack`): pressures are then read
             from the depths.
@@ -121,7 +134,26 @@ def touches(
         polarity=polarity,
         position_map=mapping,
         stack=stack,
+        touched=_touched(recording, calibration, detection),
     )
+
+
+def _touched(recording: Recording, calibration: Any, detection: float) -> np.ndarray | None:
+    """(T,) bool, the frames whose differences stand out of the calibration's noise (module
+    docstring, step 1), or None when the calibration knows no noise."""
+    noise = None if calibration is None else getattr(calibration, "noise", None)
+    if noise is None or recording.reference is None:
+        return None
+    dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
+    # Each reading's variance is estimated from n frames: (dv / s)^2 / (1 + 1/n) is F(1, n - 1)
+    # distributed for an untouched frame against the mean of those frames.
+    n = calibration.noise_frames
+    freedom = n - 1
+    mean = freedom / (freedom - 2)
+    variance = 2 * freedom**2 * (freedom - 1) / ((freedom - 2) ** 2 * (freedom - 4))
+    ratios = (dv / noise) ** 2 / (1 + 1 / n)
+    statistic = (np.sum(ratios, axis=1) - dv.shape[1] * mean) / np.sqrt(dv.shape[1] * variance)
+    return statistic > detection
 
 
 def read(
@@ -133,6 +165,7 @@ def read(
     polarity: int = -1,
     position_map: Any = None,
     stack: FoamStack | None = None,
+    touched: np.ndarray | None = None,
 ) -> Touches:
     """The touches of relative-change images on a mesh (module docstring, "The rule").
 
@@ -145,6 +178,9 @@ def read(
         position_map: A callable from (..., 2) read positions to the labels' frame
             (`diffeit.calibration.PositionMap`), or None.
         stack: A foam stack whose map gives pressures from depths, or None.
+        touched: (T,) bool, which frames are touched (a test on the voltages, module
+            docstring): a touched frame reports its strongest hill and the others above `LOW`
+            robust standard deviations, an untouched one none; None applies `threshold` alone.
 
     Returns:
         The `Touches` (T = 1 for one image).
@@ -168,8 +204,15 @@ def read(
     radius = np.full((len(images), max_touches), np.nan)
     depth = np.full((len(images), max_touches), np.nan)
     noise = np.zeros(len(images))
+    if touched is not None and np.shape(touched) != (len(images),):
+        raise ValueError(f"touched has shape {np.shape(touched)}; expected ({len(images)},), one per image")
     for t, image in enumerate(images):
-        hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold)
+        if touched is None:
+            hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold)
+        elif touched[t]:
+            hills, noise[t] = _hills(mesh, polarity * image, max_touches, LOW, strongest=True)
+        else:
+            hills, noise[t] = [], _robust_std(polarity * image)
         count[t] = len(hills)
         for k, (centre, size, peak) in enumerate(hills):
             position[t, k], radius[t, k], depth[t, k] = centre, size, polarity * peak
@@ -179,13 +222,23 @@ def read(
     return Touches(count, position, radius, depth, pressure, noise)
 
 
-def _hills(mesh: Mesh, values: np.ndarray, max_touches: int, threshold: float) -> tuple[list, float]:
+def _robust_std(values: np.ndarray) -> float:
+    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
+
+
+def _hills(
+    mesh: Mesh, values: np.ndarray, max_touches: int, threshold: float, strongest: bool = False
+) -> tuple[list, float]:
     """The touches of one image `values` (a touch positive): (centre, radius, peak) each, and
-    the image's robust standard deviation."""
-    noise = 1.4826 * float(np.median(np.abs(values - np.median(values))))
+    the image's robust standard deviation; with `strongest`, the highest hill counts whatever
+    its height (when it is positive)."""
+    noise = _robust_std(values)
     adjacency = _adjacency(mesh)
     neighbour_max = _neighbour_max(adjacency, values)
-    maxima = np.flatnonzero((values >= neighbour_max) & (values > threshold * noise))
+    floor = threshold * noise
+    if strongest:
+        floor = min(floor, float(np.max(values)))
+    maxima = np.flatnonzero((values >= neighbour_max) & (values > 0) & (values >= floor))
     claimed = np.zeros(len(values), bool)
     areas, centroids = mesh.element_areas, mesh.element_centroids
     hills = []

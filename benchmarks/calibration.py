@@ -1,0 +1,217 @@
+"""Calibrating a simulated skin from a calibration session: the median position error of touches
+read on presses the calibration did not use, against the number of labelled presses.
+
+    python benchmarks/calibration.py [--seeds 2] [--presses 0 10 25 50 100] [--test 100]
+
+The skin: a disc of radius 80 mm with 16 electrodes, opposition drive, a board that reports
+magnitudes only, and the artefacts real boards have (`diffeit.scene` effects): electrode positions
+off by up to 5 degrees, a readout that mixes in the source electrode's and the far electrode's
+potentials with weights up to 0.3 of the pair's, gains per reading of +-20%, contact impedances
+spread 3x, a sheet 30% more conductive on one side than the other, medium noise. A session
+holds 20 untouched frames, then presses (radius 10 mm, dsigma/sigma = -0.3) at random places
+within 80% of the radius, one frame each. For each seed the calibration uses the first K presses
+of the session (K = 0: the reference alone) and the touches are read (`de.reconstruct(...,
+calibration=...)`, `de.touches`) on `--test` other presses, against:
+
+- **nominal**: `de.reconstruct` and `de.touches` with their defaults (no calibration);
+- **true model**: the calibration's pipeline with the truth's electrode positions, readout,
+  gains, contact impedances and mean level put in its place (no position map).
+
+Errors are medians over the test presses (a press without a touch read counts as missed and
+is left out of the median; the misses are counted). Times are `de.calibrate`'s, in this process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np
+from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, write_tables
+
+RADIUS = 0.08  # m
+PRESS_RADIUS, PRESS_CHANGE = 0.01, -0.3  # m, dsigma / sigma
+FRAME_RATE, REFERENCE_FRAMES = 10.0, 20
+ELECTRODE_ERROR = np.deg2rad(5.0)  # the largest electrode position error, rad
+
+
+def session(seed: int, n_presses: int):
+    """A simulated calibration session: the recording (magnitudes), the presses (labelled), and
+    the truth (the scene and its artefacts)."""
+    import diffeit as de
+    from diffeit.scene import (
+        Background,
+        Disc,
+        ElectrodePositionError,
+        MeasurementNoise,
+        Noise,
+        Polygon,
+        Press,
+        ReadingGains,
+        ReadoutMixing,
+        Region,
+        Scene,
+        Skin,
+        Touch,
+    )
+
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0, 2 * np.pi, n_presses)
+    distance = 0.8 * RADIUS * np.sqrt(rng.uniform(0, 1, n_presses))
+    centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
+    step = 1.0 / FRAME_RATE
+    starts = (REFERENCE_FRAMES + 2 * np.arange(n_presses)) * step - 0.5 * step
+    geometry = {"kind": "disc", "radius": RADIUS, "n_electrodes": 16, "electrode_width": 0.15 * RADIUS}
+    contact = 0.01 * RADIUS * np.exp(rng.uniform(-0.55, 0.55, 16))  # spread 3x
+    skin = Skin(geometry=geometry, h=0.1 * RADIUS, protocol="opposite", contact_impedance=contact)
+    offsets = rng.uniform(-1, 1, 16) * ELECTRODE_ERROR * RADIUS
+    measurements = de.protocol.opposite(16).n_measurements
+    effects = (
+        ElectrodePositionError(offsets),
+        ReadoutMixing.random(16, 0.3, seed=seed),
+        ReadingGains.random(measurements, 0.2, seed=seed),
+        MeasurementNoise(Noise.level("medium"), seed=seed),
+    )
+    touches = tuple(
+        Touch(Disc(tuple(c), PRESS_RADIUS), PRESS_CHANGE, Press(start=s, hold=step))
+        for c, s in zip(centres, starts, strict=True)
+    )
+    right = Polygon([[0, -2 * RADIUS], [2 * RADIUS, -2 * RADIUS], [2 * RADIUS, 2 * RADIUS], [0, 2 * RADIUS]])
+    background = Background(1.0, (Region(right, 1.3, 0.3 * RADIUS),))
+    scene = Scene(
+        skin=skin,
+        background=background,
+        touches=touches,
+        frame_rate=FRAME_RATE,
+        duration=(REFERENCE_FRAMES + 2 * n_presses) * step,
+        effects=effects,
+    )
+    simulation = de.simulate(scene)
+    recording = simulation.to_recording()
+    frames = np.abs(np.asarray(recording.frames))
+    recording = de.io.Recording(
+        frames=frames,
+        times=recording.times,
+        protocol=recording.protocol,
+        geometry={**geometry, "h": skin.h},
+        readings="magnitude",
+        voltage_unit="V",
+    )
+    held = starts + 0.5 * step
+    return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
+
+
+def true_calibration(fitted, truth):
+    """The calibration `fitted` with the truth's model in its place (module docstring)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import diffeit as de
+    from diffeit.calibration import _mixed_protocol
+    from diffeit.readout import Readout
+
+    scene = truth["scene"]
+    protocol = fitted.protocol
+    mixing = next(e for e in scene.effects if isinstance(e, de.scene.ReadoutMixing))
+    gains = next(e for e in scene.effects if isinstance(e, de.scene.ReadingGains))
+    readout = Readout(protocol, mixing.source, mixing.sink, mixing.offsets, gains.gains)
+    mesh = scene.skin.mesh(scene.skin.h, tuple(truth["offsets"]))
+    weights = np.asarray(protocol.measure) + np.asarray(readout.mixing(protocol))
+    contact = np.asarray(scene.skin.contact_impedance)
+    model = de.ForwardModel(mesh, _mixed_protocol(protocol, weights), contact)
+    level = float(np.mean(np.asarray(scene.background.values_on(mesh))))
+    sign = np.where(np.asarray(model.measure(jnp.full(mesh.n_elements, level))) < 0, -1.0, 1.0)
+    return eqx.tree_at(
+        lambda c: (c.model, c.conductivity, c.readout, c.used, c.reading_sign, c.position_map, c.hyperparameter),
+        fitted,
+        (model, level, readout, np.ones(protocol.n_measurements, bool), sign, None, None),
+        is_leaf=lambda node: node is None,
+    )
+
+
+def errors(recording, presses, calibration) -> tuple[float, int]:
+    """The median distance, m, between the strongest touch read and each press, and the misses."""
+    import diffeit as de
+
+    images = de.reconstruct(recording, calibration=calibration, progress=False, throw=False)
+    found = de.touches(images, calibration)
+    chosen = np.array([frames[0] for frames in presses.frames(recording.times)])
+    distance = np.linalg.norm(found.position[chosen, 0] - presses.centres, axis=1)
+    return float(np.nanmedian(distance)), int(np.isnan(distance).sum())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=2, help="simulated sessions")
+    parser.add_argument("--presses", type=int, nargs="+", default=[0, 10, 25, 50, 100])
+    parser.add_argument("--test", type=int, default=100, help="presses the errors are measured on")
+    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
+    options = parser.parse_args()
+    if options.describe:
+        print(json.dumps(describe()))
+        return
+    import warnings
+
+    import diffeit as de
+
+    warnings.simplefilter("ignore", de.calibration.CalibrationWarning)
+    machine = describe_machine(__file__, None)
+    printed = record_output()
+    print(machine_line(machine, with_pyeit=False))
+    print(
+        f"\nmedian position error (mm) of touches on {options.test} test presses, misses in brackets; "
+        f"{options.seeds} simulated sessions (seeds 0..{options.seeds - 1})\n"
+    )
+    table = MarkdownTable(["labelled presses", "seed", "nominal", "calibrated", "true model", "calibration time"])
+    most = max(options.presses)
+    for seed in range(options.seeds):
+        recording, presses, truth = session(seed, most + options.test)
+        reference = recording.frames[:REFERENCE_FRAMES]
+        used = recording.frames[: REFERENCE_FRAMES + 2 * most]
+        test_frames = recording.frames[REFERENCE_FRAMES + 2 * most :]
+        test = de.io.Recording(
+            frames=test_frames,
+            times=recording.times[REFERENCE_FRAMES + 2 * most :],
+            protocol=recording.protocol,
+            reference=reference.mean(axis=0),
+            geometry=recording.geometry,
+            readings="magnitude",
+        )
+        test_presses = presses.select(np.arange(most, most + options.test))
+        nominal = errors(test, test_presses, None)
+        true = None
+        for count in options.presses:
+            session_recording = de.io.Recording(
+                frames=used[: REFERENCE_FRAMES + 2 * count] if count else reference,
+                times=recording.times[: REFERENCE_FRAMES + 2 * count] if count else recording.times[:REFERENCE_FRAMES],
+                protocol=recording.protocol,
+                geometry=recording.geometry,
+                readings="magnitude",
+            )
+            start = time.perf_counter()
+            calibration = de.calibrate(session_recording, presses.select(np.arange(count)) if count else None)
+            seconds = time.perf_counter() - start
+            if true is None:
+                true = errors(test, test_presses, true_calibration(calibration, truth))
+            ours = errors(test, test_presses, calibration)
+            table.row(
+                [
+                    str(count),
+                    str(seed),
+                    f"{1e3 * nominal[0]:.1f} ({nominal[1]})",
+                    f"{1e3 * ours[0]:.1f} ({ours[1]})",
+                    f"{1e3 * true[0]:.1f} ({true[1]})",
+                    f"{seconds:.1f} s",
+                ]
+            )
+    print()
+    write_tables("calibration", printed)
+
+
+if __name__ == "__main__":
+    main()
