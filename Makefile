@@ -31,6 +31,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/scene.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/fit.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/memory_bound.py
+	$(BIN)/python benchmarks/calibration.py
 
 # The documentation site, into site/ (tests/test_docs.py builds it with --strict in `make test`).
 docs: $(STAMP)

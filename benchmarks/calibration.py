@@ -112,7 +112,6 @@ def true_calibration(fitted, truth):
     import jax.numpy as jnp
 
     import diffeit as de
-    from diffeit.calibration import _mixed_protocol
     from diffeit.readout import Readout
 
     scene = truth["scene"]
@@ -121,9 +120,8 @@ def true_calibration(fitted, truth):
     gains = next(e for e in scene.effects if isinstance(e, de.scene.ReadingGains))
     readout = Readout(protocol, mixing.source, mixing.sink, mixing.offsets, gains.gains)
     mesh = scene.skin.mesh(scene.skin.h, tuple(truth["offsets"]))
-    weights = np.asarray(protocol.measure) + np.asarray(readout.mixing(protocol))
     contact = np.asarray(scene.skin.contact_impedance)
-    model = de.ForwardModel(mesh, _mixed_protocol(protocol, weights), contact)
+    model = de.ForwardModel(mesh, readout.folded(protocol), contact)
     level = float(np.mean(np.asarray(scene.background.values_on(mesh))))
     sign = np.where(np.asarray(model.measure(jnp.full(mesh.n_elements, level))) < 0, -1.0, 1.0)
     return eqx.tree_at(

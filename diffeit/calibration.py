@@ -100,10 +100,12 @@ import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.optimize
 
 from ._messages import name_indices
 from .forward import ForwardModel
 from .inverse import LinearisedProblem, OneStep, select_hyperparameter
+from .inverse.hyperparameter import DEFAULT_CANDIDATES
 from .io import Presses, Recording, create_checked, mesh_from_geometry, read_checked, write_atomically
 from .mesh import Mesh, disc, disc_fraction
 from .protocol import Protocol
@@ -573,6 +575,10 @@ PRIORS = {"contact_impedance": 1.0, "mixing": 0.3, "drive_gains": 0.5, "channel_
 REFERENCE_GROUPS = ("contact_impedance",)
 # The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
 _NOISE_FRAMES = 6
+# An L-curve corner within this factor of an end of the candidates counts as at the end.
+_CORNER_MARGIN = 10.0
+# The most misfits evaluated in the search for the labels' frame.
+_FRAME_EVALUATIONS = 80
 # Alternations between the presses' depths and the readout's mixing.
 _PRESS_ROUNDS = 30
 # A parameter whose standard error exceeds this fraction of its prior's is not determined by the data.
@@ -679,6 +685,8 @@ class SkinCalibration(eqx.Module):
             the spread of the reference frames (None with fewer than 6): `diffeit.touches`
             tests each frame's differences against it.
         noise_frames: How many reference frames `noise` was estimated from.
+        polarity: -1 when a press lowers the conductivity (the default without presses), +1
+            when the presses raise it.
         hyperparameter: The one-step hyperparameter the presses were imaged at (images to be
             read through the position map are best made at it), or None.
         first_stage: The `ReferenceCalibration` the refinement started from (orientation,
@@ -706,6 +714,7 @@ class SkinCalibration(eqx.Module):
     hyperparameter: float | None
     noise: np.ndarray | None
     noise_frames: int
+    polarity: int
     first_stage: ReferenceCalibration
     warnings: tuple[str, ...]
     protocol: Protocol = eqx.field(static=True)
@@ -767,6 +776,12 @@ class SkinCalibration(eqx.Module):
         ]
         if self.undetermined:
             lines.append(f"not determined by the data ({len(self.undetermined)}): " + ", ".join(self.undetermined))
+        if "label_frame" in self.values:
+            scale, angle, x, y = self.values["label_frame"]
+            lines.append(
+                f"labels' frame onto the mesh's: scale {math.exp(scale):.4g}, rotation {math.degrees(angle):+.1f} deg, "
+                f"offset ({x:+.4g}, {y:+.4g}) m"
+            )
         if self.position_map is not None:
             errors = ", ".join(f"{degree}: {1e3 * error:.1f} mm" for degree, error in self.position_map.errors.items())
             lines.append(
@@ -790,18 +805,23 @@ class SkinCalibration(eqx.Module):
 
 
 def reference_frames(
-    recording: Recording, reference_frame: int | None = None, presses: Presses | None = None
+    recording: Recording,
+    reference_frame: int | None = None,
+    presses: Presses | None = None,
+    *,
+    every_frame: bool = False,
 ) -> tuple[np.ndarray, str]:
     """The frames a recording's model is calibrated on, and where they come from.
 
     The recording's reference; else its frame `reference_frame`; else, with presses, the
     frames before the first press (or, when there are none, those outside every hold); else
-    the first `REFERENCE_FRAMES` frames.
+    the first `REFERENCE_FRAMES` frames (`every_frame`: all of them).
 
     Arguments:
         recording: The recording.
         reference_frame: A frame to use instead of the recording's reference.
         presses: The session's labelled presses, if any.
+        every_frame: Without a reference or presses, every frame is untouched.
 
     Returns:
         (T, M) the reference frames, and a description of them.
@@ -818,7 +838,7 @@ def reference_frames(
             pressed[frames] = True
         if (~pressed).any():
             return recording.frames[~pressed], f"the {int((~pressed).sum())} frames outside the presses"
-    count = min(REFERENCE_FRAMES, recording.n_frames)
+    count = recording.n_frames if every_frame else min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"
 
 
@@ -869,7 +889,8 @@ def calibrate(
 ) -> SkinCalibration:
     """Calibrate the model of a real skin and board from a calibration session.
 
-    From the reference frames (`reference_frames`): the first stage (`calibrate_to_reference`:
+    From the reference frames (`reference_frames`: without a reference or presses, every
+    frame of the session is taken as untouched): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, with standard errors, and per-reading gains.
@@ -918,7 +939,7 @@ def calibrate(
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if presses is not None:
         _check_presses(presses, recording, mesh)
-    reference, _ = reference_frames(recording, reference_frame, presses)
+    reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
     nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
     first = calibrate_to_reference(
         nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
@@ -929,8 +950,12 @@ def calibrate(
     calibration = _refine(first, reference, priors, recording, tuple(reference_groups))
     if presses is None:
         return calibration
-    calibration = _fit_presses(calibration, recording, presses, reference, priors["mixing"])
-    return _with_position_map(calibration, recording, presses, reference, hyperparameter)
+    found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
+    calibration, _ = _fit_frame_and_mixing(
+        calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0]
+    )
+    found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
+    return _with_position_map(calibration, presses, found, chosen, polarity)
 
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
@@ -1011,8 +1036,9 @@ def _refine(
         offsets=values["mixing"][2:],
         gains=structured,
     )
-    mixed = _mixed_protocol(protocol, np.asarray(protocol.measure) + np.asarray(readout.mixing(protocol)))
-    calibrated = ForwardModel(model.mesh, mixed, contact, drive_current=model.drive_current, solver=model.solver)
+    calibrated = ForwardModel(
+        model.mesh, readout.folded(protocol), contact, drive_current=model.drive_current, solver=model.solver
+    )
     return SkinCalibration(
         model=calibrated,
         conductivity=float(level),
@@ -1033,6 +1059,7 @@ def _refine(
         hyperparameter=None,
         noise=np.abs(first.signed(frames.std(axis=0, ddof=1))) / structured if len(frames) >= _NOISE_FRAMES else None,
         noise_frames=len(frames),
+        polarity=-1,
         first_stage=first,
         warnings=tuple(notes),
         protocol=recording.protocol,
@@ -1133,11 +1160,6 @@ def _levenberg_marquardt(
     return theta, design.T @ design + np.diag(precision)
 
 
-def _mixed_protocol(protocol: Protocol, weights: np.ndarray) -> Protocol:
-    """`protocol` with its reading weights replaced by `weights` (M, L)."""
-    return Protocol(protocol.drive, [weights[protocol.drive_index == d] for d in range(protocol.n_drives)])
-
-
 def _electrode_centres(mesh: Mesh) -> np.ndarray:
     """(L,) each electrode's midpoint as arc length along its boundary, m, counter-clockwise
     from the first node of electrode 0 (NaN for an electrode on another boundary loop)."""
@@ -1161,10 +1183,48 @@ def _electrode_centres(mesh: Mesh) -> np.ndarray:
     return np.array(centres)
 
 
+def _fit_frame_and_mixing(
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses,
+    reference: np.ndarray,
+    prior: float,
+    polarity: int,
+    read_positions: np.ndarray,
+) -> tuple[SkinCalibration, np.ndarray]:
+    """The readout's mixing fitted to the presses in the labels' frame that explains their
+    differences best, and that frame (ln scale, angle, offset; module docstring, "Presses").
+
+    The frame starts from the better of the mesh's own and the similarity that maps the labels
+    onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
+    at each step."""
+    size = float(np.max(np.linalg.norm(calibration.model.mesh.nodes - calibration.model.mesh.nodes.mean(0), axis=1)))
+
+    def misfit(frame: np.ndarray) -> float:
+        return _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity)[1]
+
+    starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
+    start = min(starts, key=misfit)
+    steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
+    simplex = np.vstack([start, start + np.diag(steps)])
+    best = scipy.optimize.minimize(
+        misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
+    )
+    frame = best.x if best.fun < misfit(start) else start
+    fitted, _ = _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity)
+    return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
+
+
 def _fit_presses(
-    calibration: SkinCalibration, recording: Recording, presses: Presses, reference: np.ndarray, prior: float
-) -> SkinCalibration:
-    """`calibration` with the readout's mixing fitted to the presses (module docstring, "Presses").
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses,
+    reference: np.ndarray,
+    prior: float,
+    polarity: int,
+) -> tuple[SkinCalibration, float]:
+    """`calibration` with the readout's mixing fitted to the presses (module docstring,
+    "Presses"), and the relative misfit of the presses' differences.
 
     Each press k is a disc of the labelled centre and radius and an unknown depth a_k; its
     differences are linearised at the calibrated level, dv_k = a_k s * ((W + X) dU_k), dU_k the
@@ -1180,7 +1240,7 @@ def _fit_presses(
     )
     level = calibration.conductivity
     sigma = jnp.full(model.n_elements, level)
-    patterns = np.stack(
+    patterns = polarity * np.stack(
         [
             level * np.asarray(_disc_pattern(model.mesh, c, r))
             for c, r in zip(presses.centres, presses.radius, strict=True)
@@ -1235,14 +1295,14 @@ def _fit_presses(
     factor = _scale(readings, data)
     contact = calibration.contact_impedance * factor
     fitted_model = ForwardModel(
-        model.mesh, _mixed_protocol(protocol, mixed), contact, drive_current=model.drive_current, solver=model.solver
+        model.mesh, readout.folded(protocol), contact, drive_current=model.drive_current, solver=model.solver
     )
     reading_sign = first.reading_sign.copy()
     if magnitude:
         reading_sign[first.used] = sign
     undetermined = tuple(f"mixing[{i}]" for i in np.flatnonzero(free) if spread[i] > _UNDETERMINED * prior)
     misfit = _relative(data - factor * readings, data)
-    return eqx.tree_at(
+    fitted = eqx.tree_at(
         lambda c: (
             c.model,
             c.conductivity,
@@ -1271,6 +1331,7 @@ def _fit_presses(
             float(np.corrcoef(data, readings)[0, 1]),
         ),
     )
+    return fitted, _relative(target - design @ mixing, differences.ravel())
 
 
 def _residual_scale(residual: np.ndarray, data: np.ndarray) -> float:
@@ -1301,9 +1362,10 @@ def auto_hyperparameter(
 ) -> tuple[float, dict[str, Any]]:
     """The one-step hyperparameter for differences `dv` (T, M), and how it was chosen.
 
-    "auto": the L-curve's corner, or the noise figure 0.5 when the corner sits at an end of
-    the candidates (`diffeit.reconstruction`'s docstring, "Hyperparameter auto"); a method of
-    `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure") is used as given.
+    "auto": the L-curve's corner, or the noise figure 0.5 when the corner sits within a decade
+    of an end of the candidates (`diffeit.inverse.hyperparameter.DEFAULT_CANDIDATES`): a corner there is the
+    curve's end, not a corner. A method of `diffeit.inverse.select_hyperparameter` ("gcv",
+    "lcurve", "noise_figure") is used as given.
 
     Arguments:
         model: The calibrated model.
@@ -1320,9 +1382,12 @@ def auto_hyperparameter(
 
     def select(name: str) -> dict[str, Any]:
         selection = select_hyperparameter(model, dv, name, prior=prior, background=level, throw=False, problem=problem)
+        value = float(selection.value)
+        # A corner within a decade of an end is the curve's end, not a corner: no regularisation to speak of.
+        near_end = not DEFAULT_CANDIDATES[0] * _CORNER_MARGIN <= value <= DEFAULT_CANDIDATES[-1] / _CORNER_MARGIN
         return {
-            "value": float(selection.value),
-            "at_boundary": bool(selection.result != RESULTS.successful),
+            "value": value,
+            "at_boundary": bool(selection.result != RESULTS.successful) or near_end,
             "result": names(selection.result)[0],
         }
 
@@ -1336,14 +1401,18 @@ def auto_hyperparameter(
     return choice[method]["value"], {**choice, "method": method}
 
 
-def _with_position_map(
+def _read_presses(
     calibration: SkinCalibration,
     recording: Recording,
     presses: Presses,
     reference: np.ndarray,
     hyperparameter: float | None,
-) -> SkinCalibration:
-    """`calibration` with the position map fitted on the presses (module docstring, "Presses")."""
+    polarity: int | None,
+) -> tuple[Any, float, int]:
+    """Each press's touch read from its one-step image at the calibrated model: the `Touches`
+    (its strongest hill, read however low: a press is known to be there), the hyperparameter
+    (None: `auto_hyperparameter` on the presses), and the touches' polarity (None: the sign of
+    the presses' median extreme change)."""
     signed_reference = calibration.signed(np.atleast_2d(reference).mean(axis=0))
     frames = presses.frames(recording.times)
     dv = np.stack([calibration.signed(recording.frames[chosen]).mean(axis=0) for chosen in frames]) - signed_reference
@@ -1352,23 +1421,71 @@ def _with_position_map(
         hyperparameter, _ = auto_hyperparameter(calibration.model, dv, "noser", level)
     solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
     images = np.asarray(solver.solve(dv, throw=True).value) / level
-    # A press is known to be there: its strongest hill is read however low.
-    found = read(calibration.model.mesh, images, max_touches=1, touched=np.ones(len(images), bool))
+    if polarity is None:
+        extremes = images[np.arange(len(images)), np.argmax(np.abs(images), axis=1)]
+        polarity = 1 if np.median(extremes) > 0 else -1
+    found = read(calibration.model.mesh, images, max_touches=1, polarity=polarity, touched=np.ones(len(images), bool))
+    return found, float(hyperparameter), polarity
+
+
+def _frame_from_reads(read_positions: np.ndarray, presses: Presses) -> np.ndarray:
+    """(4,) ln scale, angle (rad) and offset (m) of the similarity that best maps the presses'
+    labelled centres onto the positions read (Umeyama's least squares, once more without the
+    presses read more than three robust deviations off; NaN reads left out); the identity with
+    fewer than 3 reads."""
+    seen = np.all(np.isfinite(read_positions), axis=1)
+    if seen.sum() < 3:
+        return np.zeros(4)
+    keep = seen.copy()
+    for _ in range(2):
+        scale, rotation, offset = _similarity(presses.centres[keep], read_positions[keep])
+        moved = scale * presses.centres @ rotation.T + offset
+        miss = np.linalg.norm(moved - read_positions, axis=1)
+        deviation = 1.4826 * np.median(np.abs(miss[seen] - np.median(miss[seen])))
+        keep = seen & (miss <= np.median(miss[seen]) + 3 * deviation)
+        if keep.sum() < 3:
+            keep = seen
+    return np.array([math.log(scale), math.atan2(rotation[1, 0], rotation[0, 0]), *offset])
+
+
+def _moved(presses: Presses, frame: np.ndarray) -> Presses:
+    """The presses in the mesh's frame under `frame` (ln scale, angle, offset; `_frame_from_reads`)."""
+    scale, angle = math.exp(frame[0]), frame[1]
+    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    return Presses(scale * presses.centres @ rotation.T + frame[2:], presses.radius * scale, presses.times)
+
+
+def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Scale s, rotation R (2, 2) and offset t minimising ||target - (s R source + t)||."""
+    mean_source, mean_target = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - mean_source, target - mean_target
+    u, singular, vt = np.linalg.svd(b.T @ a)
+    flip = np.diag([1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ flip @ vt
+    scale = float(np.trace(np.diag(singular) @ flip) / max(np.sum(a**2), 1e-300))
+    return scale, rotation, mean_target - scale * rotation @ mean_source
+
+
+def _with_position_map(
+    calibration: SkinCalibration, presses: Presses, found: Any, hyperparameter: float, polarity: int
+) -> SkinCalibration:
+    """`calibration` with the position map fitted on the presses' touches `found` (module
+    docstring, "Presses")."""
     seen = found.count > 0
     notes = list(calibration.warnings)
     if not seen.all():
         notes.append(f"no touch read at press(es) {name_indices(np.flatnonzero(~seen))}: left out of the position map")
     if seen.sum() < 3:
         notes.append("fewer than 3 presses read: no position map")
-        return eqx.tree_at(lambda c: c.warnings, calibration, tuple(notes))
+        return eqx.tree_at(lambda c: (c.warnings, c.polarity), calibration, (tuple(notes), polarity))
     read_positions, labelled = found.position[seen, 0], presses.centres[seen]
     mapping = PositionMap.fit(read_positions, labelled)
     errors = np.full(presses.n_presses, np.nan)
     errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree)
     return eqx.tree_at(
-        lambda c: (c.position_map, c.press_errors, c.press_positions, c.warnings, c.hyperparameter),
+        lambda c: (c.position_map, c.press_errors, c.press_positions, c.warnings, c.hyperparameter, c.polarity),
         calibration,
-        (mapping, errors, mapping(found.position[:, 0]), tuple(notes), float(hyperparameter)),
+        (mapping, errors, mapping(found.position[:, 0]), tuple(notes), hyperparameter, polarity),
         is_leaf=lambda node: node is None,
     )
 
@@ -1438,6 +1555,7 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         "correlation": calibration.correlation,
         "hyperparameter": -1.0 if calibration.hyperparameter is None else calibration.hyperparameter,
         "noise_frames": calibration.noise_frames,
+        "polarity": calibration.polarity,
         "json": json.dumps(
             {
                 "undetermined": list(calibration.undetermined),
@@ -1576,6 +1694,7 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         press_positions=arrays.get("press_positions"),
         noise=arrays.get("noise"),
         noise_frames=int(attributes["noise_frames"]),
+        polarity=int(attributes["polarity"]),
         hyperparameter=None if hyperparameter < 0 else hyperparameter,
         first_stage=first_stage,
         warnings=tuple(stored["warnings"]),

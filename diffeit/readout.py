@@ -78,6 +78,12 @@ class Readout(eqx.Module):
         source, sink, offset = roles(protocol)
         return self.source * source + self.sink * sink + jnp.einsum("j,jml->ml", self.offsets, offset)
 
+    def folded(self, protocol: Protocol) -> Protocol:
+        """`protocol` with the mixing folded into its reading weights (W + X): a forward model
+        on it reads as this board does, but for the gains. Needs concrete weights."""
+        weights = np.asarray(protocol.measure) + np.asarray(self.mixing(protocol))
+        return Protocol(protocol.drive, [weights[protocol.drive_index == d] for d in range(protocol.n_drives)])
+
     def readings(self, protocol: Protocol, electrode: jax.Array) -> jax.Array:
         """(M,) the board's readings of electrode potentials `electrode` (n_drives, L), volts:
         `gains * sum_l (W + X)_ml U_(d(m), l)`, signed (take |.| for a magnitude board)."""

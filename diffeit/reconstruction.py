@@ -20,8 +20,9 @@ the recording's reference that it rests on (`calibrate_to_reference`).
 ## Hyperparameter "auto"
 
 The corner of the L-curve of the calibrated, normalised one-step problem, from all frames at
-once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`); when the corner sits at an end
-of the candidates, the noise figure 0.5 instead. Gauss-Newton iterates to the regularised
+once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`); when the corner sits within a
+decade of an end of the candidates, the noise figure 0.5 instead
+(`diffeit.calibration.auto_hyperparameter`). Gauss-Newton iterates to the regularised
 minimiser and fits more of the noise than one linear step: its "auto" is 4 times the
 one-step's value. Total variation keeps the one-step's value; GREIT is designed for noise
 figure 0.5. How the rules were chosen, measured on the real tanks:

@@ -93,7 +93,7 @@ def touches(
     max_touches: int = 6,
     threshold: float = THRESHOLD,
     detection: float = DETECTION,
-    polarity: int = -1,
+    polarity: int | None = None,
     stack: FoamStack | None = None,
 ) -> Touches:
     """The touches of every image of a reconstructed recording (module docstring, "The rule").
@@ -107,7 +107,8 @@ def touches(
         threshold: Without the calibration's noise, a touch's peak must exceed this many
             robust standard deviations of its image.
         detection: With it, the voltage test's z above which a frame is touched.
-        polarity: -1 when a touch lowers the conductivity, +1 when it raises it.
+        polarity: -1 when a touch lowers the conductivity, +1 when it raises it; None: the
+            calibration's (found from its presses), else -1.
         stack: The skin's foam stack (`diffeit.scene.FoamStack`): pressures are then read
             from the depths.
 
@@ -126,6 +127,8 @@ def touches(
             raise ValueError("the recording's images are conductivity changes without the level they are relative to")
         images = images / level
     mapping = None if calibration is None else calibration.position_map
+    if polarity is None:
+        polarity = -1 if calibration is None else calibration.polarity
     return read(
         recording.mesh,
         images,
