@@ -88,6 +88,7 @@ detection of `diffeit.touches`.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -992,8 +993,9 @@ def _refine(
     model = first.model
     protocol = model.protocol
     frames = np.atleast_2d(np.asarray(reference, np.float64))
-    data = first.signed(frames.mean(axis=0))
-    fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance)
+    magnitude = recording.readings == "magnitude"
+    data = first.signed(frames.mean(axis=0)) * (first.reading_sign[first.used] if magnitude else 1.0)
+    fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     n = protocol.n_electrodes
     sizes = {
         "level": 1,
@@ -1025,6 +1027,9 @@ def _refine(
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
     misfit = _relative(data - fitted, data)
     correlation = float(np.corrcoef(data, fitted)[0, 1]) if len(data) > 1 else 1.0
+    reading_sign = first.reading_sign.copy()
+    if magnitude:  # the signs of the refined model's readings
+        reading_sign[first.used] = fit.signs(jnp.asarray(theta))
     notes = list(first.warnings)
     structured = np.exp(values["drive_gains"][protocol.drive_index] + values["channel_gains"][protocol.pattern_index])
     level = first.conductivity / math.exp(values["level"][0])
@@ -1046,7 +1051,7 @@ def _refine(
         electrode_centres=_electrode_centres(model.mesh),
         readout=readout,
         used=first.used,
-        reading_sign=first.reading_sign,
+        reading_sign=reading_sign,
         standard_errors=errors,
         values=values,
         undetermined=undetermined,
@@ -1077,9 +1082,10 @@ class _ReadoutFit(eqx.Module):
     sink: jax.Array
     offset: jax.Array
     pair_offsets: np.ndarray
+    magnitude: bool = eqx.field(static=True)
 
     @classmethod
-    def of(cls, model: ForwardModel, level: float, contact_impedance: np.ndarray) -> _ReadoutFit:
+    def of(cls, model: ForwardModel, level: float, contact_impedance: np.ndarray, magnitude: bool) -> _ReadoutFit:
         source, sink, offset = roles(model.protocol)
         # An offset j every reading measures through is the pair's own weight: a channel gain.
         on_pair = np.all(np.sum(offset * (model.protocol.measure != 0), axis=2) > 0, axis=1)
@@ -1091,10 +1097,17 @@ class _ReadoutFit(eqx.Module):
             jnp.asarray(sink),
             jnp.asarray(offset),
             on_pair,
+            magnitude,
         )
 
     def readings(self, theta: jax.Array) -> jax.Array:
+        """(M,) the readings at `theta`: signed, or magnitudes for a board that reports them."""
         return _readings(self, theta)
+
+    def signs(self, theta: jax.Array) -> np.ndarray:
+        """(M,) +-1, the signs of the signed readings at `theta`."""
+        signed = _ReadoutFit(*[getattr(self, field.name) for field in dataclasses.fields(self)][:-1], False)
+        return np.where(np.asarray(_readings(signed, theta)) < 0, -1.0, 1.0)
 
     def jacobian(self, theta: jax.Array) -> jax.Array:
         return _readings_jacobian(self, theta)
@@ -1116,7 +1129,9 @@ def _readings(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
         + jnp.einsum("j,jml->ml", mixing[2:], fit.offset)
     )
     gain = jnp.exp(log_c + log_drive[protocol.drive_index] + log_channel[protocol.pattern_index])
-    return gain * jnp.sum(weights * electrode[protocol.drive_index], axis=-1)
+    readings = gain * jnp.sum(weights * electrode[protocol.drive_index], axis=-1)
+    # A magnitude board is fitted in magnitudes: a reading whose sign the nominal model had wrong still fits.
+    return jnp.abs(readings) if fit.magnitude else readings
 
 
 @eqx.filter_jit
@@ -1249,7 +1264,7 @@ def _fit_presses(
     unchanged = np.asarray(model.potentials(sigma).electrode)
     changes = np.asarray(_potential_changes(model, sigma, jnp.asarray(patterns)))  # (K, drives, L)
     source, sink, offset = roles(protocol)
-    fixed = _ReadoutFit.of(model, level, calibration.contact_impedance).pair_offsets
+    fixed = _ReadoutFit.of(model, level, calibration.contact_impedance, False).pair_offsets
     basis = np.concatenate([source[None], sink[None], offset[~fixed]])  # (p, M, L)
     drive = protocol.drive_index
     weights = np.asarray(protocol.measure)

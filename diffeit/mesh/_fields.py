@@ -46,11 +46,14 @@ def barycentric_samples(level: int) -> np.ndarray:
     return np.column_stack([1 - points.sum(axis=1), points])
 
 
+@functools.lru_cache(maxsize=16)
 def element_sample_points(mesh: Mesh, level: int = 8) -> np.ndarray:
     """(E, S, 2) points in metres: the centroids of the level^2 congruent sub-triangles of each
     triangle (S = level^2), each standing for 1/S of its area. Averages over them are the
-    midpoint rule on the sub-triangles."""
-    return np.einsum("sk,ekx->esx", barycentric_samples(level), mesh.nodes[mesh.triangles])
+    midpoint rule on the sub-triangles. Computed once per mesh (by content) and level; read-only."""
+    points = np.einsum("sk,ekx->esx", barycentric_samples(level), mesh.nodes[mesh.triangles])
+    points.flags.writeable = False
+    return points
 
 
 def distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
