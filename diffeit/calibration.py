@@ -116,8 +116,9 @@ from .touch import read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
-# A recording without a reference is calibrated on the mean of at most this many first frames.
-REFERENCE_FRAMES = 5
+# A recording without a reference is calibrated on the mean of at most this many first frames;
+# a session without presses on those of its first _SESSION_FRAMES that look untouched.
+REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
 # Adopt another orientation when it cuts the misfit as recorded by at least this factor.
 _ORIENTATION_GAIN = 2.0
 # A magnitude's sign is uncertain where the model's reading is under this fraction of its RMS.
@@ -816,13 +817,15 @@ def reference_frames(
 
     The recording's reference; else its frame `reference_frame`; else, with presses, the
     frames before the first press (or, when there are none, those outside every hold); else
-    the first `REFERENCE_FRAMES` frames (`every_frame`: all of them).
+    the first `REFERENCE_FRAMES` frames (`every_frame`: those of the first `_SESSION_FRAMES`
+    that look untouched, `_untouched`).
 
     Arguments:
         recording: The recording.
         reference_frame: A frame to use instead of the recording's reference.
         presses: The session's labelled presses, if any.
-        every_frame: Without a reference or presses, every frame is untouched.
+        every_frame: Without a reference or presses, take every frame of the first ones that
+            looks untouched (a session), not just the first few.
 
     Returns:
         (T, M) the reference frames, and a description of them.
@@ -839,8 +842,26 @@ def reference_frames(
             pressed[frames] = True
         if (~pressed).any():
             return recording.frames[~pressed], f"the {int((~pressed).sum())} frames outside the presses"
-    count = recording.n_frames if every_frame else min(REFERENCE_FRAMES, recording.n_frames)
+    if every_frame and recording.n_frames > REFERENCE_FRAMES:
+        still = _untouched(recording.frames[:_SESSION_FRAMES])
+        return recording.frames[:_SESSION_FRAMES][still], f"the {int(still.sum())} untouched frames of the first ones"
+    count = min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"
+
+
+def _untouched(frames: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames that look untouched. Noise alone puts a frame at a distance from
+    the untouched frames' median that varies by about 1 / sqrt(2 M) of itself (M readings); a
+    frame further than (1 + 5 / sqrt(2 M)) times the median distance is touched. Twice, from
+    all frames and then from those kept; the first `REFERENCE_FRAMES` when fewer pass."""
+    still = np.ones(len(frames), bool)
+    factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
+    for _ in range(2):
+        distance = np.linalg.norm(frames - np.median(frames[still], axis=0), axis=1)
+        still = distance <= factor * np.median(distance[still])
+    if still.sum() < REFERENCE_FRAMES:
+        still = np.arange(len(frames)) < REFERENCE_FRAMES
+    return still
 
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
@@ -890,8 +911,8 @@ def calibrate(
 ) -> SkinCalibration:
     """Calibrate the model of a real skin and board from a calibration session.
 
-    From the reference frames (`reference_frames`: without a reference or presses, every
-    frame of the session is taken as untouched): the first stage (`calibrate_to_reference`:
+    From the reference frames (`reference_frames`: without a reference or presses, the frames
+    of the session's first 200 that look untouched): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, with standard errors, and per-reading gains.

@@ -206,3 +206,14 @@ def test_presses_that_raise_the_conductivity_set_the_touches_polarity():
     calibration = de.calibrate(recording, de.io.Presses(centres, 0.15, np.arange(8.0, 20.0)))
     assert calibration.polarity == 1
     assert np.nanmedian(calibration.press_errors) < 0.05
+
+
+def test_a_session_without_labels_is_calibrated_on_its_untouched_frames(mixing_skin):
+    recording, presses, _ = mixing_skin
+    calibration = de.calibrate(recording)  # 10 untouched frames, then presses and untouched frames in turn
+    assert calibration.noise_frames == 40  # every untouched frame, no pressed one
+    images = de.reconstruct(recording, calibration=calibration, progress=False)
+    found = de.touches(images, calibration)
+    pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
+    assert np.all(found.count[pressed] >= 1)
+    assert np.mean(found.count[np.setdiff1d(np.arange(recording.n_frames), pressed)] == 0) > 0.9
