@@ -28,6 +28,42 @@ touch raises): in each image a = polarity * change, the touches are the hills of
    the set, m; depth: the peak relative change (negative for a press with polarity -1);
    pressure, kPa, from the depth through a foam stack's map
    (`diffeit.scene.pressure_to_change`) when one is given.
+
+## Refinement by the model (`method="fit"`)
+
+The image is a regularised, blurred picture of a touch: its half-amplitude set is wider and
+its peak shallower than the contact. With a calibration, `touches(recording, calibration,
+method="fit")` takes the image method's touches of each touched frame as a start (their
+positions in the mesh's frame, before the position map) and fits K discs to the frame's
+differences dv = `calibration.signed(frame) - calibration.signed(reference)` (the calibrated
+model's unit) through the calibrated forward model V:
+
+    dv(theta) = V(sigma_h (1 + sum_k depth_k f_k)) - V(sigma_h),
+
+sigma_h the calibrated level, f_k the fraction of each element under disc k: the smooth disc
+footprint of `diffeit.scene.shape_fraction` (an erf edge of the mesh's default edge width at
+`FIT_LEVEL`^2 sample points per element, about half an element), differentiable in its centre
+(x, y, m) and radius (m, where the edge weight is 1/2). Each disc is fitted as (x, y, radius,
+strength = depth radius^2): for a small disc the data fix the strength (the change it makes
+far off) much better than depth and radius apart, and depth = 0 is strength = 0.
+
+Levenberg-Marquardt on the residual weighted by the calibration's per-reading noise
+(unweighted when it knows none), the Jacobian by forward differentiation (`jax.jacfwd` of each
+footprint in its disc's geometry, the model linearised along the 4K conductivity changes that
+follow), compiled once per model and K. The centre and radius of a disc whose strength is not
+significant at the current step are held (they are not determined; free, they wander). It
+stops when the Gauss-Newton step's predicted decrease of chi^2, or the last step's actual one,
+is below `_FIT_TOLERANCE` (in units of the noise variance: a step of a small fraction of a
+standard error), after `_FIT_STEPS` steps at most.
+
+The covariance is (J^T W J)^-1 (W the inverse noise variances), scaled by the residual's chi^2
+per degree of freedom when it exceeds 1 (a model that does not explain the frame to its noise
+is not trusted beyond its misfit; without the noise, by that ratio always); the depth's
+standard error follows from the strength's and the radius's. A disc whose strength is not
+significant (|strength| < `SIGNIFICANCE` = 2 standard errors, or not determined) is dropped,
+the least significant first, and the others refitted. The fitted centres, and their standard
+errors through the map's local Jacobian, are then mapped by the calibration's position map;
+radii stay in the mesh's frame (as the image method's). The discs are reported deepest first.
 """
 
 from __future__ import annotations
@@ -36,20 +72,34 @@ import functools
 from typing import Any
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 import scipy.sparse
 from numpy.typing import ArrayLike
 from scipy.sparse.csgraph import breadth_first_order
 
+from .forward import ForwardModel
 from .io import Recording
 from .mesh import Mesh
-from .scene import FoamStack
+from .scene import Disc, FoamStack, shape_fraction
 
 # A hill counts when its peak exceeds this many robust standard deviations of the image; in a
 # frame the voltage test finds touched, a further hill needs LOW of them.
 THRESHOLD, LOW = 6.0, 3.0
 # The voltage test's statistic z above which a frame is touched.
 DETECTION = 5.0
+# method="fit": the disc footprint's sample points per element are FIT_LEVEL^2 (its edge width
+# is the mesh's default at that level, `diffeit.scene.shape_fraction`).
+FIT_LEVEL = 4
+# A fitted disc counts when its strength (depth radius^2) is at least this many standard errors.
+SIGNIFICANCE = 2.0
+# Levenberg-Marquardt: at most this many steps; stop when a step's predicted decrease of chi^2
+# (in units of the noise variance) is below the tolerance.
+_FIT_STEPS = 30
+_FIT_TOLERANCE = 1e-2
+METHODS = ("image", "fit")
 
 
 class Touches(eqx.Module):
@@ -64,6 +114,12 @@ class Touches(eqx.Module):
             touch that lowers it).
         pressure: (T, K) kPa through the given foam stack's map, or None.
         noise: (T,) the robust standard deviation of each image, in relative change.
+        standard_errors: With `method="fit"`, (T, K, 4) the standard errors of x, y (m, in
+            the frame of `position`), radius (m) and depth (relative change) of each fitted
+            disc, NaN where there is none; None for the image method.
+        misfit: With `method="fit"`, (T,) ||dv - dv(theta)|| / ||dv|| of each fitted frame's
+            differences (NaN for a frame not fitted, 1 where every disc was dropped); None for
+            the image method.
     """
 
     count: np.ndarray
@@ -72,14 +128,23 @@ class Touches(eqx.Module):
     depth: np.ndarray
     pressure: np.ndarray | None
     noise: np.ndarray
+    standard_errors: np.ndarray | None = None
+    misfit: np.ndarray | None = None
 
     def lines(self, frame: int) -> list[str]:
-        """Frame `frame`'s touches, a line each: position in mm, radius in mm, depth (and pressure)."""
+        """Frame `frame`'s touches, a line each: position in mm, radius in mm, depth (and
+        pressure); with standard errors (`method="fit"`), each followed by +- its error."""
         lines = []
         for k in range(int(self.count[frame])):
             x, y = 1e3 * self.position[frame, k]
-            line = f"touch {k}: ({x:+.1f}, {y:+.1f}) mm, radius {1e3 * self.radius[frame, k]:.1f} mm, "
-            line += f"depth {self.depth[frame, k]:+.3f}"
+            if self.standard_errors is None:
+                line = f"touch {k}: ({x:+.1f}, {y:+.1f}) mm, radius {1e3 * self.radius[frame, k]:.1f} mm, "
+                line += f"depth {self.depth[frame, k]:+.3f}"
+            else:
+                ex, ey, er, ed = self.standard_errors[frame, k] * [1e3, 1e3, 1e3, 1.0]
+                line = f"touch {k}: ({x:+.1f} +- {ex:.1f}, {y:+.1f} +- {ey:.1f}) mm, "
+                line += f"radius {1e3 * self.radius[frame, k]:.1f} +- {er:.1f} mm, "
+                line += f"depth {self.depth[frame, k]:+.3f} +- {ed:.3f}"
             if self.pressure is not None:
                 line += f", {self.pressure[frame, k]:.1f} kPa"
             lines.append(line)
@@ -95,8 +160,11 @@ def touches(
     detection: float = DETECTION,
     polarity: int | None = None,
     stack: FoamStack | None = None,
+    method: str = "image",
 ) -> Touches:
-    """The touches of every image of a reconstructed recording (module docstring, "The rule").
+    """The touches of every image of a reconstructed recording (module docstring, "The rule"),
+    with `method="fit"` refined by fitting discs to the frames' voltages (module docstring,
+    "Refinement by the model").
 
     Arguments:
         recording: A recording with images (`diffeit.reconstruct`'s result), relative changes
@@ -111,13 +179,25 @@ def touches(
             calibration's (found from its presses), else -1.
         stack: The skin's foam stack (`diffeit.scene.FoamStack`): pressures are then read
             from the depths.
+        method: "image" reads the touches from the images; "fit" starts there and fits
+            discs (centre, radius, depth) to each touched frame's voltage differences through
+            the calibration's model, with standard errors (it needs the calibration, and the
+            recording's reference).
 
     Returns:
         The `Touches`.
 
     Raises:
-        ValueError: For a recording without images, or a bad option.
+        ValueError: For a recording without images, or a bad option; for `method="fit"`
+            without a calibration or without the recording's reference.
     """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    if method == "fit" and calibration is None:
+        raise ValueError(
+            'method="fit" needs a calibration (diffeit.calibrate): it fits discs to the voltages '
+            "through the calibrated forward model"
+        )
     if not isinstance(recording, Recording) or recording.images is None or recording.mesh is None:
         raise ValueError("touches reads a reconstructed recording (diffeit.reconstruct's result, with images)")
     images = np.asarray(recording.images, np.float64)
@@ -129,32 +209,59 @@ def touches(
     mapping = None if calibration is None else calibration.position_map
     if polarity is None:
         polarity = -1 if calibration is None else calibration.polarity
-    return read(
+    if method == "fit" and recording.reference is None:
+        raise ValueError('method="fit" fits the differences from the recording\'s reference; it has none')
+    found = read(
         recording.mesh,
         images,
         max_touches=max_touches,
         threshold=threshold,
         polarity=polarity,
-        position_map=mapping,
-        stack=stack,
-        touched=_touched(recording, calibration, detection),
+        position_map=mapping if method == "image" else None,
+        stack=stack if method == "image" else None,
+        touched=None
+        if recording.reference is None
+        else touched(recording.frames, recording.reference, calibration, detection=detection),
     )
+    if method == "image":
+        return found
+    return _refined(recording, calibration, found, mapping, stack)
 
 
-def _touched(recording: Recording, calibration: Any, detection: float) -> np.ndarray | None:
-    """(T,) bool, the frames whose differences stand out of the calibration's noise (module
-    docstring, step 1), or None when the calibration knows no noise."""
+def touched(
+    frames: ArrayLike,
+    reference: ArrayLike,
+    calibration: Any,
+    *,
+    detection: float = DETECTION,
+    reference_frames: int | None = None,
+) -> np.ndarray | None:
+    """Which frames stand out of the calibration's noise: the voltage test (module docstring,
+    step 1).
+
+    Arguments:
+        frames: (T, M) recorded frames.
+        reference: (M,) the reference they are differences from, as recorded.
+        calibration: A `diffeit.calibration.SkinCalibration`.
+        detection: The statistic z above which a frame is touched.
+        reference_frames: How many frames the reference is the mean of; None: the
+            calibration's own reference frames (`noise_frames`).
+
+    Returns:
+        (T,) bool, or None when the calibration knows no noise.
+    """
     noise = None if calibration is None else getattr(calibration, "noise", None)
-    if noise is None or recording.reference is None:
+    if noise is None:
         return None
-    dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
-    # Each reading's variance is estimated from n frames: (dv / s)^2 / (1 + 1/n) is F(1, n - 1)
-    # distributed for an untouched frame against the mean of those frames.
+    dv = calibration.signed(np.atleast_2d(frames)) - calibration.signed(reference)
+    # Each reading's variance s^2 is estimated from n frames; an untouched frame's difference from
+    # a reference of R frames has variance s^2 (1 + 1/R): (dv / s)^2 / (1 + 1/R) is F(1, n - 1).
     n = calibration.noise_frames
+    averaged = n if reference_frames is None else reference_frames
     freedom = n - 1
     mean = freedom / (freedom - 2)
     variance = 2 * freedom**2 * (freedom - 1) / ((freedom - 2) ** 2 * (freedom - 4))
-    ratios = (dv / noise) ** 2 / (1 + 1 / n)
+    ratios = (dv / noise) ** 2 / (1 + 1 / averaged)
     statistic = (np.sum(ratios, axis=1) - dv.shape[1] * mean) / np.sqrt(dv.shape[1] * variance)
     return statistic > detection
 
@@ -296,3 +403,256 @@ def _pressure(depth: np.ndarray, stack: FoamStack) -> np.ndarray:
     below = x / float(stack.sensitivity)
     above = float(stack.knee) + (x - knee) / float(stack.sensitivity_above)
     return np.where(x <= knee, below, above)
+
+
+# --- method="fit": discs fitted to the voltages ----------------------------------------------
+
+
+class _DiscFit(eqx.Module):
+    """What the predicted differences of K discs depend on besides their parameters (module
+    docstring, "Refinement by the model")."""
+
+    model: ForwardModel
+    level: jax.Array  # sigma_h, the calibrated level
+    base: jax.Array  # (M,) the readings at the level
+
+    @classmethod
+    def of(cls, model: ForwardModel, level: float) -> _DiscFit:
+        sigma = jnp.full(model.n_elements, float(level))
+        return cls(model, jnp.asarray(level), model.measure(sigma))
+
+
+def _disc_fraction(fit: _DiscFit, disc: jax.Array) -> jax.Array:
+    """(E,) the fraction of each element under the disc (x, y, radius), m: the smooth disc
+    footprint of `diffeit.scene.shape_fraction` (an erf edge of the mesh's default width)."""
+    return shape_fraction(fit.model.mesh, Disc(disc[:2], disc[2]), level=FIT_LEVEL)
+
+
+def _change(fit: _DiscFit, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The relative conductivity change sum_k depth_k f_k (E,) of discs `theta` (K, 4), rows
+    (x, y, radius, strength) in m, m, m and m^2 (strength = depth radius^2: the data determine
+    it far better than the depth of a small disc), and its derivatives (4K, E), row-major in
+    theta: forward differentiation (`jax.jacfwd`) of each disc's footprint in its own three
+    geometric parameters (not of every disc in all 4K)."""
+    slopes, fractions = jax.vmap(jax.jacfwd(lambda disc: (_disc_fraction(fit, disc),) * 2, has_aux=True))(
+        theta[:, :3]
+    )  # (K, E, 3) and (K, E)
+    radius, strength = theta[:, 2], theta[:, 3]
+    depth = strength / radius**2
+    tangents = jnp.stack(
+        [
+            depth[:, None] * slopes[..., 0],
+            depth[:, None] * slopes[..., 1],
+            depth[:, None] * slopes[..., 2] - (2 * strength / radius**3)[:, None] * fractions,
+            fractions / radius[:, None] ** 2,
+        ],
+        axis=1,
+    ).reshape(-1, fractions.shape[1])
+    return depth @ fractions, tangents
+
+
+@eqx.filter_jit
+def _disc_readings(fit: _DiscFit, theta: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The differences dv(theta) (M,) of discs `theta` (K, 4) (`_change`) through the model,
+    their (M, 4K) Jacobian (the model linearised once, along the 4K conductivity changes of
+    `_change`), and the least relative conductivity min(1 + change). Compiled once per model
+    and K."""
+    change, tangents = _change(fit, theta)
+    # The conductivity is kept positive (the fit rejects steps where 1 + change < 0.02 anyway).
+    readings, along = jax.linearize(fit.model.measure, fit.level * jnp.maximum(1.0 + change, 1e-2))
+    jacobian = jax.vmap(along)(fit.level * tangents)  # (4K, M)
+    return readings - fit.base, jacobian.T, jnp.min(1.0 + change)
+
+
+def _refined(recording: Recording, calibration: Any, found: Touches, mapping: Any, stack: FoamStack | None) -> Touches:
+    """The image method's touches `found` (in the mesh's frame) refined by fitting discs to
+    each touched frame's differences (module docstring, "Refinement by the model")."""
+    model = calibration.model
+    fit = _DiscFit.of(model, calibration.conductivity)
+    dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
+    noise = getattr(calibration, "noise", None)
+    weights = None
+    if noise is not None:
+        noise = np.asarray(noise, np.float64)
+        # A reading of no measured spread would take all the weight: floored at 1e-3 of the median.
+        weights = 1.0 / np.maximum(noise, 1e-3 * np.median(noise))
+    nodes = model.mesh.nodes
+    middle = nodes.mean(axis=0)
+    size = float(np.max(np.linalg.norm(nodes - middle, axis=1)))
+    # No disc narrower than its footprint's edge (the scene's default edge width at FIT_LEVEL).
+    width = 2.0 * float(np.sqrt(np.max(model.mesh.element_areas))) / FIT_LEVEL
+    limits = (middle, size, width)
+    count = np.zeros_like(found.count)
+    position = np.full_like(found.position, np.nan)
+    radius, depth = np.full_like(found.radius, np.nan), np.full_like(found.depth, np.nan)
+    errors = np.full((*found.radius.shape, 4), np.nan)
+    covariances = np.full((*found.radius.shape, 2, 2), np.nan)
+    misfit = np.full(len(dv), np.nan)
+    for t in np.flatnonzero(found.count > 0):
+        k = int(found.count[t])
+        start = np.column_stack(
+            [
+                found.position[t, :k],
+                np.clip(found.radius[t, :k], width, 0.5 * size),
+                np.clip(found.depth[t, :k], -0.9, 10.0),
+            ]
+        )
+        theta, covariance, misfit[t] = _fit_discs(fit, dv[t], weights, start, limits)
+        count[t] = len(theta)
+        if not len(theta):
+            continue
+        order = np.argsort(-np.abs(theta[:, 3]))
+        n = len(theta)
+        blocks = covariance.reshape(n, 4, n, 4)[order, :, order, :]  # (n, 4, 4): each disc's own block
+        position[t, :n], radius[t, :n], depth[t, :n] = theta[order, :2], theta[order, 2], theta[order, 3]
+        with np.errstate(invalid="ignore"):
+            errors[t, :n] = np.sqrt(np.einsum("kii->ki", blocks))
+        covariances[t, :n] = blocks[:, :2, :2]
+    if mapping is not None:
+        errors[..., :2] = _mapped_errors(mapping, position, covariances)
+        position = mapping(position)
+    pressure = None if stack is None else _pressure(depth, stack)
+    return Touches(count, position, radius, depth, pressure, found.noise, errors, misfit)
+
+
+def _fit_discs(
+    fit: _DiscFit, dv: np.ndarray, weights: np.ndarray | None, start: np.ndarray, limits: tuple
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Discs (K', 4) fitted to one frame's differences `dv` (M,) from `start` (K, 4), rows
+    (x, y, radius, depth), the insignificant dropped one at a time (module docstring); their
+    (4K', 4K') covariance and the relative residual ||dv - dv(theta)|| / ||dv||."""
+    theta = start.copy()
+    theta[:, 3] *= theta[:, 2] ** 2  # fitted as (x, y, radius, strength = depth radius^2)
+    scale = np.ones(len(dv)) if weights is None else weights
+    norm = float(np.linalg.norm(dv)) or 1.0
+    while len(theta):
+        theta, curvature, residual = _levenberg_marquardt(fit, dv, scale, weights is not None, theta, limits)
+        covariance = _covariance(curvature, residual, weights is not None)
+        significance = _significance(theta, covariance)
+        if np.all(significance >= SIGNIFICANCE):
+            return (*_natural(theta, covariance), float(np.linalg.norm(residual / scale)) / norm)
+        theta = np.delete(theta, int(np.argmin(significance)), axis=0)
+    return theta, np.zeros((0, 0)), 1.0
+
+
+def _covariance(curvature: np.ndarray, residual: np.ndarray, noise_known: bool) -> np.ndarray:
+    """(P, P) the parameters' covariance from the curvature J^T W^2 J and the weighted
+    residual (M,): its inverse times chi^2 per degree of freedom (at least 1 when the weights
+    are 1 / noise). A parameter the data do not determine gets a huge variance (the inverse of
+    the curvature scaled to unit diagonal, with a 1e-10 ridge), not NaN."""
+    freedom = max(len(residual) - len(curvature), 1)
+    chi2 = float(residual @ residual) / freedom
+    factor = max(chi2, 1.0) if noise_known else chi2
+    diagonal = np.sqrt(np.diag(curvature))
+    unit = np.where(diagonal > 0, diagonal, 1e-300)
+    scaled = curvature / np.outer(unit, unit) + 1e-10 * np.eye(len(curvature))
+    return factor * np.linalg.inv(scaled) / np.outer(unit, unit)
+
+
+def _significance(theta: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """(K,) |strength| / its standard error for discs (K, 4) (x, y, radius, strength).
+
+    depth = 0 is strength = 0; the strength's standard error is far smaller than the depth's
+    where the radius is poorly determined (depth and radius trade off at a fixed strength)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        significance = np.abs(theta[:, 3]) / np.sqrt(np.diag(covariance)[3::4])
+    return np.where(np.isnan(significance), 0.0, significance)  # an exact fit: inf, significant
+
+
+def _natural(theta: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Discs (K, 4) as (x, y, radius, depth) from (x, y, radius, strength), and their
+    covariance (4K, 4K) through the transformation's Jacobian (depth = strength / radius^2)."""
+    radius, strength = theta[:, 2], theta[:, 3]
+    natural = theta.copy()
+    natural[:, 3] = strength / radius**2
+    blocks = np.zeros((len(theta), 4, 4))
+    blocks[:] = np.eye(4)
+    blocks[:, 3, 2] = -2 * strength / radius**3
+    blocks[:, 3, 3] = 1 / radius**2
+    jacobian = scipy.linalg.block_diag(*blocks)
+    return natural, jacobian @ covariance @ jacobian.T
+
+
+def _levenberg_marquardt(
+    fit: _DiscFit,
+    dv: np.ndarray,
+    weights: np.ndarray,
+    noise_known: bool,
+    theta: np.ndarray,
+    limits: tuple,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The discs (K, 4) (x, y, radius, strength) minimising ||weights (dv - dv(theta))||^2
+    from `theta`, the Gauss-Newton curvature J^T W^2 J there and the weighted residual. With
+    `noise_known` (weights 1 / noise) chi^2 is in units of the noise variance, else of the
+    residual's. The centre and radius of a disc whose strength is not significant at the
+    current step are held (they are not determined: free, they wander and cost steps); the
+    strength is always fitted."""
+    middle, size, width = limits
+
+    def evaluate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
+        centres, radii, depths = theta[:, :2], theta[:, 2], theta[:, 3] / theta[:, 2] ** 2
+        if (
+            np.any(np.linalg.norm(centres - middle, axis=1) > size)
+            or np.any(radii < 0.25 * width)
+            or np.any(radii > size)
+            or np.any(depths <= -0.98)
+        ):
+            return None
+        predicted, jacobian, lowest = _disc_readings(fit, jnp.asarray(theta))
+        if float(lowest) < 0.02:
+            return None
+        residual = weights * (dv - np.asarray(predicted))
+        return residual, weights[:, None] * np.asarray(jacobian), float(residual @ residual)
+
+    state = evaluate(theta)
+    if state is None:  # a start outside the limits: moved into them
+        theta = theta.copy()
+        offset = theta[:, :2] - middle
+        distance = np.linalg.norm(offset, axis=1, keepdims=True)
+        theta[:, :2] = middle + offset * np.minimum(1.0, 0.9 * size / np.maximum(distance, 1e-300))
+        theta[:, 2] = np.clip(theta[:, 2], width, 0.5 * size)
+        theta[:, 3] = np.clip(theta[:, 3] / theta[:, 2] ** 2, -0.5 / len(theta), 10.0) * theta[:, 2] ** 2
+        state = evaluate(theta)
+        if state is None:
+            raise ValueError("the image's touches give no start the disc fit can evaluate")
+    residual, design, cost = state
+    damping = 1e-3
+    for _ in range(_FIT_STEPS):
+        curvature = design.T @ design
+        gradient = design.T @ residual
+        significant = _significance(theta, _covariance(curvature, residual, noise_known)) >= SIGNIFICANCE
+        free = np.column_stack([np.repeat(significant[:, None], 3, axis=1), np.ones(len(theta), bool)]).ravel()
+        block, pull = curvature[np.ix_(free, free)], gradient[free]
+        diagonal = np.maximum(np.diag(block), 1e-12 * np.max(np.diag(block)))
+        variance = 1.0 if noise_known else max(cost / max(len(dv) - theta.size, 1), 1e-300)
+        # Converged when even the Gauss-Newton step would lower chi^2 by less than the tolerance.
+        newton = np.linalg.lstsq(block, pull, rcond=None)[0]
+        if (newton @ pull) / variance < _FIT_TOLERANCE:
+            break
+        accepted = False
+        while damping < 1e10 and not accepted:
+            step = np.zeros(theta.size)
+            step[free] = np.linalg.solve(block + damping * np.diag(diagonal), pull)
+            trial = evaluate(theta + step.reshape(theta.shape))
+            accepted = trial is not None and trial[2] < cost
+            if accepted:
+                decrease = cost - trial[2]
+                theta, (residual, design, cost) = theta + step.reshape(theta.shape), trial
+                damping = max(damping / 10, 1e-7)
+            else:
+                damping *= 10
+        # ... or when a step lowered it by less (a flat valley the steps zigzag along).
+        if not accepted or decrease / variance < _FIT_TOLERANCE:
+            break
+    return theta, design.T @ design, residual
+
+
+def _mapped_errors(mapping: Any, position: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """(..., 2) the standard errors of the positions (..., 2) (mesh frame, m) after the map,
+    from their covariances (..., 2, 2) through its local Jacobian (central differences)."""
+    step = 1e-6
+    columns = [(mapping(position + step * unit) - mapping(position - step * unit)) / (2 * step) for unit in np.eye(2)]
+    jacobian = np.stack(columns, axis=-1)  # (..., 2, 2)
+    mapped = jacobian @ covariances @ np.swapaxes(jacobian, -1, -2)
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(np.diagonal(mapped, axis1=-2, axis2=-1))

@@ -17,6 +17,7 @@ from ._model import ModelSettings, add_model_options
 if TYPE_CHECKING:
     import hw
 
+    from ..calibration import SkinCalibration
     from ..fit import JointFit
     from ..inverse import OneStep
     from ..protocol import Protocol
@@ -79,6 +80,21 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         default=DEAD_BAND,
         help="--memory: image changes below this many noise standard deviations (at the fit's noise level) "
         f"keep the stimulus ({DEAD_BAND:g}; 0: the exact inverse, whose long presses fade in noise)",
+    )
+    live.add_argument(
+        "--calibration",
+        metavar="SKIN.cal.h5",
+        help="a calibration file of this skin and board (from `diffeit calibrate`): image at its model (its mesh, "
+        "level, contact impedances, gains) and, with --hyperparameter auto, its hyperparameter, instead of "
+        "calibrating to the reference; touches are read through its position map. Not with --memory, --h, "
+        "--background or --contact-impedance (it brings its model)",
+    )
+    live.add_argument(
+        "--touches",
+        action="store_true",
+        help="print each frame's touches (diffeit.touch.read on its image): position in mm, radius in mm, depth "
+        "(the peak dsigma/sigma); with --calibration, through its position map and polarity, and a frame counts "
+        "as touched by the voltage test on its noise when it knows it",
     )
     live.add_argument("--png", default="live.png", help="image written when there is no display (live.png)")
     live.set_defaults(run=_live)
@@ -228,6 +244,7 @@ def _live(arguments: argparse.Namespace) -> int:
         return 2
     try:
         settings = ModelSettings.from_arguments(arguments, methods=_LIVE_METHODS, hyperparameter="auto")
+        skin = _skin_calibration(arguments)  # first: it refuses --memory with it before the fit is read
         fit = _memory_fit(arguments.memory)
         source = _open_source(arguments)
     except (ValueError, ConnectionError, FileNotFoundError) as error:
@@ -240,6 +257,8 @@ def _live(arguments: argparse.Namespace) -> int:
         for frame in source.frames(max_frames=arguments.frames, duration=arguments.duration):
             if len(reference_frames) < arguments.reference_frames:
                 protocol = _frame_protocol(source, frame)
+                if skin is not None and not reference_frames:
+                    _check_calibration(skin, protocol)
                 reference_frames.append(frame.values)
                 continue
             if viewer is None:
@@ -251,6 +270,8 @@ def _live(arguments: argparse.Namespace) -> int:
                     fit,
                     dead_band=arguments.dead_band,
                     colour_limit=arguments.colour_limit,
+                    calibration=skin,
+                    touches=arguments.touches,
                 )
             batch.append(frame)
             if len(batch) == arguments.batch:
@@ -282,6 +303,54 @@ def _live(arguments: argparse.Namespace) -> int:
     return 0 if shown and not nonfinite else 1
 
 
+# What a stream's values are: readings in the protocol's order and sign (hw.frame), as
+# `diffeit.io.Recording.readings` names them.
+_STREAM_READINGS = "signed"
+
+
+def _skin_calibration(arguments: argparse.Namespace) -> SkinCalibration | None:
+    """The calibration `--calibration` names, or None; ValueError for options it excludes, a
+    file that is not one, or one for another protocol (when --protocol declares the stream's)
+    or kind of readings than the stream's."""
+    if arguments.calibration is None:
+        return None
+    if arguments.memory is not None:
+        raise ValueError("--calibration and --memory each bring a model to image at: give one")
+    options = {"h": "--h", "background": "--background", "contact_impedance": "--contact-impedance"}
+    given = [option for name, option in options.items() if getattr(arguments, name) is not None]
+    if given:
+        names = ", ".join(given)
+        raise ValueError(f"a calibration brings its model (mesh, level, contact impedances): give no {names}")
+    from ..calibration import load
+
+    calibration = load(arguments.calibration)
+    declared = _protocol(arguments.protocol, arguments.electrodes)
+    if declared is None and arguments.text:  # text lines without --protocol are adjacent ones
+        declared = _protocol("adjacent", arguments.electrodes)
+    _check_calibration(calibration, declared)  # before the device streams; the frames' protocol at the first
+    return calibration
+
+
+def _check_calibration(calibration: SkinCalibration, protocol: Protocol | None) -> None:
+    """ValueError for a calibration of another kind of readings than a stream's (signed) or,
+    when `protocol` is known, of another protocol."""
+    if calibration.readings != _STREAM_READINGS:
+        raise ValueError(
+            f"the calibration is for {calibration.readings} readings; the device's frames are {_STREAM_READINGS} "
+            "readings (in the protocol's order and sign)"
+        )
+    if protocol is not None and calibration.protocol != protocol:
+        mine, theirs = calibration.protocol, protocol
+        if (mine.n_electrodes, mine.n_measurements) == (theirs.n_electrodes, theirs.n_measurements):
+            which = f"other drives and measurements on the same {mine.n_electrodes} electrodes"
+        else:
+            which = (
+                f"{mine.n_electrodes} electrodes and {mine.n_measurements} readings; the frames' has "
+                f"{theirs.n_electrodes} and {theirs.n_measurements}"
+            )
+        raise ValueError(f"the calibration is for another protocol than the frames' ({which})")
+
+
 def _memory_fit(path: str | None) -> JointFit | None:
     """The joint fit `--memory` names, or None."""
     if path is None:
@@ -305,10 +374,19 @@ class _LiveViewer:
     frame, the state kept between batches, a dead band of `dead_band` standard deviations of the
     image noise, `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma.
 
+    With a skin calibration (`calibration`, `diffeit calibrate`'s): no calibration to the
+    reference; the images are made at the calibration's model and level, the reference mapped
+    by its `signed`, at its hyperparameter when "auto" asks and it has one.
+
+    With `touches`: each frame's touches are read from its image (`diffeit.touch.read`, one call
+    a batch; through the calibration's position map and polarity) and printed, a line a frame
+    beside its image's peak. A calibration that knows its readings' noise decides which frames
+    are touched by the voltage test of `diffeit.touch.touches`.
+
     The solves are direct (a matrix product, a closed-form memory step): what fails is a
     non-finite image (overflowing readings, a degenerate memory). `nonfinite` lists those
     frames (their index among the frames imaged, from 0); they are not drawn, their count is in
-    the title, and they do not enter the memory state."""
+    the title, no touches are read from them, and they do not enter the memory state."""
 
     def __init__(
         self,
@@ -320,16 +398,25 @@ class _LiveViewer:
         *,
         dead_band: float = DEAD_BAND,
         colour_limit: float = COLOUR_LIMIT,
+        calibration: SkinCalibration | None = None,
+        touches: bool = False,
     ) -> None:
         import matplotlib.pyplot as plt
 
-        self.mesh = settings.unit_disc(protocol.n_electrodes)
+        if calibration is not None and fit is not None:
+            raise ValueError("a skin calibration and a joint fit each bring a model to image at: give one")
+        self.mesh = settings.unit_disc(protocol.n_electrodes) if calibration is None else calibration.model.mesh
         self.fit = fit
         self.colour_limit = colour_limit
         self.imaged = 0
         self.nonfinite: list[int] = []
+        self.touches = touches
+        self.skin = calibration
+        self.raw_reference = reference.mean(axis=0)
+        self.reference_frames = len(reference)  # the touches' voltage test needs how many
+        self.start_time: float | None = None  # the host time of the first frame imaged
         if fit is None:
-            self._calibrate(protocol, settings, reference)
+            self._calibrate(protocol, settings, reference, calibration)
         else:
             import equinox as eqx
 
@@ -351,25 +438,43 @@ class _LiveViewer:
             plt.ion()
             plt.show()
 
-    def _calibrate(self, protocol: Protocol, settings: ModelSettings, reference: np.ndarray) -> None:
+    def _calibrate(
+        self, protocol: Protocol, settings: ModelSettings, reference: np.ndarray, skin: SkinCalibration | None
+    ) -> None:
         """The calibrated model and its solver (class docstring); prints what the calibration found."""
         from ..calibration import calibrate_to_reference
         from ..inverse import OneStep
 
-        calibration = calibrate_to_reference(
-            settings.model(self.mesh, protocol), reference, background=settings.background
-        )
+        if skin is None:
+            calibration = calibrate_to_reference(
+                settings.model(self.mesh, protocol), reference, background=settings.background
+            )
+        else:
+            _check_calibration(skin, protocol)
+            calibration = skin
         self.calibration = calibration
         self.reference = calibration.signed(reference.mean(axis=0))
         model, level = calibration.model, calibration.conductivity
-        hyperparameter = settings.hyperparameter_at(model, level)
+        if skin is not None and settings.hyperparameter == "auto" and skin.hyperparameter is not None:
+            # The position map was fitted on images made at it (as diffeit reconstruct does).
+            hyperparameter, chosen = float(skin.hyperparameter), "the calibration's"
+        else:
+            hyperparameter = settings.hyperparameter_at(model, level)
+            chosen = "noise figure" if settings.hyperparameter == "auto" else "given"
         self.solver = OneStep(model, prior=settings.prior, hyperparameter=hyperparameter, background=level)
-        print(
-            f"calibrated to the reference: misfit {calibration.misfit:.3f}, correlation {calibration.correlation:.3f}, "
-            f"orientation {calibration.orientation}, {int(calibration.used.sum())} of {len(calibration.used)} "
-            "readings; "
-            f"hyperparameter {hyperparameter:.3g}"
-        )
+        used = f"{int(calibration.used.sum())} of {len(calibration.used)} readings"
+        if skin is None:
+            print(
+                f"calibrated to the reference: misfit {calibration.misfit:.3f}, correlation "
+                f"{calibration.correlation:.3f}, orientation {calibration.orientation}, {used}; "
+                f"hyperparameter {hyperparameter:.3g}"
+            )
+        else:
+            mapped = "" if skin.position_map is None else f", position map of degree {skin.position_map.degree}"
+            print(
+                f"imaging at the calibration's model: level {level:.4g} S/sq, {used}{mapped}; "
+                f"hyperparameter {hyperparameter:.3g} ({chosen})"
+            )
         for note in calibration.warnings:
             print(f"warning: {note}")
 
@@ -385,6 +490,8 @@ class _LiveViewer:
             images = np.asarray(self.solver.solve(values - self.reference, throw=False).value)
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
+        if self.touches:
+            self._print_touches(batch, values, images, finite)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
         self.imaged += len(batch)
         image = images[-1]
@@ -415,6 +522,34 @@ class _LiveViewer:
         else:
             plt.pause(0.001)
         return len(batch)
+
+    def _print_touches(self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray) -> None:
+        """Print a line per frame of the batch: its index among the frames imaged, its time, its
+        image's peak and its touches (`diffeit.touch.read` on the finite images, one call)."""
+        from ..touch import read, touched
+
+        skin, found = self.skin, None
+        if finite.any():
+            frames_touched = touched(values[finite], self.raw_reference, skin, reference_frames=self.reference_frames)
+            found = read(
+                self.mesh,
+                images[finite],
+                polarity=-1 if skin is None else skin.polarity,
+                position_map=None if skin is None else skin.position_map,
+                touched=frames_touched,
+            )
+        row = np.cumsum(finite) - 1  # each finite image's row in `found`
+        for k, (frame, image) in enumerate(zip(batch, images, strict=True)):
+            if self.start_time is None:
+                self.start_time = frame.host_time
+            when = "" if frame.host_time is None else f" (t = {frame.host_time - self.start_time:.3f} s)"
+            if finite[k]:
+                lines = found.lines(int(row[k]))
+                peak = image.flat[np.argmax(np.abs(image))]
+                text = f"peak {peak:+.3f}; " + ("; ".join(lines) or "no touch")
+            else:
+                text = "not finite: no touches read"
+            print(f"frame {self.imaged + k}{when}: {text}", flush=True)
 
     def _corrected(self, images: np.ndarray, batch: list[hw.Frame]) -> np.ndarray:
         """The memoryless stimulus of the relative images (B, E) of `batch`, frame by frame."""

@@ -1,0 +1,139 @@
+"""diffeit.touch, method="fit": discs fitted to the voltages through the calibrated model,
+started from the image method's touches, with standard errors."""
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffeit as de
+from diffeit.calibration import PositionMap
+from diffeit.scene import Disc, FoamStack, shape_fraction
+from diffeit.touch import FIT_LEVEL
+
+PROTOCOL = de.protocol.adjacent(16)
+
+
+@pytest.fixture(scope="module")
+def calibration():
+    """A coarse skin (about 900 triangles) with contact impedances spread, calibrated on 10
+    untouched frames with noise of 1e-3 of the RMS reading (the calibration knows it)."""
+    rng = np.random.default_rng(7)
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
+    truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.5, 0.5, 16)))
+    reference = 1e3 * np.asarray(truth.measure(jnp.ones(mesh.n_elements)))
+    frames = reference + 1e-3 * np.sqrt(np.mean(reference**2)) * rng.standard_normal((10, len(reference)))
+    recording = de.io.Recording(
+        frames=frames, times=np.arange(10.0), protocol=PROTOCOL, mesh=mesh, voltage_unit="arbitrary"
+    )
+    return de.calibrate(recording)
+
+
+def recorded(calibration, signed: np.ndarray) -> np.ndarray:
+    """Recorded frames (..., M) whose `calibration.signed` is `signed` (..., M_used)."""
+    frames = np.ones((*signed.shape[:-1], PROTOCOL.n_measurements))
+    frames[..., calibration.used] = signed * np.asarray(calibration.readout.gains)
+    return frames * calibration.reading_sign
+
+
+def session(calibration, presses, seed: int):
+    """A reconstructed recording of one frame per press (a list of discs (centre, radius,
+    depth) each), simulated with the calibrated model itself (the fit's own smooth disc),
+    with the calibration's noise."""
+    rng = np.random.default_rng(seed)
+    model, level = calibration.model, calibration.conductivity
+    mesh = model.mesh
+    base = np.asarray(model.measure(jnp.full(mesh.n_elements, level)))
+    frames = []
+    for discs in presses:
+        change = sum(
+            depth * np.asarray(shape_fraction(mesh, Disc(jnp.asarray(centre), radius), level=FIT_LEVEL))
+            for centre, radius, depth in discs
+        )
+        voltages = np.asarray(model.measure(jnp.asarray(level * (1 + change))))
+        frames.append(voltages + calibration.noise * rng.standard_normal(len(voltages)))
+    recording = de.io.Recording(
+        frames=recorded(calibration, np.array(frames)),
+        times=np.arange(float(len(frames))),
+        protocol=PROTOCOL,
+        mesh=mesh,
+        reference=recorded(calibration, base),
+        voltage_unit="arbitrary",
+    )
+    return de.reconstruct(recording, calibration=calibration, difference="calibrated", progress=False)
+
+
+SINGLE = [
+    ((0.35, 0.2), 0.16, -0.3),
+    ((-0.45, 0.1), 0.14, -0.35),
+    ((0.05, -0.4), 0.18, -0.25),
+    ((-0.25, -0.3), 0.15, -0.3),
+]
+
+
+@pytest.fixture(scope="module")
+def single(calibration):
+    return session(calibration, [[press] for press in SINGLE], seed=1)
+
+
+def test_a_fitted_disc_is_where_the_simulated_one_was_closer_than_the_image_says(calibration, single):
+    image = de.touches(single, calibration)
+    fitted = de.touches(single, calibration, method="fit")
+    assert image.standard_errors is None and image.misfit is None
+    assert fitted.count.tolist() == [1] * len(SINGLE)
+    truth = np.array([[*centre, radius, depth] for centre, radius, depth in SINGLE])
+    found = np.concatenate([fitted.position[:, 0], fitted.radius[:, :1], fitted.depth[:, :1]], axis=1)
+    errors = fitted.standard_errors[:, 0]
+    distance = np.linalg.norm(found[:, :2] - truth[:, :2], axis=1)
+    assert np.all(distance < 0.008), distance  # metres, on a disc of radius 1 m: 2 to 3 standard errors
+    assert np.all(distance < np.linalg.norm(image.position[:, 0] - truth[:, :2], axis=1))
+    np.testing.assert_allclose(found[:, 2], truth[:, 2], rtol=0.3)
+    assert np.all(np.isfinite(errors)) and np.all(errors > 0)
+    assert np.all(np.abs(found - truth) < 3 * errors), (found - truth) / errors
+    assert np.all(fitted.misfit < 0.3)
+    np.testing.assert_array_equal(fitted.noise, image.noise)
+    assert "+-" in fitted.lines(0)[0]
+
+
+def test_two_separated_discs_are_both_recovered(calibration):
+    presses = [((0.45, 0.15), 0.17, -0.3), ((-0.35, -0.35), 0.17, -0.3)]
+    images = session(calibration, [presses], seed=2)
+    fitted = de.touches(images, calibration, method="fit")
+    assert fitted.count.tolist() == [2]
+    for centre, radius, depth in presses:
+        k = int(np.argmin(np.linalg.norm(fitted.position[0, :2] - centre, axis=1)))
+        assert np.linalg.norm(fitted.position[0, k] - centre) < 0.01
+        np.testing.assert_allclose(fitted.radius[0, k], radius, rtol=0.3)
+        np.testing.assert_allclose(fitted.depth[0, k], depth, rtol=0.3)
+    assert np.all(np.isnan(fitted.standard_errors[0, 2:]))
+
+
+def test_the_position_map_moves_the_fitted_centres_and_their_errors(calibration, single):
+    # A map that scales by 2 and shifts: positions mapped, position errors doubled.
+    read = np.random.default_rng(0).uniform(-0.7, 0.7, (12, 2))
+    mapping = PositionMap.fit(read, 2.0 * read + np.array([0.1, -0.2]))
+    mapped = eqx.tree_at(lambda c: c.position_map, calibration, mapping, is_leaf=lambda x: x is None)
+    plain = de.touches(single, calibration, method="fit")
+    moved = de.touches(single, mapped, method="fit", stack=FoamStack())
+    np.testing.assert_allclose(moved.position, 2.0 * plain.position + [0.1, -0.2], atol=1e-9)
+    np.testing.assert_allclose(moved.standard_errors[..., :2], 2.0 * plain.standard_errors[..., :2], rtol=1e-6)
+    np.testing.assert_allclose(moved.radius, plain.radius)
+    assert moved.pressure is not None and np.all(moved.pressure[:, 0] > 0)
+
+
+def test_without_the_noise_the_errors_come_from_the_residual(calibration, single):
+    unknown = eqx.tree_at(lambda c: c.noise, calibration, None)
+    fitted = de.touches(single, unknown, method="fit", threshold=4.0)
+    seen = fitted.count > 0
+    assert seen.sum() >= 3
+    errors = fitted.standard_errors[seen, 0]
+    assert np.all(np.isfinite(errors)) and np.all(errors > 0)
+    truth = np.array([centre for centre, _, _ in SINGLE])[seen]
+    assert np.all(np.linalg.norm(fitted.position[seen, 0] - truth, axis=1) < 0.01)
+
+
+def test_the_fit_needs_a_calibration_and_a_known_method(single):
+    with pytest.raises(ValueError, match="needs a calibration"):
+        de.touches(single, method="fit")
+    with pytest.raises(ValueError, match="method must be one of"):
+        de.touches(single, method="model")
