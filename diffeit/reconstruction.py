@@ -12,9 +12,17 @@ the recording's reference that it rests on (`calibrate_to_reference`).
   more than 30 times off the median g, or where V_ref or V_h is under 5% of its RMS, are
   masked (and reported): the Montreal gains span 12x, a reference reading near zero makes
   hundreds.
-- "auto" (the default): "calibrated" when the calibrated model reproduces the reference
-  (correlation at least 0.9), else "normalised": then the reference is not what the model
-  predicts, and gains per reading are the explanation left (measured on the real tanks:
+- "auto" (the default): with a skin calibration (`calibration=`, `diffeit.calibrate`),
+  "calibrated" when its model follows the reference at all (correlation at least 0.5): the
+  calibration fitted what its session determines, and on a simulated skin the gains per reading
+  barely moved the touches while a ratio per reading carried the model's error into the data
+  (docs/tutorials/calibration.md); on a real skin whose model correlated 0.77 with its
+  reference, calibrated differences placed presses at 20 mm, normalised ones at 28.5 mm. Below
+  0.5 (the Montreal tank, -0.48) "normalised": the rod's path spread 0.7% of its radius against
+  2.7% with calibrated differences. Without a skin calibration, "calibrated" when the
+  calibrated model reproduces the reference (correlation at least 0.9), else "normalised":
+  then the reference is not what the model predicts, and gains per reading are the
+  explanation left (measured on the real tanks:
   docs/tutorials/real-recordings.md#which-differences).
 
 ## Hyperparameter "auto"
@@ -85,6 +93,8 @@ SELECTION_METHODS = ("auto", "gcv", "lcurve", "noise_figure")
 
 # Normalised differences mask readings whose gain V_ref / V_model is this many times off the median.
 _LARGEST_GAIN = 30.0
+# With a skin calibration, "auto" takes normalised differences only below this correlation.
+_SKIN_LEAST_CORRELATION = 0.5
 # Gauss-Newton's "auto" hyperparameter over the one-step's (module docstring, "Hyperparameter").
 _GAUSS_NEWTON_FACTOR = 4.0
 # The solver each method names, and GREIT's design when its hyperparameter is "auto".
@@ -322,6 +332,11 @@ def _difference(difference: str, calibration: Any) -> tuple[str, str]:
     """The differences imaged, and why (module docstring, "Which differences")."""
     if difference != "auto":
         return difference, "given"
+    if isinstance(calibration, SkinCalibration) and calibration.correlation >= _SKIN_LEAST_CORRELATION:
+        return "calibrated", (
+            f"a skin calibration whose model follows the reference (correlation {calibration.correlation:.3f}): a "
+            "ratio per reading would carry the model's remaining error into every difference"
+        )
     if calibration.correlation >= _LEAST_CORRELATION:
         return (
             "calibrated",

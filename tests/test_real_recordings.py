@@ -80,3 +80,22 @@ def test_iirc_rod_moved_round_the_tank_is_imaged_going_round():
     assert spread < 0.1
     same_way, turn = _turning(positions, centre)
     assert same_way > 0.9 and turn > 4 * np.pi  # about three times round
+
+
+@pytest.mark.parametrize(
+    ("name", "frames", "reference", "difference"),
+    [
+        ("montreal_data_1995.mat", "zc_demo3", "zc_h_demo3", "normalised"),  # its model correlates -0.48
+        ("iirc_data_2006.mat", "v_rotate", "v_reference", "calibrated"),
+    ],
+)
+def test_the_tanks_through_a_skin_calibration_follow_the_rod_round(name, frames, reference, difference):
+    recording = de.io.read_eidors_mat(DATA / name, frames, reference=reference)
+    with pytest.warns(de.calibration.CalibrationWarning):
+        calibration = de.calibrate(recording)
+        result = de.reconstruct(recording, calibration=calibration, progress=False)
+    assert result.provenance["metadata"]["difference"] == difference
+    found = de.touches(result, calibration, polarity=-1)  # the rod is non-conductive
+    assert np.all(found.count >= 1)  # the rod is in every frame
+    _, radius, spread = _circle(found.position[:, 0])
+    assert spread < 0.06 and 0.3 < radius < 0.9  # measured spreads 0.006 (Montreal) and 0.052 (IIRC)
