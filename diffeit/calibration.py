@@ -104,14 +104,16 @@ import numpy as np
 import scipy.optimize
 
 from ._messages import name_indices
+from .fit import memory_from_presses
 from .forward import ForwardModel
 from .inverse import LinearisedProblem, OneStep, select_hyperparameter
 from .inverse.hyperparameter import DEFAULT_CANDIDATES
 from .io import Presses, Recording, create_checked, mesh_from_geometry, read_checked, write_atomically
+from .memory import MemoryParameters
 from .mesh import Mesh, disc, disc_fraction
 from .protocol import Protocol
 from .readout import Readout, roles
-from .results import RESULTS, names
+from .results import RESULTS, failed, names
 from .touch import read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
@@ -579,6 +581,8 @@ REFERENCE_GROUPS = ("contact_impedance",)
 _NOISE_FRAMES = 6
 # An L-curve corner within this factor of an end of the candidates counts as at the end.
 _CORNER_MARGIN = 10.0
+# A memory fit needs every press held over at least this many frames.
+_HELD_FRAMES = 3
 # The most misfits evaluated in the search for the labels' frame.
 _FRAME_EVALUATIONS = 80
 # Alternations between the presses' depths and the readout's mixing.
@@ -689,6 +693,9 @@ class SkinCalibration(eqx.Module):
         noise_frames: How many reference frames `noise` was estimated from.
         polarity: -1 when a press lowers the conductivity (the default without presses), +1
             when the presses raise it.
+        memory: The skin's `diffeit.memory.MemoryParameters` fitted to presses held over
+            several frames (each free field also in `values["memory.NAME"]`, its standard
+            error in `standard_errors["memory.NAME"]`), or None.
         hyperparameter: The one-step hyperparameter the presses were imaged at (images to be
             read through the position map are best made at it), or None.
         first_stage: The `ReferenceCalibration` the refinement started from (orientation,
@@ -717,6 +724,7 @@ class SkinCalibration(eqx.Module):
     noise: np.ndarray | None
     noise_frames: int
     polarity: int
+    memory: MemoryParameters | None
     first_stage: ReferenceCalibration
     warnings: tuple[str, ...]
     protocol: Protocol = eqx.field(static=True)
@@ -783,6 +791,15 @@ class SkinCalibration(eqx.Module):
             lines.append(
                 f"labels' frame onto the mesh's: scale {math.exp(scale):.4g}, rotation {math.degrees(angle):+.1f} deg, "
                 f"offset ({x:+.4g}, {y:+.4g}) m"
+            )
+        memory = [name.split(".", 1)[1] for name in self.values if name.startswith("memory.")]
+        if memory:
+            lines.append(
+                "memory: "
+                + ", ".join(
+                    f"{name} {self.values['memory.' + name][0]:.3g} +- {self.standard_errors['memory.' + name][0]:.2g}"
+                    for name in memory
+                )
             )
         if self.position_map is not None:
             errors = ", ".join(f"{degree}: {1e3 * error:.1f} mm" for degree, error in self.position_map.errors.items())
@@ -908,6 +925,7 @@ def calibrate(
     priors: Mapping[str, float] | None = None,
     reference_groups: tuple[str, ...] = REFERENCE_GROUPS,
     hyperparameter: float | None = None,
+    memory: bool = True,
 ) -> SkinCalibration:
     """Calibrate the model of a real skin and board from a calibration session.
 
@@ -916,6 +934,8 @@ def calibrate(
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, with standard errors, and per-reading gains.
+    With presses held over several frames, the skin's memory is fitted to the whole session's
+    images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
     With labelled `presses`: each press is imaged at the calibrated model (`diffeit.inverse.
     OneStep`, NOSER prior), read as a touch (`diffeit.touch.read`), and a `PositionMap`
     from read to labelled positions is fitted, its degree chosen by cross-validation.
@@ -937,6 +957,9 @@ def calibrate(
             docs/tutorials/calibration.md). The readout's mixing is fitted to the presses.
         hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
             it from the presses' frames (`auto_hyperparameter`).
+        memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
+            memory to the session's images, the presses' footprints and holds known
+            (`diffeit.fit.memory_from_presses`).
 
     Returns:
         The `SkinCalibration`.
@@ -973,11 +996,14 @@ def calibrate(
     if presses is None:
         return calibration
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
-    calibration, _ = _fit_frame_and_mixing(
+    calibration, frame = _fit_frame_and_mixing(
         calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0]
     )
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
-    return _with_position_map(calibration, presses, found, chosen, polarity)
+    calibration = _with_position_map(calibration, presses, found, chosen, polarity)
+    if memory and _held(presses, recording.times):
+        calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
+    return calibration
 
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
@@ -1086,6 +1112,7 @@ def _refine(
         noise=np.abs(first.signed(frames.std(axis=0, ddof=1))) / structured if len(frames) >= _NOISE_FRAMES else None,
         noise_frames=len(frames),
         polarity=-1,
+        memory=None,
         first_stage=first,
         warnings=tuple(notes),
         protocol=recording.protocol,
@@ -1437,6 +1464,46 @@ def auto_hyperparameter(
     return choice[method]["value"], {**choice, "method": method}
 
 
+def _held(presses: Presses, times: np.ndarray) -> bool:
+    """Whether every press is held over at least `_HELD_FRAMES` frames (a memory fit needs the holds)."""
+    return all(len(chosen) >= _HELD_FRAMES for chosen in presses.frames(times)) and bool(
+        np.all(presses.times[:, 1] > presses.times[:, 0])
+    )
+
+
+def _with_memory(
+    calibration: SkinCalibration, recording: Recording, presses: Presses, reference: np.ndarray, hyperparameter: float
+) -> SkinCalibration:
+    """`calibration` with the skin's memory fitted to the session's one-step images, the
+    presses (in the mesh's frame) known but for their depths."""
+    level = calibration.conductivity
+    dv = calibration.signed(recording.frames) - calibration.signed(np.atleast_2d(reference).mean(axis=0))
+    solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
+    images = np.asarray(solver.solve(dv, throw=True).value) / level
+    patterns = np.stack(
+        [_disc_pattern(calibration.model.mesh, c, r) for c, r in zip(presses.centres, presses.radius, strict=True)]
+    )
+    fit = memory_from_presses(images, recording.times, patterns, presses.times, throw=False)
+    notes = list(calibration.warnings)
+    if failed(fit.result).any():
+        notes.append(f"the memory fit to the presses did not converge ({names(fit.result)[0]}): no memory")
+        return eqx.tree_at(lambda c: c.warnings, calibration, tuple(notes))
+    fields = [name for name in fit.standard_errors if name != "depths"]
+    values = {f"memory.{name}": np.atleast_1d(float(getattr(fit.memory, name))) for name in fields}
+    errors = {f"memory.{name}": np.atleast_1d(float(fit.standard_errors[name])) for name in fields}
+    return eqx.tree_at(
+        lambda c: (c.memory, c.values, c.standard_errors, c.fitted),
+        calibration,
+        (
+            fit.memory,
+            {**calibration.values, **values},
+            {**calibration.standard_errors, **errors},
+            {**calibration.fitted, "presses": (*calibration.fitted["presses"], "memory")},
+        ),
+        is_leaf=lambda node: node is None,
+    )
+
+
 def _read_presses(
     calibration: SkinCalibration,
     recording: Recording,
@@ -1596,6 +1663,12 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
             {
                 "undetermined": list(calibration.undetermined),
                 "fitted": {source: list(groups) for source, groups in calibration.fitted.items()},
+                "memory": None
+                if calibration.memory is None
+                else {
+                    field.name: float(getattr(calibration.memory, field.name))
+                    for field in dataclasses.fields(calibration.memory)
+                },
                 "warnings": list(calibration.warnings),
                 "first_stage": calibration.first_stage.summary(),
                 "position_map": None
@@ -1731,6 +1804,7 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         noise=arrays.get("noise"),
         noise_frames=int(attributes["noise_frames"]),
         polarity=int(attributes["polarity"]),
+        memory=None if stored["memory"] is None else MemoryParameters(**stored["memory"]),
         hyperparameter=None if hyperparameter < 0 else hyperparameter,
         first_stage=first_stage,
         warnings=tuple(stored["warnings"]),

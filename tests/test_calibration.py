@@ -1,6 +1,8 @@
 """diffeit.calibration: the skin's model fitted to a calibration session, the position map
 from labelled presses, and the calibration file."""
 
+import dataclasses
+
 import h5py
 import jax.numpy as jnp
 import numpy as np
@@ -217,3 +219,28 @@ def test_a_session_without_labels_is_calibrated_on_its_untouched_frames(mixing_s
     pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
     assert np.all(found.count[pressed] >= 1)
     assert np.mean(found.count[np.setdiff1d(np.arange(recording.n_frames), pressed)] == 0) > 0.9
+
+
+def test_presses_held_over_frames_give_the_skins_memory_and_it_round_trips(tmp_path):
+    """A skin without memory (the board reads each press at once and lets go at once): the fitted
+    fractions of the slow and fast modes come out small."""
+    rng = np.random.default_rng(7)
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.12)
+    model = de.ForwardModel(mesh, PROTOCOL)
+    reference = np.asarray(model.measure(jnp.ones(mesh.n_elements)))
+    centres = rng.uniform(-0.45, 0.45, (6, 2))
+    frames = [reference] * 10
+    for centre in centres:
+        pressed = np.asarray(model.measure(jnp.asarray(1 - 0.3 * de.mesh.disc_fraction(mesh, tuple(centre), 0.2))))
+        frames += [pressed] * 5 + [reference] * 5
+    frames = np.array(frames) * (1 + 1e-3 * rng.standard_normal((len(frames), 208)))
+    times = 0.1 * np.arange(len(frames))
+    windows = np.stack([times[10::10][:6], times[14::10][:6]], axis=1)
+    recording = de.io.Recording(frames=frames, times=times, protocol=PROTOCOL, mesh=mesh)
+    calibration = de.calibrate(recording, de.io.Presses(centres, 0.2, windows))
+    assert calibration.memory is not None and "memory" in calibration.fitted["presses"]
+    assert float(calibration.memory.fast_fraction) + float(calibration.memory.slow_fraction) < 0.15
+    assert any(line.startswith("memory: ") for line in calibration.lines())
+    again = de.calibration.load(calibration.save(tmp_path / "memory.cal.h5"))
+    for field in dataclasses.fields(calibration.memory):
+        assert float(getattr(again.memory, field.name)) == float(getattr(calibration.memory, field.name))

@@ -36,5 +36,6 @@ from ._memory import correct_memory as correct_memory
 from ._memory import correct_memory_step as correct_memory_step
 from ._memory import memory as memory
 from ._memory import ordered_modes as ordered_modes
+from ._presses import memory_from_presses as memory_from_presses
 from ._uncertainty import MemoryUncertainty as MemoryUncertainty
 from ._uncertainty import memory_uncertainty as memory_uncertainty
