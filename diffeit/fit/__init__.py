@@ -15,7 +15,9 @@ recorded frames:
   keep a fit, `joint(..., initial=fit)` resumes it, and `joint(..., on_step=...)` hands out
   the fit so far at every step (`JointProgress`: to save, and resume after a kill);
 - `memory_uncertainty`: how well the frames determine a joint fit's memory parameters (standard
-  errors and correlations, the Cramer-Rao bound at the fit).
+  errors and correlations, the Cramer-Rao bound at the fit);
+- `memory_from_presses`: the memory parameters from images of labelled presses (footprints and
+  holds known, depths fitted), with their standard errors: what `diffeit.calibrate` uses.
 
 Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RESULTS`) and takes
 `throw=`.
