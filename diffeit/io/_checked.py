@@ -261,9 +261,7 @@ def _warn_if_unchecked(file: h5py.File, path: Path) -> None:
         )
 
 
-def write_atomically(
-    path: str | os.PathLike, write: Callable[[h5py.File], None], *, overwrite: bool = False
-) -> Path:
+def write_atomically(path: str | os.PathLike, write: Callable[[h5py.File], None], *, overwrite: bool = False) -> Path:
     """Create an HDF5 file by `write(file)` under a temporary name, then rename it into place.
 
     An interrupted write leaves no half-written file at `path` (and, with `overwrite=True`,
