@@ -21,7 +21,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff check diffeit hw tests benchmarks examples experiments
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest --durations=20  # the 20 slowest tests at the end: creep shows
+	$(BIN)/python -m pytest -n 2 --dist worksteal --durations=20  # both cores; the 20 slowest tests at the end
 
 BENCH_FLAGS ?=
 
