@@ -178,7 +178,7 @@ def test_openeit_refuses_files_of_another_kind_naming_the_file(tmp_path, content
 @pytest.mark.parametrize(
     ("content", "message"),
     [
-        (b"1.5,2.5,3.5\n4.5,5.5,6.", r"the last line does not end in a newline: the file is cut short"),
+        (b"1.5,2.5,3.5\n4.5,5.5,6.", r"line 2, the last, does not end in a newline: the file is cut short"),
         (b"\x89PNG\r\n\x1a\n\x00\x00", r"line 1 is not UTF-8 text \(byte 0\)"),
         (b"1,2\n" + b"x" * 200_000 + b"\n", "line 2 is not CSV: field larger than field limit"),
         (b"", "holds no rows of values"),

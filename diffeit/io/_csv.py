@@ -15,6 +15,28 @@ from ..protocol import Protocol, adjacent
 from ._recording import Recording
 
 
+def checked_text(path: Path) -> str:
+    """The text of a file of text rows: UTF-8 (a byte-order mark skipped), every line ended.
+
+    Raises:
+        ValueError: Naming the file and line, for bytes that are not UTF-8 (not a text file?)
+            and for a last line without its newline (the file cut short, or its writer left the
+            newline out).
+    """
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = data[: error.start].count(b"\n") + 1
+        raise ValueError(f"{path}: line {line} is not UTF-8 text (byte {error.start}): not a CSV file?") from None
+    if text and not text.endswith(("\n", "\r")):
+        raise ValueError(
+            f"{path}: line {len(text.splitlines())}, the last, does not end in a newline: the file is cut short, or "
+            "its writer left the newline out (add it if the last row is whole)"
+        )
+    return text
+
+
 def read_csv(
     path: str | os.PathLike,
     protocol: Protocol | None = None,
@@ -65,17 +87,7 @@ def read_csv(
         raise ValueError(f"frame_rate must be positive (frames per second); got {frame_rate}")
     if not path.exists():
         raise FileNotFoundError(f"no such CSV file: {path}")
-    data = path.read_bytes()
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as error:
-        line = data[: error.start].count(b"\n") + 1
-        raise ValueError(f"{path}: line {line} is not UTF-8 text (byte {error.start}): not a CSV file?") from None
-    if text and not text.endswith(("\n", "\r")):
-        raise ValueError(
-            f"{path}: the last line does not end in a newline: the file is cut short, or its writer left the "
-            "newline out (add it if the last row is whole)"
-        )
+    text = checked_text(path)
     reader = csv.reader(io.StringIO(text, newline=""), delimiter=delimiter)
     try:
         rows = [(number, row) for number, row in enumerate(reader, start=1) if row]

@@ -8,6 +8,7 @@ import math
 import os
 from pathlib import Path
 
+from ._csv import checked_text
 from ._presses import Presses
 
 # The columns: where, how wide, and either an instant or a hold's start and end.
@@ -41,18 +42,7 @@ def read_presses(path: str | os.PathLike) -> Presses:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such presses file: {path}")
-    data = path.read_bytes()
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as error:
-        line = data[: error.start].count(b"\n") + 1
-        raise ValueError(f"{path}: line {line} is not UTF-8 text (byte {error.start}): not a CSV file?") from None
-    if text and not text.endswith(("\n", "\r")):
-        line = len(text.splitlines())
-        raise ValueError(
-            f"{path}: line {line}, the last, does not end in a newline: the file is cut short, or its writer left "
-            "the newline out (add it if the last row is whole)"
-        )
+    text = checked_text(path)
     reader = csv.reader(io.StringIO(text, newline=""))
     try:
         rows = [(reader.line_num, row) for row in reader if any(item.strip() for item in row)]
