@@ -66,8 +66,14 @@ first stage's (docs/tutorials/calibration.md).
 
 ## Presses
 
-With labelled presses (`diffeit.io.Presses`), two fits follow.
+With labelled presses (`diffeit.io.Presses`), these fits follow.
 
+- **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
+  the presses' images.
+- **The labels' frame** (scale, rotation, offset against the mesh's), the one whose discs
+  explain the presses' differences best: Nelder-Mead on the presses' misfit (a mixing fit at
+  each step) from the better of the mesh's own frame and the similarity that maps the labels
+  onto the positions read (`_fit_frame_and_mixing`).
 - **The readout's mixing**, from the presses' differences: each press is a disc of the
   labelled centre and radius with an unknown depth, linearised at the calibrated level; the
   mixing enters linearly, and the depths and the mixing weights (with their prior) are solved
@@ -79,6 +85,9 @@ With labelled presses (`diffeit.io.Presses`), two fits follow.
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
   orientation, scale and offset against the labels' frame), 2 or 3, or none, chosen by
   leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
+- **Memory**, when every press is held over several frames: the skin's memory parameters
+  fitted to the session's images with the presses' footprints and holds known
+  (`diffeit.fit.memory_from_presses`).
 
 The calibrated `ForwardModel` folds the mixing into its protocol's reading weights; gains
 divide the recorded frames (`SkinCalibration.signed`). Electrode positions are the mesh's (not
