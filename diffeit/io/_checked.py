@@ -18,6 +18,8 @@ renamed when complete, so an interrupted write leaves nothing half-written at th
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import functools
 import os
 import time
 import uuid
@@ -37,6 +39,11 @@ LIBVER = "v110"
 GROWTH_WAIT = 1.0
 # Seconds a reader waits while another process holds a file's lock (a recorder creating it).
 LOCK_WAIT = 5.0
+# Tries HDF5 gives a metadata block that fails its checksum under SWMR access (a writer may be
+# rewriting it). HDF5 waits twice as long before each try, and its default of 100 tries waits
+# for hours on a damaged byte; 10 tries wait about a millisecond, and `read_checked` then tries
+# the whole read again for up to GROWTH_WAIT seconds.
+SWMR_READ_ATTEMPTS = 10
 
 _SIGNATURE = b"\x89HDF\r\n\x1a\n"
 # Where a superblock may start: 0, or after a user block of 512 bytes times a power of two.
@@ -139,8 +146,10 @@ def open_checked(path: str | os.PathLike, mode: str = "r", *, what: str = "HDF5 
         )
     # A writer that did not close the file left it marked open; SWMR access reads it regardless.
     swmr = mode == "r" and superblock.open_for_writing and superblock.version >= 3
+    # Built outside the `try`: an HDF5 without the setting is not damage in the file.
+    access = _swmr_access() if swmr else None
     try:
-        file = _open_locked(path, mode, swmr=swmr)
+        file = _open_locked(path, mode, access)
     except (OSError, RuntimeError, ValueError) as error:
         raise ValueError(f"{path} is damaged or not a {what}: {_first_line(error)}") from None
     with file:
@@ -318,17 +327,51 @@ def _complete_superblock(path: Path, what: str) -> Superblock:
         time.sleep(0.02)
 
 
-def _open_locked(path: Path, mode: str, **options: Any) -> h5py.File:
+def _open_locked(path: Path, mode: str, swmr_access: h5py.h5p.PropFAID | None) -> h5py.File:
     """h5py.File, waiting up to LOCK_WAIT seconds while another process holds the file's lock
-    (a recorder creating the file, or reopening it as it closes)."""
+    (a recorder creating the file, or reopening it as it closes); read with SWMR access through
+    `swmr_access` when given."""
     deadline = time.monotonic() + LOCK_WAIT
     while True:
         try:
-            return h5py.File(path, mode, **options)
+            if swmr_access is None:
+                return h5py.File(path, mode)
+            flags = h5py.h5f.ACC_RDONLY | h5py.h5f.ACC_SWMR_READ
+            return h5py.File(h5py.h5f.open(os.fsencode(path), flags, fapl=swmr_access))
         except BlockingIOError:
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.02)
+
+
+def _swmr_access() -> h5py.h5p.PropFAID:
+    """File access for SWMR reading: SWMR_READ_ATTEMPTS tries of a metadata block, set by
+    H5Pset_metadata_read_attempts, which h5py does not wrap (called through ctypes in the HDF5
+    library h5py is linked to)."""
+    access = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
+    setter = _hdf5_function("H5Pset_metadata_read_attempts")
+    setter.argtypes, setter.restype = [ctypes.c_int64, ctypes.c_uint], ctypes.c_int
+    if setter(access.id, SWMR_READ_ATTEMPTS) < 0:
+        raise RuntimeError(f"HDF5 refused {SWMR_READ_ATTEMPTS} metadata read attempts")
+    return access
+
+
+@functools.cache
+def _hdf5_function(name: str) -> Any:
+    """A function of the HDF5 library that h5py uses. Looked up through h5py's own extension
+    module, whose symbol scope holds the library it was linked to (Linux, macOS), then in the
+    libraries h5py's wheels bundle beside it (Windows)."""
+    folder = Path(h5py.__file__).parent
+    candidates = [Path(h5py.h5p.__file__)]
+    for bundle in (folder, folder.parent / "h5py.libs", folder / ".dylibs"):
+        candidates += sorted(p for p in bundle.glob("*hdf5*") if "_hl" not in p.name and p.suffix != ".py")
+    for candidate in candidates:
+        with contextlib.suppress(OSError, AttributeError):
+            return getattr(ctypes.CDLL(str(candidate)), name)
+    raise RuntimeError(
+        f"{name} was not found in the HDF5 library h5py uses; diffeit cannot read a file a recorder holds open "
+        "without risking a hang on damage"
+    )
 
 
 def _publish(temporary: Path, path: Path, overwrite: bool) -> None:
