@@ -137,11 +137,32 @@ class JointParameters(eqx.Module):
     stimulus: jax.Array
 
     def group(self, name: str) -> Any:
-        """The unknowns of one group of `GROUPS`."""
+        """The unknowns of one group.
+
+        Arguments:
+            name: One of `GROUPS`: "background", "contact_impedance", "memory" or "stimulus".
+
+        Returns:
+            The group's field: `log_background`, `log_contact_impedance`, `memory` or
+            `stimulus`.
+
+        Raises:
+            KeyError: For a name not in `GROUPS`.
+        """
         return getattr(self, _FIELDS[name])
 
     def with_groups(self, groups: Mapping[str, Any]) -> JointParameters:
-        """These parameters with the groups of `groups` replaced."""
+        """These parameters with some groups replaced.
+
+        Arguments:
+            groups: New values by group name (of `GROUPS`), each of its field's structure.
+
+        Returns:
+            The new `JointParameters`; the groups not named keep their values.
+
+        Raises:
+            KeyError: For a name not in `GROUPS`.
+        """
         return dataclasses.replace(self, **{_FIELDS[name]: value for name, value in groups.items()})
 
 
@@ -254,6 +275,7 @@ class JointFit(eqx.Module):
 
         Raises:
             FileExistsError: For an existing file without `overwrite=True`.
+            FileNotFoundError: When the folder of `path` does not exist.
         """
         settings, parameters = self.settings, self.parameters
 
@@ -401,15 +423,44 @@ def _smoothed_abs(x: jax.Array, eps: float) -> jax.Array:
     return jnp.sqrt(x * x + eps * eps) - eps
 
 
+class _OfGroups(eqx.Module):
+    """J as a function of the free groups alone (the others held at `start`): a Module, not a
+    closure, so that the next fit of the same shapes reuses the compiled optimiser step."""
+
+    problem: JointProblem
+    start: JointParameters
+
+    def __call__(self, groups: Mapping[str, Any]) -> jax.Array:
+        return self.problem(self.start.with_groups(groups))
+
+
 class JointProblem(eqx.Module):
-    """The joint fit's objective J (docs/science.md#joint-fit) as a function of `JointParameters`.
+    """The joint fit's objective J as a function of `JointParameters`.
 
-    `problem(parameters)` is J; `problem.terms(parameters)` its parts by name (the misfit and
-    each prior); `problem.state(parameters)` the background, contact impedance, memory and
-    response; `problem.voltages(parameters)` the frames' readings. All are pure JAX (jit, grad).
+    `problem(parameters)` is J (docs/science.md#joint-fit), in units of one frame's misfit at
+    the noise level; `problem.terms(parameters)` its parts by name (the misfit and each prior);
+    `problem.state(parameters)` the background, contact impedance, memory and response;
+    `problem.voltages(parameters)` the frames' readings. All are pure JAX (jit, grad). The
+    constructor takes the data as they are: `joint` checks them.
 
-    - `model`: the forward model; `frames`: (T, M) volts; `times`: (T,) seconds;
-      `settings`: `JointSettings`.
+    Arguments:
+        model: The `ForwardModel` of the fit's mesh and protocol.
+        frames: (T, M) the recorded readings, volts.
+        times: (T,) the frame times, seconds.
+        settings: The `JointSettings`: free groups, priors, data scale and prior centres.
+
+    Attributes:
+        model: The forward model.
+        frames: (T, M) the readings, volts.
+        times: (T,) the frame times, seconds.
+        settings: The `JointSettings`.
+        area_fractions: (E,) each element's share A_e / A of the sheet's area.
+        neighbours: (first, second), two (P,) index arrays: the P pairs of elements that share
+            an edge.
+        edge_weights: (P,) l_ij / d_ij, the shared edge's length over the distance of the
+            centroids (the background prior's weights).
+        edge_lengths: (P,) l_ij / sqrt(A), the shared edge's length relative to the sheet's
+            size (the total variation's weights).
     """
 
     model: ForwardModel
@@ -440,25 +491,62 @@ class JointProblem(eqx.Module):
         return memory, memory_response(parameters.stimulus, self.times, memory)
 
     def state(self, parameters: JointParameters) -> tuple[jax.Array, jax.Array, MemoryParameters, jax.Array]:
-        """(background (E,) S/sq, contact impedance (L,) ohm m, memory, response (T, E))."""
+        """The skin the unknowns describe.
+
+        Arguments:
+            parameters: The `JointParameters`.
+
+        Returns:
+            (background, contact impedance, memory, response): (E,) S/sq, (L,) ohm m, the
+            `MemoryParameters` (the free fields from `parameters`, the others the memory
+            prior's centre) and (T, E) dsigma/sigma.
+        """
         memory, response = self._response(parameters)
         return jnp.exp(parameters.log_background), jnp.exp(parameters.log_contact_impedance), memory, response
 
     def log_conductivity(self, parameters: JointParameters) -> jax.Array:
-        """(T, E) ln of every frame's conductivity, ln(S/sq): ln b + ln(1 + r) through the smooth
-        floor, held within e^15 of the median background (docs/science.md#joint-fit)."""
+        """The log conductivity of every frame: ln b + ln(1 + r).
+
+        1 + r enters through a smooth floor at 0.01, and the result is held within a factor
+        e^15 of the median background (docs/science.md#joint-fit), so every trial step is
+        solvable.
+
+        Arguments:
+            parameters: The `JointParameters`.
+
+        Returns:
+            (T, E) ln sigma, ln(S/sq).
+        """
         log_sigma = parameters.log_background + _log_floored(1 + self._response(parameters)[1])
         middle = jax.lax.stop_gradient(jnp.median(parameters.log_background))
         return jnp.clip(log_sigma, middle - _CONTRAST, middle + _CONTRAST)
 
     def voltages(self, parameters: JointParameters) -> jax.Array:
-        """(T, M) the readings of every frame, volts."""
+        """The model's readings of every frame.
+
+        The contact impedance is held within a factor e^30 of 1 ohm m.
+
+        Arguments:
+            parameters: The `JointParameters`.
+
+        Returns:
+            (T, M) readings, volts.
+        """
         sigma = jnp.exp(self.log_conductivity(parameters))
         z = jnp.exp(jnp.clip(parameters.log_contact_impedance, -_CONTRAST_Z, _CONTRAST_Z))
         return jax.vmap(self.model.measure, in_axes=(0, None))(sigma, z)
 
     def terms(self, parameters: JointParameters) -> dict[str, jax.Array]:
-        """The misfit and each prior term of J, by name (their sum is J)."""
+        """The misfit and each prior term of J, by name; their sum is J.
+
+        Arguments:
+            parameters: The `JointParameters`.
+
+        Returns:
+            Scalars by name, in units of one frame's misfit at the noise level: "misfit",
+            "background", "stimulus", "stimulus_variation", "stimulus_change", "memory" and
+            "contact_impedance" (the weights of `JointPriors` included).
+        """
         settings, priors = self.settings, self.settings.priors
         residual = (self.voltages(parameters) - self.frames) / settings.data_scale
         first, second = self.neighbours
@@ -482,13 +570,22 @@ class JointProblem(eqx.Module):
         }
 
     def __call__(self, parameters: JointParameters) -> jax.Array:
+        """J at `parameters`: the sum of `terms`, a scalar."""
         return sum(self.terms(parameters).values(), start=jnp.zeros(()))
 
     def scales(self, parameters: JointParameters) -> JointParameters:
-        """The optimiser's unit of each unknown: 1 / sqrt of the objective's curvature there at
-        `parameters` (docs/science.md#joint-fit): the misfit's Gauss-Newton diagonal from the Jacobian at
-        the frames' mean conductivity, plus the priors' curvature (the sparsity terms' largest,
-        at zero)."""
+        """The optimiser's unit of each unknown: 1 / sqrt of the objective's curvature there.
+
+        The curvature at `parameters` (docs/science.md#joint-fit) is the misfit's Gauss-Newton
+        diagonal from the Jacobian at the frames' mean conductivity, plus the priors' curvature
+        (the sparsity terms' largest, at zero): a diagonal preconditioner.
+
+        Arguments:
+            parameters: The `JointParameters` (the start).
+
+        Returns:
+            The units, as `JointParameters` of the same structure.
+        """
         settings, priors = self.settings, self.settings.priors
         n_frames, n_readings = self.frames.shape
         weight = 2 / (n_readings * settings.data_scale**2)
@@ -660,7 +757,7 @@ def joint(
         on_step(JointProgress(steps, float(so_far.objective[-1]), partial(_joint_fit, problem, start, resumed, so_far)))
 
     minimum = minimise(
-        lambda groups: problem(start.with_groups(groups)),
+        _OfGroups(problem, start),
         {name: start.group(name) for name in free},
         units={name: scales.group(name) for name in free},
         max_steps=max_steps,

@@ -91,7 +91,7 @@ def minimise(
     units = jax.tree_util.tree_map(jnp.ones_like, initial) if units is None else units
     scaled = _Scaled(objective, initial, units)
     flat = jnp.zeros(sum(jnp.size(leaf) for leaf in jax.tree_util.tree_leaves(initial)), _dtype(initial))
-    state = solver.init(scaled, flat, None, {}, jax.ShapeDtypeStruct((), flat.dtype), None, frozenset())
+    state = _init(solver, scaled, flat)
 
     def record(value, gradient) -> None:
         objectives.append(float(value))
@@ -170,6 +170,14 @@ class _Scaled(eqx.Module):
 def _dtype(tree: Any):
     leaves = jax.tree_util.tree_leaves(tree)
     return jnp.result_type(*leaves) if leaves else jnp.result_type(float)
+
+
+@eqx.filter_jit
+def _init(solver: optx.LBFGS, scaled: _Scaled, w: jax.Array) -> Any:
+    """The solver's state at `w`. Jitted, although it computes little: the state holds the
+    inverse Hessian as a function traced anew on each call (a new jaxpr), and `_step` would be
+    compiled again for each one; jitted, a second call returns the first call's."""
+    return solver.init(scaled, w, None, {}, jax.ShapeDtypeStruct((), w.dtype), None, frozenset())
 
 
 @eqx.filter_jit
