@@ -152,10 +152,20 @@ def _checked_point(point, name: str) -> np.ndarray:
 
 
 def peak(image: np.ndarray) -> float:
-    """The signed value of largest magnitude, p = x_k*, k* = argmax |x_k| (the image's unit).
+    """The peak of an image: its signed value of largest magnitude.
 
-    `image` is any array of values (an element image (E,), a GREIT image); pass
-    `image[grid.mask]` for a rendered image (NaN off the mask)."""
+    p = x_k* with k* = argmax_k |x_k|, signed: a touch's conductivity drop gives p < 0. No
+    geometry is needed: pass `image[grid.mask]` for a rendered image (NaN off the mask).
+
+    Arguments:
+        image: Any array of values (an element image (E,), a GREIT image), in any unit.
+
+    Returns:
+        p, in the image's unit.
+
+    Raises:
+        ValueError: For an empty image, non-finite values, or an all-zero image (no peak).
+    """
     values = _checked_values(image)
     return float(values.flat[np.argmax(np.abs(values))])
 
@@ -172,8 +182,23 @@ def _checked_values(image: np.ndarray) -> np.ndarray:
 
 
 def amplitude_set(image: np.ndarray, fraction: float) -> np.ndarray:
-    """Boolean array of `image`'s shape: values at or beyond `fraction` of the peak on the
-    peak's side, S_f = {k : sign(p) x_k >= f |p|}, f in (0, 1]. Never empty (it holds the peak)."""
+    """The amplitude set S_f: the values at or beyond a fraction of the peak, on the peak's side.
+
+    S_f = {k : sign(p) x_k >= f |p|}, p the `peak`: for a negative peak, the values <= f p.
+    Never empty (it holds the peak). No geometry is needed: pass `image[grid.mask]` for a
+    rendered image.
+
+    Arguments:
+        image: Any array of values, in any unit.
+        fraction: f, in (0, 1].
+
+    Returns:
+        A boolean array of `image`'s shape, True in S_f.
+
+    Raises:
+        ValueError: For a fraction outside (0, 1], an empty image, non-finite values, or an
+            all-zero image (no peak).
+    """
     if not (np.isfinite(fraction) and 0 < fraction <= 1):
         raise ValueError(f"fraction of the peak must be in (0, 1]; got {fraction}")
     values = _checked_values(image)
@@ -182,8 +207,19 @@ def amplitude_set(image: np.ndarray, fraction: float) -> np.ndarray:
 
 
 def half_amplitude_set(image: np.ndarray) -> np.ndarray:
-    """Boolean array of `image`'s shape: values at or beyond half the peak, on the peak's side
-    (`amplitude_set(image, 0.5)`). For a negative peak p: the values <= p / 2."""
+    """The half-amplitude set S: the values at or beyond half the peak, on the peak's side.
+
+    `amplitude_set(image, 0.5)`: for a negative peak p, the values <= p / 2.
+
+    Arguments:
+        image: Any array of values, in any unit.
+
+    Returns:
+        A boolean array of `image`'s shape, True in S.
+
+    Raises:
+        ValueError: For an empty image, non-finite values, or an all-zero image (no peak).
+    """
     return amplitude_set(image, 0.5)
 
 
@@ -195,24 +231,82 @@ def _cell_set(cells: _Cells, fraction: float) -> np.ndarray:
 
 
 def integral(geometry: Geometry, image: np.ndarray) -> float:
-    """sum_k a_k x_k: the image integrated over the domain (image unit x m^2)."""
+    """The image integrated over the domain: sum_k a_k x_k.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+
+    Returns:
+        The integral, in the image's unit times m^2.
+
+    Raises:
+        ValueError: For another geometry, an image of the wrong shape, or non-finite values (in
+            the mask).
+    """
     cells = _cells(geometry, image)
     return float(cells.areas @ cells.values)
 
 
 def reconstructed_area(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
-    """A = sum_(k in S_f) a_k, m^2: the area of the (half-)amplitude set."""
+    """The area of the amplitude set: A = sum_(k in S_f) a_k.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        fraction: f of the amplitude set S_f, in (0, 1]; default 1/2, the half-amplitude set.
+
+    Returns:
+        A, m^2.
+
+    Raises:
+        ValueError: For another geometry, an image of the wrong shape, non-finite values (in
+            the mask), an all-zero image (no peak), or a fraction outside (0, 1].
+    """
     cells = _cells(geometry, image)
     return float(cells.areas[_cell_set(cells, fraction)].sum())
 
 
 def equivalent_radius(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
-    """r = sqrt(A / pi), m: the radius of the disc with the (half-)amplitude set's area."""
+    """The equivalent radius of the amplitude set: r = sqrt(A / pi), the radius of a disc of its area.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        fraction: f of the amplitude set S_f, in (0, 1]; default 1/2, the half-amplitude set.
+
+    Returns:
+        r, m.
+
+    Raises:
+        ValueError: For another geometry, an image of the wrong shape, non-finite values (in
+            the mask), an all-zero image (no peak), or a fraction outside (0, 1].
+    """
     return float(np.sqrt(reconstructed_area(geometry, image, fraction) / np.pi))
 
 
 def half_amplitude_centroid(geometry: Geometry, image: np.ndarray) -> np.ndarray:
-    """(2,) c = sum_(k in S) a_k c_k / A, m: the area-weighted centroid of the half-amplitude set."""
+    """The area-weighted centroid of the half-amplitude set: c = sum_(k in S) a_k c_k / A.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+
+    Returns:
+        (2,) c = (x, y), m.
+
+    Raises:
+        ValueError: For another geometry, an image of the wrong shape, non-finite values (in
+            the mask), or an all-zero image (no peak).
+    """
     cells = _cells(geometry, image)
     chosen = _cell_set(cells, 0.5)
     areas = cells.areas[chosen]
@@ -220,15 +314,49 @@ def half_amplitude_centroid(geometry: Geometry, image: np.ndarray) -> np.ndarray
 
 
 def position_error(geometry: Geometry, image: np.ndarray, centre: Sequence[float]) -> float:
-    """|c - centre|, m: distance from the true `centre` (x, y) to the half-amplitude centroid."""
+    """The position error: the distance |c - centre| from the true centre to the half-amplitude centroid.
+
+    A distance (>= 0), not GREIT's signed radial error (`greit_figures`).
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        centre: The true centre (x, y), m.
+
+    Returns:
+        |c - centre|, m.
+
+    Raises:
+        ValueError: For a centre that is not one finite point (x, y), another geometry, an
+            image of the wrong shape, non-finite values (in the mask), or an all-zero image.
+    """
     true_centre = _checked_point(centre, "centre")
     return float(np.linalg.norm(half_amplitude_centroid(geometry, image) - true_centre))
 
 
 def transition_width(geometry: Geometry, image: np.ndarray, edge_length: float) -> float:
-    """Edge blur, m: the area of the cells between 10% and 90% of the peak (on the peak's side),
-    sum_(k : 0.1 <= x_k / p <= 0.9) a_k, divided by the true edge's length `edge_length` (m,
-    2 pi r for a disc of radius r). A sharp edge gives about one cell's width."""
+    """The edge blur of an image: the width of its transition from 10% to 90% of the peak.
+
+    The area of the cells between 10% and 90% of the peak p (on the peak's side),
+    sum_(k : 0.1 <= x_k / p <= 0.9) a_k, divided by the true edge's length. A sharp edge gives
+    about one cell's width.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        edge_length: The length of the true target's edge, m (2 pi r for a disc of radius r).
+
+    Returns:
+        The transition width, m.
+
+    Raises:
+        ValueError: For an edge length that is not positive, another geometry, an image of
+            the wrong shape, non-finite values (in the mask), or an all-zero image.
+    """
     if not (np.isfinite(edge_length) and edge_length > 0):
         raise ValueError(f"edge_length must be positive (m); got {edge_length}")
     cells = _cells(geometry, image)
@@ -237,9 +365,26 @@ def transition_width(geometry: Geometry, image: np.ndarray, edge_length: float) 
 
 
 def shape_deformation(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> float:
-    """SD = sum_(k in S_f) a_k (1 - phi_k) / A: the fraction of the amplitude set's area outside
-    the disc of equal area centred on its centroid (phi_k: part of cell k inside that disc,
-    midpoint rule; 0 for a disc up to the cells' resolution, in [0, 1))."""
+    """The shape deformation of the amplitude set: the part of its area outside a disc of equal area.
+
+    SD = sum_(k in S_f) a_k (1 - phi_k) / A, with phi_k the part of cell k inside the disc of
+    area A centred on the set's centroid (midpoint rule; on a pixel grid, of the whole pixel,
+    weighted by its area inside the domain). 0 for a disc up to the cells' resolution.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        fraction: f of the amplitude set S_f, in (0, 1]; default 1/2, the half-amplitude set.
+
+    Returns:
+        SD, dimensionless, in [0, 1).
+
+    Raises:
+        ValueError: For another geometry, an image of the wrong shape, non-finite values (in
+            the mask), an all-zero image (no peak), or a fraction outside (0, 1].
+    """
     cells = _cells(geometry, image)
     chosen = _cell_set(cells, fraction)
     return _deformation(geometry, cells, chosen)
@@ -258,12 +403,18 @@ def _deformation(geometry: Geometry, cells: _Cells, chosen: np.ndarray) -> float
 
 @dataclass(frozen=True)
 class Components:
-    """The connected components of an amplitude set (cells joined through shared edges).
+    """The connected components of an amplitude set (`amplitude_components`).
 
-    - `labels`: the image's shape; the component of each cell, -1 outside the set (and off a
-      pixel grid's mask).
-    - `areas` (K,) m^2, `centroids` (K, 2) m (area-weighted), `peaks` (K,) the signed value of
-      largest magnitude in each component; ordered by decreasing area.
+    Cells are joined when they share an edge (a corner is not enough). The K components are
+    ordered by decreasing area.
+
+    Attributes:
+        labels: The image's shape: the component of each cell, -1 outside the set (and off a
+            pixel grid's mask).
+        areas: (K,) the area of each component, m^2.
+        centroids: (K, 2) the area-weighted centroid of each component, m.
+        peaks: (K,) the signed value of largest magnitude in each component (the image's
+            unit).
     """
 
     labels: np.ndarray
@@ -273,11 +424,27 @@ class Components:
 
     @property
     def count(self) -> int:
+        """K, the number of components."""
         return len(self.areas)
 
 
 def amplitude_components(geometry: Geometry, image: np.ndarray, fraction: float = 0.5) -> Components:
-    """The connected components of the amplitude set S_f (half-amplitude by default)."""
+    """The connected components of the amplitude set S_f (the half-amplitude set by default).
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        fraction: f of the amplitude set S_f, in (0, 1]; default 1/2, the half-amplitude set.
+
+    Returns:
+        The `Components`, largest first.
+
+    Raises:
+        ValueError: For another geometry, an image of the wrong shape, non-finite values (in
+            the mask), an all-zero image (no peak), or a fraction outside (0, 1].
+    """
     cells = _cells(geometry, image)
     labels, _ = _components(cells, _cell_set(cells, fraction))
     return _summarise(geometry, cells, labels)
@@ -317,20 +484,22 @@ def _to_image_shape(geometry: Geometry, values: np.ndarray, fill) -> np.ndarray:
 
 
 class TargetFigures(eqx.Module):
-    """Figures of merit per target of a multi-target image (`target_figures`); an equinox
-    Module, as every result type.
+    """Figures of merit per target of a multi-target image (`target_figures`).
 
-    Arrays over the K targets, in the order of the centres given; a target that no component
-    matched has `component` -1 and NaN in every other per-target figure (by definition, not by
-    accident: test `matched`).
+    An equinox Module, as every result type. Arrays over the K targets, in the order of the
+    centres given; a target that no component matched has `component` -1 and NaN in every
+    other per-target figure (by definition, not by accident: test `matched`).
 
-    - `component` (K,): index into `components` of the matched component.
-    - `peak` (K,): the component's signed value of largest magnitude (image unit).
-    - `area` (K,) m^2 and `equivalent_radius` (K,) m = sqrt(area / pi).
-    - `centroid` (K, 2) m; `position_error` (K,) m = |centroid - centre|.
-    - `shape_deformation` (K,): SD of the component alone (module docstring).
-    - `n_artifacts`: components matched to no target.
-    - `components`: all components of the amplitude set.
+    Attributes:
+        component: (K,) the index into `components` of each target's matched component.
+        peak: (K,) the component's signed value of largest magnitude (the image's unit).
+        area: (K,) the component's area, m^2.
+        equivalent_radius: (K,) sqrt(area / pi), m.
+        centroid: (K, 2) the component's area-weighted centroid, m.
+        position_error: (K,) |centroid - centre|, m.
+        shape_deformation: (K,) SD of the component alone (dimensionless; module docstring).
+        n_artifacts: The number of components matched to no target.
+        components: All `Components` of the amplitude set.
     """
 
     component: np.ndarray
@@ -357,12 +526,32 @@ def target_figures(
     max_distance: float = np.inf,
     fraction: float = 0.5,
 ) -> TargetFigures:
-    """Match the components of the amplitude set S_f (half-amplitude by default) to the targets
-    at `centres` (K, 2) m (or one (x, y)) and measure each matched component (module
-    docstring): among the assignments with the most pairs at most `max_distance` (m) apart, the
-    one of least summed distance centre - component centroid; farther pairs are no match. The
-    threshold is a fraction of the image's overall peak, so a much weaker target may have no
-    component of its own."""
+    """Match the components of the amplitude set to the true targets and measure each match.
+
+    The components of S_f (the half-amplitude set by default) are assigned to the targets
+    (Hungarian): among the assignments with the most pairs at most `max_distance` apart, the
+    one of least summed distance centre - component centroid; farther pairs are no match, and
+    every unmatched component is an artifact. The threshold is a fraction of the image's
+    overall peak, so a much weaker target may have no component of its own.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        centres: The true centres, (K, 2) m, or one (x, y).
+        max_distance: The farthest a component's centroid may lie from its target, m
+            (default: no limit).
+        fraction: f of the amplitude set S_f, in (0, 1]; default 1/2, the half-amplitude set.
+
+    Returns:
+        The `TargetFigures`.
+
+    Raises:
+        ValueError: For centres that are not finite points (x, y), a max_distance that is not
+            positive, another geometry, an image of the wrong shape, non-finite values (in the
+            mask), an all-zero image, or a fraction outside (0, 1].
+    """
     centres = _checked_centres(centres)
     if not max_distance > 0:
         raise ValueError(f"max_distance must be positive (metres); got {max_distance}")
@@ -403,8 +592,26 @@ def target_figures(
 def count_artifacts(
     geometry: Geometry, image: np.ndarray, centres: Sequence[Sequence[float]], *, max_distance: float = np.inf
 ) -> int:
-    """The number of half-amplitude components matched to none of the targets at `centres`
-    (K, 2) m: extra blobs (`target_figures(...).n_artifacts`)."""
+    """The number of artifacts: half-amplitude components matched to none of the targets.
+
+    `target_figures(geometry, image, centres, max_distance=max_distance).n_artifacts`: the
+    extra blobs.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        centres: The true centres, (K, 2) m, or one (x, y).
+        max_distance: The farthest a component's centroid may lie from its target, m
+            (default: no limit).
+
+    Returns:
+        The number of artifacts.
+
+    Raises:
+        ValueError: As `target_figures`.
+    """
     return target_figures(geometry, image, centres, max_distance=max_distance).n_artifacts
 
 
@@ -415,8 +622,11 @@ def count_artifacts(
 class CrossSection:
     """Values along a straight line through the domain (`cross_section`).
 
-    - `distance` (n,) m: signed position along the line from its anchor point (increasing).
-    - `points` (n, 2) m; `values` (n,): the value of the cell containing each point.
+    Attributes:
+        distance: (n,) the signed position of each point along the line from its anchor point,
+            m, increasing.
+        points: (n, 2) the points, m.
+        values: (n,) the value of the cell containing each point (the image's unit).
     """
 
     distance: np.ndarray
@@ -432,11 +642,32 @@ def cross_section(
     direction: Sequence[float] = (1.0, 0.0),
     n_points: int = 201,
 ) -> CrossSection:
-    """The profile of `image` along the line through `through` (x, y) m (default: the centre of
-    the peak's cell) in `direction` (any non-zero (dx, dy)), by point sampling: `n_points` points
-    evenly spaced over the line's chord of the bounding box, kept where they lie in the domain
-    (a mesh triangle, or a pixel of the mask); each takes the value of the cell containing it.
-    Dissertation Fig. 5.1: the cross-section through the peak."""
+    """The profile of an image along a straight line, by point sampling.
+
+    `n_points` points evenly spaced over the line's chord of the geometry's bounding box are
+    kept where they lie in the domain (a mesh triangle, or a pixel of the mask); each takes the
+    value of the cell containing it. The default line runs through the peak along x: the
+    dissertation's Fig. 5.1.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        through: A point (x, y) of the line, m, its anchor (distance 0); default the centre of
+            the peak's cell.
+        direction: The line's direction, any finite non-zero (dx, dy).
+        n_points: How many points to sample along the chord (an integer >= 2), before those
+            outside the domain are dropped.
+
+    Returns:
+        The `CrossSection`.
+
+    Raises:
+        ValueError: For `n_points` not an integer >= 2, a zero or non-finite direction, a
+            `through` that is not one finite point, a line that misses the domain, another
+            geometry, an image of the wrong shape, or non-finite values (in the mask).
+    """
     cells = _cells(geometry, image)
     if not (isinstance(n_points, int | np.integer) and n_points >= 2):
         raise ValueError(f"n_points must be an integer >= 2; got {n_points!r}")
@@ -486,8 +717,24 @@ def _locate(geometry: Geometry, points: np.ndarray) -> np.ndarray:
 
 
 def correlation(geometry: Geometry, truth: np.ndarray, image: np.ndarray) -> float:
-    """Area-weighted Pearson correlation of two images on `geometry` (docs/science.md#figures-of-merit):
-    cov_w(truth, image) / sqrt(var_w(truth) var_w(image)), weights a_k / sum a_k."""
+    """The area-weighted Pearson correlation of a true and a reconstructed image.
+
+    cov_w(truth, image) / sqrt(var_w(truth) var_w(image)) with weights a_k / sum a_k
+    (docs/science.md#figures-of-merit).
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        truth: The true image, one value per cell.
+        image: The reconstructed image, one value per cell, on the same geometry.
+
+    Returns:
+        The correlation, in [-1, 1].
+
+    Raises:
+        ValueError: For another geometry, images of the wrong shape, non-finite values (in the
+            mask), or a constant image (zero variance).
+    """
     truth_cells = _cells(geometry, truth, "truth")
     cells = _cells(geometry, image)
     for name, values in (("truth", truth_cells.values), ("image", cells.values)):
@@ -504,8 +751,18 @@ def correlation(geometry: Geometry, truth: np.ndarray, image: np.ndarray) -> flo
 
 @dataclass(frozen=True)
 class GreitFigures:
-    """GREIT's figures of merit of one single-target image (`greit_figures`), dimensionless
-    except `radial_position_error` (m)."""
+    """GREIT's figures of merit of one single-target image (`greit_figures`).
+
+    Attributes:
+        amplitude_response: AR, the image's integral over the truth's (1 for a perfect
+            amplitude; dimensionless).
+        radial_position_error: PE = |centre - o| - |q - o|, m: signed, > 0 when the image is
+            pulled towards the middle.
+        resolution: RES = sqrt(A_q / A_0), dimensionless.
+        shape_deformation: SD of the amplitude set S_q, dimensionless, in [0, 1).
+        ringing: RNG, the opposite-sign amplitude outside the equal-area disc over the
+            amplitude inside it (>= 0, dimensionless).
+    """
 
     amplitude_response: float
     radial_position_error: float
@@ -517,10 +774,11 @@ class GreitFigures:
 def greit_figures(
     geometry: Geometry, image: np.ndarray, centre: Sequence[float], truth: np.ndarray, *, fraction: float = 0.25
 ) -> GreitFigures:
-    """Adler et al. (2009)'s figures of merit of an image of one target at `centre` (x, y) m whose
-    true image on the same geometry is `truth`. With x_hat the image, S_q the amplitude set at
-    `fraction` (GREIT: a quarter of the peak), A_q its area, q its centroid, A_0 the domain's area,
-    o the domain's centroid and C the disc of area A_q centred on q (phi_k: part of cell k in C):
+    """Adler et al. (2009)'s figures of merit of an image of one target.
+
+    With x_hat the image, S_q the amplitude set at `fraction` (GREIT: a quarter of the peak),
+    A_q its area, q its centroid, A_0 the domain's area, o the domain's centroid and C the disc
+    of area A_q centred on q (phi_k: part of cell k in C):
 
     - amplitude response AR = sum_k a_k x_hat_k / sum_k a_k truth_k (1 for a perfect amplitude);
     - position error PE = |centre - o| - |q - o| (m; radial: > 0 when the image is pulled towards
@@ -533,6 +791,25 @@ def greit_figures(
 
     On a pixel grid phi_k is the fraction of the whole pixel inside C (the part of a rim pixel
     outside the domain counts), weighted by the pixel's area inside the domain.
+
+    Arguments:
+        geometry: The cells: a `diffeit.Mesh`, or a `diffeit.render.PixelGrid` (pixels off its
+            mask are ignored).
+        image: One value per cell, (E,) on a mesh or (n_rows, n_columns) on a grid, in any
+            unit (for example dsigma in S/sq).
+        centre: The target's true centre (x, y), m.
+        truth: The true image, one value per cell, on the same geometry.
+        fraction: The fraction of the peak of the amplitude set S_q, in (0, 1]; GREIT's is a
+            quarter.
+
+    Returns:
+        The `GreitFigures`.
+
+    Raises:
+        ValueError: For a centre that is not one finite point, another geometry, images of the
+            wrong shape, non-finite values (in the mask), an all-zero image, a fraction outside
+            (0, 1], a truth that integrates to 0 (no amplitude response), or an image that
+            inside C does not sum to the peak's sign (no ringing).
     """
     true_centre = _checked_point(centre, "centre")
     cells = _cells(geometry, image)

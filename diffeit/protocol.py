@@ -28,32 +28,41 @@ from ._messages import name_indices
 class Protocol(StaticData):
     """Current patterns and the voltage readings taken under each.
 
-    **Arguments:**
+    Any current pattern is allowed: a pair of electrodes, current into one electrode and out of
+    several, trigonometric patterns; `adjacent`, `skip` and `opposite` build the usual ones. A
+    reading with weights m is `sum_l m_l U_l`, U the electrode potentials (volts):
+    `U_m - U_(m+1)` has weights +1 at m and -1 at m+1, a reading against a common reference
+    electrode r has +1 at m and -1 at r. Measurements are ordered drive by drive, then in the
+    given order within a drive, and stored flat. A protocol is static data for JAX (a pytree
+    without leaves); protocols compare and hash by content.
 
-    - `drive`: (n_drives, L) current pattern per drive, in units of the model's drive current:
-      entry l is the current entering the sheet through electrode l (positive in). Each row
-      must sum to zero and must not be all zero. Any pattern is allowed: a pair of electrodes,
-      current into one electrode and out of several, trigonometric patterns.
-    - `measure`: the readings of each drive, either an (n_drives, M, L) array or a sequence of
-      n_drives arrays of shape (M_k, L). A reading with weights m is `sum_l m_l U_l`, U the
-      electrode potentials; `U_m - U_(m+1)` has weights +1 at m and -1 at m+1, a reading
-      against a common reference electrode r has +1 at m and -1 at r. A row must not be all
-      zero.
+    Arguments:
+        drive: (n_drives, L) current pattern per drive, in units of the model's drive current:
+            entry l is the current entering the sheet through electrode l (positive in). Each
+            row must sum to zero and must not be all zero.
+        measure: The readings of each drive, weights per electrode: an (n_drives, M, L) array
+            or a sequence of n_drives arrays of shape (M_k, L). A row must not be all zero.
 
-    Measurements are ordered drive by drive, then in the given order within a drive, and
-    stored flat: `measure` (n_measurements, L) with `drive_index` (n_measurements,) naming the
-    drive each belongs to. A protocol is static data for JAX (a pytree without leaves); protocols
-    compare and hash by content.
-    Invalid input raises `ValueError` naming the offending rows.
+    Attributes:
+        drive: (n_drives, L) the current patterns, read-only.
+        measure: (n_measurements, L) the weights of every reading, drive by drive, read-only.
+        drive_index: (n_measurements,) the drive each reading belongs to.
+        measure_patterns: (P, L) the distinct rows of `measure`.
+        pattern_index: (n_measurements,) the row of `measure_patterns` each reading uses.
+        fingerprint: A digest of the content, for hashing and comparing.
+
+    Raises:
+        ValueError: Naming the offending rows, for a drive that is not (n_drives, L) with
+            L >= 2, non-finite values, an all-zero drive or reading, a drive that does not sum
+            to zero, readings for another number of drives or electrodes, or no readings at
+            all.
     """
 
     drive: np.ndarray
     measure: np.ndarray
     drive_index: np.ndarray
     measure_patterns: np.ndarray = field(repr=False)
-    """(P, L) the distinct rows of `measure`."""
     pattern_index: np.ndarray = field(repr=False)
-    """(n_measurements,) row of `measure_patterns` each measurement uses."""
     fingerprint: bytes = field(repr=False)
 
     def __init__(self, drive: np.ndarray, measure: np.ndarray | Sequence[np.ndarray]) -> None:
@@ -99,14 +108,17 @@ class Protocol(StaticData):
 
     @property
     def n_electrodes(self) -> int:
+        """L, the number of electrodes the protocol addresses."""
         return self.drive.shape[1]
 
     @property
     def n_drives(self) -> int:
+        """The number of drives (current patterns)."""
         return self.drive.shape[0]
 
     @property
     def n_measurements(self) -> int:
+        """M, the number of readings over all drives: the length of a frame."""
         return self.measure.shape[0]
 
     def __repr__(self) -> str:
@@ -116,9 +128,21 @@ class Protocol(StaticData):
         )
 
     def select(self, readings: ArrayLike) -> Protocol:
-        """The protocol of the readings `readings` (a boolean mask (n_measurements,) or
-        indices, kept in this protocol's order): masking broken channels. Drives keep their
-        index; a drive left without readings keeps its pattern and reads nothing."""
+        """The protocol of some of this protocol's readings: masking broken channels.
+
+        The readings kept stay in this protocol's order. Drives keep their index; a drive left
+        without readings keeps its pattern and reads nothing.
+
+        Arguments:
+            readings: The readings to keep: a boolean mask (n_measurements,) or indices.
+
+        Returns:
+            The new `Protocol`.
+
+        Raises:
+            ValueError: For a mask of another shape, indices outside 0..n_measurements-1, or
+                no reading kept.
+        """
         keep = np.zeros(self.n_measurements, dtype=bool)
         chosen = np.asarray(readings)
         if chosen.dtype == bool:
@@ -134,10 +158,23 @@ class Protocol(StaticData):
         return Protocol(self.drive, [self.measure[keep & (self.drive_index == k)] for k in range(self.n_drives)])
 
     def relabel(self, position: ArrayLike) -> Protocol:
-        """The same readings with electrode l of this protocol placed at electrode
-        `position[l]` of the sheet (a permutation of 0..L-1): an instrument whose electrodes
-        are numbered the other way round (`position[l] = -l mod L`) or from another first
-        electrode (`position[l] = l + 1 mod L`). Order and sign of the readings are kept."""
+        """The same drives and readings with the electrodes numbered otherwise.
+
+        Electrode l of this protocol becomes electrode `position[l]` of the sheet: for an
+        instrument whose electrodes are numbered the other way round (`position[l] = -l mod L`)
+        or from another first electrode (`position[l] = l + 1 mod L`). The order and sign of
+        the readings are kept.
+
+        Arguments:
+            position: (L,) the sheet's electrode of each of this protocol's electrodes, a
+                permutation of 0..L-1.
+
+        Returns:
+            The relabelled `Protocol`.
+
+        Raises:
+            ValueError: For a position that is not a permutation of 0..L-1.
+        """
         position = np.asarray(position)
         if sorted(position.tolist()) != list(range(self.n_electrodes)):
             raise ValueError(f"position must be a permutation of 0..{self.n_electrodes - 1}; got {position}")
@@ -165,7 +202,19 @@ def skip(n_electrodes: int, k: int, *, measure_driven: bool = False, rotate_meas
     readings that touch both driven electrodes coincide, n(n-2) (16 electrodes, skip 7: 224);
     with `measure_driven=True` always n * n (256).
 
-    `k` runs over 0..n-2; without `measure_driven`, n >= 4 electrodes.
+    Arguments:
+        n_electrodes: n, the number of electrodes (>= 4 without `measure_driven`).
+        k: The skip, in 0..n-2: the pairs are k + 1 electrodes apart.
+        measure_driven: Keep the readings on driven electrodes (EIDORS 'meas_current').
+        rotate_measurements: Start drive i's readings at m = i (EIDORS 'rotate_meas').
+
+    Returns:
+        The `Protocol`.
+
+    Raises:
+        ValueError: For fewer than 2 electrodes, k outside 0..n-2, or a drive left with no
+            reading off its driven electrodes (too few electrodes without `measure_driven`).
+        TypeError: For an `n_electrodes` or `k` that is not an integer.
     """
     n = _electrode_count(n_electrodes)
     if not 0 <= operator.index(k) <= n - 2:
@@ -182,9 +231,18 @@ def adjacent(n_electrodes: int = 16, *, measure_driven: bool = False, rotate_mea
     For 16 electrodes: 16 x 13 = 208 measurements, exactly the order and sign of EIDORS's
     `mk_stim_patterns(16, 1, '{ad}', '{ad}', {'no_meas_current'}, 1)`.
 
-    `measure_driven=True` keeps the pairs on driven electrodes (EIDORS 'meas_current': n * n
-    readings, the full 16 x 16 layout, see `to_full_layout`); `rotate_measurements=True` starts
-    each drive's pairs at m = k (EIDORS 'rotate_meas').
+    Arguments:
+        n_electrodes: n, the number of electrodes (>= 4 without `measure_driven`).
+        measure_driven: Keep the pairs on driven electrodes (EIDORS 'meas_current': n * n
+            readings, the full 16 x 16 layout, see `to_full_layout`).
+        rotate_measurements: Start drive k's pairs at m = k (EIDORS 'rotate_meas').
+
+    Returns:
+        The `Protocol`.
+
+    Raises:
+        ValueError: For fewer than 2 electrodes, or fewer than 4 without `measure_driven`.
+        TypeError: For an `n_electrodes` that is not an integer.
     """
     return skip(n_electrodes, 0, measure_driven=measure_driven, rotate_measurements=rotate_measurements)
 
@@ -200,7 +258,19 @@ def opposite(n_electrodes: int = 16, *, measure_driven: bool = False, rotate_mea
     `mk_stim_patterns(n, 1, '{op}', '{ad}', {'no_meas_current'}, 1)`.
 
     Counts: n(n-4) measurements (16 electrodes: 192); with `measure_driven=True` n * n (256).
-    Without `measure_driven`, n >= 6 electrodes.
+
+    Arguments:
+        n_electrodes: n, the number of electrodes, even (>= 6 without `measure_driven`).
+        measure_driven: Keep the pairs on driven electrodes (EIDORS 'meas_current').
+        rotate_measurements: Start drive i's pairs at m = i (EIDORS 'rotate_meas').
+
+    Returns:
+        The `Protocol`.
+
+    Raises:
+        ValueError: For an odd number of electrodes, fewer than 2, or fewer than 6 without
+            `measure_driven`.
+        TypeError: For an `n_electrodes` that is not an integer.
     """
     n = _electrode_count(n_electrodes)
     if n % 2:
@@ -241,8 +311,9 @@ def _pair_protocol(
 # Conversions between protocols
 
 Frames: TypeAlias = np.ndarray | jax.Array
-"""Voltages, (n_measurements,) for one frame or (T, n_measurements) for a batch: a JAX array in
-gives a JAX array out (jit and vmap work), anything else a NumPy array."""
+"""Frames of readings, volts: (n_measurements,) for one frame or (T, n_measurements) for a batch.
+
+A JAX array in gives a JAX array out (jit and vmap work), anything else a NumPy array."""
 
 
 @dataclass(init=False, eq=False)
@@ -265,11 +336,25 @@ class Conversion(StaticData):
     same drive over a negated one, then the same weights over negated ones, then the first in
     source order.
 
-    Target readings without a match raise `ValueError` naming them, unless `fill` is given
-    (for example 0.0 for the zeros of the 16 x 16 layout): they then read `fill`.
+    Arguments:
+        source: The `Protocol` the frames were recorded under.
+        target: The `Protocol` whose order and sign the frames are mapped to (as many
+            electrodes as `source`).
+        fill: The value, volts, of target readings that no source reading matches (for
+            example 0.0 for the zeros of the 16 x 16 layout); None: refuse them.
 
-    Fields: `index` (n_target,) the source reading each target reading takes (0 where none),
-    `sign` (n_target,) +1 or -1, `missing` (n_target,) True where `fill` is used.
+    Attributes:
+        source: The source `Protocol`.
+        target: The target `Protocol`.
+        fill: The fill value, a float, or None.
+        index: (n_target,) the source reading each target reading takes (0 where none).
+        sign: (n_target,) +1 or -1, the sign each target reading takes it with.
+        missing: (n_target,) bool, True where `fill` is used.
+        fingerprint: A digest of the content, for hashing and comparing.
+
+    Raises:
+        ValueError: For protocols on different numbers of electrodes, or, without `fill`,
+            target readings that no source reading matches (naming them).
     """
 
     source: Protocol
@@ -312,7 +397,19 @@ class Conversion(StaticData):
         self.fingerprint = fingerprint(source.fingerprint, target.fingerprint, repr(self.fill).encode())
 
     def __call__(self, frames: ArrayLike | jax.Array) -> Frames:
-        """(..., n_target) frames in the target's order and sign, from (..., n_source) frames."""
+        """Map frames recorded under the source protocol to the target's order and sign.
+
+        Arguments:
+            frames: (..., n_source) readings, volts: one frame or a batch; a JAX array stays
+                one (jit, vmap, grad), anything else becomes a NumPy array. Integers become
+                floats; complex frames stay complex.
+
+        Returns:
+            (..., n_target) the readings of the target protocol, volts.
+
+        Raises:
+            ValueError: For frames whose last axis is not n_source long.
+        """
         xp = jnp if isinstance(frames, jax.Array) else np
         frames = xp.asarray(frames)
         if not xp.issubdtype(frames.dtype, xp.inexact):  # complex (admittivity) frames stay complex
@@ -329,10 +426,22 @@ class Conversion(StaticData):
 
 
 def convert(frames: ArrayLike | jax.Array, source: Protocol, target: Protocol, *, fill: float | None = None) -> Frames:
-    """Frames (..., n_source) recorded under `source` in the order and sign of `target`.
+    """Frames recorded under one protocol, in the order and sign of another.
 
     A shorthand for `Conversion(source, target, fill=fill)(frames)`; build the `Conversion`
-    once to convert many batches.
+    once to convert many batches. The matching rules are `Conversion`'s.
+
+    Arguments:
+        frames: (..., n_source) readings, volts (a NumPy or JAX array).
+        source: The `Protocol` the frames were recorded under.
+        target: The `Protocol` to convert to.
+        fill: The value, volts, of target readings without a match; None: refuse them.
+
+    Returns:
+        (..., n_target) readings, volts; a JAX array for a JAX array in.
+
+    Raises:
+        ValueError: As `Conversion` and `Conversion.__call__`.
     """
     return Conversion(source, target, fill=fill)(frames)
 
@@ -363,6 +472,16 @@ def to_full_layout(frames: ArrayLike | jax.Array, n_electrodes: int = 16) -> Fra
     general n * k + m) is drive k (in at k+1, out at k), pair (m, m+1), U_m - U_(m+1), for
     every m, 0 where the pair touches electrode k or k+1. This fills those n(n-3) -> n * n
     places with 0.
+
+    Arguments:
+        frames: (..., n(n-3)) readings of `adjacent(n)`, volts.
+        n_electrodes: n, at least 4.
+
+    Returns:
+        (..., n * n) readings, volts; a JAX array for a JAX array in.
+
+    Raises:
+        ValueError: For frames whose last axis is not n(n-3) long, or fewer than 4 electrodes.
     """
     return _full_layout_conversions(n_electrodes)[0](frames)
 
@@ -373,6 +492,16 @@ def from_full_layout(frames: ArrayLike | jax.Array, n_electrodes: int = 16) -> F
     Drops the 3n values on pairs that touch a driven electrode, whatever they hold (zeros in
     EIDORS data, a contact-impedance-dominated reading from hardware that measures them). See
     `to_full_layout` for the layout.
+
+    Arguments:
+        frames: (..., n * n) readings in the full layout, volts.
+        n_electrodes: n, at least 4.
+
+    Returns:
+        (..., n(n-3)) readings of `adjacent(n)`, volts; a JAX array for a JAX array in.
+
+    Raises:
+        ValueError: For frames whose last axis is not n * n long, or fewer than 4 electrodes.
     """
     return _full_layout_conversions(n_electrodes)[1](frames)
 
@@ -388,10 +517,8 @@ def from_pyeit(
 ) -> Protocol:
     """The diffeit `Protocol` of a pyEIT protocol, reading for reading, in pyEIT's order and sign.
 
-    `from_pyeit(pyeit_protocol)` (an object with `ex_mat` and `meas_mat`, as
-    `pyeit.eit.protocol.create` returns) or `from_pyeit(ex_mat, meas_mat)`. Frames pyEIT
-    simulates or records under it (`EITForward.solve_eit`, drive by drive, the rows of
-    `meas_mat` in order) then convert to any diffeit protocol with `convert`.
+    Frames pyEIT simulates or records under it (`EITForward.solve_eit`, drive by drive, the
+    rows of `meas_mat` in order) then convert to any diffeit protocol with `convert`.
 
     pyEIT's conventions (pyEIT 1.2.4): `ex_mat` row [a, b] drives current into electrode a and
     out of electrode b (`create` gives drive i = [i, i + dist_exc], the negation of diffeit's
@@ -403,7 +530,20 @@ def from_pyeit(
     (`measure_driven=True`). pyEIT's `ex_mat` and `meas_mat` are electrode numbers (its
     "local" indices), which is what diffeit's electrodes are.
 
-    `n_electrodes` defaults to the largest electrode number used + 1 (as pyEIT's `n_el`).
+    Arguments:
+        protocol_or_ex_mat: A pyEIT protocol (an object with `ex_mat` and `meas_mat`, as
+            `pyeit.eit.protocol.create` returns), or its `ex_mat`: (n_exc, 2) integer rows
+            [in, out].
+        meas_mat: With an `ex_mat`: (n_exc, n_meas, 2) integer rows [p, q] per drive.
+        n_electrodes: L; default the largest electrode number used + 1 (as pyEIT's `n_el`).
+
+    Returns:
+        The `Protocol`, reading for reading in pyEIT's order and sign.
+
+    Raises:
+        ValueError: For a first argument without `ex_mat` and `meas_mat` when `meas_mat` is
+            not given, matrices of the wrong shape, non-integer entries, or electrode numbers
+            outside 0..n_electrodes-1 (and as `Protocol`).
     """
     if meas_mat is not None:
         ex_mat = protocol_or_ex_mat

@@ -190,8 +190,21 @@ def _correct(
 
 
 def check_images(images, times) -> tuple[jax.Array, jax.Array]:
-    """`images` (T, E) and `times` (T,) as float arrays; ValueError naming the problem for concrete
-    values that are not finite, times that do not increase and lengths that differ."""
+    """Check a sequence of images and their times, and return them as float arrays.
+
+    Traced values (under jit) are checked for shape only.
+
+    Arguments:
+        images: (T, E) images, one row per frame, T >= 1.
+        times: (T,) frame times, seconds, increasing.
+
+    Returns:
+        (images, times): (T, E) and (T,) float JAX arrays.
+
+    Raises:
+        ValueError: Naming the problem, for images that are not (T, E), hold no frame or are
+            not finite, and for times as `check_times`.
+    """
     images = jnp.asarray(images)
     if not jnp.issubdtype(images.dtype, jnp.floating):
         images = images.astype(jnp.result_type(float))
@@ -207,8 +220,22 @@ def check_images(images, times) -> tuple[jax.Array, jax.Array]:
 
 
 def check_times(times, n_frames: int, what: str = "frames") -> jax.Array:
-    """`times` (T,) seconds as a float array; ValueError naming the problem for a length other than
-    `n_frames` (of `what`), and for concrete times that are not finite or do not increase."""
+    """Check frame times, and return them as a float array.
+
+    Traced values (under jit) are checked for shape only.
+
+    Arguments:
+        times: (T,) frame times, seconds, increasing.
+        n_frames: T, the number of frames the times must match.
+        what: What the frames are, for the error message.
+
+    Returns:
+        (T,) the times, a float JAX array.
+
+    Raises:
+        ValueError: Naming the problem, for times that are not (n_frames,), not finite, or do
+            not increase.
+    """
     times = jnp.asarray(times, jnp.result_type(float))
     if times.ndim != 1:
         raise ValueError(f"times must have shape (T,), seconds; got shape {times.shape}")
@@ -246,10 +273,20 @@ def _logit(value: jax.Array) -> jax.Array:
 
 
 def memory_to_unconstrained(memory: MemoryParameters, names: Collection[str]) -> dict[str, jax.Array]:
-    """The fields `names` of `memory` in the fits' unconstrained space: ln of the gain, time
-    constants and fatigue rate; logit of relaxation, first-cycle offset and fatigue limit;
-    ln(f / (1 - f_fast - f_slow)) of each mode fraction f. Values on the boundary (a rate of 0,
-    a fraction of 0 or 1) move 1e-9 inside first."""
+    """Some fields of memory parameters in the fits' unconstrained space.
+
+    ln of the gain, time constants and fatigue rate; logit of relaxation, first-cycle offset
+    and fatigue limit; ln(f / (1 - f_fast - f_slow)) of each mode fraction f. Values on the
+    boundary (a rate of 0, a fraction of 0 or 1) move 1e-9 inside first.
+    `memory_from_unconstrained` is the inverse.
+
+    Arguments:
+        memory: The `MemoryParameters`.
+        names: The fields to transform.
+
+    Returns:
+        The unconstrained value of each field, by name (scalar or (E,), as the field).
+    """
     values = {}
     for name in names:
         value = jnp.asarray(getattr(memory, name), dtype=float)
@@ -264,9 +301,19 @@ def memory_to_unconstrained(memory: MemoryParameters, names: Collection[str]) ->
 
 
 def memory_from_unconstrained(values: Mapping[str, jax.Array], base: MemoryParameters) -> MemoryParameters:
-    """`base` with the fields in `values` (unconstrained, as `memory_to_unconstrained` gives them)
-    mapped back and replaced (log ones held within e^+-14); the other fields keep `base`'s values
-    exactly."""
+    """Memory parameters from unconstrained values: the inverse of `memory_to_unconstrained`.
+
+    The log-transformed fields are held within e^+-14 (1e-6 .. 1e6 s for a time constant); the
+    two mode fractions are mapped back together (a softmax against 1 - their sum).
+
+    Arguments:
+        values: Unconstrained values by field name, as `memory_to_unconstrained` gives them
+            (both mode fractions or neither).
+        base: The `MemoryParameters` whose other fields are kept exactly.
+
+    Returns:
+        `base` with the fields of `values` mapped back and replaced.
+    """
     changes = {}
     for name, value in values.items():
         if name in _LOG:
@@ -318,8 +365,21 @@ def ordered_modes(memory: MemoryParameters) -> MemoryParameters:
 
 
 def reported_memory(memory: MemoryParameters, fitted: Collection[str]) -> MemoryParameters:
-    """The memory a fit reports: `ordered_modes` when both modes were among the `fitted` fields;
-    as it is when a mode was held (its labels are then the caller's)."""
+    """The memory parameters a fit reports, its modes ordered when the fit moved them.
+
+    `ordered_modes(memory)` when all four mode fields were among the `fitted` fields;
+    `memory` as it is when a mode was held (its labels are then the caller's).
+
+    Arguments:
+        memory: The fitted `MemoryParameters`, of concrete values.
+        fitted: The fields the fit moved.
+
+    Returns:
+        The `MemoryParameters` to report.
+
+    Raises:
+        ValueError: As `ordered_modes`, when it is called.
+    """
     return ordered_modes(memory) if set(MODE_FIELDS) <= set(fitted) else memory
 
 
@@ -358,9 +418,10 @@ class MemoryFit(eqx.Module):
 
 
 class MemoryObjective(eqx.Module):
-    """The objective of `memory`'s parameter fit: the weighted least-squares misfit of the images
-    of the chosen elements against the memory response of a stimulus that is constant within
-    segments of frames,
+    """The objective of `memory`'s parameter fit, over the n chosen elements.
+
+    The weighted least-squares misfit of the images against the memory response of a stimulus
+    that is constant within segments of frames,
 
         J = 1/2 sum_e w_e sum_k (y_ke - R_p(a)_ke)^2,   a_ke = S[seg_ke, e] exp(u[seg_ke, e]),
         w_e = 1 / (T n sigma_e^2),
@@ -368,15 +429,16 @@ class MemoryObjective(eqx.Module):
     a function of the unknowns `(memory, u)`: the free memory parameters, unconstrained
     (`memory_to_unconstrained`), and the (T, n) log-magnitudes u of the levels, row j those of
     segment j of each element. The signs S are fixed: each element's touch sign (that of its
-    largest |image|) on touched segments, 0 on resting ones (their stimulus is 0). A level can
-    then neither cross zero, where the memory model's response jumps (a load across zero moves
-    the modes by the whole swing at once), nor linger at a small value a slower recovery
-    would otherwise trade with.
+    largest |image|) on touched segments, 0 on resting ones (their stimulus is 0), so a level
+    keeps its sign (why: docs/science.md#memory-fit).
 
-    - `images`: (T, n) the chosen elements' images; `times`: (T,) seconds.
-    - `weights`: (n,) w_e. `segments`: (T, n) int, the segment of each frame, per element.
-    - `signs`: (T, n) S, per segment (rows past an element's last segment are unused).
-    - `base`: the `MemoryParameters` the free fields replace.
+    Attributes:
+        images: (T, n) the chosen elements' images y, dsigma/sigma.
+        times: (T,) the frame times, seconds.
+        weights: (n,) w_e, 0 for elements left out.
+        segments: (T, n) int, the segment of each frame, per element.
+        signs: (T, n) S, per segment (rows past an element's last segment are unused).
+        base: The `MemoryParameters` the free fields replace.
     """
 
     images: jax.Array
@@ -387,13 +449,29 @@ class MemoryObjective(eqx.Module):
     base: MemoryParameters
 
     def stimulus(self, log_levels: jax.Array) -> jax.Array:
-        """(T, n) the stimulus dsigma/sigma of the log-magnitudes (T, n)."""
+        """The stimulus of the segment levels: a_ke = S[seg_ke, e] exp(u[seg_ke, e]).
+
+        Arguments:
+            log_levels: (T, n) u, the log-magnitudes of the levels, row j segment j's.
+
+        Returns:
+            (T, n) the stimulus a, dsigma/sigma.
+        """
         return jnp.take_along_axis(self.signs * jnp.exp(log_levels), self.segments, axis=0)
 
     def units(self, unknowns: tuple[dict[str, jax.Array], jax.Array]) -> tuple[dict[str, jax.Array], jax.Array]:
-        """The optimiser's unit of each unknown at `unknowns`: 1 / sqrt of the objective's
-        Gauss-Newton curvature there (a diagonal preconditioner; the levels' from the response's
-        slope taken as 1, each level's curvature w_e a^2 times its number of frames)."""
+        """The optimiser's unit of each unknown: 1 / sqrt of the objective's curvature there.
+
+        The Gauss-Newton curvature at `unknowns`, a diagonal preconditioner: the memory
+        parameters' by forward differentiation of the residuals, each level's from the
+        response's slope taken as 1 (w_e a^2 times its number of frames).
+
+        Arguments:
+            unknowns: `(memory, u)`, as `__call__` takes them.
+
+        Returns:
+            The units, in the structure of `unknowns`.
+        """
         memory, log_levels = unknowns
         curvatures = {}
         for name in memory:
@@ -409,12 +487,21 @@ class MemoryObjective(eqx.Module):
         return jax.tree_util.tree_map(lambda c: 1 / jnp.sqrt(c + 1e-12), (curvatures, level_curvatures))
 
     def residuals(self, unknowns: tuple[dict[str, jax.Array], jax.Array]) -> jax.Array:
-        """(T, n) images minus responses."""
+        """The residuals y - R_p(a) of the images against the model.
+
+        Arguments:
+            unknowns: `(memory, u)`: the free memory parameters, unconstrained, by name, and
+                (T, n) the levels' log-magnitudes.
+
+        Returns:
+            (T, n) images minus responses, dsigma/sigma.
+        """
         memory, levels = unknowns
         parameters = memory_from_unconstrained(memory, self.base)
         return self.images - memory_response(self.stimulus(levels), self.times, parameters)
 
     def __call__(self, unknowns: tuple[dict[str, jax.Array], jax.Array]) -> jax.Array:
+        """J at `unknowns` (`(memory, u)`, as `residuals` takes them): a scalar, about 1/2 at the noise level."""
         return 0.5 * jnp.sum(self.weights * self.residuals(unknowns) ** 2)
 
 
@@ -443,9 +530,9 @@ def memory(
     explains the images exactly with a free stimulus, so the stimulus is taken as constant within
     segments of frames per element (touches hold between a few changes), and p and the segment
     levels are fitted together by weighted least squares (L-BFGS), in `rounds` rounds that find
-    the segments again. The gain is never fitted (it trades exactly with the stimulus); the
-    first-cycle offset and fatigue trade with the presses' depths and are held by default. The
-    prior, the segments and the choice of elements are in docs/science.md#memory-fit.
+    the segments again. The gain is never fitted, and the first-cycle offset and fatigue are
+    held by default. The prior, the segments, the choice of elements and what the images
+    determine are in docs/science.md#memory-fit.
 
     Arguments:
         images: (T, E) relative changes dsigma/sigma, T >= 3.
@@ -583,12 +670,20 @@ def _units(objective: MemoryObjective, start: tuple[dict[str, jax.Array], jax.Ar
 
 
 def noise_level(images: np.ndarray) -> np.ndarray:
-    """(E,) an estimate of the noise standard deviation of each element's images (T, E), T >= 3:
-    the lower quartile of the absolute second differences in time, scaled to a standard deviation
-    of white noise (the quartile of |N(0, 6)| is 0.3186 sqrt(6)). Steps (touches) and the
-    memory's decays move second differences up, at up to three frames per step: the quartile
-    ignores them while they take fewer than about half the frames, and overestimates the noise
-    (never underestimates it) in elements touched more often than that."""
+    """An estimate of the noise standard deviation of each element's images.
+
+    The lower quartile of the absolute second differences in time, scaled to a standard
+    deviation of white noise (the quartile of |N(0, 6)| is 0.3186 sqrt(6)). Steps (touches) and
+    the memory's decays move second differences up, at up to three frames per step: the
+    quartile ignores them while they take fewer than about half the frames, and overestimates
+    the noise (never underestimates it) in elements touched more often than that.
+
+    Arguments:
+        images: (T, E) images, T >= 3, any unit (dsigma/sigma for the memory fit).
+
+    Returns:
+        (E,) the noise standard deviation of each element, in the images' unit.
+    """
     second = np.abs(np.diff(images, 2, axis=0))
     return np.quantile(second, 0.25, axis=0) / (_QUARTILE * np.sqrt(6.0))
 

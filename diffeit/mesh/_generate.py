@@ -34,25 +34,36 @@ def disc(
     electrode_angles: Sequence[float] | np.ndarray | None = None,
     interior_circles: Sequence[float] = (),
 ) -> Mesh:
-    """A disc skin with `n_electrodes` equally spaced electrodes on its rim.
+    """A disc skin centred at the origin, with electrodes on its rim.
 
     Electrode k is centred at angle `first_electrode_angle + 2 pi k / n_electrodes` (radians,
-    counter-clockwise from the x axis); both ends of every electrode are mesh vertices on the
-    circle. The boundary is the inscribed polygon through its vertices.
+    counter-clockwise from the x axis), or at `electrode_angles[k]`; both ends of every
+    electrode are mesh vertices on the circle. The boundary is the inscribed polygon through
+    its vertices. The element size grows linearly with the distance from the nearest electrode,
+    from `electrode_h` there up to `h`.
 
-    **Arguments:**
+    Arguments:
+        n_electrodes: The number of electrodes, at least 2.
+        electrode_width: The arc length of each electrode, m.
+        h: The target element edge length away from the electrodes, m.
+        radius: The disc's radius, m.
+        electrode_h: The element edge length at the electrodes, m, in (0, h]; default `h / 2`.
+        first_electrode_angle: The centre angle of electrode 0, radians.
+        electrode_angles: (n_electrodes,) the centre angle of every electrode (radians,
+            increasing, within one turn, electrodes not overlapping), in place of the equal
+            spacing: displaced electrodes.
+        interior_circles: Radii (m, in (0, radius)) of concentric circles that element edges
+            follow (for inclusions whose boundary the mesh must resolve).
 
-    - `n_electrodes`: number of electrodes.
-    - `electrode_width`: arc length of each electrode, in metres.
-    - `h`: target element edge length away from the electrodes, in metres.
-    - `radius`: disc radius in metres.
-    - `electrode_h`: element edge length at the electrodes (default `h / 2`); the size grows
-      linearly with the distance from the nearest electrode up to `h`.
-    - `first_electrode_angle`: centre angle of electrode 0, radians.
-    - `electrode_angles`: the centre angle of every electrode (radians, increasing, within one
-      turn, electrodes not overlapping), in place of the equal spacing: displaced electrodes.
-    - `interior_circles`: radii of concentric circles that element edges follow (for
-      inclusions whose boundary the mesh must resolve).
+    Returns:
+        The `Mesh`, its electrodes numbered counter-clockwise.
+
+    Raises:
+        ValueError: For fewer than 2 electrodes, a non-positive electrode width or electrodes
+            that do not fit on the rim with gaps between them, a non-positive `h` or
+            `radius`, an `electrode_h` outside (0, h], an interior circle outside
+            (0, radius), or electrode angles of the wrong count, not finite, out of order or
+            overlapping.
     """
     if n_electrodes < 2:
         raise ValueError(f"a disc needs at least 2 electrodes; got {n_electrodes}")
@@ -155,23 +166,29 @@ def polygon(
     around a corner (its node chain then includes the corner). An end that lands within 1e-9 P
     of a corner is moved onto the corner, which avoids slivers.
 
-    **Arguments:**
+    Arguments:
+        vertices: (n, 2) corners, m, n >= 3, in either orientation (clockwise input is reversed
+            about vertex 0, so vertex 0 stays the origin of the arc length). Do not repeat
+            vertex 0 at the end: the polygon closes itself.
+        n_electrodes: The number of electrodes, at least 2.
+        electrode_width: The arc length of each electrode, m; default half the smallest
+            distance between neighbouring centres (half the spacing when evenly placed).
+        h: The target element edge length away from the electrodes, m; default P / 64.
+        electrode_centres: (n_electrodes,) the arc lengths of the electrode centres, m,
+            strictly increasing in [0, P); an electrode centred near vertex 0 may extend past
+            it.
+        electrode_h: The element edge length at the electrodes, m, in (0, h]; default `h / 2`.
+            The size grows linearly with the distance from the nearest electrode up to `h`.
 
-    - `vertices`: (n, 2) corners in metres, n >= 3, in either orientation (clockwise input is
-      reversed about vertex 0, so vertex 0 stays the origin of the arc length). Do not repeat
-      vertex 0 at the end: the polygon closes itself.
-    - `n_electrodes`: number of electrodes (at least 2).
-    - `electrode_width`: arc length of each electrode in metres; default half the smallest
-      distance between neighbouring centres (half the spacing when evenly placed).
-    - `h`: target element edge length away from the electrodes, metres; default P / 64.
-    - `electrode_centres`: (n_electrodes,) arc lengths in metres of the electrode centres,
-      strictly increasing in [0, P); an electrode centred near vertex 0 may extend past it.
-    - `electrode_h`: element edge length at the electrodes (default `h / 2`); the size grows
-      linearly with the distance from the nearest electrode up to `h`.
+    Returns:
+        The `Mesh`, its electrodes numbered counter-clockwise from vertex 0.
 
-    **Raises:** `ValueError` naming the problem: fewer than 3 vertices, repeated vertices, a
-    self-intersecting polygon, non-positive sizes, centres of the wrong count or out of order,
-    electrodes that overlap or do not fit on the boundary.
+    Raises:
+        ValueError: Naming the problem: vertices not (n, 2) or not finite, fewer than 3
+            vertices, repeated vertices, a self-intersecting polygon, fewer than 2 electrodes,
+            non-positive sizes, an `electrode_h` outside (0, h], centres of the wrong count,
+            outside [0, P) or out of order, electrodes that overlap or do not fit on the
+            boundary.
     """
     corners = _counter_clockwise(_checked_polygon(vertices))
     edges = np.roll(corners, -1, axis=0) - corners
@@ -253,13 +270,27 @@ def rectangle(
     electrode_centres: Sequence[float] | np.ndarray | None = None,
     electrode_h: float | None = None,
 ) -> Mesh:
-    """A `width` x `height` rectangular skin (metres) centred at the origin, with electrodes on
-    its boundary: `polygon` with vertex 0 at the bottom-left corner (-width/2, -height/2) and
-    the arc length running counter-clockwise (along the bottom side first).
+    """A rectangular skin centred at the origin, with electrodes on its boundary.
 
-    With the default even placement a square gets n_electrodes / 4 electrodes per side,
-    symmetric about the middle of each side. The other arguments are those of `polygon`
-    (defaults: electrode width half the spacing, h = perimeter / 64, electrode_h = h / 2).
+    `polygon` with vertex 0 at the bottom-left corner (-width/2, -height/2) and the arc length
+    running counter-clockwise (along the bottom side first). With the default even placement a
+    square gets n_electrodes / 4 electrodes per side, symmetric about the middle of each side.
+
+    Arguments:
+        width: The extent along x, m.
+        height: The extent along y, m.
+        n_electrodes: The number of electrodes, at least 2.
+        electrode_width: The arc length of each electrode, m; default half the spacing.
+        h: The target element edge length away from the electrodes, m; default perimeter / 64.
+        electrode_centres: (n_electrodes,) the arc lengths of the electrode centres, m, from
+            the bottom-left corner, as in `polygon`.
+        electrode_h: The element edge length at the electrodes, m; default `h / 2`.
+
+    Returns:
+        The `Mesh`.
+
+    Raises:
+        ValueError: For a non-positive width or height, and as `polygon`.
     """
     if not (width > 0 and height > 0):
         raise ValueError(f"width and height must be positive; got width={width}, height={height}")

@@ -57,16 +57,26 @@ _LEVEL = 8
 
 
 class State(eqx.Module):
-    """What flows through the pipeline; a stage fills or transforms some fields.
+    """What flows through the simulator's pipeline; a stage fills or transforms some fields.
 
-    - `times` (T,) s; `background` (E,) S/sq on the simulation mesh.
-    - `stimulus` (T, E): dsigma/sigma of the touches (None without touches).
-    - `response` (T, E): the skin's dsigma/sigma after its memory (the stimulus without memory).
-    - `conductivity` (T, E) S/sq; `contact_impedance` (T, L) ohm m (None: the skin's, constant).
-    - `frames` (T, M) and `reference` (M,) volts; `lost` (M,) readings lost to open electrodes.
-    - `electrode` (T, D, L) and `reference_electrode` (D, L): the electrode potentials of every
-      drive, volts, kept only when the readout mixes them (None otherwise).
-    - `solves`: forward solves run (distinct states, reference included).
+    Fields a stage has not filled yet are None.
+
+    Attributes:
+        times: (T,) the frame times, seconds.
+        background: (E,) the untouched skin's conductivity on the simulation mesh, S/sq.
+        stimulus: (T, E) the touches' dsigma/sigma (None without touches).
+        response: (T, E) the skin's dsigma/sigma after its memory (the stimulus without
+            memory).
+        conductivity: (T, E) the sheet conductivity of every frame, S/sq.
+        contact_impedance: (T, L) the contact impedance of every frame, ohm m.
+        reference_contact_impedance: (L,) the contact impedance of the reference, ohm m.
+        frames: (T, M) the readings, volts.
+        reference: (M,) the reference frame's readings, volts.
+        electrode: (T, D, L) the electrode potentials of every frame and drive, volts, kept
+            only when the readout mixes them.
+        reference_electrode: (D, L) the reference's electrode potentials, volts, likewise.
+        lost: (M,) bool, the readings lost to open electrodes.
+        solves: The forward solves run (distinct states, reference included).
     """
 
     times: jax.Array
@@ -84,6 +94,7 @@ class State(eqx.Module):
     solves: int = eqx.field(default=0, static=True)
 
     def replace(self, **changes: Any) -> State:
+        """This state with the fields named in `changes` replaced."""
         return dataclasses.replace(self, **changes)
 
 
@@ -91,33 +102,62 @@ class State(eqx.Module):
 
 
 class Touches(eqx.Module):
-    """The touches' stimulus dsigma/sigma per frame and element (`diffeit.scene.stimulus`)."""
+    """The stage of the touches: their stimulus dsigma/sigma per frame and element.
+
+    `diffeit.scene.stimulus` on the simulation mesh; the response is the stimulus until a
+    `Memory` stage follows.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        mesh: The simulation `Mesh`.
+        touches: The scene's `Touch`es.
+    """
 
     name: ClassVar[str] = "touches"
     mesh: Mesh = eqx.field(static=True)
     touches: tuple[Touch, ...]
 
     def __call__(self, state: State) -> State:
+        """`state` with `stimulus` and `response` set to the touches' stimulus."""
         change = stimulus(self.mesh, self.touches, state.times, level=_LEVEL)
         return state.replace(stimulus=change, response=change)
 
 
 class Memory(eqx.Module):
-    """The skin's viscoelastic memory of the stimulus (`diffeit.scene.memory_response`)."""
+    """The stage of the skin's viscoelastic memory: the response to the stimulus.
+
+    `diffeit.scene.memory_response` from a rested skin at the first frame time.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        parameters: The `MemoryParameters`.
+    """
 
     name: ClassVar[str] = "memory"
     parameters: MemoryParameters
 
     def __call__(self, state: State) -> State:
+        """`state` with `response` the memory's response to its stimulus (dsigma/sigma)."""
         return state.replace(response=memory_response(state.stimulus, state.times, self.parameters))
 
 
 class Conductivity(eqx.Module):
-    """sigma = background (1 + response), per frame (S/sq); the background alone without touches."""
+    """The stage of the sheet conductivity: sigma = background (1 + response), per frame.
+
+    In S/sq; the background alone in every frame without touches.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+    """
 
     name: ClassVar[str] = "conductivity"
 
     def __call__(self, state: State) -> State:
+        """`state` with `conductivity` (T, E) S/sq.
+
+        Raises:
+            ValueError: For a concrete response <= -1 somewhere (a conductivity <= 0).
+        """
         if state.response is None:
             conductivity = jnp.broadcast_to(state.background, (len(state.times), len(state.background)))
         else:
@@ -131,8 +171,17 @@ class Conductivity(eqx.Module):
 
 
 class ContactImpedance(eqx.Module):
-    """Contact impedance per frame and electrode (ohm m): the skin's, drifting when declared, and
-    open electrodes' multiplied by `OPEN_FACTOR`."""
+    """The stage of the contact impedance per frame and electrode, ohm m.
+
+    The skin's, drifting when declared (from t = 0), and open electrodes' multiplied by
+    `OPEN_FACTOR`; the reference's is that at the first frame time.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        initial: (L,) the skin's contact impedance, ohm m.
+        drift: The `ContactDrift`, or None.
+        open_electrodes: The indices of the open electrodes (none: an empty tuple).
+    """
 
     name: ClassVar[str] = "contact impedance"
     initial: jax.Array
@@ -140,6 +189,7 @@ class ContactImpedance(eqx.Module):
     open_electrodes: tuple[int, ...] = eqx.field(static=True)
 
     def __call__(self, state: State) -> State:
+        """`state` with `contact_impedance` (T, L) and `reference_contact_impedance` (L,), ohm m."""
         times = jnp.concatenate([state.times[:1], state.times])
         if self.drift is None:
             z = jnp.broadcast_to(self.initial, (len(times), len(self.initial)))
@@ -151,14 +201,21 @@ class ContactImpedance(eqx.Module):
 
 
 class Forward(eqx.Module):
-    """Voltages of every frame and of the reference, one forward solve per distinct state.
+    """The stage of the forward model: the readings of every frame and of the reference.
 
-    On concrete inputs, frames whose conductivity and contact impedance are equal bit for bit
-    share one solve (a static scene costs one); traced inputs (under jax.grad or jit) solve every
-    frame. Solves run in batches of `_SOLVES_PER_BATCH` with a progress bar when there are many.
-    With `potentials` (static; a readout that mixes needs them), the solves keep the electrode
-    potentials of every drive (`State.electrode`, volts) and the readings are formed from them
-    with the protocol's weights."""
+    One forward solve per distinct state: on concrete inputs, frames whose conductivity and
+    contact impedance are equal bit for bit share one solve (a static scene costs one); traced
+    inputs (under jax.grad or jit) solve every frame. Solves run in batches of 16 with a
+    progress bar when there are many.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        model: The `ForwardModel` of the simulation mesh and the skin's protocol.
+        progress: Show a progress bar over the batches of solves (when there are 8 or more).
+        potentials: Keep the electrode potentials of every drive (`State.electrode`, volts)
+            and form the readings from them with the protocol's weights: a readout that mixes
+            needs them.
+    """
 
     name: ClassVar[str] = "forward"
     model: ForwardModel
@@ -166,6 +223,7 @@ class Forward(eqx.Module):
     potentials: bool = eqx.field(default=False, static=True)
 
     def __call__(self, state: State) -> State:
+        """`state` with `frames` (T, M), `reference` (M,) (volts), `solves` and, with `potentials`, the potentials."""
         conductivity = jnp.concatenate([state.background[None], state.conductivity])
         z = jnp.concatenate([state.reference_contact_impedance[None], state.contact_impedance])
         if is_concrete(conductivity) and is_concrete(z):
@@ -206,15 +264,22 @@ class Forward(eqx.Module):
 
 
 class MixReadout(eqx.Module):
-    """Frames and reference read from the electrode potentials through the mixing readout.
+    """The stage of the mixing readout: frames and reference read from the electrode potentials.
 
-    `diffeit.readout.Readout.readings` with unit gains (the gains are a stage of their own)."""
+    `diffeit.readout.Readout.readings` with unit gains (the gains are a stage of their own).
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        protocol: The skin's `Protocol`.
+        mixing: The `ReadoutMixing` effect.
+    """
 
     name: ClassVar[str] = "readout mixing"
     protocol: Protocol = eqx.field(static=True)
     mixing: ReadoutMixing
 
     def __call__(self, state: State) -> State:
+        """`state` with `frames` and `reference` (volts) read through the mixing readout."""
         readout = self.mixing.readout(self.protocol)
         frames = jax.vmap(lambda electrode: readout.readings(self.protocol, electrode))(state.electrode)
         reference = readout.readings(self.protocol, state.reference_electrode)
@@ -222,37 +287,60 @@ class MixReadout(eqx.Module):
 
 
 class ApplyGains(eqx.Module):
-    """Every reading of the frames and of the reference multiplied by its gain (unit-free)."""
+    """The stage of the reading gains: every reading multiplied by its gain.
+
+    The frames' and the reference's alike; the gains are dimensionless.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        gains: The `ReadingGains` effect.
+    """
 
     name: ClassVar[str] = "reading gains"
     gains: ReadingGains
 
     def __call__(self, state: State) -> State:
+        """`state` with `frames` and `reference` multiplied by the gains."""
         gains = jnp.asarray(self.gains.gains, state.frames.dtype)
         return state.replace(frames=gains * state.frames, reference=gains * state.reference)
 
 
 class AddDrift(eqx.Module):
-    """Common-mode drift of all readings (`diffeit.scene.add_drift`); the reference at the
-    first frame time."""
+    """The stage of the common-mode drift of all readings (`diffeit.scene.add_drift`).
+
+    The frames drift at their times, the reference at the first frame time.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        drift: The `CommonModeDrift` effect.
+    """
 
     name: ClassVar[str] = "common-mode drift"
     drift: CommonModeDrift
 
     def __call__(self, state: State) -> State:
+        """`state` with the drift applied to `frames` and `reference` (volts)."""
         frames = add_drift(state.frames, state.times, self.drift)
         reference = add_drift(state.reference[None], state.times[:1], self.drift)[0]
         return state.replace(frames=frames, reference=reference)
 
 
 class AddNoise(eqx.Module):
-    """Measurement noise on every reading of the frames and of the reference (independent
-    draws, `jax.random.key(seed)`), its scale set by the noise-free reference."""
+    """The stage of the measurement noise on every reading of the frames and of the reference.
+
+    Independent Gaussian draws from `jax.random.key(seed)`, their scale set by the noise-free
+    reference (`diffeit.scene.add_noise`).
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        noise: The `MeasurementNoise` effect (its level and seed).
+    """
 
     name: ClassVar[str] = "noise"
     noise: MeasurementNoise
 
     def __call__(self, state: State) -> State:
+        """`state` with noise added to `frames` and `reference` (volts)."""
         frame_key, reference_key = jax.random.split(jax.random.key(self.noise.seed))
         frames = add_noise(state.frames, state.reference, self.noise.noise, frame_key)
         reference = add_noise(state.reference[None], state.reference, self.noise.noise, reference_key)[0]
@@ -260,13 +348,23 @@ class AddNoise(eqx.Module):
 
 
 class LostReadings(eqx.Module):
-    """Readings lost to open electrodes set to `fill` volts, and their mask."""
+    """The stage of the readings lost to open electrodes: set to the effect's `fill`, volts.
+
+    A reading is lost when it weights an open electrode or its drive sends current through
+    one.
+
+    Attributes:
+        name: The stage's name, as `Simulation.stages` lists it (a class variable).
+        protocol: The skin's `Protocol`.
+        open_electrodes: The `OpenElectrodes` effect (the electrodes and the fill value).
+    """
 
     name: ClassVar[str] = "lost readings"
     protocol: Protocol = eqx.field(static=True)
     open_electrodes: OpenElectrodes
 
     def __call__(self, state: State) -> State:
+        """`state` with the lost readings of `frames` and `reference` filled, and `lost` (M,)."""
         lost = lost_readings(self.protocol, self.open_electrodes.electrodes)
         fill = jnp.asarray(self.open_electrodes.fill, dtype=state.frames.dtype)
         return state.replace(
@@ -286,10 +384,23 @@ Stage = (
     | AddNoise
     | LostReadings
 )
+"""One stage of the simulator's `pipeline`: an equinox Module, a pure function `State -> State`."""
 
 
 def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
-    """The stages that simulate `scene`, in order: only those its touches and effects call for."""
+    """The stages that simulate a scene, in order: only those its touches and effects call for.
+
+    Touches, memory, conductivity, contact impedance, the forward solves, then the instrument:
+    readout mixing, reading gains, noise, common-mode drift, lost readings
+    (docs/science.md#simulation-order). `simulate` runs them.
+
+    Arguments:
+        scene: The `Scene`.
+        progress: Show a progress bar over the forward solves of long scenes.
+
+    Returns:
+        The stages, a tuple of `Stage`s.
+    """
     mesh = scene.simulation_mesh()
     skin = scene.skin
     stages: list[Stage] = []
@@ -334,15 +445,21 @@ def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
 class Simulation(eqx.Module):
     """A simulated scene: what a recording would hold, with the ground truth.
 
-    - `frames` (T, M) volts, in the protocol's order and sign; `times` (T,) seconds;
-      `reference` (M,) volts, the untouched skin.
-    - `truth` (T, E) the true sheet conductivity per frame on `mesh`, the simulation mesh, S/sq;
-      `truth_on(mesh)` interpolates it onto a reconstruction mesh.
-    - `lost` (M,) boolean, readings lost to open electrodes (None without them).
-    - `scene`, `protocol`, `stages` (the names of the stages run) and `solves` (forward solves).
-
     Arrays stay JAX arrays, so gradients flow through `simulate`; `save` writes a frames file
     of `diffeit.io` and `read_simulation` reads it back.
+
+    Attributes:
+        scene: The `Scene` simulated.
+        mesh: The simulation `Mesh`.
+        protocol: The skin's `Protocol`.
+        times: (T,) the frame times, seconds.
+        frames: (T, M) the readings, volts, in the protocol's order and sign.
+        reference: (M,) the untouched skin's readings at the first frame time, volts.
+        truth: (T, E) the true sheet conductivity per frame on `mesh`, S/sq; `truth_on`
+            interpolates it onto a reconstruction mesh.
+        lost: (M,) bool, the readings lost to open electrodes (None without them).
+        stages: The names of the stages run, in order.
+        solves: The number of forward solves run.
     """
 
     scene: Scene
@@ -357,19 +474,48 @@ class Simulation(eqx.Module):
     solves: int = eqx.field(static=True)
 
     def truth_on(self, mesh: Mesh) -> np.ndarray:
-        """(T, E') the true conductivity (S/sq) on `mesh` (same skin), conservatively interpolated
-        (`diffeit.mesh.interpolate`: element means of the overlaps)."""
+        """The true conductivity on another mesh of the same skin, conservatively interpolated.
+
+        `diffeit.mesh.interpolate`: the area-weighted means over the overlaps.
+
+        Arguments:
+            mesh: The target `Mesh` (a reconstruction mesh), E' elements.
+
+        Returns:
+            (T, E') the true conductivity, S/sq.
+
+        Raises:
+            ValueError: For a mesh with elements outside the simulation mesh.
+        """
         return interpolate(np.asarray(self.truth), self.mesh, mesh)
 
     def truth_change_on(self, mesh: Mesh) -> np.ndarray:
-        """(T, E') the true conductivity change from the untouched skin (S/sq) on `mesh`."""
+        """The true conductivity change from the untouched skin, on another mesh of the same skin.
+
+        The truth less the background, conservatively interpolated (`truth_on`).
+
+        Arguments:
+            mesh: The target `Mesh` (a reconstruction mesh), E' elements.
+
+        Returns:
+            (T, E') dsigma, S/sq.
+
+        Raises:
+            ValueError: For a mesh with elements outside the simulation mesh.
+        """
         background = np.asarray(self.scene.background.values_on(self.mesh, level=_LEVEL))
         return interpolate(np.asarray(self.truth) - background, self.mesh, mesh)
 
     def to_recording(self) -> io.Recording:
-        """The simulation as a `diffeit.io.Recording`: frames, times, reference, the simulation
-        mesh with the truth as its images ("conductivity"), the reconstruction mesh's geometry,
-        and the scene in the provenance metadata."""
+        """The simulation as a `diffeit.io.Recording`, what `save` writes.
+
+        Frames, times, reference, the simulation mesh with the truth as its images
+        ("conductivity", S/sq), the reconstruction mesh's geometry, and the scene, the stages,
+        the solves and the lost readings in the provenance metadata.
+
+        Returns:
+            The `diffeit.io.Recording`.
+        """
         skin = self.scene.skin
         metadata = {
             "scene": self.scene.to_dict(),
@@ -391,12 +537,36 @@ class Simulation(eqx.Module):
         )
 
     def save(self, path: str | FilePath, *, overwrite: bool = False) -> FilePath:
-        """Write the frames file (`diffeit.io.write_frames`)."""
+        """Write the simulation to a new frames file (`diffeit.io.write_frames`).
+
+        Arguments:
+            path: The file to write.
+            overwrite: Replace an existing file at `path`.
+
+        Returns:
+            `path`, as a `Path`.
+
+        Raises:
+            FileExistsError: For an existing `path` without `overwrite=True`.
+            FileNotFoundError: When the folder of `path` does not exist.
+        """
         return io.write_frames(path, self.to_recording(), overwrite=overwrite)
 
 
 def read_simulation(path: str | FilePath) -> Simulation:
-    """A `Simulation` saved by `Simulation.save`, read back identically."""
+    """Read back a `Simulation` saved by `Simulation.save`, identically.
+
+    Arguments:
+        path: The frames file.
+
+    Returns:
+        The `Simulation`.
+
+    Raises:
+        FileNotFoundError: For a missing file.
+        ValueError: For a file `diffeit.io.read_frames` refuses, or a frames file that is not
+            a simulation (no scene, truth or mesh).
+    """
     recording = io.read_frames(path)
     metadata = recording.provenance.get("metadata", {})
     if "scene" not in metadata or recording.images is None or recording.mesh is None:
