@@ -7,67 +7,27 @@ import h5py
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from skin_sessions import PROTOCOL, gains_board, mixing_board, skin_session
 
 import diffeit as de
 from diffeit.calibration import PositionMap
-from diffeit.readout import Readout
-
-PROTOCOL = de.protocol.adjacent(16)
-
-
-def session(seed: int, readout_of, n_presses: int = 30, noise: float = 1e-3):
-    """A coarse skin (its model is the reconstruction's) with contact impedances spread 3x, read
-    by a board (`readout_of(rng)`, a `Readout`) in its own unit with `noise` (of the RMS
-    reading): 10 untouched frames, then presses (disc, radius 0.15, dsigma/sigma = -0.3) at
-    known places, each followed by an untouched frame."""
-    rng = np.random.default_rng(seed)
-    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
-    truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.55, 0.55, 16)))
-    readout = readout_of(rng)
-
-    def board(sigma):
-        return 1e3 * np.asarray(readout.readings(PROTOCOL, truth.potentials(jnp.asarray(sigma)).electrode))
-
-    reference = board(np.ones(mesh.n_elements))
-    angles = rng.uniform(0, 2 * np.pi, n_presses)
-    radii = 0.6 * np.sqrt(rng.uniform(0, 1, n_presses))
-    centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
-    frames = [reference] * 10
-    for centre in centres:
-        frames += [board(1 - 0.3 * de.mesh.disc_fraction(mesh, tuple(centre), 0.15)), reference]
-    frames = np.array(frames) + noise * np.sqrt(np.mean(reference**2)) * rng.standard_normal(
-        (len(frames), len(reference))
-    )
-    times = 0.1 * np.arange(len(frames))
-    recording = de.io.Recording(frames=frames, times=times, protocol=PROTOCOL, mesh=mesh, voltage_unit="arbitrary")
-    presses = de.io.Presses(centres, 0.15, times[10::2]) if n_presses else None
-    return recording, presses, readout
-
-
-def gains_board(rng):
-    """Gains per drive and per measuring channel of up to 25%."""
-    drive, channel = np.exp(rng.uniform(-0.25, 0.25, (2, 16)))
-    return Readout(PROTOCOL, gains=drive[PROTOCOL.drive_index] * channel[PROTOCOL.pattern_index])
-
-
-def mixing_board(rng):
-    """0.2 of the source electrode's potential and 0.1 of the far electrode's mixed in."""
-    return Readout(PROTOCOL, source=0.2, offsets=0.1 * np.eye(16)[8])
 
 
 @pytest.fixture(scope="module")
 def mixing_skin():
-    return session(4, mixing_board)
+    """The skin of tests/skin_sessions.py read by a board that mixes potentials in: 30 presses,
+    each followed by an untouched frame."""
+    return skin_session(4, mixing_board)
 
 
 @pytest.fixture(scope="module")
 def calibrated(mixing_skin):
-    recording, presses, _ = mixing_skin
-    return de.calibrate(recording, presses.select(np.arange(20)))
+    return de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(20)))
 
 
 def test_the_refinement_finds_a_boards_drive_and_channel_gains_in_its_reference():
-    recording, _, readout = session(5, gains_board, n_presses=0)
+    skin = skin_session(5, gains_board, n_presses=0)
+    recording, readout = skin.recording, skin.readout
     first_only = de.calibrate(recording, reference_groups=())
     calibration = de.calibrate(recording, reference_groups=("contact_impedance", "drive_gains", "channel_gains"))
     assert first_only.correlation < 0.97  # the gains spoil the nominal model's fit
@@ -94,7 +54,7 @@ def test_presses_determine_the_readouts_mixing(calibrated):
 
 
 def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin, calibrated):
-    recording, presses, _ = mixing_skin
+    recording, presses = mixing_skin.recording, mixing_skin.presses
     held_out = de.io.Recording(
         frames=recording.frames[50:],
         times=recording.times[50:],
@@ -133,7 +93,7 @@ def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
 
 
 def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, calibrated, tmp_path):
-    recording, _, _ = mixing_skin
+    recording = mixing_skin.recording
     path = calibrated.save(tmp_path / "skin.cal.h5")
     again = de.calibration.load(path, recording=recording)
     np.testing.assert_allclose(again.signed(recording.frames), calibrated.signed(recording.frames), rtol=1e-12)
@@ -165,7 +125,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     ],
 )
 def test_presses_the_recording_cannot_hold_are_refused(mixing_skin, change, message):
-    recording, presses, _ = mixing_skin
+    recording, presses = mixing_skin.recording, mixing_skin.presses
     with pytest.raises(ValueError, match=message):
         de.calibrate(recording, change(presses))
 
@@ -184,7 +144,7 @@ def test_presses_check_their_shapes_and_values():
 
 
 def test_labels_in_another_frame_are_moved_onto_the_mesh_and_mapped_back(mixing_skin, calibrated):
-    recording, presses, _ = mixing_skin
+    recording, presses = mixing_skin.recording, mixing_skin.presses
     angle, scale, offset = np.deg2rad(25.0), 0.08, np.array([0.01, -0.02])  # labels in metres of an 8 cm skin
     rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
     labels = de.io.Presses(scale * presses.centres @ rotation.T + offset, scale * presses.radius, presses.times[:, 0])
@@ -211,7 +171,7 @@ def test_presses_that_raise_the_conductivity_set_the_touches_polarity():
 
 
 def test_a_session_without_labels_is_calibrated_on_its_untouched_frames(mixing_skin):
-    recording, presses, _ = mixing_skin
+    recording, presses = mixing_skin.recording, mixing_skin.presses
     calibration = de.calibrate(recording)  # 10 untouched frames, then presses and untouched frames in turn
     assert calibration.noise_frames == 40  # every untouched frame, no pressed one
     images = de.reconstruct(recording, calibration=calibration, progress=False)

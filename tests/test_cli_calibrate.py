@@ -3,43 +3,21 @@
 
 import csv
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
+from skin_sessions import gains_board, skin_session
 
 import diffeit as de
 from diffeit.cli import main
-from diffeit.readout import Readout
-
-PROTOCOL = de.protocol.adjacent(16)
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    """A session file and its presses CSV (tests/test_calibration.py's skin): a board with drive
+    """A session file and its presses CSV (tests/skin_sessions.py's skin): a board with drive
     and channel gains up to 25%, contact impedances spread 3x, 0.1% noise; 10 untouched frames,
-    then 30 presses (radius 0.15, dsigma/sigma = -0.3) at known places."""
-    rng = np.random.default_rng(4)
-    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
-    truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.55, 0.55, 16)))
-    gains = (
-        np.exp(rng.uniform(-0.25, 0.25, 16))[PROTOCOL.drive_index]
-        * np.exp(rng.uniform(-0.25, 0.25, 16))[PROTOCOL.pattern_index]
-    )
-    readout = Readout(PROTOCOL, gains=gains)
-
-    def board(sigma):
-        return 1e3 * np.asarray(readout.readings(PROTOCOL, truth.potentials(jnp.asarray(sigma)).electrode))
-
-    reference = board(np.ones(mesh.n_elements))
-    noise = 1e-3 * np.sqrt(np.mean(reference**2))
-    angles = rng.uniform(0, 2 * np.pi, 30)
-    radii = 0.6 * np.sqrt(rng.uniform(0, 1, 30))
-    centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
-    pressed = [board(1 - 0.3 * de.mesh.disc_fraction(mesh, tuple(c), 0.15)) for c in centres]
-    frames = np.concatenate([np.tile(reference, (10, 1)), pressed]) + noise * rng.standard_normal((40, len(reference)))
-    times = 0.1 * np.arange(40)
-    recording = de.io.Recording(frames=frames, times=times, protocol=PROTOCOL, mesh=mesh, voltage_unit="arbitrary")
+    then 30 presses (radius 0.15, dsigma/sigma = -0.3) at known places, one after another."""
+    skin = skin_session(4, gains_board, untouched_between=False)
+    recording, centres, times = skin.recording, skin.presses.centres, skin.recording.times
     folder = tmp_path_factory.mktemp("session")
     path = de.io.write_frames(folder / "session.h5", recording)
     presses = folder / "presses.csv"

@@ -4,62 +4,30 @@ calibration's model, and each frame's touches printed through its position map."
 import dataclasses
 import re
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
+from skin_sessions import gains_board, skin_session
 
 import diffeit as de
 import hw
 from diffeit.cli import main
-from diffeit.readout import Readout
 
-PROTOCOL = de.protocol.adjacent(16)
-# Where the live stream presses (the labels' frame is the mesh's here), and the press's size.
+# Where the live stream presses (the labels' frame is the mesh's here).
 PLACES = np.array([[0.35, 0.2], [-0.3, -0.35]])
-RADIUS, DROP = 0.15, 0.3
 
 
 @pytest.fixture(scope="module")
 def skin(tmp_path_factory):
-    """A small calibration session of one board (tests/test_cli_calibrate.py's, smaller): drive
-    and channel gains up to 25%, contact impedances spread 3x, 0.1% noise; 10 untouched frames,
-    then 12 labelled presses; calibrated with `de.calibrate` and saved. Returns the path and a
-    function giving the board's noisy frames of a conductivity (E,) or (T, E)."""
-    rng = np.random.default_rng(7)
-    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
-    truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.55, 0.55, 16)))
-    gains = (
-        np.exp(rng.uniform(-0.25, 0.25, 16))[PROTOCOL.drive_index]
-        * np.exp(rng.uniform(-0.25, 0.25, 16))[PROTOCOL.pattern_index]
-    )
-    readout = Readout(PROTOCOL, gains=gains)
-
-    def clean(sigma):
-        return 1e3 * np.asarray(readout.readings(PROTOCOL, truth.potentials(jnp.asarray(sigma)).electrode))
-
-    reference = clean(np.ones(mesh.n_elements))
-    noise = 1e-3 * np.sqrt(np.mean(reference**2))
-
-    def board(sigmas, seed):
-        noisy = np.random.default_rng(seed)
-        return np.array([clean(sigma) + noise * noisy.standard_normal(len(reference)) for sigma in sigmas])
-
-    def pressed(centre):
-        return 1 - DROP * de.mesh.disc_fraction(mesh, tuple(centre), RADIUS)
-
-    angles = rng.uniform(0, 2 * np.pi, 12)
-    radii = 0.6 * np.sqrt(rng.uniform(0, 1, 12))
-    centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
-    sigmas = [np.ones(mesh.n_elements)] * 10 + [pressed(c) for c in centres]
-    times = 0.1 * np.arange(len(sigmas))
-    recording = de.io.Recording(
-        frames=board(sigmas, 1), times=times, protocol=PROTOCOL, mesh=mesh, voltage_unit="arbitrary"
-    )
-    presses = de.io.Presses(centres, RADIUS, times[10:])
-    calibration = de.calibrate(recording, presses)
+    """A small calibration session of one board (tests/skin_sessions.py's skin): drive and channel
+    gains up to 25%, contact impedances spread 3x, 0.1% noise (its own seed, 1); 10 untouched
+    frames, then 12 labelled presses; calibrated with `de.calibrate` and saved. Returns the path,
+    a function giving the board's noisy frames of conductivities (T of (E,)) and a seed, one
+    giving the conductivity (E,) under a press at a centre, and the mesh."""
+    skin = skin_session(7, gains_board, n_presses=12, untouched_between=False, noise_seed=1)
+    calibration = de.calibrate(skin.recording, skin.presses)
     assert calibration.position_map is not None and calibration.noise is not None
     path = calibration.save(tmp_path_factory.mktemp("skin") / "skin.cal.h5")
-    return path, board, pressed, mesh
+    return path, skin.frames, skin.pressed, skin.mesh
 
 
 def _live(port, *options):
