@@ -17,6 +17,13 @@ impedance of electrode l (ohm m) and e_l its boundary segment:
 
 The currents I must sum to zero. The geometry is computed once with NumPy; the values are a
 traced JAX function of sigma and z.
+
+Electrodes can move along the boundary: with a margin m > 0, each electrode's entries cover the
+boundary edges within m of its ends (its window), and the integrals over e_l are taken over the
+part of each edge that a moved electrode [a, b] covers (arc length along the boundary, a and b
+within m of the mesh electrode's ends). They are polynomials in the covered fraction of each
+edge, so the values are differentiable in a and b: the derivative of an integral with respect to
+an end is its integrand there.
 """
 
 from __future__ import annotations
@@ -77,62 +84,102 @@ class _GroundedSystem(StaticData):
 class CompleteElectrodeSystem(_GroundedSystem):
     """The fixed structure of the grounded complete-electrode-model matrix of one mesh.
 
-    `values(sigma, z)` returns the (nnz,) matrix values on `pattern`.
+    `values(sigma, z)` returns the (nnz,) matrix values on `pattern`; `values(sigma, z, ends)`
+    those with the electrodes moved along the boundary by `ends`, within `electrode_margin`.
     """
 
+    electrode_margin: float  # m: how far an electrode's ends may move along the boundary
+    electrode_lengths: np.ndarray  # (L,) the mesh electrodes' lengths along the boundary, m
     electrode_weights: np.ndarray  # (C,) geometric integral of each electrode entry, m
     electrode_of_entry: np.ndarray  # (C,) the electrode whose 1/z scales the entry
     electrode_rows: np.ndarray  # (C,) row and column of each electrode entry in the system
     electrode_cols: np.ndarray
     electrode_slots: np.ndarray  # (C,)
+    entry_integral: np.ndarray  # (C,) which integral of `_edge_integrals` the entry is
+    entry_edge_start: np.ndarray  # (C,) arc length of the entry's edge's first node, m,
+    # from the first node of its mesh electrode (negative before it)
+    entry_edge_length: np.ndarray  # (C,) m
 
     @classmethod
-    def from_mesh(cls, mesh: Mesh) -> CompleteElectrodeSystem:
+    def from_mesh(cls, mesh: Mesh, electrode_margin: float = 0.0) -> CompleteElectrodeSystem:
+        """The system of `mesh`, its electrodes free to move `electrode_margin` metres (>= 0)
+        along the boundary at either end."""
+        if not (np.isfinite(electrode_margin) and electrode_margin >= 0):
+            raise ValueError(f"electrode_margin must be finite and >= 0 (metres); got {electrode_margin}")
         n_nodes, n_electrodes = mesh.n_nodes, mesh.n_electrodes
         grounded = _midpoint_node(mesh, mesh.electrodes[-1])
         size = n_nodes - 1 + n_electrodes
         unknown_of_node = _unknown_of_node(n_nodes, grounded, size)
-        rows, cols, weights, owner = [], [], [], []
+        rows, cols, integral, owner, starts, lengths = [], [], [], [], [], []
+        electrode_lengths = []
         for l, chain in enumerate(mesh.electrodes):
-            a, b = unknown_of_node[chain[:-1]], unknown_of_node[chain[1:]]
-            length = np.linalg.norm(mesh.nodes[chain[1:]] - mesh.nodes[chain[:-1]], axis=1)
+            window, first = _window(mesh, chain, electrode_margin)
+            edge_length = np.linalg.norm(mesh.nodes[window[1:]] - mesh.nodes[window[:-1]], axis=1)
+            arc = np.concatenate([[0.0], np.cumsum(edge_length)])
+            electrode_lengths.append(arc[first + len(chain) - 1] - arc[first])
+            edge_start = arc[:-1] - arc[first]
+            a, b = unknown_of_node[window[:-1]], unknown_of_node[window[1:]]
             u = n_nodes - 1 + l  # the unknown U_l
-            entries = [
-                (a, a, length / 3),
-                (b, b, length / 3),
-                (a, b, length / 6),
-                (b, a, length / 6),
-                (a, u, -length / 2),
-                (u, a, -length / 2),
-                (b, u, -length / 2),
-                (u, b, -length / 2),
-                (u, u, length),
-            ]
-            for r, c, w in entries:
-                r, c, w = np.broadcast_arrays(r, c, w)
+            for r, c, k in [
+                (a, a, 0),
+                (b, b, 1),
+                (a, b, 2),
+                (b, a, 2),
+                (a, u, 3),
+                (u, a, 3),
+                (b, u, 4),
+                (u, b, 4),
+                (u, u, 5),
+            ]:
+                r, c, k, _ = np.broadcast_arrays(r, c, k, edge_start)
                 rows.append(r)
                 cols.append(c)
-                weights.append(w)
-                owner.append(np.full(len(w), l))
-        rows, cols, weights, owner = map(np.concatenate, (rows, cols, weights, owner))
+                integral.append(k)
+                owner.append(np.full(len(k), l))
+                starts.append(edge_start)
+                lengths.append(edge_length)
+        rows, cols, integral, owner, starts, lengths = map(
+            np.concatenate, (rows, cols, integral, owner, starts, lengths)
+        )
         kept = (rows < size) & (cols < size)  # entries of the grounded node are dropped
-        rows, cols, weights, owner = rows[kept], cols[kept], weights[kept], owner[kept]
+        rows, cols, integral, owner, starts, lengths = (x[kept] for x in (rows, cols, integral, owner, starts, lengths))
+        electrode_lengths = np.array(electrode_lengths)
         stiffness = _Stiffness.from_mesh(mesh, unknown_of_node, rows, cols, size)
+        fields = cls._stiffness_fields(mesh, stiffness, grounded)
+        if electrode_margin > 0:  # another matrix structure: another system
+            fields["fingerprint"] += np.float64(electrode_margin).tobytes()
+        nominal = np.stack([np.zeros(n_electrodes), electrode_lengths], axis=1)
         return cls(
-            **cls._stiffness_fields(mesh, stiffness, grounded),
-            electrode_weights=weights,
+            **fields,
+            electrode_margin=float(electrode_margin),
+            electrode_lengths=electrode_lengths,
+            electrode_weights=_entry_weights(integral, starts, lengths, nominal[owner], xp=np),
             electrode_of_entry=owner,
             electrode_rows=rows,
             electrode_cols=cols,
             electrode_slots=stiffness.extra_slots,
+            entry_integral=integral,
+            entry_edge_start=starts,
+            entry_edge_length=lengths,
         )
 
-    def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
+    def weights(self, ends: jax.Array | None = None) -> jax.Array:
+        """(C,) the geometric integral of each electrode entry, m: of the mesh's electrodes, or,
+        with `ends` (L, 2), of electrodes whose start and end moved by `ends[l]` metres along
+        the boundary (in the direction of the electrode's nodes), each within the margin."""
+        if ends is None:
+            return jnp.asarray(self.electrode_weights)
+        extent = jnp.stack([ends[:, 0], self.electrode_lengths + ends[:, 1]], axis=1)
+        return _entry_weights(
+            self.entry_integral, self.entry_edge_start, self.entry_edge_length, extent[self.electrode_of_entry]
+        )
+
+    def values(self, conductivity: jax.Array, contact_impedance: jax.Array, ends: jax.Array | None = None) -> jax.Array:
         """(nnz,) matrix values for element-wise `conductivity` (E,) in S/sq and per-electrode
-        `contact_impedance` (L,) in ohm m."""
+        `contact_impedance` (L,) in ohm m; with `ends` (L, 2), electrodes moved as in `weights`."""
         dtype = jnp.result_type(conductivity, contact_impedance)
         values = _stiffness_values(conductivity.astype(dtype), self.unit_stiffness, self.stiffness_table)
-        electrode = jnp.asarray(self.electrode_weights, dtype) / contact_impedance[self.electrode_of_entry]
+        electrode = self.weights(ends).astype(dtype) / contact_impedance[self.electrode_of_entry]
         return values.at[self.electrode_slots].add(electrode)
 
     def current_rhs(self, currents: jax.Array) -> jax.Array:
@@ -149,15 +196,56 @@ class CompleteElectrodeSystem(_GroundedSystem):
         shift = electrode.mean(axis=1, keepdims=True)
         return nodal - shift, electrode - shift
 
-    def contact_forms(self, first: jax.Array, second: jax.Array) -> jax.Array:
+    def contact_forms(self, first: jax.Array, second: jax.Array, ends: jax.Array | None = None) -> jax.Array:
         """(k, L) the electrode terms of the energy, int_(e_l) (u - U_l)(v - V_l) ds, pairing
-        column j of `first` with column j of `second` (system solutions (n, k), unshifted).
+        column j of `first` with column j of `second` (system solutions (n, k), unshifted);
+        with `ends`, over the moved electrodes.
 
         z_l^-2 times this is the derivative of the bilinear form u^T A v with respect to -z_l.
         """
-        weights = jnp.asarray(self.electrode_weights, first.dtype)[:, None]
+        weights = self.weights(ends).astype(first.dtype)[:, None]
         products = weights * first[self.electrode_rows] * second[self.electrode_cols]  # (C, k)
         return jax.ops.segment_sum(products, self.electrode_of_entry, num_segments=self.n_electrodes).T
+
+
+def _window(mesh: Mesh, chain: np.ndarray, margin: float) -> tuple[np.ndarray, int]:
+    """The boundary nodes an electrode may cover when its ends move up to `margin` metres: its
+    chain extended along the boundary at both ends, and the index of its first node in it."""
+    following = dict(mesh.boundary_edges.tolist())
+    preceding = {b: a for a, b in mesh.boundary_edges.tolist()}
+    before, after = [], []
+    for nodes, step, end in ((before, preceding, int(chain[0])), (after, following, int(chain[-1]))):
+        covered, node = 0.0, end
+        while covered < margin:
+            node = step[node]
+            if node in chain or node in before or node in after:
+                raise ValueError(f"electrode_margin {margin} m reaches round the whole boundary loop of an electrode")
+            covered += float(np.linalg.norm(mesh.nodes[node] - mesh.nodes[nodes[-1] if nodes else end]))
+            nodes.append(node)
+    return np.concatenate([before[::-1], chain, after]).astype(np.int64), len(before)
+
+
+def _edge_integrals(start: jax.Array, end: jax.Array) -> list[jax.Array]:
+    """Integrals over t in [start, end] (within [0, 1]) of the products of an edge's two linear
+    basis functions (1 - t, t) and the electrode's constant: (1-t)^2, t^2, t(1-t), -(1-t), -t,
+    1, in the order of `CompleteElectrodeSystem.entry_integral`."""
+    d1 = end - start
+    d2 = (end**2 - start**2) / 2
+    d3 = (end**3 - start**3) / 3
+    return [d1 - 2 * d2 + d3, d3, d2 - d3, d2 - d1, -d2, d1]
+
+
+def _entry_weights(integral: np.ndarray, start: np.ndarray, length: np.ndarray, extent: jax.Array, xp=jnp) -> jax.Array:
+    """(C,) each entry's integral over the part of its edge the electrode [a, b] = `extent`
+    (C, 2) covers (arc lengths as `start`), times the edge's length; in NumPy with `xp=np`."""
+    fraction = (extent - start[:, None]) / length[:, None]
+    # Clipped to [0, 1], the derivative passed at 0 and not at 1: an end on a node moves the
+    # integrals of one edge, not of both (the sum over both is continuously differentiable).
+    # An end within rounding of a node is on it, whichever side rounding put it.
+    near = 1e-9
+    covered = xp.where(fraction < -near, 0.0, xp.where(fraction >= 1 - near, 1.0, fraction))
+    integrals = xp.stack(_edge_integrals(covered[:, 0], covered[:, 1]))  # (6, C)
+    return length * xp.take_along_axis(integrals, xp.asarray(integral)[None], axis=0)[0]
 
 
 @dataclass(eq=False)

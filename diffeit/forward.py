@@ -76,7 +76,9 @@ class ForwardModel(IdentityModule):
     dtype: float64 by default, float32 on request (docs/conventions.md#precision). A model is
     an immutable `equinox.Module` whose one array leaf is `contact_impedance`; the rest is
     static and compared by content, so a second model on an equal mesh and protocol compiles
-    nothing (docs/conventions.md#static-data-and-pytrees).
+    nothing (docs/conventions.md#static-data-and-pytrees). A model whose electrodes are moved
+    along the boundary (`electrode_shift`, as a calibration fits them) holds the shift as a
+    second array leaf, and is differentiable in it.
 
     Arguments:
         mesh: The triangle mesh of the sheet, with its electrodes.
@@ -89,18 +91,30 @@ class ForwardModel(IdentityModule):
             accelerators) or "conjugate_gradient" (matrix-free, large meshes on accelerators).
         electrode_model: "complete", or "point" (current through one node per electrode, no
             contact impedance; see `diffeit.assembly.PointElectrodeSystem`).
+        electrode_shift: How far each electrode lies from the mesh's electrode, metres along
+            the boundary in the direction of its nodes (counter-clockwise round the outer
+            boundary): (L,) moves each electrode, (L, 2) its start and end apart (a width
+            change: end minus start). None (default): the mesh's electrodes. Complete model
+            only. The ends may move up to `electrode_margin`.
+        electrode_margin: How far, metres, the ends of the electrodes may move along the
+            boundary (a static bound: the matrix holds the boundary nodes within it). Default:
+            the largest shift given, or 0.
 
     Attributes:
         mesh: The mesh (static).
         protocol: The protocol (static).
-        contact_impedance: (L,) z, ohm m, the model's one array leaf.
+        contact_impedance: (L,) z, ohm m, an array leaf.
+        electrode_shift: (L, 2) how far each electrode's start and end lie from the mesh's,
+            metres along the boundary, an array leaf; or None.
         drive_current: Amperes (static).
         solver: The linear-solver backend (static).
 
     Raises:
         ValueError: For a protocol and mesh with different numbers of electrodes, a drive
-            current that is zero or not finite, an unknown solver or electrode model, or a
-            contact impedance of the wrong shape, not finite or not positive.
+            current that is zero or not finite, an unknown solver or electrode model, a
+            contact impedance of the wrong shape, not finite or not positive; an electrode
+            shift of the wrong shape, not finite, beyond the margin, leaving an electrode no
+            length, or given to the point model.
 
     Warns:
         diffeit.PrecisionWarning: When building the first model turns on `jax_enable_x64`.
@@ -109,6 +123,7 @@ class ForwardModel(IdentityModule):
     mesh: Mesh = eqx.field(static=True)
     protocol: Protocol = eqx.field(static=True)
     contact_impedance: jax.Array
+    electrode_shift: jax.Array | None
     drive_current: float = eqx.field(static=True)
     solver: AbstractLinearSolver = eqx.field(static=True)
     system: ElectrodeSystem = eqx.field(static=True, repr=False)
@@ -122,6 +137,8 @@ class ForwardModel(IdentityModule):
         drive_current: float = 1e-3,
         solver: AbstractLinearSolver | str | None = None,
         electrode_model: Literal["complete", "point"] = "complete",
+        electrode_shift: jax.Array | None = None,
+        electrode_margin: float | None = None,
     ) -> None:
         ensure_float64()
         if protocol.n_electrodes != mesh.n_electrodes:
@@ -143,8 +160,18 @@ class ForwardModel(IdentityModule):
         if electrode_model not in systems:
             raise ValueError(f"electrode_model must be 'complete' or 'point'; got {electrode_model!r}")
         self.solver = solver
-        self.system = systems[electrode_model].from_mesh(mesh)
         self.contact_impedance = _checked_contact_impedance(contact_impedance, mesh.n_electrodes)
+        if electrode_shift is None and electrode_margin is None:
+            self.system = systems[electrode_model].from_mesh(mesh)
+            self.electrode_shift = None
+            return
+        if electrode_model != "complete":
+            raise ValueError("electrode_shift and electrode_margin need the complete electrode model")
+        shift = _checked_electrode_shift(electrode_shift, mesh.n_electrodes)
+        if electrode_margin is None:
+            electrode_margin = float(np.max(np.abs(shift)))
+        self.system = CompleteElectrodeSystem.from_mesh(mesh, electrode_margin)
+        self.electrode_shift = _within_margin(shift, self.system)
 
     @property
     def n_measurements(self) -> int:
@@ -259,7 +286,8 @@ class ForwardModel(IdentityModule):
 
     def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
         """Warn when a concrete float32 call cannot hold `FLOAT32_TOLERANCE` (see the class)."""
-        if sigma.dtype != jnp.float32 or not is_concrete(conductivity):
+        leaves = (conductivity, z, *_ends(self, z.dtype))
+        if sigma.dtype != jnp.float32 or not all(map(is_concrete, leaves)):
             return
         error = float(_float32_voltage_error(self, sigma, z))
         if not error <= FLOAT32_TOLERANCE:
@@ -293,6 +321,52 @@ def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
 # asynchronously, and a plain jitted call would report the error only where an output is read).
 
 
+def _checked_electrode_shift(electrode_shift, n: int) -> jax.Array:
+    """(n, 2) start and end shifts, m, from (n,) or (n, 2) (None: zeros)."""
+    shift = jnp.zeros((n, 2)) if electrode_shift is None else jnp.asarray(electrode_shift, dtype=float)
+    if shift.shape == (n,):
+        shift = jnp.stack([shift, shift], axis=1)
+    if shift.shape != (n, 2):
+        raise ValueError(
+            f"electrode_shift has shape {shift.shape}; expected ({n},), one per electrode, or ({n}, 2), start and end"
+        )
+    return shift
+
+
+def _within_margin(shift: jax.Array, system: CompleteElectrodeSystem) -> jax.Array:
+    """The shift, checked: finite, within the margin, every electrode left some length. Concrete
+    shifts raise ValueError; traced ones a run-time error."""
+    margin, lengths = system.electrode_margin, jnp.asarray(system.electrode_lengths)
+    # Rounding of the margin a calibration stores and loads again.
+    beyond = jnp.abs(shift) > margin * (1 + 1e-9)
+    collapsed = lengths + shift[:, 1] - shift[:, 0] <= 0
+    if is_concrete(shift):
+        if not np.all(np.isfinite(np.asarray(shift))):
+            raise ValueError(f"electrode_shift is not finite: {np.asarray(shift)}")
+        if np.any(beyond):
+            raise ValueError(
+                f"electrode_shift moves electrode(s) {name_indices(np.flatnonzero(np.any(beyond, axis=1)))} "
+                f"further than electrode_margin ({margin} m)"
+            )
+        if np.any(collapsed):
+            raise ValueError(
+                f"electrode_shift leaves electrode(s) {name_indices(np.flatnonzero(collapsed))} no length "
+                "(its end before its start)"
+            )
+        return shift
+    bad = ~jnp.all(jnp.isfinite(shift)) | jnp.any(beyond) | jnp.any(collapsed)
+    return eqx.error_if(shift, bad, "electrode_shift must be finite, within electrode_margin and leave length")
+
+
+def _ends(model: ForwardModel, dtype) -> tuple[jax.Array, ...]:
+    """The electrode shift to pass to the system, as a tuple: empty for the mesh's electrodes."""
+    return () if model.electrode_shift is None else (model.electrode_shift.astype(dtype),)
+
+
+def _values(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
+    return model.system.values(sigma, z, *_ends(model, sigma.dtype))
+
+
 def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The value checks of `_checked_inputs` for traced inputs: an error at run time, never a
     silent NaN or a solve of an indefinite system."""
@@ -305,7 +379,7 @@ def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
 def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentials:
     system = model.system
     sigma, z = _positive(sigma, z)
-    values = system.values(sigma, z)
+    values = _values(model, sigma, z)
     currents = model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype)
     rhs = system.current_rhs(currents)
     solution, result = solve_spd_with_result(system.pattern, values, rhs, model.solver)
@@ -341,10 +415,10 @@ def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) 
     """Estimated relative 2-norm error of float32 voltages: one step of iterative refinement,
     the residual taken in float64, the correction solved with the float32 system."""
     system = model.system
-    values = system.values(sigma, z)
+    values = _values(model, sigma, z)
     rhs = system.current_rhs(model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype))
     solution = solve_spd(system.pattern, values, rhs, model.solver)
-    exact_values = system.values(sigma.astype(jnp.float64), z.astype(jnp.float64))
+    exact_values = _values(model, sigma.astype(jnp.float64), z.astype(jnp.float64))
     residual = rhs.astype(jnp.float64) - system.pattern.matvec(exact_values, solution.astype(jnp.float64))
     correction = solve_spd(system.pattern, values, residual.astype(sigma.dtype), model.solver)
     voltages = _readings(model, system.split(solution)[1])
@@ -360,7 +434,7 @@ def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: Jacobian
     # Unit current into electrode l < L-1 and out of electrode L-1: every zero-sum pattern is
     # a combination of these with its first L-1 entries as weights.
     unit_currents = jnp.eye(n_free, system.n_electrodes, dtype=sigma.dtype).at[:, -1].set(-1)
-    basis = solve_spd(system.pattern, system.values(sigma, z), system.current_rhs(unit_currents), model.solver)
+    basis = solve_spd(system.pattern, _values(model, sigma, z), system.current_rhs(unit_currents), model.solver)
     drives = model.drive_current * jnp.asarray(protocol.drive[:, :n_free], sigma.dtype)
     # A reading m of potentials that sum to zero equals one of m - mean(m), a zero-sum pattern.
     patterns = protocol.measure_patterns - protocol.measure_patterns.mean(axis=1, keepdims=True)
@@ -369,7 +443,7 @@ def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: Jacobian
     measure_fields = basis @ patterns.T  # (n, n_patterns) ... of every measurement pattern
     if wrt == "contact_impedance":
         forms = system.contact_forms(
-            drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index]
+            drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index], *_ends(model, z.dtype)
         )  # (n_measurements, L)
         return forms / z**2
     drive_x, drive_y = _element_gradients(system, system.split(drive_fields)[0])  # each (n_drives, E)

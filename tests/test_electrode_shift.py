@@ -1,0 +1,94 @@
+"""Electrodes moved along the boundary (`ForwardModel(electrode_shift=...)`): a shift that moves
+an electrode's ends onto other nodes gives the model of the mesh whose electrodes are those
+nodes, exactly; its derivative agrees with finite differences; bad shifts are refused by name."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffeit as de
+
+PROTOCOL = de.protocol.adjacent(16)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return de.mesh.disc(16, h=0.12)
+
+
+def _arc(mesh, a, b):
+    return float(np.linalg.norm(mesh.nodes[a] - mesh.nodes[b]))
+
+
+def _moved_mesh(mesh):
+    """The same triangulation with electrode 2 one boundary node longer at its start, electrode 5
+    one node later at both ends, electrode 9 one node shorter at its end; and those shifts, m."""
+    following = dict(mesh.boundary_edges.tolist())
+    preceding = {b: a for a, b in mesh.boundary_edges.tolist()}
+    chains = [list(map(int, chain)) for chain in mesh.electrodes]
+    shift = np.zeros((16, 2))
+    before = preceding[chains[2][0]]
+    shift[2, 0] = -_arc(mesh, before, chains[2][0])
+    chains[2] = [before, *chains[2]]
+    after = following[chains[5][-1]]
+    shift[5] = _arc(mesh, chains[5][0], chains[5][1]), _arc(mesh, chains[5][-1], after)
+    chains[5] = [*chains[5][1:], after]
+    shift[9, 1] = -_arc(mesh, chains[9][-2], chains[9][-1])
+    chains[9] = chains[9][:-1]
+    return de.Mesh.from_arrays(mesh.nodes, mesh.triangles, chains), shift
+
+
+def test_a_shift_onto_other_nodes_is_the_mesh_with_those_electrodes(mesh):
+    moved, shift = _moved_mesh(mesh)
+    conductivity = np.random.default_rng(0).uniform(0.5, 2.0, mesh.n_elements)
+    z = np.linspace(0.005, 0.05, 16)
+    expected = de.ForwardModel(moved, PROTOCOL, z)
+    shifted = de.ForwardModel(mesh, PROTOCOL, z, electrode_shift=shift)
+    scale = np.abs(expected.measure(conductivity)).max()
+    np.testing.assert_allclose(shifted.measure(conductivity), expected.measure(conductivity), atol=1e-12 * scale)
+    for wrt in ("conductivity", "contact_impedance"):
+        reference = expected.jacobian(conductivity, wrt=wrt)
+        np.testing.assert_allclose(
+            shifted.jacobian(conductivity, wrt=wrt), reference, atol=1e-11 * np.abs(reference).max()
+        )
+    # No shift within a margin is the mesh's model.
+    unmoved = de.ForwardModel(mesh, PROTOCOL, z, electrode_shift=np.zeros(16), electrode_margin=0.05)
+    np.testing.assert_allclose(
+        unmoved.measure(conductivity), de.ForwardModel(mesh, PROTOCOL, z).measure(conductivity), atol=1e-12 * scale
+    )
+
+
+def test_the_derivative_in_the_shift_agrees_with_finite_differences(mesh):
+    """At zero (every end on a node, where the covered edge changes) and between nodes."""
+    model = de.ForwardModel(mesh, PROTOCOL, 0.02, electrode_shift=np.zeros(16), electrode_margin=0.04)
+    conductivity = jnp.asarray(np.random.default_rng(1).uniform(0.5, 2.0, mesh.n_elements))
+
+    def voltages(shift):
+        return eqx.tree_at(lambda m: m.electrode_shift, model, shift).measure(conductivity)
+
+    for start in (np.zeros((16, 2)), np.random.default_rng(2).uniform(-0.03, 0.03, (16, 2))):
+        derivative = jax.jacfwd(voltages)(jnp.asarray(start))
+        step = 1e-6
+        for electrode, end in [(0, 0), (4, 1), (11, 0), (15, 1)]:
+            forward = voltages(jnp.asarray(start).at[electrode, end].add(step))
+            backward = voltages(jnp.asarray(start).at[electrode, end].add(-step))
+            difference = (forward - backward) / (2 * step)
+            np.testing.assert_allclose(derivative[:, electrode, end], difference, atol=1e-4 * np.abs(difference).max())
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"electrode_shift": np.zeros(15)}, "electrode_shift has shape"),
+        ({"electrode_shift": np.full(16, 0.1), "electrode_margin": 0.05}, "further than electrode_margin"),
+        ({"electrode_shift": np.tile([0.05, -0.2], (16, 1))}, "no length"),
+        ({"electrode_shift": np.full(16, np.nan), "electrode_margin": 0.05}, "not finite"),
+        ({"electrode_shift": np.zeros(16), "electrode_model": "point"}, "complete electrode model"),
+        ({"electrode_margin": -1.0}, "electrode_margin must be"),
+    ],
+)
+def test_bad_shifts_are_refused_by_name(mesh, options, message):
+    with pytest.raises(ValueError, match=message):
+        de.ForwardModel(mesh, PROTOCOL, 0.02, **options)
