@@ -54,7 +54,13 @@ readings in use:
 - "contact_impedance": one per electrode, ln z, prior standard deviation 1 (the default);
 - "mixing": the readout's (`diffeit.readout.Readout`: source, sink and offset weights), prior
   standard deviation 0.3 of the pair's weight;
-- "drive_gains", "channel_gains": ln g per drive and per measuring channel, prior 0.5.
+- "drive_gains", "channel_gains": ln g per drive and per measuring channel, prior 0.5;
+- "electrode_positions": how far each electrode's centre lies from the mesh's, along the
+  boundary, prior standard deviation 0.1 of the mean spacing between electrode centres
+  (`diffeit.ForwardModel`'s `electrode_shift`: the electrode terms are integrals over the part
+  of each boundary edge an electrode covers, differentiable in its ends). A shift is bounded,
+  smoothly, by three prior standard deviations and 0.45 of the narrowest gap between
+  electrodes.
 
 Each fitted parameter comes with a standard error from the posterior covariance (the misfit's
 scale estimated from the residual); one whose standard error is over 70% of its prior's is
@@ -89,9 +95,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   fitted to the session's images with the presses' footprints and holds known
   (`diffeit.fit.memory_from_presses`).
 
-The calibrated `ForwardModel` folds the mixing into its protocol's reading weights; gains
-divide the recorded frames (`SkinCalibration.signed`). Electrode positions are the mesh's (not
-fitted). The readings' noise, from the spread of the reference frames, is kept for the touch
+The calibrated `ForwardModel` folds the mixing into its protocol's reading weights and carries
+the fitted electrode positions (its `electrode_shift`); gains divide the recorded frames
+(`SkinCalibration.signed`). The readings' noise, from the spread of the reference frames, is kept for the touch
 detection of `diffeit.touches`.
 """
 
@@ -423,8 +429,14 @@ def _voltages(model: ForwardModel, protocol: Protocol, background: float, contac
 
 
 def _with(model: ForwardModel, protocol: Protocol, contact_impedance: np.ndarray) -> ForwardModel:
-    """`model` under another protocol and contact impedance (same mesh, drive current and solver)."""
-    return ForwardModel(model.mesh, protocol, contact_impedance, drive_current=model.drive_current, solver=model.solver)
+    """`model` under another protocol and contact impedance (same mesh, electrodes, drive
+    current and solver)."""
+    moved = {}
+    if model.electrode_shift is not None:
+        moved = {"electrode_shift": model.electrode_shift, "electrode_margin": model.system.electrode_margin}
+    return ForwardModel(
+        model.mesh, protocol, contact_impedance, drive_current=model.drive_current, solver=model.solver, **moved
+    )
 
 
 def _scale(voltages: np.ndarray, data: np.ndarray) -> float:
@@ -583,7 +595,16 @@ def _electrode_contact_impedances(
 # The refinement and the skin's calibration
 
 # Prior standard deviations of the refined groups (module docstring, "Refinement").
-PRIORS = {"contact_impedance": 1.0, "mixing": 0.3, "drive_gains": 0.5, "channel_gains": 0.5}
+PRIORS = {
+    "contact_impedance": 1.0,
+    "mixing": 0.3,
+    "drive_gains": 0.5,
+    "channel_gains": 0.5,
+    "electrode_positions": 0.1,
+}
+# Electrodes may move this many prior standard deviations, and at most this fraction of the
+# narrowest gap between two electrodes (they never meet).
+_POSITION_REACH, _POSITION_GAP = 3.0, 0.45
 # The groups a reference alone determines well enough to image with (docs/tutorials/calibration.md).
 REFERENCE_GROUPS = ("contact_impedance",)
 # The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
@@ -678,7 +699,8 @@ class SkinCalibration(eqx.Module):
         conductivity: sigma_h, the fitted level, S/sq in the recording's voltage unit.
         contact_impedance: (L,) ohm m, in the same unit.
         electrode_centres: (L,) the electrodes' centres as arc length along the boundary, m,
-            counter-clockwise from the first node of electrode 0 (the mesh's: not fitted).
+            counter-clockwise from the first node of the mesh's electrode 0: the mesh's, moved
+            by the fitted shifts when "electrode_positions" was fitted.
         readout: The fitted `diffeit.readout.Readout` on the readings used (its gains: the
             drive, channel and per-reading gains that `signed` divides by).
         used: (M,) bool, the recording's readings that are imaged.
@@ -686,7 +708,7 @@ class SkinCalibration(eqx.Module):
         standard_errors: Group -> (n,) standard errors of the fitted parameters, as `values`.
         values: Group -> (n,) the fitted parameters: "level" (ln c), "contact_impedance"
             (ln z / z_first), "mixing" (source, sink, offsets), "drive_gains" and
-            "channel_gains" (ln g).
+            "channel_gains" (ln g), "electrode_positions" (m along the boundary).
         undetermined: Names of the fitted parameters the data did not determine.
         fitted: "reference" and "presses" -> the groups each determined.
         misfit: ||v - V|| / ||v|| of the refined model before per-reading gains, and
@@ -791,7 +813,7 @@ class SkinCalibration(eqx.Module):
             f"drive and channel gains: {gains.min():.3f} to {gains.max():.3f}",
             f"fitted from the reference: {', '.join(self.fitted['reference'])}; from the presses: "
             + (", ".join(self.fitted["presses"]) or "nothing"),
-            "electrode positions: the mesh's (not fitted)",
+            self._positions_line(),
         ]
         if self.undetermined:
             lines.append(f"not determined by the data ({len(self.undetermined)}): " + ", ".join(self.undetermined))
@@ -817,6 +839,15 @@ class SkinCalibration(eqx.Module):
             )
         lines.extend(f"warning: {note}" for note in self.warnings)
         return lines
+
+    def _positions_line(self) -> str:
+        if not any("electrode_positions" in groups for groups in self.fitted.values()):
+            return "electrode positions: the mesh's (not fitted)"
+        shift, error = 1e3 * self.values["electrode_positions"], 1e3 * self.standard_errors["electrode_positions"]
+        return (
+            f"electrode positions: moved {shift.min():+.2f} to {shift.max():+.2f} mm along the boundary "
+            f"(standard errors {error.min():.2f} to {error.max():.2f} mm)"
+        )
 
     def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
         """Write the calibration to an HDF5 file (schema "diffeit.calibration"), atomically and
@@ -942,7 +973,8 @@ def calibrate(
     of the session's first 200 that look untouched): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
-    readout's mixing, drive and channel gains, with standard errors, and per-reading gains.
+    readout's mixing, drive and channel gains, electrode positions, with standard errors, and
+    per-reading gains.
     With presses held over several frames, the skin's memory is fitted to the whole session's
     images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
     With labelled `presses`: each press is imaged at the calibrated model (`diffeit.inverse.
@@ -959,7 +991,8 @@ def calibrate(
         background: The nominal background conductivity, S/sq.
         contact_impedance: The nominal contact impedance, ohm m.
         driven_readings: "auto", "keep" or "drop" the readings on driven electrodes.
-        priors: Prior standard deviations replacing those of `PRIORS` (by group name).
+        priors: Prior standard deviations replacing those of `PRIORS` (by group name; the
+            electrode positions' as a fraction of the mean spacing between electrodes).
         reference_groups: The groups of `PRIORS` fitted to the reference (the level always
             is); the default, the contact impedances, is what a reference determines on a skin
             whose electrode positions and sheet the model does not know (measured in
@@ -1051,16 +1084,30 @@ def _refine(
     frames = np.atleast_2d(np.asarray(reference, np.float64))
     magnitude = recording.readings == "magnitude"
     data = first.signed(frames.mean(axis=0)) * (first.reading_sign[first.used] if magnitude else 1.0)
-    fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     n = protocol.n_electrodes
+    spacing, gap = _electrode_spacing(model)
+    prior = dict(priors, electrode_positions=priors["electrode_positions"] * spacing)  # metres
+    margin = min(_POSITION_REACH * prior["electrode_positions"], _POSITION_GAP * gap)
+    if "electrode_positions" in groups:
+        model = ForwardModel(
+            model.mesh,
+            protocol,
+            model.contact_impedance,
+            drive_current=model.drive_current,
+            solver=model.solver,
+            electrode_shift=np.zeros(n),
+            electrode_margin=margin,
+        )
+    fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     sizes = {
         "level": 1,
         "contact_impedance": n,
         "mixing": 2 + n,
         "drive_gains": protocol.n_drives,
         "channel_gains": len(protocol.measure_patterns),
+        "electrode_positions": n,
     }
-    spread = np.concatenate([np.full(size, 1.0 if name == "level" else priors[name]) for name, size in sizes.items()])
+    spread = np.concatenate([np.full(size, 1.0 if name == "level" else prior[name]) for name, size in sizes.items()])
     fixed = np.concatenate([np.full(size, name != "level" and name not in groups) for name, size in sizes.items()])
     fixed[3 + n : 3 + 2 * n][fit.pair_offsets] = True  # offsets on the measuring pair are its gain
     theta = np.zeros(len(spread))
@@ -1074,6 +1121,10 @@ def _refine(
     covariance = np.zeros((len(theta), len(theta)))
     covariance[np.ix_(~fixed, ~fixed)] = np.linalg.inv(curvature[np.ix_(~fixed, ~fixed)])
     errors = dict(zip(sizes, np.split(np.sqrt(np.diag(covariance)), np.cumsum(list(sizes.values()))[:-1]), strict=True))
+    # Positions in metres: the shifts, and their errors through the bounding map's slope.
+    shift = margin * np.tanh(values["electrode_positions"] / margin)
+    values["electrode_positions"] = shift
+    errors["electrode_positions"] = errors["electrode_positions"] * (1 - (shift / margin) ** 2)
     names = [f"{name}[{i}]" if size > 1 else name for name, size in sizes.items() for i in range(size)]
     undetermined = tuple(
         name
@@ -1097,14 +1148,14 @@ def _refine(
         offsets=values["mixing"][2:],
         gains=structured,
     )
-    calibrated = ForwardModel(
-        model.mesh, readout.folded(protocol), contact, drive_current=model.drive_current, solver=model.solver
-    )
+    if "electrode_positions" in groups:
+        model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.stack([jnp.asarray(shift)] * 2, axis=1))
+    calibrated = _with(model, readout.folded(protocol), contact)
     return SkinCalibration(
         model=calibrated,
         conductivity=float(level),
         contact_impedance=np.asarray(contact),
-        electrode_centres=_electrode_centres(model.mesh),
+        electrode_centres=_electrode_centres(model.mesh, shift),
         readout=readout,
         used=first.used,
         reading_sign=reading_sign,
@@ -1177,8 +1228,13 @@ def _readings(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
     log_c, log_z = theta[0], theta[1 : 1 + n]
     mixing = theta[1 + n : 3 + 2 * n]
     log_drive = theta[3 + 2 * n : 3 + 2 * n + drives]
-    log_channel = theta[3 + 2 * n + drives :]
-    electrode = fit.model.potentials(fit.conductivity, fit.contact_impedance * jnp.exp(log_z)).electrode
+    log_channel = theta[3 + 2 * n + drives : -n]
+    model = fit.model
+    if model.electrode_shift is not None:  # positions fitted: bounded shifts, m
+        margin = model.system.electrode_margin
+        shift = margin * jnp.tanh(theta[-n:] / margin)
+        model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.stack([shift, shift], axis=1))
+    electrode = model.potentials(fit.conductivity, fit.contact_impedance * jnp.exp(log_z)).electrode
     weights = (
         jnp.asarray(protocol.measure)
         + mixing[0] * fit.source
@@ -1232,9 +1288,24 @@ def _levenberg_marquardt(
     return theta, design.T @ design + np.diag(precision)
 
 
-def _electrode_centres(mesh: Mesh) -> np.ndarray:
+def _electrode_spacing(model: ForwardModel) -> tuple[float, float]:
+    """The mean distance between neighbouring electrode centres along the boundary, and the
+    narrowest gap between two electrodes, m (electrodes on the outer boundary loop)."""
+    centres = _electrode_centres(model.mesh)
+    lengths = model.system.electrode_lengths
+    perimeter = float(
+        np.sum(np.linalg.norm(np.diff(model.mesh.nodes[model.mesh.boundary_edges], axis=1)[:, 0], axis=1))
+    )
+    order = np.argsort(centres)
+    between = np.diff(np.append(centres[order], centres[order[0]] + perimeter))
+    gaps = between - (lengths[order] + np.roll(lengths[order], -1)) / 2
+    return float(np.mean(between)), float(np.min(gaps))
+
+
+def _electrode_centres(mesh: Mesh, shift: np.ndarray | None = None) -> np.ndarray:
     """(L,) each electrode's midpoint as arc length along its boundary, m, counter-clockwise
-    from the first node of electrode 0 (NaN for an electrode on another boundary loop)."""
+    from the first node of electrode 0 (NaN for an electrode on another boundary loop), moved
+    by `shift` (L,), m."""
     following = dict(mesh.boundary_edges.tolist())
     start = int(mesh.electrodes[0][0])
     arc, node, position = 0.0, start, {start: 0.0}
@@ -1251,8 +1322,8 @@ def _electrode_centres(mesh: Mesh) -> np.ndarray:
             continue
         first = position[int(nodes[0])]
         length = np.sum(np.linalg.norm(np.diff(mesh.nodes[nodes], axis=0), axis=1))
-        centres.append((first + 0.5 * length) % arc)
-    return np.array(centres)
+        centres.append(first + 0.5 * length)
+    return (np.array(centres) + (0.0 if shift is None else shift)) % arc
 
 
 def _fit_frame_and_mixing(
@@ -1307,9 +1378,7 @@ def _fit_presses(
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
-    model = ForwardModel(
-        first.model.mesh, protocol, calibration.contact_impedance, drive_current=first.model.drive_current
-    )
+    model = _with(calibration.model, protocol, calibration.contact_impedance)
     level = calibration.conductivity
     sigma = jnp.full(model.n_elements, level)
     patterns = polarity * np.stack(
@@ -1366,9 +1435,7 @@ def _fit_presses(
     data = data * sign
     factor = _scale(readings, data)
     contact = calibration.contact_impedance * factor
-    fitted_model = ForwardModel(
-        model.mesh, readout.folded(protocol), contact, drive_current=model.drive_current, solver=model.solver
-    )
+    fitted_model = _with(model, readout.folded(protocol), contact)
     reading_sign = first.reading_sign.copy()
     if magnitude:
         reading_sign[first.used] = sign
@@ -1620,7 +1687,8 @@ def _leave_one_out_errors(read: np.ndarray, labelled: np.ndarray, degree: int | 
 # Files
 
 SCHEMA = "diffeit.calibration"
-SCHEMA_VERSION = 1
+# Version 2: the electrodes' positions (model/electrode_shift, electrode_margin). Version 1 reads.
+SCHEMA_VERSION = 2
 
 
 def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
@@ -1650,6 +1718,8 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         **{f"values/{name}": value for name, value in calibration.values.items()},
         **{f"standard_errors/{name}": value for name, value in calibration.standard_errors.items()},
     }
+    if model.electrode_shift is not None:
+        arrays["model/electrode_shift"] = np.asarray(model.electrode_shift)
     if calibration.noise is not None:
         arrays["noise"] = calibration.noise
     if calibration.position_map is not None:
@@ -1662,6 +1732,7 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         "schema_version": SCHEMA_VERSION,
         "readings": calibration.readings,
         "drive_current": model.drive_current,
+        "electrode_margin": getattr(model.system, "electrode_margin", 0.0),
         "conductivity": calibration.conductivity,
         "misfit": calibration.misfit,
         "correlation": calibration.correlation,
@@ -1727,8 +1798,10 @@ def load(path: str | Path, *, recording: Recording | None = None) -> SkinCalibra
                 f"{path} is a calibration of schema version {version}, newer than this diffeit reads "
                 f"({SCHEMA_VERSION}): update diffeit"
             )
-        if version != SCHEMA_VERSION:
-            raise ValueError(f"{path} has calibration schema version {version}; this diffeit reads {SCHEMA_VERSION}")
+        if version < 1:
+            raise ValueError(
+                f"{path} has calibration schema version {version}; this diffeit reads 1 to {SCHEMA_VERSION}"
+            )
         arrays: dict[str, np.ndarray] = {}
         file.visititems(
             lambda name, item: arrays.__setitem__(name, item[()]) if isinstance(item, h5py.Dataset) else None
@@ -1759,8 +1832,14 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
     measure = arrays["model/measure"]
     selected = protocol.select(used)
     model_protocol = Protocol(selected.drive, [measure[selected.drive_index == d] for d in range(selected.n_drives)])
+    moved = {}
+    if "model/electrode_shift" in arrays:
+        moved = {
+            "electrode_shift": arrays["model/electrode_shift"],
+            "electrode_margin": float(attributes["electrode_margin"]),
+        }
     model = ForwardModel(
-        mesh, model_protocol, arrays["contact_impedance"], drive_current=float(attributes["drive_current"])
+        mesh, model_protocol, arrays["contact_impedance"], drive_current=float(attributes["drive_current"]), **moved
     )
     weights = arrays["readout/weights"]
     readout = Readout(selected, source=weights[0], sink=weights[1], offsets=weights[2:], gains=arrays["readout/gains"])
@@ -1797,7 +1876,9 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         model=model,
         conductivity=float(attributes["conductivity"]),
         contact_impedance=arrays["contact_impedance"],
-        electrode_centres=_electrode_centres(mesh),
+        electrode_centres=_electrode_centres(
+            mesh, None if model.electrode_shift is None else np.asarray(model.electrode_shift).mean(axis=1)
+        ),
         readout=readout,
         used=used,
         reading_sign=arrays["reading_sign"],
