@@ -86,6 +86,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   in turn (`_fit_presses`). The level is fitted again to the reference under the new mixing.
   A board whose readings mix in its source electrode's potential moves every image's touch;
   the presses determine the weights where the reference does not.
+- **Electrode positions** (`press_groups`, by default), in turn with the mixing: Gauss-Newton
+  steps on the same differences, their derivative in the positions by `jax.jacfwd` through the
+  forward model, with the positions' prior.
 - **A position map**: each press's frames are imaged at the calibrated model, its touch read
   (`diffeit.touch.read`), and a smooth map from read positions to labelled ones fitted: the
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
@@ -602,11 +605,15 @@ PRIORS = {
     "channel_gains": 0.5,
     "electrode_positions": 0.1,
 }
+# Gauss-Newton rounds of the electrode positions on the presses, each followed by the mixing's.
+_POSITION_ROUNDS = 3
 # Electrodes may move this many prior standard deviations, and at most this fraction of the
 # narrowest gap between two electrodes (they never meet).
 _POSITION_REACH, _POSITION_GAP = 3.0, 0.45
 # The groups a reference alone determines well enough to image with (docs/tutorials/calibration.md).
 REFERENCE_GROUPS = ("contact_impedance",)
+# The groups the presses' differences determine.
+PRESS_GROUPS = ("mixing", "electrode_positions")
 # The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
 _NOISE_FRAMES = 6
 # An L-curve corner within this factor of an end of the candidates counts as at the end.
@@ -964,6 +971,7 @@ def calibrate(
     driven_readings: DrivenReadings = "auto",
     priors: Mapping[str, float] | None = None,
     reference_groups: tuple[str, ...] = REFERENCE_GROUPS,
+    press_groups: tuple[str, ...] = PRESS_GROUPS,
     hyperparameter: float | None = None,
     memory: bool = True,
 ) -> SkinCalibration:
@@ -997,6 +1005,8 @@ def calibrate(
             is); the default, the contact impedances, is what a reference determines on a skin
             whose electrode positions and sheet the model does not know (measured in
             docs/tutorials/calibration.md). The readout's mixing is fitted to the presses.
+        press_groups: The groups fitted to the presses' differences: "mixing" (always),
+            and "electrode_positions".
         hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
             it from the presses' frames (`auto_hyperparameter`).
         memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
@@ -1034,12 +1044,23 @@ def calibrate(
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
+    if "mixing" not in press_groups or not set(press_groups) <= set(PRESS_GROUPS):
+        raise ValueError(f"press_groups must hold 'mixing' and may hold 'electrode_positions'; got {press_groups}")
     calibration = _refine(first, reference, priors, recording, tuple(reference_groups))
     if presses is None:
         return calibration
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     calibration, frame = _fit_frame_and_mixing(
-        calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0]
+        calibration,
+        recording,
+        presses,
+        reference,
+        priors["mixing"],
+        polarity,
+        found.position[:, 0],
+        _position_prior(calibration.model, priors["electrode_positions"])
+        if "electrode_positions" in press_groups
+        else None,
     )
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
     calibration = _with_position_map(calibration, presses, found, chosen, polarity)
@@ -1085,19 +1106,10 @@ def _refine(
     magnitude = recording.readings == "magnitude"
     data = first.signed(frames.mean(axis=0)) * (first.reading_sign[first.used] if magnitude else 1.0)
     n = protocol.n_electrodes
-    spacing, gap = _electrode_spacing(model)
-    prior = dict(priors, electrode_positions=priors["electrode_positions"] * spacing)  # metres
-    margin = min(_POSITION_REACH * prior["electrode_positions"], _POSITION_GAP * gap)
+    position_prior, margin = _position_prior(model, priors["electrode_positions"])
+    prior = dict(priors, electrode_positions=position_prior)
     if "electrode_positions" in groups:
-        model = ForwardModel(
-            model.mesh,
-            protocol,
-            model.contact_impedance,
-            drive_current=model.drive_current,
-            solver=model.solver,
-            electrode_shift=np.zeros(n),
-            electrode_margin=margin,
-        )
+        model = _movable(model, margin)
     fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     sizes = {
         "level": 1,
@@ -1288,6 +1300,27 @@ def _levenberg_marquardt(
     return theta, design.T @ design + np.diag(precision)
 
 
+def _position_prior(model: ForwardModel, fraction: float) -> tuple[float, float]:
+    """The electrode positions' prior standard deviation, m (`fraction` of the mean spacing
+    between electrodes), and how far they may move (module docstring)."""
+    spacing, gap = _electrode_spacing(model)
+    return fraction * spacing, min(_POSITION_REACH * fraction * spacing, _POSITION_GAP * gap)
+
+
+def _movable(model: ForwardModel, margin: float) -> ForwardModel:
+    """`model` with its electrodes free to move `margin` m (where they are, or the mesh's)."""
+    shift = np.zeros(model.mesh.n_electrodes) if model.electrode_shift is None else model.electrode_shift
+    return ForwardModel(
+        model.mesh,
+        model.protocol,
+        model.contact_impedance,
+        drive_current=model.drive_current,
+        solver=model.solver,
+        electrode_shift=shift,
+        electrode_margin=margin,
+    )
+
+
 def _electrode_spacing(model: ForwardModel) -> tuple[float, float]:
     """The mean distance between neighbouring electrode centres along the boundary, and the
     narrowest gap between two electrodes, m (electrodes on the outer boundary loop)."""
@@ -1334,9 +1367,12 @@ def _fit_frame_and_mixing(
     prior: float,
     polarity: int,
     read_positions: np.ndarray,
+    positions: tuple[float, float] | None,
 ) -> tuple[SkinCalibration, np.ndarray]:
     """The readout's mixing fitted to the presses in the labels' frame that explains their
-    differences best, and that frame (ln scale, angle, offset; module docstring, "Presses").
+    differences best, and that frame (ln scale, angle, offset; module docstring, "Presses");
+    then, in that frame, the electrode positions with the mixing (`positions`: their prior
+    standard deviation and margin, m; None: not fitted).
 
     The frame starts from the better of the mesh's own and the similarity that maps the labels
     onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
@@ -1354,7 +1390,7 @@ def _fit_frame_and_mixing(
         misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
     )
     frame = best.x if best.fun < misfit(start) else start
-    fitted, _ = _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity)
+    fitted, _ = _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity, positions)
     return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
 
 
@@ -1365,30 +1401,37 @@ def _fit_presses(
     reference: np.ndarray,
     prior: float,
     polarity: int,
+    positions: tuple[float, float] | None = None,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
-    "Presses"), and the relative misfit of the presses' differences.
+    "Presses"), and the relative misfit of the presses' differences; with `positions` (the
+    prior standard deviation and margin, m), the electrode positions too.
 
     Each press k is a disc of the labelled centre and radius and an unknown depth a_k; its
     differences are linearised at the calibrated level, dv_k = a_k s * ((W + X) dU_k), dU_k the
     electrode potentials' change under the press's pattern, s the readings' signs (of the
     mixed reference readings, for magnitudes). X is linear in the mixing weights: the weights
     (given the depths) and the depths (given the weights) are solved in turn, the weights with
-    their prior."""
+    their prior. The positions, given the weights and depths, take Gauss-Newton steps on the
+    same differences (their derivative by `jax.jacfwd` through the forward model), with their
+    prior, in turn with the weights and depths."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
     model = _with(calibration.model, protocol, calibration.contact_impedance)
+    if positions is not None:
+        model = _movable(model, positions[1])
     level = calibration.conductivity
     sigma = jnp.full(model.n_elements, level)
-    patterns = polarity * np.stack(
-        [
-            level * np.asarray(_disc_pattern(model.mesh, c, r))
-            for c, r in zip(presses.centres, presses.radius, strict=True)
-        ]
+    patterns = jnp.asarray(
+        polarity
+        * np.stack(
+            [
+                level * np.asarray(_disc_pattern(model.mesh, c, r))
+                for c, r in zip(presses.centres, presses.radius, strict=True)
+            ]
+        )
     )
-    unchanged = np.asarray(model.potentials(sigma).electrode)
-    changes = np.asarray(_potential_changes(model, sigma, jnp.asarray(patterns)))  # (K, drives, L)
     source, sink, offset = roles(protocol)
     fixed = _ReadoutFit.of(model, level, calibration.contact_impedance, False).pair_offsets
     basis = np.concatenate([source[None], sink[None], offset[~fixed]])  # (p, M, L)
@@ -1403,25 +1446,47 @@ def _fit_presses(
     magnitude = recording.readings == "magnitude"
     if magnitude:
         differences = differences * first.reading_sign[first.used]  # back to |V| differences
-    base = np.einsum("ml,kml->km", weights, changes[:, drive])  # (K, M)
-    columns = np.einsum("pml,kml->kmp", basis, changes[:, drive])  # (K, M, p)
     data = signed_reference * (first.reading_sign[first.used] if magnitude else 1.0)  # |V| for magnitudes
     mixing = np.zeros(len(basis))
-    # Only the presses: a mixing fitted to the reference as well bends to the model's own errors
-    # there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
-    for _ in range(_PRESS_ROUNDS):
-        sign = _signs(weights + np.einsum("p,pml->ml", mixing, basis), unchanged[drive], magnitude)
-        predicted = sign * (base + columns @ mixing)
-        depth = np.sum(predicted * differences, axis=1) / np.maximum(np.sum(predicted**2, axis=1), 1e-300)
-        design = (sign[None, :, None] * columns * depth[:, None, None]).reshape(-1, len(basis))
-        target = (differences - depth[:, None] * sign * base).ravel()
-        scale = _residual_scale(target - design @ mixing, differences)
-        curvature = design.T @ design / scale**2 + np.eye(len(basis)) / prior**2
-        updated = np.linalg.solve(curvature, design.T @ target / scale**2)
-        if np.max(np.abs(updated - mixing)) < 1e-6:
+    full_weights = jnp.asarray(np.concatenate([weights[None], basis]))  # (1 + p, M, L)
+    rounds = 1 if positions is None else 1 + _POSITION_ROUNDS
+    position_errors = None
+    for position_round in range(rounds):
+        unchanged = np.asarray(model.potentials(sigma).electrode)
+        changes = np.asarray(_potential_changes(model, sigma, patterns))  # (K, drives, L)
+        base = np.einsum("ml,kml->km", weights, changes[:, drive])  # (K, M)
+        columns = np.einsum("pml,kml->kmp", basis, changes[:, drive])  # (K, M, p)
+        # Only the presses: a mixing fitted to the reference as well bends to the model's own
+        # errors there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
+        for _ in range(_PRESS_ROUNDS):
+            sign = _signs(weights + np.einsum("p,pml->ml", mixing, basis), unchanged[drive], magnitude)
+            predicted = sign * (base + columns @ mixing)
+            depth = np.sum(predicted * differences, axis=1) / np.maximum(np.sum(predicted**2, axis=1), 1e-300)
+            design = (sign[None, :, None] * columns * depth[:, None, None]).reshape(-1, len(basis))
+            target = (differences - depth[:, None] * sign * base).ravel()
+            scale = _residual_scale(target - design @ mixing, differences)
+            curvature = design.T @ design / scale**2 + np.eye(len(basis)) / prior**2
+            updated = np.linalg.solve(curvature, design.T @ target / scale**2)
+            if np.max(np.abs(updated - mixing)) < 1e-6:
+                mixing = updated
+                break
             mixing = updated
+        if position_round == rounds - 1:
             break
-        mixing = updated
+        # A Gauss-Newton step of the positions, the weights and depths held.
+        shift = model.electrode_shift[:, 0]
+        mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
+        along = np.asarray(_press_readings_jacobian(model, sigma, patterns, full_weights, mixed, shift))  # (K, M, L)
+        design_shift = (depth[:, None, None] * sign[None, :, None] * along).reshape(-1, len(shift))
+        residual = (differences - depth[:, None] * sign * (base + columns @ mixing)).ravel()
+        scale = _residual_scale(residual, differences)
+        curvature_shift = design_shift.T @ design_shift / scale**2 + np.eye(len(shift)) / positions[0] ** 2
+        gradient = design_shift.T @ residual / scale**2 - np.asarray(shift) / positions[0] ** 2
+        moved = np.clip(
+            np.asarray(shift) + np.linalg.solve(curvature_shift, gradient), *(0.999 * np.array([-1, 1]) * positions[1])
+        )
+        model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.asarray(np.stack([moved, moved], axis=1)))
+        position_errors = np.sqrt(np.diag(np.linalg.inv(curvature_shift)))
     errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
     values = np.zeros(2 + protocol.n_electrodes)
     spread = np.zeros_like(values)
@@ -1441,6 +1506,18 @@ def _fit_presses(
         reading_sign[first.used] = sign
     undetermined = tuple(f"mixing[{i}]" for i in np.flatnonzero(free) if spread[i] > _UNDETERMINED * prior)
     misfit = _relative(data - factor * readings, data)
+    values_by_group = {**calibration.values, "mixing": values, "press_depths": depth}
+    errors_by_group = {**calibration.standard_errors, "mixing": spread, "press_depths": np.full(len(depth), np.nan)}
+    groups = ("mixing", "press depths")
+    centres = calibration.electrode_centres
+    if position_errors is not None:
+        shift = np.asarray(model.electrode_shift[:, 0])
+        values_by_group["electrode_positions"], errors_by_group["electrode_positions"] = shift, position_errors
+        undetermined += tuple(
+            f"electrode_positions[{i}]" for i in np.flatnonzero(position_errors > _UNDETERMINED * positions[0])
+        )
+        groups = ("mixing", "electrode_positions", "press depths")
+        centres = _electrode_centres(model.mesh, shift)
     fitted = eqx.tree_at(
         lambda c: (
             c.model,
@@ -1448,6 +1525,7 @@ def _fit_presses(
             c.contact_impedance,
             c.readout,
             c.reading_sign,
+            c.electrode_centres,
             c.values,
             c.standard_errors,
             c.undetermined,
@@ -1462,10 +1540,16 @@ def _fit_presses(
             contact,
             readout,
             reading_sign,
-            {**calibration.values, "mixing": values, "press_depths": depth},
-            {**calibration.standard_errors, "mixing": spread, "press_depths": np.full(len(depth), np.nan)},
-            tuple(name for name in calibration.undetermined if not name.startswith("mixing")) + undetermined,
-            {**calibration.fitted, "presses": ("mixing", "press depths")},
+            centres,
+            values_by_group,
+            errors_by_group,
+            tuple(
+                name
+                for name in calibration.undetermined
+                if not name.startswith("mixing") and not (position_errors is not None and name.startswith("electrode"))
+            )
+            + undetermined,
+            {**calibration.fitted, "presses": groups},
             misfit,
             float(np.corrcoef(data, readings)[0, 1]),
         ),
@@ -1487,6 +1571,23 @@ def _disc_pattern(mesh: Mesh, centre: np.ndarray, radius: float) -> np.ndarray:
 def _potential_changes(model: ForwardModel, sigma: jax.Array, patterns: jax.Array) -> jax.Array:
     """(K, drives, L) the electrode potentials' derivative along each conductivity change (K, E)."""
     return jax.vmap(lambda change: jax.jvp(lambda s: model.potentials(s).electrode, (sigma,), (change,))[1])(patterns)
+
+
+@eqx.filter_jit
+def _press_readings_jacobian(
+    model: ForwardModel, sigma: jax.Array, patterns: jax.Array, weights: jax.Array, mixing: jax.Array, shift: jax.Array
+) -> jax.Array:
+    """(K, M, L) the derivative in the electrode shifts `shift` (L,), m, of each press's
+    linearised readings at unit depth: sum_l W_ml dU_k[drive of m, l], W the reading weights
+    `weights` (1 + p, M, L) combined by `mixing` (1 + p,)."""
+    combined = jnp.einsum("p,pml->ml", mixing, weights)
+    drive = model.protocol.drive_index
+
+    def readings(shift: jax.Array) -> jax.Array:
+        moved = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.stack([shift, shift], axis=1))
+        return jnp.einsum("ml,kml->km", combined, _potential_changes(moved, sigma, patterns)[:, drive])
+
+    return jax.jacfwd(readings)(shift)
 
 
 def _signs(weights: np.ndarray, potentials: np.ndarray, magnitude: bool) -> np.ndarray:

@@ -50,7 +50,11 @@ def test_presses_determine_the_readouts_mixing(calibrated):
     others = np.delete(mixing, [0, 2 + 8])
     assert np.max(np.abs(others)) < 0.15, others  # measured 0.108 (at the electrode two on): the linearisation
     assert np.all(errors[[0, 1, 10]] > 0) and np.all(errors[[0, 1, 10]] < 0.05)
-    assert calibrated.fitted["presses"] == ("mixing", "press depths")
+    assert calibrated.fitted["presses"] == ("mixing", "electrode_positions", "press depths")
+    # The skin's electrodes are the mesh's: the presses' positions lie within 3 standard errors of
+    # zero (measured: at most 2.0), the errors well under the prior's 39 mm (measured 4-7 mm).
+    shift, error = calibrated.values["electrode_positions"], calibrated.standard_errors["electrode_positions"]
+    assert np.all(np.abs(shift) < 3 * error) and np.all(error < 0.015), (shift, error)
 
 
 def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin, calibrated):
