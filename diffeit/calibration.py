@@ -1229,8 +1229,13 @@ class _ReadoutFit(eqx.Module):
         signed = _ReadoutFit(*[getattr(self, field.name) for field in dataclasses.fields(self)][:-1], False)
         return np.where(np.asarray(_readings(signed, theta)) < 0, -1.0, 1.0)
 
-    def jacobian(self, theta: jax.Array) -> jax.Array:
-        return _readings_jacobian(self, theta)
+    def jacobian(self, theta: jax.Array, free: np.ndarray) -> np.ndarray:
+        """(M, n) the derivative of `readings` at `theta` (n,), in the parameters where `free`
+        (n,) is True (zero in the others: held, they are not differentiated)."""
+        design = np.zeros((self.model.n_measurements, len(theta)))
+        index = np.flatnonzero(free)
+        design[:, index] = np.asarray(_readings_jacobian(self, theta, jnp.asarray(index)))
+        return design
 
 
 @eqx.filter_jit
@@ -1260,8 +1265,8 @@ def _readings(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
 
 
 @eqx.filter_jit
-def _readings_jacobian(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
-    return jax.jacfwd(lambda t: _readings(fit, t))(theta)
+def _readings_jacobian(fit: _ReadoutFit, theta: jax.Array, index: jax.Array) -> jax.Array:
+    return jax.jacfwd(lambda part: _readings(fit, theta.at[index].set(part)))(theta[index])
 
 
 def _levenberg_marquardt(
@@ -1278,7 +1283,7 @@ def _levenberg_marquardt(
 
     cost, damping = cost_of(theta), 1e-3
     for _ in range(_REFINE_STEPS):
-        design = np.asarray(fit.jacobian(jnp.asarray(theta))) / scale
+        design = fit.jacobian(jnp.asarray(theta), ~fixed) / scale
         residual = (data - np.asarray(fit.readings(jnp.asarray(theta)))) / scale
         curvature = design.T @ design + np.diag(precision)
         gradient = design.T @ residual - precision * theta
@@ -1296,7 +1301,7 @@ def _levenberg_marquardt(
                 break
         if damping > 1e8 or np.max(np.abs(step)) < 1e-6:
             break
-    design = np.asarray(fit.jacobian(jnp.asarray(theta))) / scale
+    design = fit.jacobian(jnp.asarray(theta), ~fixed) / scale
     return theta, design.T @ design + np.diag(precision)
 
 
