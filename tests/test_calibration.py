@@ -22,7 +22,11 @@ def mixing_skin():
 
 @pytest.fixture(scope="module")
 def calibrated(mixing_skin):
-    return de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(20)))
+    return de.calibrate(
+        mixing_skin.recording,
+        mixing_skin.presses.select(np.arange(20)),
+        press_groups=("mixing", "electrode_positions"),
+    )
 
 
 def test_the_refinement_finds_a_boards_drive_and_channel_gains_in_its_reference():
