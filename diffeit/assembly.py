@@ -40,12 +40,21 @@ from .mesh import Mesh
 
 
 def basis_gradients(mesh: Mesh) -> np.ndarray:
-    """(E, 2, 3) gradients of the three P1 basis functions of each triangle, in 1/m."""
-    corners = mesh.nodes[mesh.triangles]  # (E, 3, 2)
-    # grad phi_k is the opposite edge x_(k+1) - x_(k+2) turned by -90 degrees, over twice the area.
-    opposite = np.roll(corners, -1, axis=1) - np.roll(corners, -2, axis=1)
-    gradients = np.stack([opposite[:, :, 1], -opposite[:, :, 0]], axis=1)
-    return gradients / (2 * mesh.element_areas[:, None, None])
+    """(E, d, 3) gradients of the three P1 basis functions of each triangle, in 1/m, for nodes
+    in d = 2 or 3 dimensions; on a surface (d = 3), the gradient within the triangle's plane."""
+    corners = mesh.nodes[mesh.triangles]  # (E, 3, d)
+    twice_areas = 2 * mesh.element_areas[:, None, None]
+    if mesh.nodes.shape[1] == 2:
+        # grad phi_k is the opposite edge x_(k+1) - x_(k+2) turned by -90 degrees, over twice the area.
+        opposite = np.roll(corners, -1, axis=1) - np.roll(corners, -2, axis=1)
+        gradients = np.stack([opposite[:, :, 1], -opposite[:, :, 0]], axis=1)
+        return gradients / twice_areas
+    # The same turn within the plane: n x (x_(k+2) - x_(k+1)) over twice the area, with n the
+    # unit normal (b - a) x (c - a) / (2 A); for n = +z it is the 2D formula.
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]) / twice_areas[:, :, 0]
+    opposite = np.roll(corners, -2, axis=1) - np.roll(corners, -1, axis=1)  # (E, 3 corners, 3 axes)
+    gradients = np.cross(normals[:, None, :], opposite)
+    return np.swapaxes(gradients, 1, 2) / twice_areas
 
 
 @dataclass(eq=False)
@@ -60,7 +69,7 @@ class _GroundedSystem(StaticData):
     fingerprint: bytes  # of the mesh: the system is a function of it
     triangles: np.ndarray  # (E, 3) node indices
     element_areas: np.ndarray  # (E,) m^2
-    gradients: np.ndarray  # (E, 2, 3) basis function gradients, 1/m
+    gradients: np.ndarray  # (E, d, 3) basis function gradients, 1/m (d = 2, or 3 on a surface)
     unit_stiffness: np.ndarray  # (E, 9): area * grad phi_i . grad phi_j, row-major
     stiffness_table: np.ndarray  # (nnz, k): flat indices into unit_stiffness summed per slot, E*9 pads
 

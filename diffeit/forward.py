@@ -446,23 +446,22 @@ def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: Jacobian
             drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index], *_ends(model, z.dtype)
         )  # (n_measurements, L)
         return forms / z**2
-    drive_x, drive_y = _element_gradients(system, system.split(drive_fields)[0])  # each (n_drives, E)
-    measure_x, measure_y = _element_gradients(system, system.split(measure_fields)[0])  # each (n_patterns, E)
-    products = (
-        drive_x[protocol.drive_index] * measure_x[protocol.pattern_index]
-        + drive_y[protocol.drive_index] * measure_y[protocol.pattern_index]
+    drive_gradients = _element_gradients(system, system.split(drive_fields)[0])  # each (n_drives, E)
+    measure_gradients = _element_gradients(system, system.split(measure_fields)[0])  # each (n_patterns, E)
+    products = sum(
+        drive[protocol.drive_index] * measure[protocol.pattern_index]
+        for drive, measure in zip(drive_gradients, measure_gradients, strict=True)
     )
     jacobian = -jnp.asarray(system.element_areas, sigma.dtype) * products
     return jacobian * sigma if wrt == "log_conductivity" else jacobian
 
 
-def _element_gradients(system: ElectrodeSystem, nodal: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """x and y components, (k, E) each, of the gradients of k nodal fields (k, N) per element.
+def _element_gradients(system: ElectrodeSystem, nodal: jax.Array) -> tuple[jax.Array, ...]:
+    """The components along each coordinate axis (x, y and, on a surface, z), (k, E) each, of
+    the gradients of k nodal fields (k, N) per element.
 
-    Three broadcast products rather than a batched (2 x 3) @ (3 x k) matmul per element, which
-    XLA runs slowly on CPU."""
-    gradients = jnp.asarray(system.gradients, nodal.dtype)  # (E, 2, 3)
+    Three broadcast products per component rather than a batched (d x 3) @ (3 x k) matmul per
+    element, which XLA runs slowly on CPU."""
+    gradients = jnp.asarray(system.gradients, nodal.dtype)  # (E, d, 3)
     corners = [nodal[:, system.triangles[:, i]] for i in range(3)]  # each (k, E)
-    x = sum(gradients[:, 0, i] * corners[i] for i in range(3))
-    y = sum(gradients[:, 1, i] * corners[i] for i in range(3))
-    return x, y
+    return tuple(sum(gradients[:, axis, i] * corners[i] for i in range(3)) for axis in range(gradients.shape[1]))

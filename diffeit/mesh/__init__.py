@@ -1,5 +1,5 @@
-"""Triangle meshes of sheets with boundary electrodes, generators, geometric fields, and
-conservative interpolation of element fields between meshes."""
+"""Triangle meshes of sheets with boundary electrodes, flat or on curved surfaces, generators,
+geometric fields, and conservative interpolation of element fields between meshes."""
 
 from ._fields import disc_fraction as disc_fraction
 from ._fields import distance_to_segments as distance_to_segments
@@ -13,4 +13,6 @@ from ._interpolate import overlap_areas as overlap_areas
 from ._interpolate import pixel_overlaps as pixel_overlaps
 from ._interpolate import remap_matrix as remap_matrix
 from ._mesh import Mesh as Mesh
+from ._surface import cylinder_patch as cylinder_patch
+from ._surface import sphere_cap as sphere_cap
 from ._topology import element_adjacency as element_adjacency

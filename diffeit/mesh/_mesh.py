@@ -1,4 +1,4 @@
-"""The triangle mesh of a 2D sheet with electrodes on its boundary."""
+"""The triangle mesh of a sheet, flat (2D) or a surface in 3D, with electrodes on its boundary."""
 
 from __future__ import annotations
 
@@ -26,27 +26,42 @@ def _signed_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return 0.5 * ((b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0]))
 
 
+def _surface_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(E,) areas of triangles in 3D: half the norm of the cross product of two edges."""
+    a, b, c = (nodes[triangles[:, k]] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
 @dataclass(init=False, eq=False)
 class Mesh(StaticData):
     """An immutable P1 triangle mesh of a sheet, with electrodes on its boundary.
 
     Construct with `Mesh.from_arrays`, `Mesh.from_skfem` or a generator (`diffeit.mesh.disc`,
-    `polygon`, `rectangle`). Construction
+    `polygon`, `rectangle`, `cylinder_patch`, `sphere_cap`). Construction
     reorients clockwise triangles and refuses meshes a forward model cannot use, with a
     `ValueError` naming the offending triangles, nodes or electrodes.
 
+    A flat sheet has (N, 2) nodes. A sheet lying on a curved surface (a skin on a robot's
+    forearm or fingertip) has (N, 3) nodes: the same 2D physics on a surface in space. Such a
+    surface has no counter-clockwise; construction instead orients its triangles consistently
+    (neighbours traverse their shared edge in opposite directions), keeping the orientation
+    of the first triangle, and refuses a non-orientable (Moebius) or closed surface.
+
     **Fields:**
 
-    - `nodes`: (N, 2) node coordinates in metres.
-    - `triangles`: (E, 3) node indices per element, counter-clockwise.
+    - `nodes`: (N, 2) or (N, 3) node coordinates in metres.
+    - `triangles`: (E, 3) node indices per element: counter-clockwise in 2D; in 3D
+      consistently oriented, the normal (b - a) x (c - a) on one side of the surface.
     - `electrodes`: one integer array per electrode: a chain of at least two boundary nodes,
       consecutive nodes joined by boundary edges, in the direction of `boundary_edges`.
-    - `boundary_edges`: (B, 2) boundary edges, oriented so that the sheet lies on their left
-      (counter-clockwise along the outer boundary).
+    - `boundary_edges`: (B, 2) boundary edges, each in the direction its triangle traverses
+      it: the sheet lies on their left (counter-clockwise along the outer boundary) in 2D,
+      and on their left seen from the side the normals point to in 3D.
     - `element_areas`: (E,) triangle areas in m^2.
 
     A mesh is static data for JAX: a pytree without leaves. Meshes compare and hash by content
-    (nodes, triangles, electrodes), so functions compiled for one mesh serve an equal one.
+    (nodes, triangles, electrodes), so functions compiled for one mesh serve an equal one; a
+    flat mesh and the same mesh given in 3D differ.
     """
 
     nodes: np.ndarray
@@ -58,18 +73,28 @@ class Mesh(StaticData):
 
     def __init__(self, nodes: ArrayLike, triangles: ArrayLike, electrodes: Sequence[ArrayLike]) -> None:
         nodes = np.asarray(nodes, dtype=np.float64)
-        if nodes.ndim != 2 or nodes.shape[1] != 2:
-            raise ValueError(f"nodes must have shape (N, 2); got {nodes.shape}")
+        if nodes.ndim != 2 or nodes.shape[1] not in (2, 3):
+            raise ValueError(f"nodes must have shape (N, 2) or, for a surface in 3D, (N, 3); got {nodes.shape}")
         if not np.all(np.isfinite(nodes)):
             bad = np.flatnonzero(~np.all(np.isfinite(nodes), axis=1))
             raise ValueError(f"nodes {name_indices(bad)} have non-finite coordinates")
         triangles = _checked_triangles(triangles, len(nodes))
-        areas = _signed_areas(nodes, triangles)
-        triangles = np.where((areas < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
-        areas = np.abs(areas)
+        if nodes.shape[1] == 2:
+            areas = _signed_areas(nodes, triangles)
+            triangles = np.where((areas < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
+            areas = np.abs(areas)
+        else:
+            areas = _surface_areas(nodes, triangles)
         _check_nondegenerate(nodes, triangles, areas)
         _check_all_nodes_used(triangles, len(nodes))
+        if nodes.shape[1] == 3:
+            triangles = _consistently_oriented(triangles)
         boundary_edges = _boundary_edges(triangles)
+        if len(boundary_edges) == 0:
+            raise ValueError(
+                "the mesh is a closed surface (every edge is shared by two triangles): the complete "
+                "electrode model needs a boundary to put the electrodes on"
+            )
         _check_connected(triangles, len(nodes))
         electrodes = _checked_electrodes(electrodes, boundary_edges, len(nodes))
         self.nodes = readonly(nodes)
@@ -86,14 +111,16 @@ class Mesh(StaticData):
 
         **Arguments:**
 
-        - `nodes`: (N, 2) coordinates in metres.
-        - `triangles`: (E, 3) node indices, either orientation (clockwise ones are reoriented).
+        - `nodes`: (N, 2) coordinates in metres, or (N, 3) for a surface in 3D.
+        - `triangles`: (E, 3) node indices, either orientation (reoriented counter-clockwise in
+          2D, consistently with the first triangle in 3D).
         - `electrodes`: one sequence of boundary node indices per electrode: a contiguous run
           of the boundary, in any order (stored ordered along the boundary); at least two nodes,
           as the complete electrode model needs a width.
 
-        **Raises:** `ValueError` naming degenerate triangles, unused nodes, a disconnected
-        mesh, electrodes off the boundary, overlapping electrodes or electrodes of one node.
+        **Raises:** `ValueError` naming degenerate triangles, unused nodes, an edge shared by
+        more than two triangles, a non-orientable or closed surface, a disconnected mesh,
+        electrodes off the boundary, overlapping electrodes or electrodes of one node.
         """
         return cls(nodes, triangles, tuple(electrodes))
 
@@ -132,7 +159,11 @@ class Mesh(StaticData):
         Node i and element e keep their indices (`p = nodes.T`, `t = triangles.T`, triangles
         counter-clockwise); electrode l is the named boundary `electrode_l`, an array of facet
         indices, so `skfem.FacetBasis(m, e, facets="electrode_0")` integrates over it.
+
+        **Raises:** `ValueError` for a surface mesh (3D nodes): a `MeshTri` is flat.
         """
+        if self.nodes.shape[1] != 2:
+            raise ValueError("to_skfem needs a flat mesh with (N, 2) nodes; this mesh is a surface in 3D")
         import skfem  # imported here: it is only needed for exchange, and costs ~0.5 s to import
 
         mesh = skfem.MeshTri(np.array(self.nodes.T), np.array(self.triangles.T), sort_t=False)
@@ -160,7 +191,7 @@ class Mesh(StaticData):
 
     @property
     def element_centroids(self) -> np.ndarray:
-        """(E, 2) triangle centroids in metres."""
+        """(E, 2) or, for a surface, (E, 3) triangle centroids in metres."""
         return self.nodes[self.triangles].mean(axis=1)
 
     def __repr__(self) -> str:
@@ -197,16 +228,67 @@ def _check_all_nodes_used(triangles: np.ndarray, n_nodes: int) -> None:
         raise ValueError(f"nodes {name_indices(unused)} belong to no triangle; remove them")
 
 
-def _boundary_edges(triangles: np.ndarray) -> np.ndarray:
-    """Edges used by exactly one triangle, in that triangle's counter-clockwise direction."""
+def _directed_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (3E, 2) edges of the triangles in their direction (edge j of triangle e at row
+    j * E + e), the index of each one's undirected edge, and how many triangles share that;
+    refuses an edge shared by more than two triangles."""
     directed = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
     undirected = np.sort(directed, axis=1)
     _, inverse, counts = np.unique(undirected, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
-    if np.any(counts > 2):
-        shared = np.unique(undirected[counts[inverse] > 2], axis=0)
-        raise ValueError(f"edges shared by more than two triangles (non-manifold mesh): {shared[:5].tolist()}")
-    return directed[counts[inverse] == 1]
+    sharing = counts[inverse]
+    if np.any(sharing > 2):
+        worst = np.argmax(sharing)
+        shared = np.unique(undirected[sharing > 2], axis=0)
+        raise ValueError(
+            f"non-manifold mesh: the edge between nodes {undirected[worst, 0]} and {undirected[worst, 1]} is "
+            f"shared by {sharing[worst]} triangles, at most 2 may share one; all such edges: {shared[:5].tolist()}"
+        )
+    return directed, inverse, sharing
+
+
+def _boundary_edges(triangles: np.ndarray) -> np.ndarray:
+    """Edges used by exactly one triangle, in that triangle's direction."""
+    directed, _, sharing = _directed_edges(triangles)
+    return directed[sharing == 1]
+
+
+def _consistently_oriented(triangles: np.ndarray) -> np.ndarray:
+    """The triangles of a surface reoriented so that every two neighbours traverse their
+    shared edge in opposite directions: a breadth-first walk over neighbours from the first
+    triangle of each edge-connected piece, which keeps its orientation. Refuses a
+    non-orientable surface."""
+    directed, edge_id, sharing = _directed_edges(triangles)
+    n_triangles = len(triangles)
+    owner = np.tile(np.arange(n_triangles), 3)
+    # The two uses of each interior edge, side by side.
+    interior = np.flatnonzero(sharing == 2)
+    interior = interior[np.argsort(edge_id[interior], kind="stable")].reshape(-1, 2)
+    first, second = owner[interior[:, 0]], owner[interior[:, 1]]
+    # Neighbours that traverse their edge in the same direction need opposite flips.
+    same_direction = directed[interior[:, 0], 0] == directed[interior[:, 1], 0]
+    neighbours = scipy.sparse.coo_matrix((np.ones(len(first)), (first, second)), shape=(n_triangles, n_triangles))
+    neighbours = neighbours.tocsr()
+    pair_keys = np.minimum(first, second) * n_triangles + np.maximum(first, second)
+    pair_order = np.argsort(pair_keys)
+    _, labels = scipy.sparse.csgraph.connected_components(neighbours, directed=False)
+    flipped = np.zeros(n_triangles, dtype=bool)
+    for root in np.unique(labels, return_index=True)[1]:
+        order, parent = scipy.sparse.csgraph.breadth_first_order(neighbours, root, directed=False)
+        children, parents = order[1:], parent[order[1:]]
+        keys = np.minimum(children, parents) * n_triangles + np.maximum(children, parents)
+        must_differ = same_direction[pair_order[np.searchsorted(pair_keys, keys, sorter=pair_order)]]
+        # Parents come before their children in breadth-first order.
+        for child, parent_, differ in zip(children.tolist(), parents.tolist(), must_differ.tolist(), strict=True):
+            flipped[child] = flipped[parent_] ^ differ
+    conflicting = (flipped[first] ^ flipped[second]) != same_direction
+    if np.any(conflicting):
+        a, b = directed[interior[np.argmax(conflicting), 0]]
+        raise ValueError(
+            "the surface is non-orientable (a Moebius strip, or contains one): no orientation of its "
+            f"triangles agrees across every shared edge (it fails at the edge between nodes {a} and {b})"
+        )
+    return np.where(flipped[:, None], triangles[:, [0, 2, 1]], triangles)
 
 
 def _check_connected(triangles: np.ndarray, n_nodes: int) -> None:
