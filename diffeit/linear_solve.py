@@ -32,7 +32,14 @@ class SparsityPattern(StaticData):
     """The nonzero positions of a symmetric n x n matrix, in compressed sparse column order.
 
     Static data for JAX, compared and hashed by content: values live in a separate (nnz,)
-    array, traced and differentiable.
+    array, traced and differentiable. Build one with `from_entries`.
+
+    Attributes:
+        rows: (nnz,) the row of each stored entry, sorted by column, then row.
+        cols: (nnz,) the column of each stored entry.
+        indptr: (size + 1,) where each column's entries start in `rows` (CSC).
+        size: n, the number of rows and columns.
+        fingerprint: A digest of the pattern, the key of its cached orderings.
     """
 
     rows: np.ndarray
@@ -47,6 +54,17 @@ class SparsityPattern(StaticData):
 
         Repeated entries share a slot: assembling `values = zeros(nnz).at[slots].add(entries)`
         sums them, as finite-element assembly does.
+
+        Arguments:
+            rows: The row of each entry, integers in [0, size), any shape.
+            cols: The column of each entry, the shape of `rows`.
+            size: n, the number of rows and columns.
+
+        Returns:
+            (the `SparsityPattern`, the (number of entries,) slot of each entry in it).
+
+        Raises:
+            ValueError: When the entries do not form a symmetric pattern.
         """
         flat = np.asarray(cols, dtype=np.int64) * size + np.asarray(rows, dtype=np.int64)
         unique, slots = np.unique(flat, return_inverse=True)  # sorted by column, then row
@@ -59,23 +77,46 @@ class SparsityPattern(StaticData):
 
     @property
     def nnz(self) -> int:
+        """The number of stored entries."""
         return len(self.rows)
 
     @property
     def diagonal_slots(self) -> np.ndarray:
-        """(size,) the slot of each diagonal entry (every row of an SPD pattern has one)."""
+        """(size,) the slot of each diagonal entry (every row of an SPD pattern has one).
+
+        Raises:
+            ValueError: When a diagonal entry is missing.
+        """
         slots = np.flatnonzero(self.rows == self.cols)
         if len(slots) != self.size:
             raise ValueError("the sparsity pattern lacks diagonal entries")
         return slots[np.argsort(self.cols[slots])]
 
     def matvec(self, values: jax.Array, x: jax.Array) -> jax.Array:
-        """A @ x for x of shape (n,) or (n, k). A is symmetric, so A @ x = A^T @ x, which
-        sums over the column-sorted indices."""
+        """The product A @ x of the matrix with `values` on the pattern and `x`.
+
+        A is symmetric, so A @ x = A^T @ x, which sums over the column-sorted indices. A JAX
+        function, differentiable in `values` and `x`.
+
+        Arguments:
+            values: (nnz,) the matrix entries, in the pattern's order.
+            x: (n,) or (n, k).
+
+        Returns:
+            A @ x, the shape of `x`.
+        """
         products = values.reshape((-1,) + (1,) * (x.ndim - 1)) * x[self.rows]
         return jax.ops.segment_sum(products, self.cols, num_segments=self.size, indices_are_sorted=True)
 
     def to_scipy(self, values: np.ndarray) -> scipy.sparse.csc_matrix:
+        """The matrix with `values` on the pattern, as a SciPy CSC matrix.
+
+        Arguments:
+            values: (nnz,) the matrix entries, in the pattern's order (NumPy).
+
+        Returns:
+            The (size, size) `scipy.sparse.csc_matrix`.
+        """
         return scipy.sparse.csc_matrix((values, self.rows, self.indptr), shape=(self.size, self.size))
 
 
@@ -89,19 +130,47 @@ class AbstractLinearSolver(eqx.Module):
     derivatives); both must work under `jax.vmap`. `values` are (nnz,), `rhs` (n, k).
 
     A backend is an `equinox.Module` of static settings (no array leaves): models hold it in a
-    static field, so equal backends key the same compiled functions.
+    static field, so equal backends key the same compiled functions. The backends are
+    `HostSparse`, `DenseCholesky` and `ConjugateGradient`; `solver_named` picks one by name.
     """
 
     @abc.abstractmethod
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> Any:
-        """The factor of the matrix with `values` on `pattern`: a pytree of arrays."""
+        """The factor of the matrix with `values` on `pattern`: a pytree of arrays.
+
+        Arguments:
+            pattern: The sparsity pattern.
+            values: (nnz,) the matrix entries.
+
+        Returns:
+            What `solve_factorised` needs to solve with this matrix.
+        """
 
     @abc.abstractmethod
     def solve_factorised(self, pattern: SparsityPattern, factor: Any, rhs: jax.Array) -> tuple[jax.Array, RESULTS]:
-        """(X = A^-1 `rhs` for the matrix `factor` was made from, the result code of the solve)."""
+        """Solve with a factor made by `factorise`.
+
+        Arguments:
+            pattern: The sparsity pattern `factor` was made on.
+            factor: The output of `factorise`.
+            rhs: (n, k) the right-hand sides B.
+
+        Returns:
+            (X = A^-1 B, (n, k), for the matrix `factor` was made from; the `RESULTS` code of
+            the solve).
+        """
 
     def solve(self, pattern: SparsityPattern, values: jax.Array, rhs: jax.Array) -> jax.Array:
-        """X = A^-1 `rhs` (factorise, then solve; not differentiable, see `solve_spd`)."""
+        """X = A^-1 B: factorise, then solve (not differentiable: see `solve_spd`).
+
+        Arguments:
+            pattern: The sparsity pattern.
+            values: (nnz,) the matrix entries.
+            rhs: (n, k) the right-hand sides B.
+
+        Returns:
+            (n, k) X.
+        """
         return self.solve_factorised(pattern, self.factorise(pattern, values), rhs)[0]
 
 
@@ -141,6 +210,12 @@ class HostSparse(AbstractLinearSolver):
     first one's cache. Computes in float64 whatever the input dtype. A matrix that cannot be
     factorised gives NaN and `RESULTS.nonfinite`, not an exception (exceptions cannot cross the
     callback).
+
+    Arguments:
+        cache_size: How many factorisations to keep (at least one is kept).
+
+    Attributes:
+        cache_size: How many factorisations the solver keeps (static).
     """
 
     cache_size: int = eqx.field(static=True)
@@ -158,6 +233,15 @@ class HostSparse(AbstractLinearSolver):
         return hash((HostSparse, self.cache_size))
 
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> jax.Array:
+        """The values themselves: the host factorises them in the first solve, and caches it.
+
+        Arguments:
+            pattern: The sparsity pattern.
+            values: (nnz,) the matrix entries.
+
+        Returns:
+            `values`.
+        """
         # The factorisation happens on the host, in the first solve's callback; later solves
         # with the same values find it in the cache.
         return values
@@ -165,6 +249,18 @@ class HostSparse(AbstractLinearSolver):
     def solve_factorised(
         self, pattern: SparsityPattern, factor: jax.Array, rhs: jax.Array
     ) -> tuple[jax.Array, RESULTS]:
+        """Solve on the host with SciPy's SuperLU, reusing a cached factorisation.
+
+        Arguments:
+            pattern: The sparsity pattern.
+            factor: (nnz,) the matrix entries (from `factorise`).
+            rhs: (n, k) the right-hand sides B.
+
+        Returns:
+            (X = A^-1 B, (n, k), in the dtype of `rhs`; `RESULTS.nonfinite` for a matrix that
+            could not be factorised, else `RESULTS.successful`).
+        """
+
         def host(values: np.ndarray, rhs: np.ndarray) -> np.ndarray:
             return _host_solve(pattern, np.asarray(values), np.asarray(rhs), self.cache_size, self._cache)
 
@@ -203,9 +299,25 @@ class _Factor:
 
 
 def splu_spd(matrix: scipy.sparse.csc_matrix, permc_spec: str = "MMD_AT_PLUS_A") -> scipy.sparse.linalg.SuperLU:
-    """Sparse LU of a symmetric positive definite matrix: diagonal pivots and symmetric mode
-    (right for SPD, and they keep the order), by default with a symmetric fill-reducing order
-    (about 40% less fill than SuperLU's default on finite-element and graph matrices)."""
+    """Sparse LU of a symmetric positive definite matrix (SciPy's SuperLU).
+
+    Diagonal pivots and symmetric mode (right for SPD, and they keep the order), by default
+    with a symmetric fill-reducing order (less fill than SuperLU's default on finite-element
+    and graph matrices).
+
+    Arguments:
+        matrix: The (n, n) symmetric positive definite matrix, CSC.
+        permc_spec: SuperLU's column ordering: "MMD_AT_PLUS_A" (the default, symmetric),
+            "NATURAL" (none: the matrix is already ordered), or another of SuperLU's.
+
+    Returns:
+        The `scipy.sparse.linalg.SuperLU` factorisation.
+
+    Raises:
+        RuntimeError: For an exactly singular matrix (SuperLU's).
+    """
+    # MMD_AT_PLUS_A gave about 40% less fill than SuperLU's default (COLAMD) on
+    # finite-element and graph matrices.
     return scipy.sparse.linalg.splu(
         matrix, permc_spec=permc_spec, diag_pivot_thresh=0.0, options={"SymmetricMode": True}
     )
@@ -292,18 +404,41 @@ class DenseCholesky(AbstractLinearSolver):
     (`_one_at_a_time_on_cpu`). A matrix that is not positive definite (in the working
     precision) gives NaN and `RESULTS.nonfinite`.
     `refinement_steps` steps of iterative refinement follow the triangular solves.
+
+    Attributes:
+        refinement_steps: Steps of iterative refinement after each solve (static, default 1).
     """
 
     refinement_steps: int = eqx.field(static=True, default=1)
 
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(the lower Cholesky factor (n, n), the values (nnz,) for the refinement's residual)."""
+        """The dense Cholesky factor of the matrix, and its values for iterative refinement.
+
+        Arguments:
+            pattern: The sparsity pattern.
+            values: (nnz,) the matrix entries.
+
+        Returns:
+            (the (n, n) lower Cholesky factor, NaN where the matrix is not positive definite;
+            the (nnz,) values, for the refinement's residual).
+        """
         matrix = jnp.zeros((pattern.size, pattern.size), values.dtype).at[pattern.rows, pattern.cols].set(values)
         return one_blas_thread_in_xla(_cholesky)(matrix), values
 
     def solve_factorised(
         self, pattern: SparsityPattern, factor: tuple[jax.Array, jax.Array], rhs: jax.Array
     ) -> tuple[jax.Array, RESULTS]:
+        """Triangular solves with the Cholesky factor, then `refinement_steps` of refinement.
+
+        Arguments:
+            pattern: The sparsity pattern.
+            factor: The output of `factorise`.
+            rhs: (n, k) the right-hand sides B.
+
+        Returns:
+            (X = A^-1 B, (n, k), in the dtype of `rhs`; `RESULTS.nonfinite` where X is not
+            finite, else `RESULTS.successful`).
+        """
         lower, values = factor
 
         @_one_at_a_time_on_cpu
@@ -347,6 +482,12 @@ class ConjugateGradient(AbstractLinearSolver):
     run time under jit), so `measure` and `jacobian` never return an unconverged answer
     silently; with `throw=False` the code reaches `Potentials.result`. Not expected to reach
     1e-9 agreement with the direct backends at extreme conductivity contrast (slow convergence).
+
+    Attributes:
+        relative_tolerance: The relative residual at which a column stops (static); None for
+            1e-12 in float64, 1e-6 in float32.
+        max_iterations: The most iterations (static); None for ten times the system size.
+        throw: Raise for a solve that does not converge (static, default True).
     """
 
     relative_tolerance: float | None = eqx.field(static=True, default=None)
@@ -354,12 +495,39 @@ class ConjugateGradient(AbstractLinearSolver):
     throw: bool = eqx.field(static=True, default=True)
 
     def factorise(self, pattern: SparsityPattern, values: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(the values (nnz,), the inverse of the diagonal (n, 1): the Jacobi preconditioner)."""
+        """The values and the Jacobi preconditioner: nothing is factorised.
+
+        Arguments:
+            pattern: The sparsity pattern; it must hold every diagonal entry.
+            values: (nnz,) the matrix entries.
+
+        Returns:
+            (the (nnz,) values, the (n, 1) inverse of the diagonal).
+
+        Raises:
+            ValueError: When the pattern lacks diagonal entries.
+        """
         return values, (1.0 / values[pattern.diagonal_slots])[:, None]
 
     def solve_factorised(
         self, pattern: SparsityPattern, factor: tuple[jax.Array, jax.Array], rhs: jax.Array
     ) -> tuple[jax.Array, RESULTS]:
+        """Preconditioned conjugate gradients from zero, every column of `rhs` at once.
+
+        Arguments:
+            pattern: The sparsity pattern.
+            factor: The output of `factorise`.
+            rhs: (n, k) the right-hand sides B.
+
+        Returns:
+            (X ~ A^-1 B, (n, k), in the dtype of `rhs`; `RESULTS.linear_solve_not_converged`
+            when a column reached `max_iterations`, `RESULTS.nonfinite` for a non-finite X,
+            else `RESULTS.successful`).
+
+        Raises:
+            equinox.EquinoxRuntimeError: With `throw=True`, for a result other than
+                `RESULTS.successful` (at run time under jit).
+        """
         values, inverse_diagonal = factor
         dtype = values.dtype
         b = rhs.astype(dtype)
@@ -400,7 +568,18 @@ class ConjugateGradient(AbstractLinearSolver):
 
 
 def solver_named(name: str) -> AbstractLinearSolver:
-    """The backend called `name`: "host_sparse", "dense_cholesky" or "conjugate_gradient"."""
+    """The backend called `name`, with its default settings.
+
+    Arguments:
+        name: "host_sparse" (`HostSparse`), "dense_cholesky" (`DenseCholesky`) or
+            "conjugate_gradient" (`ConjugateGradient`).
+
+    Returns:
+        A new instance of the backend.
+
+    Raises:
+        ValueError: For any other name.
+    """
     backends = {"host_sparse": HostSparse, "dense_cholesky": DenseCholesky, "conjugate_gradient": ConjugateGradient}
     if name not in backends:
         raise ValueError(f"unknown solver {name!r}; choose one of {sorted(backends)}")
@@ -427,6 +606,18 @@ def solve_spd(
     A solver that throws (`ConjugateGradient` by default) raises for an unconverged solve: on
     concrete inputs at the call (`equinox.EquinoxRuntimeError`), under an outer `jax.jit` at run
     time, where JAX reports it when an output is read.
+
+    Arguments:
+        pattern: The sparsity pattern of A.
+        values: (nnz,) the entries of A on `pattern`.
+        rhs: (n,) or (n, k) B.
+        solver: The backend.
+
+    Returns:
+        X, the shape of `rhs`.
+
+    Raises:
+        equinox.EquinoxRuntimeError: From a throwing solver whose solve failed.
     """
     if is_concrete(values) and is_concrete(rhs):
         return _solve_spd_at_call(pattern, values, rhs, solver)[0]
@@ -439,8 +630,20 @@ def solve_spd_with_result(
     rhs: jax.Array,
     solver: AbstractLinearSolver,
 ) -> tuple[jax.Array, RESULTS]:
-    """(X, the `RESULTS` code of the solve): `solve_spd` with the backend's verdict, for the
-    callers that report it (`ForwardModel.potentials`)."""
+    """`solve_spd` with the backend's verdict: X and the `RESULTS` code of the solve.
+
+    For the callers that report the code (`ForwardModel.potentials`). Differentiable as
+    `solve_spd` is; under a throwing solver a failed solve raises at run time.
+
+    Arguments:
+        pattern: The sparsity pattern of A.
+        values: (nnz,) the entries of A on `pattern`.
+        rhs: (n,) or (n, k) B.
+        solver: The backend.
+
+    Returns:
+        (X, the shape of `rhs`; the `RESULTS` code of the solve).
+    """
     factor = solver.factorise(pattern, jax.lax.stop_gradient(values))
 
     def matvec(x: jax.Array) -> jax.Array:
@@ -461,17 +664,38 @@ _solve_spd_at_call = eqx.filter_jit(solve_spd_with_result)
 
 
 def relative_residual(pattern: SparsityPattern, values: jax.Array, x: jax.Array, rhs: jax.Array) -> jax.Array:
-    """||A x - b|| / ||b|| per right-hand side (column of `rhs`, or the single vector)."""
+    """The relative residual ||A x - b|| / ||b|| per right-hand side.
+
+    Arguments:
+        pattern: The sparsity pattern of A.
+        values: (nnz,) the entries of A.
+        x: (n,) or (n, k) a solution.
+        rhs: b, the shape of `x`.
+
+    Returns:
+        () or (k,): one per column of `rhs` (or for the single vector).
+    """
     residual = pattern.matvec(values, x) - rhs
     return jnp.linalg.norm(residual, axis=0) / jnp.linalg.norm(rhs, axis=0)
 
 
 def backward_error(pattern: SparsityPattern, values: jax.Array, x: jax.Array, rhs: jax.Array) -> jax.Array:
-    """The componentwise backward error max_i |b - A x|_i / (|A| |x| + |b|)_i per right-hand
-    side (Oettli-Prager; SuperLU's and LAPACK's BERR): the smallest relative change of the
-    entries of A and b that makes x exact. A backward-stable solve gives a few times machine
-    epsilon whatever the conditioning, where the relative residual can be large merely
-    because the entries of A span many decades."""
+    """The componentwise backward error max_i |b - A x|_i / (|A| |x| + |b|)_i per right-hand side.
+
+    Oettli-Prager (SuperLU's and LAPACK's BERR): the smallest relative change of the entries
+    of A and b that makes x exact. A backward-stable solve gives a few times machine epsilon
+    whatever the conditioning, where the relative residual can be large merely because the
+    entries of A span many decades. Rows where |A| |x| + |b| is zero count as zero.
+
+    Arguments:
+        pattern: The sparsity pattern of A.
+        values: (nnz,) the entries of A.
+        x: (n,) or (n, k) a solution.
+        rhs: b, the shape of `x`.
+
+    Returns:
+        () or (k,): one per column of `rhs` (or for the single vector).
+    """
     residual = jnp.abs(pattern.matvec(values, x) - rhs)
     scale = pattern.matvec(jnp.abs(values), jnp.abs(x)) + jnp.abs(rhs)
     return jnp.max(jnp.where(scale > 0, residual / jnp.where(scale > 0, scale, 1), 0), axis=0)

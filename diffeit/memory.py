@@ -58,25 +58,9 @@ after release, u = v - H: b_i = b_i(H) e^(-u/tau_i), phi = phi(H) e^(-u/tau_phi)
 r = g sum_i f_i b_i + mu a_max. On a rested skin: r = g a [1 - rho sum_i f_i (1 - e^(-v/tau_i))]
 + mu a_max while held.
 
-## Defaults (the presets `bare_skin` and `over_foam`; `MemoryParameters()` is `over_foam()`)
-Calibrated on a reference press a = -0.3 (dR/R0 about 43%, the middle of the dissertation's
-finger presses) held 5 s on a preconditioned, rested skin; changes are measured from the baseline
-before the press, the peak is the change at the press:
-
-| | bare_skin | over_foam |
-|---|---|---|
-| fast mode: fraction, time constant | 0.30, 0.5 s | 0.30, 1.0 s |
-| slow mode: fraction, time constant | 0.22, 5.7 s | 0.30, 7.7 s |
-| relaxed fraction rho (response lost over the 5 s hold) | 0.15 (6%) | 0.25 (11%) |
-| left just after release | 46% of the peak | 49% |
-| recovery to 10% of the peak, after release | 4.0 s (3.6-4.4 s for holds of 30-1 s) | 7.5 s (6.3-8.2 s) |
-
-Both: gain g = 1; first-cycle offset mu = 0.05 (5% of the largest stimulus stays, so the first
-touch reads 5% of its depth larger; the dissertation gives no figure); fatigue limit phi_max = 0.4
-(cycling lowers the sensitivity about 40%), fatigue rate k = 1.3 /s per unit |stimulus|, fatigue
-recovery time tau_phi = 100 s: a second reference press 30 s after the first reads 25% less than
-on a rested skin (between 4% less for a 1 s tap of -0.1 and 29% less for long or deep presses), and
-5 minutes later 1.7% less (the dissertation spaced its tests 5 minutes apart to be safe).
+## Defaults
+The presets `bare_skin` and `over_foam` (`MemoryParameters()` is `over_foam()`), their values
+and how they were calibrated are in docs/science.md#memory.
 """
 
 from __future__ import annotations
@@ -98,26 +82,55 @@ _TIMES = ("fast_time", "slow_time", "fatigue_recovery_time")
 _TINY = 1e-100
 _FRACTIONS = ("fast_fraction", "slow_fraction", "relaxation", "first_cycle_offset", "fatigue_limit")
 
+# Calibration of the presets (summarised in docs/science.md#memory). A reference press a = -0.3
+# (dR/R0 about 43%, the middle of the dissertation's finger presses) held 5 s on a
+# preconditioned, rested skin; changes measured from the baseline before the press, the peak is
+# the change at the press:
+#
+# |                                                  | bare_skin            | over_foam         |
+# | fast mode: fraction, time constant               | 0.30, 0.5 s          | 0.30, 1.0 s       |
+# | slow mode: fraction, time constant               | 0.22, 5.7 s          | 0.30, 7.7 s       |
+# | relaxed fraction rho (response lost over 5 s)    | 0.15 (6%)            | 0.25 (11%)        |
+# | left just after release                          | 46% of the peak      | 49%               |
+# | recovery to 10% of the peak, after release       | 4.0 s (3.6-4.4 s for | 7.5 s (6.3-8.2 s) |
+# |                                                  | holds of 30-1 s)     |                   |
+#
+# Both: gain g = 1; first-cycle offset mu = 0.05 (5% of the largest stimulus stays, so the first
+# touch reads 5% of its depth larger; the dissertation gives no figure); fatigue limit
+# phi_max = 0.4 (cycling lowers the sensitivity about 40%), fatigue rate k = 1.3 /s per unit
+# |stimulus|, fatigue recovery time tau_phi = 100 s: a second reference press 30 s after the
+# first reads 25% less than on a rested skin (between 4% less for a 1 s tap of -0.1 and 29% less
+# for long or deep presses), and 5 minutes later 1.7% less (the dissertation spaced its tests 5
+# minutes apart to be safe).
+
 
 class MemoryParameters(eqx.Module):
-    """Parameters of the memory effect (see the module docstring for the model).
+    """Parameters of the memory effect (the model is in the module docstring).
 
     Every field is a scalar or an array broadcasting against the elements (for example one value
     per element, for a skin partly over foam); every field is a leaf, so `jax.grad`
-    differentiates with respect to all of them. Defaults are `over_foam()`.
+    differentiates with respect to all of them. Defaults are `over_foam()`. Concrete values are
+    checked on construction; traced values are not.
 
-    - `gain`: g, response per unit stimulus of a rested, preconditioned skin (dimensionless, > 0).
-    - `fast_fraction`, `slow_fraction`: f_fast, f_slow, the parts of the response carried by the
-      fast and slow Prony modes (each in [0, 1], sum <= 1).
-    - `fast_time`, `slow_time`: tau_fast, tau_slow, their time constants (seconds, > 0).
-    - `relaxation`: rho, the fraction of each mode that relaxes while a touch is held ([0, 1]).
-    - `first_cycle_offset`: mu, the permanent baseline shift per unit of the largest stimulus
-      seen so far (the Mullins effect; [0, 1]).
-    - `fatigue_limit`: phi_max, the largest fractional loss of sensitivity ([0, 1]).
-    - `fatigue_rate`: k, the build-up rate of fatigue per unit |stimulus| (1/s, >= 0).
-    - `fatigue_recovery_time`: tau_phi, the recovery time constant of fatigue (seconds, > 0).
+    Attributes:
+        gain: g, response per unit stimulus of a rested, preconditioned skin (dimensionless,
+            > 0).
+        fast_fraction: f_fast, the part of the response carried by the fast Prony mode
+            ([0, 1]; `fast_fraction + slow_fraction <= 1`).
+        fast_time: tau_fast, its time constant (seconds, > 0).
+        slow_fraction: f_slow, the part carried by the slow Prony mode ([0, 1]).
+        slow_time: tau_slow, its time constant (seconds, > 0).
+        relaxation: rho, the fraction of each mode that relaxes while a touch is held
+            ([0, 1]).
+        first_cycle_offset: mu, the permanent baseline shift per unit of the largest stimulus
+            seen so far (the Mullins effect; [0, 1]).
+        fatigue_limit: phi_max, the largest fractional loss of sensitivity ([0, 1]).
+        fatigue_rate: k, the build-up rate of fatigue per unit |stimulus| (1/s, >= 0).
+        fatigue_recovery_time: tau_phi, the recovery time constant of fatigue (seconds, > 0).
 
-    Concrete values are checked on construction: a `ValueError` names the offending field.
+    Raises:
+        ValueError: Naming the offending field, for a concrete value that is not numbers, not
+            finite or out of its range.
     """
 
     gain: ArrayLike = 1.0
@@ -160,25 +173,44 @@ def _check_parameters(parameters: MemoryParameters) -> None:
 
 
 def bare_skin() -> MemoryParameters:
-    """A skin on a rigid backing: recovery to 10% of the peak about 4 s after release."""
+    """The memory of a skin on a rigid backing.
+
+    Faster than `over_foam`: after a held press the response recovers to 10% of its peak
+    about 4 s after release (docs/science.md#memory).
+
+    Returns:
+        The `MemoryParameters`.
+    """
     return MemoryParameters(fast_fraction=0.30, fast_time=0.5, slow_fraction=0.22, slow_time=5.7, relaxation=0.15)
 
 
 def over_foam() -> MemoryParameters:
-    """A skin over soft open-cell foam (the padding dominates the memory): recovery to 10% of
-    the peak about 7.5 s after release. The defaults of `MemoryParameters`."""
+    """The memory of a skin over soft open-cell foam: the defaults of `MemoryParameters`.
+
+    The padding dominates the memory: after a held press the response recovers to 10% of its
+    peak about 7.5 s after release (docs/science.md#memory).
+
+    Returns:
+        The `MemoryParameters`.
+    """
     return MemoryParameters()
 
 
 class MemoryState(eqx.Module):
-    """The memory of every element at one time (arrays of the elements' shape).
+    """The memory of every element at one time.
 
-    - `time`: () seconds, the time the state refers to.
-    - `stimulus`: a_prev, the stimulus held since the last frame (dsigma/sigma).
-    - `sensitivity`: kappa, the sensitivity the present load was applied with (1 when rested).
-    - `fast`, `slow`: the Prony modes b_fast, b_slow (dsigma/sigma).
-    - `extreme`: a_max, the stimulus of largest magnitude seen so far, with its sign.
-    - `fatigue`: phi, the fractional loss of sensitivity to new loading (0 when rested).
+    Every field but `time` has the elements' shape. Make one with `initial_state`; `advance`,
+    `apply_stimulus` and `integrate_memory` return new ones.
+
+    Attributes:
+        time: () seconds, the time the state refers to.
+        stimulus: a_prev, the stimulus held since the last frame (dsigma/sigma).
+        sensitivity: kappa, the sensitivity the present load was applied with (1 when rested).
+        fast: The fast Prony mode b_fast (dsigma/sigma).
+        slow: The slow Prony mode b_slow (dsigma/sigma).
+        extreme: a_max, the stimulus of largest magnitude seen so far, with its sign
+            (dsigma/sigma).
+        fatigue: phi, the fractional loss of sensitivity to new loading (0 when rested).
     """
 
     time: jax.Array
@@ -193,11 +225,20 @@ class MemoryState(eqx.Module):
 def initial_state(
     shape: int | tuple[int, ...], *, time: ArrayLike = 0.0, preconditioned: ArrayLike = 0.0, dtype=None
 ) -> MemoryState:
-    """A rested skin at `time` (seconds) with no stimulus: modes and fatigue zero.
+    """A rested skin at `time` with no stimulus: modes and fatigue zero, sensitivity 1.
 
-    `preconditioned` (dsigma/sigma, broadcasting to `shape`) is the largest stimulus the skin has
-    already seen: its first cycle is behind it up to there, so it reads the offset mu a_max from
-    the start and a press no deeper shows no further first-cycle effect. 0 is a virgin skin.
+    Arguments:
+        shape: The elements' shape: the shape of every field but `time`.
+        time: The time of the state, seconds (kept in the default float precision).
+        preconditioned: The largest stimulus the skin has already seen (dsigma/sigma, with its
+            sign, broadcasting to `shape`): its first cycle is behind it up to there, so it
+            reads the offset mu a_max from the start and a press no deeper shows no further
+            first-cycle effect. 0 (the default) is a virgin skin.
+        dtype (jax.typing.DTypeLike | None): The dtype of the fields but `time`; default JAX's
+            default float.
+
+    Returns:
+        The `MemoryState`.
     """
     default = jnp.result_type(float)
     dtype = default if dtype is None else dtype
@@ -214,8 +255,21 @@ def _settle(value: jax.Array, target: jax.Array, decay: jax.Array, growth: jax.A
 
 
 def advance(state: MemoryState, parameters: MemoryParameters, until: ArrayLike) -> MemoryState:
-    """The state at time `until` (seconds, >= state.time) with the stimulus held: the exact
-    solution of the model's linear equations over the interval (module docstring)."""
+    """The state at a later time, the stimulus held: the exact solution over the interval.
+
+    The modes settle towards (1 - rho) kappa a_prev and the fatigue towards its equilibrium,
+    in closed form (exponentials; the model is in the module docstring). Stimulus,
+    sensitivity and extreme are unchanged. Not checked: `until` must not precede
+    `state.time`.
+
+    Arguments:
+        state: The state now.
+        parameters: The `MemoryParameters`.
+        until: The time to advance to, seconds, >= `state.time`.
+
+    Returns:
+        The `MemoryState` at `until`, its fields in the dtypes of `state`.
+    """
     p = parameters
     duration = jnp.asarray(until) - state.time
     dtype = state.fast.dtype  # the carry keeps its dtype (float32 stays float32)
@@ -247,6 +301,14 @@ def apply_stimulus(state: MemoryState, stimulus: ArrayLike) -> MemoryState:
     Unloading keeps kappa (the load eases proportionally) and moves no mode: the modes follow it
     through `advance`. A stimulus of the other sign loads afresh (w = 0) from zero: the modes take
     s a_k, and the old load leaves them through `advance`. The running extreme a_max follows |a|.
+
+    Arguments:
+        state: The state at the frame's time (after `advance`).
+        stimulus: a_k, the frame's stimulus (dsigma/sigma, <= 0 under a touch), broadcasting
+            to the elements' shape.
+
+    Returns:
+        The new `MemoryState` (the same time).
     """
     previous = state.stimulus
     stimulus = jnp.broadcast_to(jnp.asarray(stimulus, previous.dtype), previous.shape)
@@ -275,8 +337,17 @@ def apply_stimulus(state: MemoryState, stimulus: ArrayLike) -> MemoryState:
 
 
 def read_response(state: MemoryState, parameters: MemoryParameters) -> jax.Array:
-    """The skin's response r (dsigma/sigma) in `state`:
-    g [(1 - F) kappa a + f_fast b_fast + f_slow b_slow] + mu a_max."""
+    """The skin's response r in `state`: g [(1 - F) kappa a + f_fast b_fast + f_slow b_slow] + mu a_max.
+
+    F = f_fast + f_slow. With no memory (F = 0, kappa = 1, mu = 0) it is exactly g a.
+
+    Arguments:
+        state: The `MemoryState`.
+        parameters: The `MemoryParameters`.
+
+    Returns:
+        r, dsigma/sigma, the elements' shape.
+    """
     p = parameters
     # Ordered so that with no memory (f = 0, kappa = 1, mu = 0) it is exactly g a, bit for bit.
     network = (1 - (p.fast_fraction + p.slow_fraction)) * (state.sensitivity * state.stimulus)
@@ -298,8 +369,20 @@ def integrate_memory(
     to a rested virgin skin at times[0] (`initial_state`); pass a returned state to continue a
     long scene in pieces with identical results.
 
-    On concrete inputs raises `ValueError` for mismatched shapes, non-finite values or times
-    that decrease (or start before `state.time`).
+    Arguments:
+        stimulus: (T, ...) a per frame and element, the response of an ideal memoryless skin
+            (dsigma/sigma, <= 0 under a touch); integers are converted to floats.
+        times: (T,) the frame times, seconds, not decreasing.
+        parameters: The `MemoryParameters`.
+        state: The state to start from (default: `initial_state` at `times[0]`, in the
+            stimulus' dtype).
+
+    Returns:
+        ((T, ...) the response r, dsigma/sigma; the `MemoryState` after the last frame).
+
+    Raises:
+        ValueError: For `times` not of shape (T,); and, on concrete inputs, for a stimulus or
+            times not finite, or times that decrease (or start before `state.time`).
     """
     stimulus = jnp.asarray(stimulus)
     if not jnp.issubdtype(stimulus.dtype, jnp.floating):
@@ -332,8 +415,20 @@ def _integrate(
 def memory_response(
     stimulus: ArrayLike, times: ArrayLike, parameters: MemoryParameters, state: MemoryState | None = None
 ) -> jax.Array:
-    """(T, ...) the skin's response (dsigma/sigma) to `stimulus` (T, ...) at `times` (T,) seconds:
-    `integrate_memory` without the final state."""
+    """The skin's response to a stimulus: `integrate_memory` without the final state.
+
+    Arguments:
+        stimulus: (T, ...) a per frame and element (dsigma/sigma, <= 0 under a touch).
+        times: (T,) the frame times, seconds, not decreasing.
+        parameters: The `MemoryParameters`.
+        state: The state to start from (default: a rested virgin skin at `times[0]`).
+
+    Returns:
+        (T, ...) the response r, dsigma/sigma.
+
+    Raises:
+        ValueError: As `integrate_memory`.
+    """
     return integrate_memory(stimulus, times, parameters, state)[0]
 
 

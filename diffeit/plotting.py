@@ -30,8 +30,22 @@ def plot_elements(
     label: str | None = None,
     electrodes: bool = True,
 ) -> PolyCollection:
-    """Draw element values on `mesh` into `ax`, electrodes as thick dark lines with electrode
-    0 numbered; a colour bar labelled `label`. `symmetric` centres the colour scale on 0."""
+    """Draw element values on a mesh into axes, with a colour bar.
+
+    Electrodes are drawn as thick dark lines, electrode 0 numbered.
+
+    Arguments:
+        ax: The matplotlib axes.
+        mesh: The mesh.
+        values: (E,) one value per element, in any unit.
+        cmap: The matplotlib colour map.
+        symmetric: Centre the colour scale on 0 (from -max |values| to max |values|).
+        label: The colour bar's label.
+        electrodes: Draw the electrodes.
+
+    Returns:
+        The `PolyCollection` of the elements.
+    """
     triangulation = matplotlib.tri.Triangulation(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles)
     values = np.asarray(values, dtype=float)
     limit = np.max(np.abs(values)) if symmetric else None
@@ -65,9 +79,26 @@ def plot_image_strip(
     title: str | None = None,
     label: str = "dsigma (S/sq)",
 ) -> np.ndarray:
-    """Save a strip of element-wise images (T, E) on `mesh` as a PNG: every k-th frame, at most
-    `max_panels` panels, six to a row, one colour scale centred on 0 for all; returns the frame
-    indices shown. Panel titles give the frame index and, with `times` (s), its time."""
+    """Save a strip of element-wise images on a mesh as a PNG.
+
+    Every k-th frame, at most `max_panels` panels, six to a row, one colour scale centred on 0
+    for all. Panel titles give the frame index and, with `times`, its time.
+
+    Arguments:
+        path: The PNG file to write.
+        mesh: The mesh.
+        images: (T, E) the images, in any unit.
+        times: (T,) the frames' times, seconds; None leaves them out.
+        max_panels: The most panels, at least 1.
+        title: The figure's title; None for none.
+        label: The colour bar's label.
+
+    Returns:
+        The indices of the frames shown.
+
+    Raises:
+        ValueError: For images not of shape (T, E), no frame, or `max_panels` below 1.
+    """
     images = np.asarray(images, dtype=float)
     if images.ndim != 2 or images.shape[1] != mesh.n_elements:
         raise ValueError(f"images have shape {images.shape}; expected (T, {mesh.n_elements})")
@@ -95,9 +126,18 @@ def plot_image_strip(
 
 
 def plot_hyperparameter_selection(selection: HyperparameterSelection, path: str | Path | None = None) -> Figure:
-    """The curve a hyperparameter was chosen from (a `HyperparameterSelection`): its criterion
-    against lambda, and the L-curve (residual norm against solution norm), the chosen value
-    marked on both. Saved to `path` (PNG) when given."""
+    """Plot the curves a hyperparameter was chosen from.
+
+    The criterion against lambda, and the L-curve (residual norm against solution norm), the
+    chosen value marked on both; the title names a failed selection's result.
+
+    Arguments:
+        selection: The `HyperparameterSelection`.
+        path: A PNG file to save the figure to; None does not save it.
+
+    Returns:
+        The matplotlib `Figure`.
+    """
     figure = Figure(figsize=(10, 4), layout="constrained")
     left, right = figure.subplots(1, 2)
     candidates, chosen = selection.candidates, selection.value

@@ -32,6 +32,9 @@ from .protocol import Protocol
 class Readout(eqx.Module):
     """A board's readout: mixing weights and per-reading gains (module docstring).
 
+    Reading m of drive d is `gains[m] * sum_l (W_ml + X_ml) U_dl`, U the electrode potentials
+    in volts. Every field is an array leaf (differentiable). Weights and gains are unit-free.
+
     Arguments:
         protocol: The protocol whose readings it forms (for the shapes; not kept).
         source: The source electrode's weight (default 0: the ideal readout).
@@ -46,6 +49,11 @@ class Readout(eqx.Module):
         offsets: (L,) the weight of the electrode j places on from the measuring pair's
             positive electrode (counter-clockwise in electrode order).
         gains: (M,) each reading's gain, unit-free.
+
+    Raises:
+        ValueError: For a source or sink weight that is not one number, offsets or gains
+            that do not broadcast to (L,) and (M,), or (concrete) weights and gains that are
+            not finite.
     """
 
     source: jax.Array
@@ -74,27 +82,61 @@ class Readout(eqx.Module):
             raise ValueError("the readout's weights and gains must be finite")
 
     def mixing(self, protocol: Protocol) -> jax.Array:
-        """(M, L) the weights X added to `protocol.measure` (module docstring)."""
+        """The weights X added to `protocol.measure` (module docstring).
+
+        Arguments:
+            protocol: The protocol (the one the readout was built for).
+
+        Returns:
+            (M, L) X, unit-free.
+        """
         source, sink, offset = roles(protocol)
         return self.source * source + self.sink * sink + jnp.einsum("j,jml->ml", self.offsets, offset)
 
     def folded(self, protocol: Protocol) -> Protocol:
-        """`protocol` with the mixing folded into its reading weights (W + X): a forward model
-        on it reads as this board does, but for the gains. Needs concrete weights."""
+        """The protocol with the mixing folded into its reading weights (W + X).
+
+        A forward model on it reads as this board does, but for the gains. Needs concrete
+        weights.
+
+        Arguments:
+            protocol: The protocol (the one the readout was built for).
+
+        Returns:
+            A new `Protocol`, its drives unchanged.
+        """
         weights = np.asarray(protocol.measure) + np.asarray(self.mixing(protocol))
         return Protocol(protocol.drive, [weights[protocol.drive_index == d] for d in range(protocol.n_drives)])
 
     def readings(self, protocol: Protocol, electrode: jax.Array) -> jax.Array:
-        """(M,) the board's readings of electrode potentials `electrode` (n_drives, L), volts:
-        `gains * sum_l (W + X)_ml U_(d(m), l)`, signed (take |.| for a magnitude board)."""
+        """The board's readings of electrode potentials: `gains * sum_l (W + X)_ml U_(d(m), l)`.
+
+        Signed: take |.| for a board that reports magnitudes.
+
+        Arguments:
+            protocol: The protocol (the one the readout was built for).
+            electrode: (n_drives, L) the electrode potentials U, volts.
+
+        Returns:
+            (M,) the readings, volts.
+        """
         weights = jnp.asarray(protocol.measure) + self.mixing(protocol)
         return self.gains * jnp.sum(weights * electrode[protocol.drive_index], axis=-1)
 
 
 def roles(protocol: Protocol) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The electrodes each reading's mixing weights act on: (M, L) one-hot of the drive's source,
-    (M, L) of its sink, and (L, M, L) of the electrode j places on from the measuring pair's
-    positive electrode."""
+    """The electrodes each reading's mixing weights act on, one-hot.
+
+    The source and sink of a drive are its largest and smallest pattern entries; the pair's
+    positive electrode is the largest entry of its reading weights.
+
+    Arguments:
+        protocol: The protocol.
+
+    Returns:
+        ((M, L) the drive's source, (M, L) its sink, (L, M, L) the electrode j places on from
+        the measuring pair's positive electrode, for j = 0 .. L - 1).
+    """
     n = protocol.n_electrodes
     drive = protocol.drive[protocol.drive_index]
     eye = np.eye(n)

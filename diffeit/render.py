@@ -30,16 +30,20 @@ from .mesh import Mesh, pixel_overlaps
 class PixelGrid(StaticData):
     """A pixel grid over a mesh and the exact element-to-pixel averaging (module docstring).
 
-    Build with `pixel_grid(mesh, grid, min_coverage)`. Fields:
+    Build with `pixel_grid(mesh, grid, min_coverage)`. Static data, compared and hashed by the
+    mesh, shape and coverage it was built from.
 
-    - `x_edges` (n_columns + 1,), `y_edges` (n_rows + 1,): pixel edges, metres.
-    - `mask` (n_rows, n_columns): pixels at least `min_coverage` inside the domain (the image).
-    - `pixel_areas` (n_rows, n_columns): each pixel's area inside the domain, m^2 (0 off `mask`).
-    - `element_to_pixel`: sparse (n_rows * n_columns, E), rows of `mask` pixels sum to 1, other
-      rows are 0.
-    - `n_elements`: the number of elements of the mesh it was built on.
-
-    Static data, compared and hashed by the mesh, shape and coverage it was built from.
+    Attributes:
+        x_edges: (n_columns + 1,) pixel edges in x, metres.
+        y_edges: (n_rows + 1,) pixel edges in y, metres (row 0 at the bottom).
+        mask: (n_rows, n_columns) boolean: pixels at least `min_coverage` inside the domain
+            (the image).
+        pixel_areas: (n_rows, n_columns) each pixel's area inside the domain, m^2 (0 off
+            `mask`).
+        element_to_pixel: Sparse (n_rows * n_columns, E): rows of `mask` pixels sum to 1,
+            other rows are 0.
+        n_elements: E, the number of elements of the mesh it was built on.
+        fingerprint: A digest of the mesh, shape and coverage.
     """
 
     x_edges: np.ndarray
@@ -52,7 +56,7 @@ class PixelGrid(StaticData):
 
     @property
     def shape(self) -> tuple[int, int]:
-        """(n_rows, n_columns)."""
+        """(n_rows, n_columns), the image's shape in pixels."""
         return self.mask.shape
 
     @property
@@ -68,8 +72,17 @@ class PixelGrid(StaticData):
         return np.stack(np.meshgrid(x, y), axis=-1)
 
     def render(self, image: np.ndarray) -> np.ndarray:
-        """An element image (E,) or a batch (T, E) as pixels (n_rows, n_columns) or
-        (T, n_rows, n_columns): area-weighted means, NaN off `mask`. Units as the input's."""
+        """Element values as pixels: area-weighted means, NaN off `mask`.
+
+        Arguments:
+            image: (E,) an element image or (T, E) a batch, finite, in any unit.
+
+        Returns:
+            (n_rows, n_columns) or (T, n_rows, n_columns), in the input's unit.
+
+        Raises:
+            ValueError: For an image of the wrong shape or not finite.
+        """
         values = np.asarray(image, dtype=float)
         if values.ndim not in (1, 2) or values.shape[-1] != self.n_elements:
             raise ValueError(
@@ -81,11 +94,22 @@ class PixelGrid(StaticData):
         return np.where(self.mask, pixels, np.nan)
 
     def to_elements(self, pixels: np.ndarray) -> np.ndarray:
-        """A pixel image (n_rows, n_columns) or a batch (T, n_rows, n_columns) as element values
-        (E,) or (T, E): each element the mean of the image's pixels it meets, weighted by the
-        overlap areas A_pe (0 for an element that meets none of `mask`'s pixels). Pixels off
-        `mask` are ignored (they may be NaN). Units as the input's; a constant image maps to
-        the same constant on every element it covers."""
+        """Pixels as element values: each element the overlap-weighted mean of the pixels it meets.
+
+        The weights are the overlap areas A_pe; an element that meets none of `mask`'s pixels
+        gets 0. Pixels off `mask` are ignored (they may be NaN). A constant image maps to the
+        same constant on every element it covers.
+
+        Arguments:
+            pixels: (n_rows, n_columns) a pixel image or (T, n_rows, n_columns) a batch, in any
+                unit, finite on `mask`.
+
+        Returns:
+            (E,) or (T, E), in the input's unit.
+
+        Raises:
+            ValueError: For an image of the wrong shape or not finite inside the mask.
+        """
         values = np.asarray(pixels, dtype=float)
         if values.ndim not in (2, 3) or values.shape[-2:] != self.shape:
             raise ValueError(f"pixel image has shape {values.shape}; expected {self.shape} or (T, *{self.shape})")
@@ -100,11 +124,24 @@ class PixelGrid(StaticData):
 
 
 def pixel_grid(mesh: Mesh, grid: int | tuple[int, int] = 64, min_coverage: float = 0.5) -> PixelGrid:
-    """The `grid` x `grid` (or (n_rows, n_columns)) pixel grid over the bounding box of `mesh`,
-    with exact overlap areas (module docstring). `min_coverage` in [0, 1): the fraction of a
-    pixel's area that must lie in the domain for it to be in the image (0: any overlap; 0.5 as
-    GREIT). Building costs one clipping per (pixel, triangle) pair whose boxes meet: build once
-    and `render` many images."""
+    """The pixel grid over the bounding box of a mesh, with exact overlap areas (module docstring).
+
+    Building costs one clipping per (pixel, triangle) pair whose boxes meet: build once and
+    `render` many images.
+
+    Arguments:
+        mesh: The mesh.
+        grid: n for an n x n grid, or (n_rows, n_columns); positive integers.
+        min_coverage: The fraction of a pixel's area, in [0, 1), that must lie in the domain
+            for it to be in the image (0: any overlap; 0.5, the default, as GREIT).
+
+    Returns:
+        The `PixelGrid`.
+
+    Raises:
+        ValueError: For a grid that is not a positive integer or a pair of them, or a
+            `min_coverage` outside [0, 1).
+    """
     shape = (grid, grid) if np.ndim(grid) == 0 else tuple(grid)
     if len(shape) != 2 or not all(isinstance(n, int | np.integer) and n >= 1 for n in shape):
         raise ValueError(f"grid must be a positive integer or a pair of them (n_rows, n_columns); got {grid!r}")
@@ -130,7 +167,20 @@ def pixel_grid(mesh: Mesh, grid: int | tuple[int, int] = 64, min_coverage: float
 
 
 def render(mesh: Mesh, image: np.ndarray, grid: int | tuple[int, int] = 64, min_coverage: float = 0.5) -> np.ndarray:
-    """An element image (E,) or batch (T, E) on `mesh` as (grid, grid) pixels (or (T, ...)),
-    exact area-weighted means, NaN outside the domain: `pixel_grid(mesh, grid, min_coverage)
-    .render(image)`. For many images build the grid once."""
+    """Element values on a mesh as pixels: `pixel_grid(mesh, grid, min_coverage).render(image)`.
+
+    Exact area-weighted means, NaN outside the domain. For many images build the grid once.
+
+    Arguments:
+        mesh: The mesh.
+        image: (E,) an element image or (T, E) a batch, finite, in any unit.
+        grid: n for an n x n grid, or (n_rows, n_columns).
+        min_coverage: The fraction of a pixel's area, in [0, 1), that must lie in the domain.
+
+    Returns:
+        (n_rows, n_columns) or (T, n_rows, n_columns), in the input's unit.
+
+    Raises:
+        ValueError: As `pixel_grid` and `PixelGrid.render`.
+    """
     return pixel_grid(mesh, grid, min_coverage).render(image)

@@ -30,7 +30,23 @@ __all__ = ["RESULTS", "SolverError", "failed", "messages", "names", "throw_if_fa
 
 
 class RESULTS(eqx.Enumeration):
-    """The outcome of an iterative or fallible computation (see the module docstring)."""
+    """The outcome of an iterative or fallible computation (see the module docstring).
+
+    An `equinox.Enumeration`: each item's value is its message; `RESULTS[item]` gives the
+    message of a single code.
+
+    Attributes:
+        successful: The computation succeeded (message "").
+        max_iterations_reached: The iteration limit was reached before convergence.
+        line_search_failed: No step along the search direction decreased the objective.
+        stalled: Steps no longer change the objective although the gradient tolerance is not
+            met.
+        nonfinite: A non-finite value appeared (a failed linear solve, or non-finite input).
+        linear_solve_not_converged: A conjugate-gradient solve did not reach its tolerance
+            within its iteration limit.
+        selection_at_boundary: The selected hyperparameter is at an end of the candidates (or
+            the criterion's level is not reached within them).
+    """
 
     successful = ""
     max_iterations_reached = (
@@ -60,20 +76,41 @@ class SolverError(RuntimeError):
 
 
 def failed(result: RESULTS) -> np.ndarray:
-    """Boolean mask of the frames whose code is not `RESULTS.successful` (a concrete result;
-    a 0-d mask for one frame)."""
+    """Which frames of a concrete result failed.
+
+    Arguments:
+        result: A concrete `RESULTS` value, one code or one per frame.
+
+    Returns:
+        Boolean mask, True where the code is not `RESULTS.successful`: 0-d for one code,
+        (T,) for a batch.
+    """
     # NumPy on the concrete codes: an eager JAX comparison costs more than a small solve.
     return np.asarray(result._value) != np.asarray(RESULTS.successful._value)
 
 
 def messages(result: RESULTS) -> list[str]:
-    """The message of each code of a concrete result (one per frame of a batch), "" for success."""
+    """The message of each code of a concrete result.
+
+    Arguments:
+        result: A concrete `RESULTS` value, one code or one per frame.
+
+    Returns:
+        One message per frame (one for a single code), "" for success.
+    """
     return [RESULTS._index_to_message[code] for code in np.atleast_1d(np.asarray(result._value)).tolist()]
 
 
 def names(result: RESULTS) -> list[str]:
-    """The name of each code of a concrete result ("successful", "max_iterations_reached", ...),
-    one per frame of a batch: what files and reports store."""
+    """The name of each code of a concrete result: what files and reports store.
+
+    Arguments:
+        result: A concrete `RESULTS` value, one code or one per frame.
+
+    Returns:
+        One name per frame (one for a single code): "successful", "max_iterations_reached",
+        and so on.
+    """
     by_value = {int(item._value): name for name, item in RESULTS._name_to_item.items()}
     return [by_value[code] for code in np.atleast_1d(np.asarray(result._value)).tolist()]
 
@@ -82,11 +119,23 @@ Value = TypeVar("Value")
 
 
 def throw_if_failed(value: Value, result: RESULTS, what: str) -> Value:
-    """`value`, after raising for a failed `result` (`what` names the computation).
+    """Raise for a failed result; else return the value unchanged.
 
-    On a concrete result a `SolverError` names `what`, the failing frames of a batch and the
-    first failure's message; on a traced one (under jit or vmap) `equinox.error_if` raises at
-    run time with the code's message. `value` is returned unchanged.
+    On a traced result (under jit or vmap) the check is `equinox.error_if`, at run time, with
+    the code's message.
+
+    Arguments:
+        value: What to return (under jit, the value the run-time check is attached to).
+        result: The `RESULTS` value, one code or one per frame.
+        what: The computation's name, for the message.
+
+    Returns:
+        `value`.
+
+    Raises:
+        SolverError: For a concrete result with a failed code, naming `what`, the failing
+            frames of a batch and the first failure's message.
+        equinox.EquinoxRuntimeError: For a traced result with a failed code, at run time.
     """
     if result.is_traced():
         return result.error_if(value, result != RESULTS.successful)

@@ -132,8 +132,17 @@ class Touches(eqx.Module):
     misfit: np.ndarray | None = None
 
     def lines(self, frame: int) -> list[str]:
-        """Frame `frame`'s touches, a line each: position in mm, radius in mm, depth (and
-        pressure); with standard errors (`method="fit"`), each followed by +- its error."""
+        """One frame's touches as text, a line each.
+
+        Each line gives the position in mm, the radius in mm, the depth (and the pressure,
+        kPa); with standard errors (`method="fit"`), each followed by +- its error.
+
+        Arguments:
+            frame: The frame's index.
+
+        Returns:
+            One line per touch of the frame (none for an untouched frame).
+        """
         lines = []
         for k in range(int(self.count[frame])):
             x, y = 1e3 * self.position[frame, k]
@@ -162,9 +171,12 @@ def touches(
     stack: FoamStack | None = None,
     method: str = "image",
 ) -> Touches:
-    """The touches of every image of a reconstructed recording (module docstring, "The rule"),
-    with `method="fit"` refined by fitting discs to the frames' voltages (module docstring,
-    "Refinement by the model").
+    """The touches of every image of a reconstructed recording.
+
+    Read from the images by the rule of the module docstring ("The rule"); with
+    `method="fit"`, refined by fitting discs to the frames' voltages (module docstring,
+    "Refinement by the model"). Frames are tested against the calibration's noise (`touched`)
+    when the recording has a reference and the calibration knows its noise.
 
     Arguments:
         recording: A recording with images (`diffeit.reconstruct`'s result), relative changes
@@ -188,8 +200,11 @@ def touches(
         The `Touches`.
 
     Raises:
-        ValueError: For a recording without images, or a bad option; for `method="fit"`
-            without a calibration or without the recording's reference.
+        ValueError: For an unknown method, a recording without images (or with conductivity
+            changes but no calibrated level in its provenance), images that are not finite, a
+            bad option (`max_touches` not a positive integer, `threshold` not positive,
+            `polarity` not -1 or +1); for `method="fit"` without a calibration or without the
+            recording's reference.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
@@ -236,8 +251,10 @@ def touched(
     detection: float = DETECTION,
     reference_frames: int | None = None,
 ) -> np.ndarray | None:
-    """Which frames stand out of the calibration's noise: the voltage test (module docstring,
-    step 1).
+    """Which frames stand out of the calibration's noise: the voltage test.
+
+    The standardised sum over the readings of (dv_m / s_m)^2 / (1 + 1/R), each F(1, n - 1)
+    distributed for an untouched frame (module docstring, "The rule", step 1).
 
     Arguments:
         frames: (T, M) recorded frames.
@@ -296,7 +313,9 @@ def read(
         The `Touches` (T = 1 for one image).
 
     Raises:
-        ValueError: For images of the wrong shape or not finite, or a bad option.
+        ValueError: For images of the wrong shape or not finite, a `max_touches` that is not a
+            positive integer, a `polarity` other than -1 and +1, a `threshold` that is not
+            positive, or `touched` not one per image.
     """
     images = np.atleast_2d(np.asarray(images, np.float64))
     if images.ndim != 2 or images.shape[1] != mesh.n_elements:

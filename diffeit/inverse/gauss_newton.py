@@ -376,12 +376,28 @@ class GaussNewton(_GaussNewtonIteration):
         stagnation_tolerance: Stop when the objective decreases by less than this fraction in
             a step; 0 never stops for that.
 
+    Attributes:
+        model: The forward model (None when unbound).
+        prior: The prior.
+        hyperparameter: lambda (static).
+        max_iterations: The iteration limit (static).
+        noise: The noise level, percent of RMS(v), or None (static).
+        discrepancy_safety: As given (static).
+        contact_impedance_spread: As given (static).
+        stagnation_tolerance: As given (static).
+        bound_prior: The prior on the model's mesh, factorised once (`AbstractPrior.bind`);
+            None when unbound (static).
+        background: The background conductivity (S/sq): (E,) on a model, as given when
+            unbound.
+
     Raises:
-        ValueError: For settings out of range or an unknown prior.
+        ValueError: For a hyperparameter that is not finite and positive, a negative
+            `max_iterations`, a `noise` or `contact_impedance_spread` that is not positive, a
+            negative `stagnation_tolerance`, an unknown prior, or a background that is not
+            finite and positive.
     """
 
     background: float | np.ndarray = eqx.field(repr=False)
-    """The background conductivity as given (S/sq, scalar or (E,))."""
 
     def __init__(
         self,
@@ -411,7 +427,17 @@ class GaussNewton(_GaussNewtonIteration):
     def bound(
         self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
     ) -> GaussNewton:
-        """This solver's settings on `model` (see `AbstractSolver.bound`)."""
+        """This solver's settings on another model (see `AbstractSolver.bound`).
+
+        Arguments:
+            model: The forward model to reconstruct on.
+            background: The background conductivity (S/sq, scalar or (E,)); None keeps this
+                solver's.
+            hyperparameter: lambda replacing this solver's; None keeps it.
+
+        Returns:
+            A new `GaussNewton` on `model` (its prior factorised on the model's mesh).
+        """
         return GaussNewton(
             model,
             self.prior,
@@ -455,8 +481,7 @@ class GaussNewton(_GaussNewtonIteration):
 
 
 class AbsoluteGaussNewton(_GaussNewtonIteration):
-    """Absolute imaging by regularised Gauss-Newton on s = ln(sigma), optionally with one
-    contact impedance per electrode.
+    """Absolute imaging by regularised Gauss-Newton on s = ln(sigma), optionally fitting contact impedances.
 
     Fits the conductivity (and, with `estimate_contact_impedance`, w = ln z) to measured
     voltages v: the objective of `GaussNewton` with s_ref the start, s_d = RMS(V(start)), plus
@@ -480,8 +505,26 @@ class AbsoluteGaussNewton(_GaussNewtonIteration):
         contact_impedance_spread: The prior spread of ln z around the model's.
         stagnation_tolerance: As `GaussNewton`'s.
 
+    Attributes:
+        model: The forward model (None when unbound).
+        prior: The prior.
+        hyperparameter: lambda (static).
+        max_iterations: The iteration limit (static).
+        noise: The noise level, percent of RMS(v), or None (static).
+        discrepancy_safety: As given (static).
+        contact_impedance_spread: As given (static).
+        stagnation_tolerance: As given (static).
+        bound_prior: The prior on the model's mesh, factorised once (`AbstractPrior.bind`);
+            None when unbound (static).
+        initial: The start (S/sq): (E,) on a model, as given when unbound; None for the best
+            homogeneous conductivity.
+        estimate_contact_impedance: Whether the contact impedances are fitted (static).
+
     Raises:
-        ValueError: For settings out of range or an unknown prior.
+        ValueError: For a hyperparameter that is not finite and positive, a negative
+            `max_iterations`, a `noise` or `contact_impedance_spread` that is not positive, a
+            negative `stagnation_tolerance`, an unknown prior, or a given `initial` that is not
+            finite and positive.
     """
 
     initial: float | np.ndarray | None = eqx.field(repr=False)
@@ -517,8 +560,16 @@ class AbsoluteGaussNewton(_GaussNewtonIteration):
     def bound(
         self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
     ) -> AbsoluteGaussNewton:
-        """This solver's settings on `model` (see `AbstractSolver.bound`); `background`, when
-        given, is the start (`initial`)."""
+        """This solver's settings on another model (see `AbstractSolver.bound`).
+
+        Arguments:
+            model: The forward model to reconstruct on.
+            background: The start (`initial`), S/sq, scalar or (E,); None keeps this solver's.
+            hyperparameter: lambda replacing this solver's; None keeps it.
+
+        Returns:
+            A new `AbsoluteGaussNewton` on `model`.
+        """
         return AbsoluteGaussNewton(
             model,
             self.prior,

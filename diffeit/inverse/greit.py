@@ -66,8 +66,8 @@ class GREIT(AbstractSolver):
             domain); None for an unbound solver (see `bound`).
         grid: Pixels per side, or (n_rows, n_columns); at least 2 each.
         hyperparameter: lambda > 0, unit-free: the standard deviation of the measurement noise
-            as a fraction of RMS(V_reference), per unit target strength; default 0.3 (noise
-            figure 0.87 on the 16-electrode unit disc) unless `noise_figure` is given.
+            as a fraction of RMS(V_reference), per unit target strength; default 0.3 (its
+            noise figure is in docs/science.md#greit) unless `noise_figure` is given.
         noise_figure: NF > 0 to choose lambda by (EIDORS's usual way, e.g. 0.5); not
             together with `hyperparameter`.
         target_radius: Training target radius, a fraction of R, half the larger side of the
@@ -81,37 +81,52 @@ class GREIT(AbstractSolver):
         contrast: Relative conductivity change of the nonlinear training targets, > -1, not 0.
         seed: Seed of the target positions.
 
-    After construction on a model, `hyperparameter` and `noise_figure` hold the values in
-    effect, whichever was given.
+    Attributes:
+        problem: The normalisation (J_n, s) at the background (a `LinearisedProblem`; its
+            prior is not used). None when unbound.
+        grid: The `PixelGrid` of the images (the requested size when unbound).
+        hyperparameter: lambda in effect (on a model, whichever of it and the noise figure
+            was given), unit-free.
+        noise_figure: The noise figure in effect (on a model, whichever was given).
+        by_noise_figure: Whether the noise figure chose the hyperparameter (and so chooses it
+            again on `bound`).
+        target_radius: As given, a fraction of R.
+        n_targets: K, as given.
+        blur: As given, a fraction of R.
+        background: The background conductivity as given (S/sq, scalar or (E,)).
+        training: "linearised" or "nonlinear".
+        contrast: As given.
+        seed: As given.
+        matrix: (n_rows * n_columns, n_meas) reconstruction matrix, S/sq per volt; rows of
+            pixels outside the mask are zero. Pixels are in row-major (C) order of the image.
+            None when unbound.
+        element_matrix: (E, n_meas): `matrix` followed by `grid.to_elements`, S/sq per volt.
+            None when unbound.
+        target_centres: (K, 2) centres of the training targets, metres. None when unbound.
 
     Raises:
-        ValueError: For settings out of range, a grid with no pixel in the domain, or targets
-            that do not fit in it; a noise figure out of reach.
+        ValueError: For settings out of range (both `hyperparameter` and `noise_figure`
+            given, either not finite and positive, a target radius or blur outside (0, 1),
+            a non-positive number of targets, an unknown training, a contrast <= -1 or 0), a
+            grid smaller than 2 x 2 or with no pixel in the domain, targets that do not fit
+            in it or cover no element; a noise figure out of reach.
     """
 
     problem: LinearisedProblem | None = eqx.field(repr=False)
-    """The normalisation (J_n, s) at the background; its prior is not used. None when unbound."""
     grid: PixelGrid | int | tuple[int, int] = eqx.field(static=True, repr=False)
-    """The `PixelGrid` of the images (the requested size when unbound)."""
     hyperparameter: float | None = eqx.field(static=True)
     noise_figure: float | None = eqx.field(static=True)
     by_noise_figure: bool = eqx.field(static=True, repr=False)
-    """Whether the noise figure chose the hyperparameter (and so chooses it again on `bound`)."""
     target_radius: float = eqx.field(static=True)
     n_targets: int = eqx.field(static=True)
     blur: float = eqx.field(static=True)
     background: float | np.ndarray = eqx.field(repr=False)
-    """The background conductivity as given (S/sq, scalar or (E,))."""
     training: Literal["linearised", "nonlinear"] = eqx.field(static=True)
     contrast: float = eqx.field(static=True)
     seed: int = eqx.field(static=True)
     matrix: jax.Array | None = eqx.field(repr=False)
-    """(n_rows * n_columns, n_meas) reconstruction matrix, S/sq per volt; rows of pixels
-    outside the mask are zero. Pixels are in row-major (C) order of the image."""
     element_matrix: jax.Array | None = eqx.field(repr=False)
-    """(E, n_meas): `matrix` followed by `grid.to_elements`, S/sq per volt."""
     target_centres: np.ndarray | None = eqx.field(repr=False)
-    """(K, 2) centres of the training targets, metres."""
 
     @host_algebra
     def __init__(
@@ -166,7 +181,7 @@ class GREIT(AbstractSolver):
 
     @property
     def shape(self) -> tuple[int, int]:
-        """(n_rows, n_columns) of an image."""
+        """(n_rows, n_columns), the shape of an image in pixels."""
         if isinstance(self.grid, PixelGrid):
             return self.grid.shape
         return (self.grid, self.grid) if np.ndim(self.grid) == 0 else tuple(self.grid)
@@ -179,10 +194,23 @@ class GREIT(AbstractSolver):
         hyperparameter: float | None = None,
         noise_figure: float | None = None,
     ) -> GREIT:
-        """This solver's settings on `model` (see `AbstractSolver.bound`), trained afresh.
+        """This solver's settings on another model (see `AbstractSolver.bound`), trained afresh.
 
         A solver designed for a noise figure is designed for it again on `model`, unless
         `hyperparameter` or `noise_figure` is given (not both) to replace the design.
+
+        Arguments:
+            model: The forward model to train on.
+            background: The background conductivity (S/sq, scalar or (E,)); None keeps this
+                solver's.
+            hyperparameter: lambda replacing this solver's design; None keeps it.
+            noise_figure: A noise figure replacing this solver's design; None keeps it.
+
+        Returns:
+            A new `GREIT` on `model`.
+
+        Raises:
+            ValueError: As the constructor.
         """
         if hyperparameter is None and noise_figure is None:
             if self.by_noise_figure:
@@ -204,10 +232,9 @@ class GREIT(AbstractSolver):
         )
 
     def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
-        """Reconstruct voltage differences dV = V - V_reference (volts) on the pixel grid and
-        on the mesh's elements.
+        """Reconstruct voltage differences on the pixel grid and on the mesh's elements.
 
-        Works under jit and vmap, in the input's dtype (float32 in, float32 out).
+        dV = V - V_reference, volts. Works under jit and vmap, in the input's dtype (float32 in, float32 out).
 
         Arguments:
             data: dV, (M,) or a batch (T, M), volts.

@@ -51,16 +51,20 @@ DEFAULT_CANDIDATES = np.logspace(-6, 2, 161)
 class HyperparameterSelection(eqx.Module):
     """The chosen hyperparameter and the curve it was chosen from.
 
-    - `value`: the chosen lambda (unit-free).
-    - `method`: "gcv", "lcurve", "discrepancy" or "noise_figure".
-    - `candidates` (K,): the lambdas evaluated, increasing.
-    - `criterion` (K,): what the method looks at per candidate: the GCV function, the L-curve
-      curvature, the residual norm over the noise norm, or the noise figure.
-    - `residual_norm`, `solution_norm` (K,): ||J_n x - y|| and the prior seminorm of x.
-    - `target`: the level a discrepancy or noise-figure method aims at (None otherwise).
-    - `result`: `RESULTS.successful`, or `RESULTS.selection_at_boundary` when the value is the
-      smallest or largest candidate (or the target level is not reached within the candidates,
-      and the nearest end is taken).
+    Returned by `select_hyperparameter`; the methods are defined in the module docstring.
+
+    Attributes:
+        value: The chosen lambda (unit-free).
+        method: "gcv", "lcurve", "discrepancy" or "noise_figure" (static).
+        candidates: (K,) the lambdas evaluated, increasing.
+        criterion: (K,) what the method looks at per candidate: the GCV function, the
+            L-curve curvature, the residual norm over the noise norm, or the noise figure.
+        residual_norm: (K,) ||J_n x - y|| (unit-free, summed over frames).
+        solution_norm: (K,) the prior seminorm of x.
+        target: The level a discrepancy or noise-figure method aims at (None otherwise).
+        result: `RESULTS.successful`, or `RESULTS.selection_at_boundary` when the value is
+            the smallest or largest candidate (or the target level is not reached within the
+            candidates, and the nearest end is taken).
     """
 
     value: float
@@ -91,23 +95,42 @@ def select_hyperparameter(
     throw: bool = True,
     problem: LinearisedProblem | None = None,
 ) -> HyperparameterSelection:
-    """Choose the `OneStep` hyperparameter for data `voltage_difference` (M,) or (T, M), volts.
+    """Choose the `OneStep` hyperparameter for voltage differences.
 
-    `prior`, `background` and `normalised` (with the measured `reference`) define the problem
-    as in `OneStep`. `candidates` (default 161 values from 1e-6 to 1e2, log-spaced) are the
-    lambdas tried; "discrepancy" and "noise_figure" then refine between the two bracketing
-    candidates. `noise` (percent) is needed by "discrepancy"; `safety` multiplies its noise
-    norm (Morozov's tau, 1 by default). `noise_figure` is the NF aimed at and
-    `target_radius` (metres, default 5% of the mesh's diameter) the central target's radius.
-    See the module docstring for the definitions.
+    "discrepancy" and "noise_figure" refine between the two bracketing candidates. See the
+    module docstring for the definitions of the methods.
 
-    `throw=True` (the default) raises `diffeit.results.SolverError` for a choice at an end of
-    the candidates (`RESULTS.selection_at_boundary`); with `throw=False` the selection carries
-    the code in `result` and its value is the nearest end.
+    Arguments:
+        model: The forward model.
+        voltage_difference: dV, (M,) or (T, M), volts; several frames add their norms.
+        method: "gcv" (default), "lcurve", "discrepancy" or "noise_figure".
+        prior: The prior, a name or a prior, as in `OneStep`.
+        background: The background conductivity, S/sq, scalar or (E,).
+        normalised: Normalised differences dV / V_ref, as in `OneStep`.
+        reference: (M,) the measured reference V_ref, volts; needed when `normalised`.
+        candidates: The lambdas tried, at least 3, finite and positive (default 161 values
+            from 1e-6 to 1e2, log-spaced); sorted.
+        noise: The noise level, percent of RMS(V_ref); needed by "discrepancy".
+        safety: Multiplies the discrepancy's noise norm (Morozov's tau, 1 by default).
+        noise_figure: The NF "noise_figure" aims at (default 0.5).
+        target_radius: The central target's radius for "noise_figure", metres (default 5% of
+            the mesh's diameter).
+        throw: Raise for a choice at an end of the candidates (True), or return it with its
+            code (False; its value is the nearest end).
+        problem: The `LinearisedProblem` of `model`, `prior`, `background` and `normalised`
+            when the caller has built it already (its Jacobian and eigendecomposition are most
+            of the cost of a selection), so that several methods share one.
 
-    `problem`: the `LinearisedProblem` of `model`, `prior`, `background` and `normalised` when
-    the caller has built it already (its Jacobian and eigendecomposition are most of the cost of
-    a selection), so that several methods share one.
+    Returns:
+        The `HyperparameterSelection`.
+
+    Raises:
+        ValueError: For a `problem` of another model or normalisation, voltage differences of
+            the wrong shape or not finite, normalised differences without `reference`, bad
+            candidates, an unknown method, "discrepancy" without a positive `noise`, a
+            noise-figure target that covers no element, or the errors of
+            `LinearisedProblem`.
+        diffeit.results.SolverError: With `throw=True`, for `RESULTS.selection_at_boundary`.
     """
     if problem is None:
         problem = LinearisedProblem(model, prior, background, normalised=normalised)
@@ -264,8 +287,24 @@ def from_external_hyperparameter(
     prior: str | AbstractPrior = "noser",
     background: float = 1.0,
 ) -> float:
-    """diffeit's unit-free hyperparameter for EIDORS's `hyperparameter.value` or pyEIT's `lamb`
-    (the inverse of `to_external_hyperparameter`, which explains the mapping)."""
+    """diffeit's unit-free hyperparameter for EIDORS's `hyperparameter.value` or pyEIT's `lamb`.
+
+    The inverse of `to_external_hyperparameter`, which explains the mapping.
+
+    Arguments:
+        value: EIDORS's hp or pyEIT's `lamb` (w), positive.
+        model: The forward model (the same mesh and protocol as the other tool's).
+        tool: "eidors" or "pyeit".
+        prior: The prior, "noser" (default) or "tikhonov", or a `Noser` or `Tikhonov`.
+        background: The uniform background conductivity, S/sq.
+
+    Returns:
+        lambda, unit-free.
+
+    Raises:
+        ValueError: For a value that is not positive, an unknown tool, or a prior the other
+            tool lacks (or a NOSER exponent other than 0.5 for EIDORS).
+    """
     if not value > 0:
         raise ValueError(f"the {tool} hyperparameter must be positive; got {value}")
     weight = value**2 if tool == "eidors" else value

@@ -18,8 +18,7 @@ from .priors import AbstractPrior, prior_named
 
 
 class LinearisedProblem(eqx.Module):
-    """The linearisation of a model at a background, normalised so that hyperparameters are
-    unit-free.
+    """The linearisation of a model at a background, normalised so that hyperparameters are unit-free.
 
     Unknowns: the relative change x = dsigma / background per element. Data: y = dV / s with
     s = RMS(V_0) on every reading (absolute differences), or y = dV / V_ref reading by reading
@@ -31,18 +30,39 @@ class LinearisedProblem(eqx.Module):
     scaled by c = trace(J_n P J_n^T) / n_meas, so that the data-space prior covariance
     `gram` = J_n P J_n^T / c has unit mean diagonal: the hyperparameter lambda then weighs the
     noise variance against the average signal a change drawn from the prior gives, whatever
-    the prior, the mesh, the drive current or the background level.
+    the prior, the mesh, the drive current or the background level
+    (docs/science.md#linearised-reconstruction).
 
-    **Arguments:** `model`; `prior`, a name ("tikhonov", "noser", "laplace", "matern") or a
-    prior of `diffeit.inverse.priors`; `background`, S/sq, scalar or (E,); `normalised`.
+    Eigenvalues of G below M eps max(G) are set to exactly 0: adjacent data are
+    rank-deficient (reciprocity pairs readings), and in the null space of G no change x can
+    explain the data (J^T u = 0 there), so the solvers leave those components out instead of
+    dividing rounding errors by a tiny hyperparameter.
 
-    **Fields** besides those: `background` (E,) S/sq; `reference` (M,) V_0 in volts;
-    `data_scale` (M,) s in volts (signed for normalised differences); `jacobian` (M, E) J_n;
-    `prior_jacobian` (E, M) P J_n^T / c; `gram` (M, M); `prior_scale` c; `eigenvalues` (M,)
-    and `eigenvectors` (M, M) of G, ascending. Eigenvalues below M eps max(G) are set to
-    exactly 0: adjacent data are rank-deficient (reciprocity pairs readings), and in the null
-    space of G no change x can explain the data (J^T u = 0 there), so the solvers leave those
-    components out instead of dividing rounding errors by a tiny hyperparameter.
+    Arguments:
+        model: The forward model.
+        prior: A name ("tikhonov", "noser", "laplace", "matern") or a prior of
+            `diffeit.inverse.priors` (default "noser").
+        background: The background conductivity, S/sq, scalar or (E,), finite and positive.
+        normalised: Normalised differences dV / V_ref (True) rather than absolute ones.
+
+    Attributes:
+        model: The forward model.
+        prior: The prior.
+        background: (E,) the background conductivity, S/sq.
+        normalised: Whether data are normalised differences (static).
+        reference: (M,) V_0, the model's voltages at the background, volts.
+        data_scale: (M,) s, volts (signed for normalised differences).
+        jacobian: (M, E) J_n, the normalised Jacobian (unit-free).
+        prior_jacobian: (E, M) P J_n^T / c.
+        gram: (M, M) G = J_n P J_n^T / c, the data-space prior covariance.
+        prior_scale: c = trace(J_n P J_n^T) / M.
+        eigenvalues: (M,) the eigenvalues of G, ascending, those below rounding set to 0.
+        eigenvectors: (M, M) the eigenvectors of G, one per column.
+
+    Raises:
+        ValueError: For a prior that is not a name or a prior, a background of the wrong
+            shape or not finite and positive, or (normalised differences) reference voltages
+            near zero at this background.
     """
 
     model: ForwardModel
@@ -88,8 +108,19 @@ class LinearisedProblem(eqx.Module):
         self.eigenvalues = eigenvalues
 
     def normalised_data(self, voltage_difference: jax.Array, reference: jax.Array | None = None) -> jax.Array:
-        """y (..., M) from dV (..., M) in volts; normalised differences divide by the measured
-        `reference` (M,) reading by reading (falling back to the model's V_0 when None)."""
+        """The normalised data y from voltage differences.
+
+        Absolute differences divide by s; normalised differences divide by the measured
+        reference reading by reading.
+
+        Arguments:
+            voltage_difference: (..., M) dV, volts.
+            reference: (M,) the measured reference, volts, for normalised differences (None:
+                the model's V_0). Unused for absolute differences.
+
+        Returns:
+            (..., M) y, unit-free.
+        """
         if not self.normalised:
             return voltage_difference / self.data_scale
         return voltage_difference / (self.reference if reference is None else reference)
@@ -120,7 +151,17 @@ def _data_scale(reference: np.ndarray, normalised: bool) -> np.ndarray:
 
 @host_algebra
 def regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np.ndarray:
-    """(E, M) P J_n^T (G + lambda^2 I)^-1 / c, through the eigendecomposition of G."""
+    """The regularised inverse P J_n^T (G + lambda^2 I)^-1 / c, through the eigendecomposition of G.
+
+    Components in the null space of G (eigenvalue 0) are left out.
+
+    Arguments:
+        problem: The `LinearisedProblem`.
+        hyperparameter: lambda, unit-free.
+
+    Returns:
+        (E, M) the matrix from normalised data y to the relative change x.
+    """
     inverse = 1.0 / (problem.eigenvalues + hyperparameter**2)
     inverse[problem.eigenvalues == 0] = 0.0  # see LinearisedProblem.eigenvalues
     # The M x M regularised inverse first: one E x M x M product instead of two.
@@ -128,9 +169,22 @@ def regularised_inverse(problem: LinearisedProblem, hyperparameter: float) -> np
 
 
 def check_frames(frames: jax.Array, n_measurements: int, what: str) -> jax.Array:
-    """`frames` as a float JAX array of shape (M,) or (T, M), refusing other shapes and, for
-    concrete input, non-finite values (naming the frames). NumPy input is checked before it is
-    moved, a JAX array where it lives: only one flag per frame travels."""
+    """Frames as a float JAX array of shape (M,) or (T, M), checked.
+
+    NumPy input is checked before it is moved, a JAX array where it lives: only one flag per
+    frame travels.
+
+    Arguments:
+        frames: (M,) or (T, M) frames (integers become floats).
+        n_measurements: M.
+        what: What the frames are, for the error message.
+
+    Returns:
+        The frames as a float JAX array.
+
+    Raises:
+        ValueError: For another shape, or concrete frames that are not finite (naming them).
+    """
     if isinstance(frames, jax.Array):
         array = frames
     else:
@@ -150,7 +204,16 @@ def check_frames(frames: jax.Array, n_measurements: int, what: str) -> jax.Array
 
 @jax.jit
 def apply_matrix(matrix: jax.Array, frames: jax.Array) -> jax.Array:
-    """frames (..., M) @ matrix.T for a reconstruction matrix (K, M), in the frames' dtype:
-    under jit the transpose and the conversion fold into the product instead of copying the
-    K x M matrix on every call. Works under an outer jit and vmap."""
+    """Apply a reconstruction matrix to frames: frames @ matrix.T, in the frames' dtype.
+
+    Under jit the transpose and the conversion fold into the product instead of copying the
+    K x M matrix on every call. Works under an outer jit and vmap.
+
+    Arguments:
+        matrix: (K, M) the reconstruction matrix.
+        frames: (..., M) the frames.
+
+    Returns:
+        (..., K).
+    """
     return frames @ matrix.T.astype(frames.dtype)

@@ -41,22 +41,33 @@ class OneStep(AbstractSolver):
         reference: The measured reference voltages V_ref (M,), volts, that normalised
             differences divide by.
 
+    Attributes:
+        prior: The prior.
+        hyperparameter: lambda (static).
+        background: The background conductivity as given (S/sq, scalar or (E,)).
+        normalised: Whether data are normalised differences (static).
+        reference: The measured reference V_ref (M,) of normalised differences, volts; else
+            None (and None when unbound).
+        problem: The `LinearisedProblem` on the model (None when unbound).
+        matrix: (E, M) reconstruction matrix: dsigma (S/sq) = matrix @ y, y = dV in volts
+            (absolute differences) or dV / V_ref (normalised differences); None when unbound.
+
     Raises:
-        ValueError: For a hyperparameter, prior, background or reference out of range.
+        ValueError: For a hyperparameter that is not finite and positive, a prior that is
+            not a name or a prior, a `reference` without `normalised=True`, normalised
+            differences on a model without a `reference`, a reference that is not one finite
+            frame (M,) or is zero at some reading, a background that is not finite and
+            positive or of the wrong shape, or reference voltages of the model near zero
+            (normalised differences).
     """
 
     prior: AbstractPrior
     hyperparameter: float = eqx.field(static=True)
     background: float | np.ndarray = eqx.field(repr=False)
-    """The background conductivity as given (S/sq, scalar or (E,))."""
     normalised: bool = eqx.field(static=True)
     reference: jax.Array | None = eqx.field(repr=False)
-    """The measured reference V_ref (M,) of normalised differences, volts; else None."""
     problem: LinearisedProblem | None = eqx.field(repr=False)
-    """The linearised problem on the model (None when unbound)."""
     matrix: jax.Array | None = eqx.field(repr=False)
-    """(E, M) reconstruction matrix: dsigma (S/sq) = matrix @ y, y = dV in volts (absolute
-    differences) or dV / V_ref (normalised differences); None when unbound."""
 
     def __init__(
         self,
@@ -98,8 +109,23 @@ class OneStep(AbstractSolver):
     def bound(
         self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
     ) -> OneStep:
-        """This solver's settings on `model` (see `AbstractSolver.bound`); a normalised solver
-        keeps its reference, which must fit the model's readings."""
+        """This solver's settings on another model (see `AbstractSolver.bound`).
+
+        A normalised solver keeps its reference, which must fit the model's readings.
+
+        Arguments:
+            model: The forward model to reconstruct on.
+            background: The background conductivity (S/sq, scalar or (E,)); None keeps this
+                solver's.
+            hyperparameter: lambda replacing this solver's; None keeps it.
+
+        Returns:
+            A new `OneStep` on `model`.
+
+        Raises:
+            ValueError: As the constructor (for example a reference that does not fit the
+                model's readings).
+        """
         return OneStep(
             model,
             self.prior,
@@ -110,7 +136,7 @@ class OneStep(AbstractSolver):
         )
 
     def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
-        """Reconstruct voltage differences dV = V - V_reference (volts).
+        """Reconstruct voltage differences dV = V - V_reference, volts.
 
         Works under jit and vmap; the image is in the dtype of the input (float32 in, float32
         out). `stats` is empty: the product is the whole method.

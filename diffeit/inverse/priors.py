@@ -31,14 +31,19 @@ from ..mesh import Mesh, element_adjacency
 
 
 class PriorOperator(NamedTuple):
-    """A prior bound to a mesh (and, for NOSER, to a Jacobian), for X of shape (E,) or (E, k):
+    """A prior bound to a mesh (and, for NOSER, to a Jacobian): four functions of X.
 
-    - `covariance(X)` = P X and `precision(X)` = P^-1 X;
-    - `root(X)` = S X and `root_transpose(X)` = S^T X for a factor P = S S^T.
+    Each function takes NumPy X of shape (E,) or (E, k), a relative change per element
+    (dsigma / sigma), and returns the shape of X. Iterative solvers use the factor:
+    J P J^T = (S^T J^T)^T (S^T J^T) and P J^T y = S (S^T J^T y) cost one sparse solve with
+    many right-hand sides, where P J^T costs two. Sparse factorisations are made once per
+    mesh, by `AbstractPrior.bind`.
 
-    Iterative solvers use the factor: J P J^T = (S^T J^T)^T (S^T J^T) and P J^T y = S (S^T J^T y)
-    cost one sparse solve with many right-hand sides, where P J^T costs two. Sparse
-    factorisations are made once per mesh, by `AbstractPrior.bind`.
+    Attributes:
+        covariance: X -> P X.
+        precision: X -> P^-1 X.
+        root: X -> S X, for a factor P = S S^T.
+        root_transpose: X -> S^T X.
     """
 
     covariance: Callable[[np.ndarray], np.ndarray]
@@ -48,21 +53,56 @@ class PriorOperator(NamedTuple):
 
 
 class AbstractPrior(eqx.Module):
-    """A prior covariance P (E x E, symmetric positive definite) on the relative change. Its
-    parameters are static fields: a prior holds no arrays until it is bound to a mesh."""
+    """A prior covariance P on the relative change dsigma / sigma, one value per element.
+
+    P is (E, E), symmetric positive definite, and never formed: a prior binds to a mesh
+    (`bind`, `operator`) and applies P through sparse factorisations. Its parameters are
+    static fields: a prior holds no arrays until it is bound to a mesh. The priors and their
+    precisions are in docs/science.md#priors; `prior_named` picks one by name.
+    """
 
     @abc.abstractmethod
     def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
-        """The prior on `mesh`, its sparse factorisations made once: a function from the
-        normalised Jacobian (M, E) to the operator (only NOSER reads the Jacobian). Iterative
-        solvers bind once and build an operator per iterate."""
+        """The prior on `mesh`, its sparse factorisations made once.
+
+        Iterative solvers bind once and build an operator per iterate.
+
+        Arguments:
+            mesh: The mesh whose elements the prior covers.
+
+        Returns:
+            A function from the (M, E) normalised Jacobian to the `PriorOperator` (only NOSER
+            reads the Jacobian).
+        """
 
     def operator(self, mesh: Mesh, jacobian: np.ndarray) -> PriorOperator:
-        """P bound to `mesh`; `jacobian` (M, E) is the normalised Jacobian (only NOSER reads it)."""
+        """P bound to `mesh` (and `jacobian`): `bind(mesh)(jacobian)`.
+
+        Arguments:
+            mesh: The mesh whose elements the prior covers.
+            jacobian: (M, E) the normalised Jacobian (only NOSER reads it).
+
+        Returns:
+            The `PriorOperator`.
+
+        Raises:
+            ValueError: For NOSER, when an element has zero sensitivity.
+        """
         return self.bind(mesh)(jacobian)
 
     def covariance_times_jacobian_transpose(self, mesh: Mesh, jacobian: np.ndarray) -> np.ndarray:
-        """(E, M) P J^T for the (M, E) normalised Jacobian `jacobian`."""
+        """P J^T for the normalised Jacobian J.
+
+        Arguments:
+            mesh: The mesh whose elements the prior covers.
+            jacobian: (M, E) the normalised Jacobian J.
+
+        Returns:
+            (E, M) P J^T.
+
+        Raises:
+            ValueError: For NOSER, when an element has zero sensitivity.
+        """
         return self.operator(mesh, jacobian).covariance(np.ascontiguousarray(jacobian.T))
 
 
@@ -70,18 +110,41 @@ class Tikhonov(AbstractPrior):
     """P = I: every element's change independent, equally likely."""
 
     def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        """The identity on `mesh`, whatever the Jacobian.
+
+        Arguments:
+            mesh: The mesh (unused: the identity needs nothing from it).
+
+        Returns:
+            A function from the (M, E) normalised Jacobian to the identity `PriorOperator`.
+        """
         identity = PriorOperator(np.array, np.array, np.array, np.array)
         return lambda jacobian: identity
 
 
 class Noser(AbstractPrior):
-    """P = diag(J^T J)^-exponent (Cheney et al. 1990): elements the data see weakly (the
-    centre) may change more, which evens out the sensitivity. EIDORS uses exponent 0.5,
-    pyEIT's "kotre" method the same form with its `p` (default 0.2)."""
+    """NOSER: P = diag(J^T J)^-exponent (Cheney et al. 1990), J the normalised Jacobian.
+
+    Elements the data see weakly (the centre) may change more, which evens out the
+    sensitivity. EIDORS uses exponent 0.5, pyEIT's "kotre" method the same form with its `p`
+    (default 0.2).
+
+    Attributes:
+        exponent: The power of diag(J^T J) in the precision (static, default 0.5).
+    """
 
     exponent: float = eqx.field(static=True, default=0.5)
 
     def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        """NOSER on `mesh`: the operator is built from each Jacobian.
+
+        Arguments:
+            mesh: The mesh (unused: NOSER reads the Jacobian only).
+
+        Returns:
+            A function from the (M, E) normalised Jacobian to the `PriorOperator`; it raises
+            `ValueError` when an element has zero sensitivity (a zero column of J).
+        """
         return self._operator
 
     def _operator(self, jacobian: np.ndarray) -> PriorOperator:
@@ -102,10 +165,19 @@ class Noser(AbstractPrior):
 
 
 class Laplace(AbstractPrior):
-    """P = (L + ridge I)^-2 with L the graph Laplacian of element adjacency (elements sharing
-    an edge are neighbours, weight 1): penalises differences between neighbours, as EIDORS's
-    `prior_laplace` (whose L^T L is singular on constants; the ridge, relative to the mean
-    degree of 3, makes it invertible and leaves a uniform change a large but finite variance)."""
+    """P = (L + ridge I)^-2, L the graph Laplacian of element adjacency: smoothness.
+
+    Elements sharing an edge are neighbours, weight 1. Penalises differences between
+    neighbours, as EIDORS's `prior_laplace` (whose L^T L is singular on constants; the ridge,
+    relative to the mean degree of 3, makes it invertible and leaves a uniform change a large
+    but finite variance).
+
+    Attributes:
+        ridge: The multiple of I added to L (static, default 1e-2, positive).
+
+    Raises:
+        ValueError: For a ridge that is not positive.
+    """
 
     ridge: float = eqx.field(static=True, default=1e-2)
 
@@ -114,6 +186,14 @@ class Laplace(AbstractPrior):
             raise ValueError(f"ridge must be positive; got {self.ridge}")
 
     def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        """The prior on `mesh`: L + ridge I factorised once (SuperLU), S = S^T = (L + ridge I)^-1.
+
+        Arguments:
+            mesh: The mesh whose element adjacency defines L.
+
+        Returns:
+            A function from the (M, E) normalised Jacobian (unused) to the `PriorOperator`.
+        """
         first, second, _ = element_adjacency(mesh)
         root = _graph_laplacian(first, second, np.ones(len(first)), mesh.n_elements)
         root = (root + self.ridge * scipy.sparse.eye(mesh.n_elements)).tocsc()
@@ -123,12 +203,20 @@ class Laplace(AbstractPrior):
 
 
 class Matern(AbstractPrior):
-    """A Gaussian field with Matern covariance (smoothness nu = 1) of `correlation_length`
-    (metres), through its sparse precision (Lindgren, Rue and Lindstrom 2011, the SPDE
+    """A Gaussian field with Matern covariance (smoothness nu = 1) of `correlation_length`.
+
+    Applied through its sparse precision (Lindgren, Rue and Lindstrom 2011, the SPDE
     (kappa^2 - Laplacian) x = white noise): P^-1 = K C^-1 K with K = kappa^2 C + G, C the
-    diagonal of element areas, G the finite-volume Laplacian of the element graph (flux
+    diagonal of element areas (m^2), G the finite-volume Laplacian of the element graph (flux
     |shared edge| / |centroid distance|), kappa = sqrt(8 nu) / correlation_length. At the
-    correlation length the correlation has fallen to about 0.14."""
+    correlation length the correlation has fallen to about 0.14.
+
+    Attributes:
+        correlation_length: Metres (static, default 0.2, positive).
+
+    Raises:
+        ValueError: For a correlation length that is not positive.
+    """
 
     correlation_length: float = eqx.field(static=True, default=0.2)
 
@@ -137,6 +225,14 @@ class Matern(AbstractPrior):
             raise ValueError(f"correlation_length must be positive (metres); got {self.correlation_length}")
 
     def bind(self, mesh: Mesh) -> Callable[[np.ndarray], PriorOperator]:
+        """The prior on `mesh`: K factorised once (SuperLU), S = K^-1 C^(1/2).
+
+        Arguments:
+            mesh: The mesh whose elements (areas, adjacency, centroids) define K and C.
+
+        Returns:
+            A function from the (M, E) normalised Jacobian (unused) to the `PriorOperator`.
+        """
         kappa = np.sqrt(8.0) / self.correlation_length
         first, second, edge_lengths = element_adjacency(mesh)
         distance = np.linalg.norm(mesh.element_centroids[first] - mesh.element_centroids[second], axis=1)
@@ -159,8 +255,18 @@ class Matern(AbstractPrior):
 
 
 def prior_named(name: str) -> AbstractPrior:
-    """The prior called `name` with its default parameters: "tikhonov", "noser", "laplace",
-    "matern"."""
+    """The prior called `name`, with its default parameters.
+
+    Arguments:
+        name: "tikhonov" (`Tikhonov`), "noser" (`Noser`), "laplace" (`Laplace`) or "matern"
+            (`Matern`).
+
+    Returns:
+        A new instance of the prior.
+
+    Raises:
+        ValueError: For any other name.
+    """
     priors = {"tikhonov": Tikhonov, "noser": Noser, "laplace": Laplace, "matern": Matern}
     if name not in priors:
         raise ValueError(f"unknown prior {name!r}; choose one of {sorted(priors)} or pass a prior instance")

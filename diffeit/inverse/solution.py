@@ -91,8 +91,20 @@ class AbstractSolver(IdentityModule):
 
 
 def model_of(solver: AbstractSolver) -> ForwardModel:
-    """The model of `solver` (every solver has a `model`, None when unbound), or a ValueError.
-    A function, not a method: an equinox bound method costs more than a small solve."""
+    """The model of a solver, which must be bound.
+
+    Every solver has a `model`, None when unbound. (A function, not a method: an equinox bound
+    method costs more than a small solve.)
+
+    Arguments:
+        solver: The solver.
+
+    Returns:
+        Its `ForwardModel`.
+
+    Raises:
+        ValueError: For an unbound solver.
+    """
     model = solver.model
     if model is None:
         name = type(solver).__name__
@@ -104,15 +116,37 @@ def model_of(solver: AbstractSolver) -> ForwardModel:
 
 
 def finished(value: jax.Array | np.ndarray, result: RESULTS, stats: dict[str, Any], what: str, throw: bool) -> Solution:
-    """The `Solution` of `value`, `result` and `stats`, after raising for failed frames when
-    `throw` (`diffeit.results.throw_if_failed`, naming `what`)."""
+    """The `Solution` of a value, result and stats, after raising for failed frames when asked.
+
+    Arguments:
+        value: The image(s).
+        result: The `RESULTS` code(s), one per frame.
+        stats: The method's extras.
+        what: The computation's name, for the error message.
+        throw: Raise for failed frames (`diffeit.results.throw_if_failed`).
+
+    Returns:
+        The `Solution`.
+
+    Raises:
+        diffeit.results.SolverError: With `throw=True`, for a failed frame (at run time under
+            jit).
+    """
     solution = Solution(value, result, stats)
     return throw_if_failed(solution, result, what) if throw else solution
 
 
 def finite_codes(images: jax.Array) -> RESULTS:
-    """One code per frame of `images` (..., E): `RESULTS.successful` where the frame is finite,
-    `RESULTS.nonfinite` where not (works under jit and vmap)."""
+    """One code per frame: `RESULTS.successful` where the frame is finite, `RESULTS.nonfinite` where not.
+
+    Works under jit and vmap.
+
+    Arguments:
+        images: (E,) or (T, E) images (any unit).
+
+    Returns:
+        The `RESULTS` code, one for (E,), (T,) for a batch.
+    """
     finite = jnp.all(jnp.isfinite(images), axis=-1)
 
     def code(ok: jax.Array) -> RESULTS:

@@ -106,22 +106,36 @@ class TotalVariation(AbstractSolver):
         warm_start: Start from the one-step Laplace solution at the same lambda (True) or from
             zero (False).
 
+    Attributes:
+        hyperparameter: lambda (static).
+        smoothing: beta (static).
+        background: The background conductivity as given (S/sq, scalar or (E,)).
+        max_iterations: The iteration limit (static).
+        gradient_tolerance: As given (static).
+        warm_start: As given (static).
+        problem: The `LinearisedProblem`: J_n and the data scale; its Laplace prior serves
+            only the warm start. None when unbound.
+        operator: The edges, their weights, the low-rank factor of J_n^T J_n and the Newton
+            matrix's pattern (internal); None when unbound.
+        initial_matrix: (E, M) maps y to the warm start x_0 (zeros without `warm_start`);
+            None when unbound.
+
     Raises:
-        ValueError: For settings out of range, or a mesh without interior edges.
+        ValueError: For a hyperparameter, smoothing or gradient tolerance that is not finite
+            and positive, a `max_iterations` that is not a positive integer, a background
+            that is not finite and positive or of the wrong shape, or a mesh without interior
+            edges.
     """
 
     hyperparameter: float = eqx.field(static=True)
     smoothing: float = eqx.field(static=True)
     background: float | np.ndarray = eqx.field(repr=False)
-    """The background conductivity as given (S/sq, scalar or (E,))."""
     max_iterations: int = eqx.field(static=True)
     gradient_tolerance: float = eqx.field(static=True)
     warm_start: bool = eqx.field(static=True)
     problem: LinearisedProblem | None = eqx.field(repr=False)
-    """J_n and the data scale; its Laplace prior serves only the warm start. None when unbound."""
     operator: _Operator | None = eqx.field(repr=False)
     initial_matrix: jax.Array | None = eqx.field(repr=False)
-    """(E, M) maps y to the warm start x_0 (zeros without `warm_start`)."""
 
     def __init__(
         self,
@@ -167,7 +181,17 @@ class TotalVariation(AbstractSolver):
     def bound(
         self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
     ) -> TotalVariation:
-        """This solver's settings on `model` (see `AbstractSolver.bound`)."""
+        """This solver's settings on another model (see `AbstractSolver.bound`).
+
+        Arguments:
+            model: The forward model to reconstruct on.
+            background: The background conductivity (S/sq, scalar or (E,)); None keeps this
+                solver's.
+            hyperparameter: lambda replacing this solver's; None keeps it.
+
+        Returns:
+            A new `TotalVariation` on `model`.
+        """
         return TotalVariation(
             model,
             self.hyperparameter if hyperparameter is None else hyperparameter,
@@ -179,8 +203,9 @@ class TotalVariation(AbstractSolver):
         )
 
     def objective(self, conductivity_change: jax.Array, voltage_difference: jax.Array) -> jax.Array:
-        """The objective f(x) (unit-free) of an image, a pure JAX function (grad, jit and vmap
-        work on it).
+        """The objective f(x) (unit-free) of an image.
+
+        A pure JAX function: grad, jit and vmap work on it.
 
         Arguments:
             conductivity_change: dsigma (E,), S/sq (x = dsigma / background).
@@ -188,6 +213,9 @@ class TotalVariation(AbstractSolver):
 
         Returns:
             f(x), a scalar.
+
+        Raises:
+            ValueError: For an unbound solver.
         """
         model_of(self)
         x = jnp.asarray(conductivity_change) / self.problem.background
@@ -195,7 +223,7 @@ class TotalVariation(AbstractSolver):
         return _objective(x, (self.operator, y, self.hyperparameter, self.smoothing))
 
     def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
-        """Reconstruct voltage differences dV = V - V_reference (volts).
+        """Reconstruct voltage differences dV = V - V_reference, volts.
 
         The solve runs in float64; the image comes back in the input's dtype.
 

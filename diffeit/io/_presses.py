@@ -69,8 +69,16 @@ class Presses(eqx.Module):
         return len(self.centres)
 
     def frames(self, times: np.ndarray) -> list[np.ndarray]:
-        """The indices of the frames of each press: those within its hold, or the frame nearest
-        to an instant (or to a hold no frame falls in)."""
+        """The frames of each press: those within its hold, or the frame nearest its middle.
+
+        An instant (or a hold no frame falls in) gets the one frame nearest to it.
+
+        Arguments:
+            times: (T,) the frames' times, seconds on the recording's clock.
+
+        Returns:
+            K arrays of frame indices, one per press, none empty.
+        """
         times = np.asarray(times, np.float64)
         chosen = []
         for start, end in self.times:
@@ -79,5 +87,15 @@ class Presses(eqx.Module):
         return chosen
 
     def select(self, which: ArrayLike) -> Presses:
-        """The presses `which` (indices or a boolean mask) of these."""
+        """Some of these presses.
+
+        Arguments:
+            which: Indices, a slice or a boolean mask (K,) of the presses to keep.
+
+        Returns:
+            A new `Presses`.
+
+        Raises:
+            ValueError: When the selection leaves no press.
+        """
         return Presses(self.centres[which], self.radius[which], self.times[which])

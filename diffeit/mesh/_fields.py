@@ -15,8 +15,10 @@ from ._mesh import Mesh
 def locate(mesh: Mesh, points: ArrayLike) -> np.ndarray:
     """The element holding each point.
 
+    Uses matplotlib's trapezoid-map locator, built once per mesh.
+
     Arguments:
-        mesh: the sheet.
+        mesh: The sheet.
         points: (P, 2) positions in metres (or (2,) for one).
 
     Returns:
@@ -35,7 +37,14 @@ def _finder(mesh: Mesh) -> matplotlib.tri.TriFinder:
 
 
 def barycentric_samples(level: int) -> np.ndarray:
-    """(S, 3) barycentric coordinates of the centroids of the level^2 congruent sub-triangles."""
+    """Barycentric coordinates of the centroids of the level^2 congruent sub-triangles of a triangle.
+
+    Arguments:
+        level: The subdivision of each side, a positive integer.
+
+    Returns:
+        (level^2, 3) the coordinates, each row summing to 1.
+    """
     points = []
     for i in range(level):
         for j in range(level - i):
@@ -48,17 +57,34 @@ def barycentric_samples(level: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def element_sample_points(mesh: Mesh, level: int = 8) -> np.ndarray:
-    """(E, S, 2) points in metres: the centroids of the level^2 congruent sub-triangles of each
-    triangle (S = level^2), each standing for 1/S of its area. Averages over them are the
-    midpoint rule on the sub-triangles. Computed once per mesh (by content) and level; read-only."""
+    """Sample points in every triangle: the centroids of its level^2 congruent sub-triangles.
+
+    Each point stands for 1/S of its triangle's area (S = level^2): averages over them are the
+    midpoint rule on the sub-triangles. Computed once per mesh (by content) and level.
+
+    Arguments:
+        mesh: The mesh.
+        level: The subdivision of each side, a positive integer.
+
+    Returns:
+        (E, S, 2) the points, metres; read-only.
+    """
     points = np.einsum("sk,ekx->esx", barycentric_samples(level), mesh.nodes[mesh.triangles])
     points.flags.writeable = False
     return points
 
 
 def distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
-    """(P,) distance (in the points' units) from each of `points` (P, 2) to the nearest of the
-    segments starts[k] -> stops[k] (K, 2 each); inf when there is no segment."""
+    """The distance from each point to the nearest of a set of segments.
+
+    Arguments:
+        points: (P, 2) the points.
+        starts: (K, 2) the start of each segment, in the points' units.
+        stops: (K, 2) the end of each segment.
+
+    Returns:
+        (P,) the distances, in the points' units; inf when there is no segment.
+    """
     direction = stops - starts
     relative = points[:, None] - starts[None]  # (P, K, 2)
     t = np.clip(np.sum(relative * direction, axis=2) / np.sum(direction**2, axis=1), 0.0, 1.0)
@@ -70,6 +96,18 @@ def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level:
 
     Midpoint rule on `level`^2 equal sub-triangles: exact for triangles wholly inside or
     outside, error O(1/level) of the area of a triangle the circle cuts.
+
+    Arguments:
+        mesh: The mesh.
+        centre: (x, y), metres.
+        radius: Metres, positive.
+        level: The subdivision of each side, a positive integer.
+
+    Returns:
+        (E,) fractions in [0, 1].
+
+    Raises:
+        ValueError: For a radius that is not positive.
     """
     if radius <= 0:
         raise ValueError(f"radius must be positive; got {radius}")

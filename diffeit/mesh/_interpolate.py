@@ -32,13 +32,22 @@ _NEGLIGIBLE_OVERLAP = 1e-14
 
 
 def overlap_areas(source: Mesh, target: Mesh) -> scipy.sparse.csr_array:
-    """(target.n_elements, source.n_elements) sparse matrix of the areas (m^2) of the
-    intersections of target triangle t with source triangle s.
+    """The areas of the intersections of every target triangle with every source triangle.
 
     Row t sums to the area of t where the source mesh covers t; column s sums to the area of s
     where the target covers s. Exact up to rounding: the intersections of the (convex) triangles
     are clipped polygons (Sutherland-Hodgman), and candidate pairs come from a k-d tree of
     centroids, so the cost grows with the number of overlapping pairs, not all pairs.
+
+    Arguments:
+        source: The source mesh (metres).
+        target: The target mesh, in the same frame.
+
+    Returns:
+        Sparse (target.n_elements, source.n_elements) A_ts, m^2.
+
+    Raises:
+        TypeError: For a source or target that is not a `Mesh`.
     """
     _check_mesh(source, "source")
     _check_mesh(target, "target")
@@ -58,19 +67,27 @@ def overlap_areas(source: Mesh, target: Mesh) -> scipy.sparse.csr_array:
 def remap_matrix(
     source: Mesh, target: Mesh, *, uncovered: Literal["raise", "nearest"] = "raise"
 ) -> scipy.sparse.csr_array:
-    """(target.n_elements, source.n_elements) sparse matrix R with `R @ f` the conservative
-    interpolation of element field f from `source` to `target` (see the module docstring):
-    R_ts = A_ts / sum_s' A_ts', so every row sums to 1.
+    """The sparse matrix R of conservative interpolation from one mesh to another.
 
-    Build it once and apply it to many fields: `R @ f` for (E_source,), `(R @ F.T).T` for a
-    batch (T, E_source).
+    `R @ f` is the conservative interpolation of element field f from `source` to `target`
+    (see the module docstring): R_ts = A_ts / sum_s' A_ts', so every row sums to 1. Build it
+    once and apply it to many fields: `R @ f` for (E_source,), `(R @ F.T).T` for a batch
+    (T, E_source).
 
-    **Arguments:**
+    Arguments:
+        source: The source mesh (metres).
+        target: The target mesh, in the same frame.
+        uncovered: What to do with target elements that overlap no source element at all:
+            "raise" (default) raises a `ValueError` naming them; "nearest" gives each the value
+            of the source element whose centroid is nearest its centroid (not conservative).
 
-    - `source`, `target`: the meshes, coordinates in the same frame (metres).
-    - `uncovered`: what to do with target elements that overlap no source element at all:
-      `"raise"` (default) raises a `ValueError` naming them; `"nearest"` gives each the value
-      of the source element whose centroid is nearest its centroid (not conservative).
+    Returns:
+        Sparse (target.n_elements, source.n_elements) R, unit-free.
+
+    Raises:
+        ValueError: For an unknown `uncovered`, or uncovered target elements with
+            `uncovered="raise"`.
+        TypeError: For a source or target that is not a `Mesh`.
     """
     if uncovered not in ("raise", "nearest"):
         raise ValueError(f"uncovered must be 'raise' or 'nearest'; got {uncovered!r}")
@@ -95,18 +112,26 @@ def remap_matrix(
 def interpolate(
     field: ArrayLike, source: Mesh, target: Mesh, *, uncovered: Literal["raise", "nearest"] = "raise"
 ) -> np.ndarray:
-    """Conservative interpolation of a piecewise-constant element field from `source` to
-    `target`: the area-weighted mean over each target element's overlap with the source mesh
-    (see `remap_matrix`, which this applies; build that once to move many fields).
+    """Conservative interpolation of a piecewise-constant element field from one mesh to another.
 
-    **Arguments:**
+    The area-weighted mean over each target element's overlap with the source mesh (see
+    `remap_matrix`, which this applies; build that once to move many fields).
 
-    - `field`: (E_source,) values per source element (conductivity in S/sq, a change of it,
-      ...), or a batch (T, E_source); real or complex, finite.
-    - `source`, `target`: the meshes (metres, same frame).
-    - `uncovered`: `"raise"` or `"nearest"`, for target elements outside the source mesh.
+    Arguments:
+        field: (E_source,) values per source element (conductivity in S/sq, a change of it,
+            ...), or a batch (T, E_source); real or complex, finite.
+        source: The source mesh (metres).
+        target: The target mesh, in the same frame.
+        uncovered: "raise" or "nearest", for target elements outside the source mesh (see
+            `remap_matrix`).
 
-    **Returns:** (E_target,) or (T, E_target), matching `field`.
+    Returns:
+        (E_target,) or (T, E_target), matching `field`, in its unit (float64 or complex).
+
+    Raises:
+        ValueError: For a field that is not numbers, of the wrong shape, or not finite; and as
+            `remap_matrix`.
+        TypeError: For a source or target that is not a `Mesh`.
     """
     _check_mesh(source, "source")
     _check_mesh(target, "target")
@@ -155,9 +180,18 @@ def _candidate_pairs(source: Mesh, target: Mesh) -> tuple[np.ndarray, np.ndarray
 
 
 def triangle_intersection_areas(clip: np.ndarray, subject: np.ndarray) -> np.ndarray:
-    """(M,) areas of the intersections of counter-clockwise triangles clip[m] and subject[m],
-    both (M, 3, 2): Sutherland-Hodgman clipping of subject by the three edges of clip, all pairs
-    at once, on polygons padded to a common vertex count."""
+    """The areas of the intersections of pairs of triangles.
+
+    Sutherland-Hodgman clipping of subject by the three edges of clip, all pairs at once, on
+    polygons padded to a common vertex count.
+
+    Arguments:
+        clip: (M, 3, 2) counter-clockwise triangles.
+        subject: (M, 3, 2) counter-clockwise triangles, in the same units.
+
+    Returns:
+        (M,) the area of clip[m] ∩ subject[m], in the units squared.
+    """
     # Coordinates relative to a clip corner keep the cross products accurate far from the origin.
     origin = clip[:, :1]
     clip, polygon = clip - origin, subject - origin
@@ -193,8 +227,19 @@ def triangle_intersection_areas(clip: np.ndarray, subject: np.ndarray) -> np.nda
 
 
 def pixel_overlaps(mesh: Mesh, x_edges: np.ndarray, y_edges: np.ndarray) -> scipy.sparse.csr_array:
-    """(n_rows * n_columns, E) sparse: the area (m^2) of pixel p (row-major) inside triangle e,
-    exact up to rounding (each pixel as two triangles, clipped against each element)."""
+    """The area of every pixel of a grid inside every triangle of a mesh.
+
+    Exact up to rounding: each pixel as two triangles, clipped against each element.
+
+    Arguments:
+        mesh: The mesh.
+        x_edges: (n_columns + 1,) equally spaced pixel edges in x, metres, increasing.
+        y_edges: (n_rows + 1,) equally spaced pixel edges in y, metres, increasing.
+
+    Returns:
+        Sparse (n_rows * n_columns, E): the area, m^2, of pixel p (row-major, row 0 at the
+        smallest y) inside triangle e.
+    """
     corners = mesh.nodes[mesh.triangles]  # (E, 3, 2), counter-clockwise
     n_columns, n_rows = len(x_edges) - 1, len(y_edges) - 1
     dx, dy = x_edges[1] - x_edges[0], y_edges[1] - y_edges[0]

@@ -18,9 +18,18 @@ from ._time_courses import ArrayLike, as_float
 
 
 class Region(eqx.Module):
-    """Part of the skin with its own conductivity: a footprint (`Disc`, `Ellipse`, `Polygon`),
-    its sheet conductivity (S/sq, > 0) and the width of its blurred edge (metres; None: the
-    mesh's default, as touches)."""
+    """Part of the skin with its own conductivity, under a footprint with a smooth edge.
+
+    Attributes:
+        shape: The footprint (`Disc`, `Ellipse` or `Polygon`).
+        conductivity: Its sheet conductivity, S/sq, > 0.
+        edge_width: The standard deviation of its blurred edge, metres, > 0; None: the mesh's
+            default (`default_edge_width`), as touches.
+
+    Raises:
+        ValueError: Naming the field, for a shape that is not a shape, a conductivity that is
+            not finite and positive, or an edge width that is not one positive number.
+    """
 
     shape: AbstractShape
     conductivity: ArrayLike
@@ -39,11 +48,21 @@ class Region(eqx.Module):
 class Background(eqx.Module):
     """The skin's conductivity without touches, S/sq.
 
-    `conductivity`: the uniform value (> 0); `regions`: regions of other values, applied in
-    order (each replaces what lies under it, with a smooth edge); `function`: a map instead of
-    the uniform value, points (..., 2) in metres -> S/sq (static; a JAX function is
-    differentiable; a scene with a function cannot be saved as TOML). Element values are means
-    over `level`^2 sample points, like touches.
+    A uniform value or a function of position, with regions of other values applied in order:
+    each replaces what lies under it, with a smooth edge, sigma <- sigma + f (sigma_region -
+    sigma). Element values are means over `level`^2 sample points, like touches
+    (`values_on`).
+
+    Attributes:
+        conductivity: The uniform value, S/sq, > 0 (default 0.01).
+        regions: `Region`s of other values, applied in order.
+        function: A map instead of the uniform value, points (..., 2) in metres -> S/sq
+            (static; a JAX function is differentiable; a scene with a function cannot be
+            saved as TOML); None for the uniform value.
+
+    Raises:
+        ValueError: For a conductivity that is not finite and positive, a region that is not
+            a `Region`, or a function that is not callable.
     """
 
     conductivity: ArrayLike = 0.01
@@ -59,8 +78,19 @@ class Background(eqx.Module):
             raise ValueError(f"background.function must be a function of points (..., 2); got {self.function!r}")
 
     def values_on(self, mesh: Mesh, *, level: int = 8) -> jax.Array:
-        """(E,) the element-wise sheet conductivity on `mesh`, S/sq. ValueError when a concrete
-        value is not positive."""
+        """The element-wise sheet conductivity on a mesh.
+
+        Arguments:
+            mesh: The skin's mesh.
+            level: level^2 sample points per element (a positive integer).
+
+        Returns:
+            (E,) sigma, S/sq.
+
+        Raises:
+            ValueError: When a concrete element value is not positive and finite (naming the
+                first such element).
+        """
         points = element_sample_points(mesh, level)
         if self.function is None:
             values = jnp.broadcast_to(as_float(self.conductivity), (mesh.n_elements,))

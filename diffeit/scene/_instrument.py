@@ -22,11 +22,8 @@ levels, defined once in `NOISE_LEVELS` as percentages of RMS(V_ref):
 | "medium" | 0.5% | 46 dB |
 | "high" | 2% | 34 dB |
 
-Why: the dissertation leaves the levels undefined. The one figure of the hardware
-(the tactile-skin dissertation's strip readout) is the strip readout's rms noise at rest, dR/R0 = 0.0055, about 0.5% of
-the signal: "medium" is that instrument. "low" is a well-averaged EIT front end (0.1%, 60 dB, the
-order of commercial systems); "high" (2%, 34 dB) is a noisy, unshielded skin, where small touches
-drown in the noise.
+"low" is a well-averaged EIT front end, "medium" the order of the strip readout's rms noise at
+rest, "high" a noisy, unshielded skin; where the levels come from is in docs/science.md#noise.
 
 ## Common-mode drift
 All readings of a frame at time t move together: V'(t) = gain(t) V(t) + offset(t), with
@@ -88,6 +85,11 @@ from ..readout import Readout
 
 ArrayLike = float | jax.Array | np.ndarray
 
+# The sources leave the levels undefined. The one figure of the hardware (the tactile-skin
+# dissertation's strip readout) is its rms noise at rest, dR/R0 = 0.0055, about 0.5% of the
+# signal: "medium" is that instrument. "low" (0.1%, 60 dB) is a well-averaged EIT front end, the
+# order of commercial systems; "high" (2%, 34 dB) a noisy, unshielded skin, where small touches
+# drown in the noise.
 NOISE_LEVELS: dict[str, float] = {"low": 0.1, "medium": 0.5, "high": 2.0}
 """The named noise levels, percent of RMS(V_ref) (see the module docstring)."""
 
@@ -104,10 +106,18 @@ ContactDriftKind = Literal["exponential", "linear"]
 class Noise(eqx.Module):
     """Measurement noise: independent Gaussian noise of one standard deviation on every reading.
 
-    `value` in the unit `kind` names: "percent" (percent of RMS(V_ref), >= 0), "snr_db" (dB, any
-    finite number) or "volts" (the standard deviation in volts, >= 0). Build with
-    `Noise.percent(p)`, `Noise.snr_db(s)`, `Noise.volts(v)` or `Noise.level(name)` (a name of
-    `NOISE_LEVELS`). `value` is a leaf (differentiable); `kind` is static.
+    Percent and dB noise are relative to RMS(V_ref), the RMS of the reference frame's readings
+    (`rms`; docs/science.md#noise). Build with `Noise.percent(p)`, `Noise.snr_db(s)`,
+    `Noise.volts(v)` or `Noise.level(name)` (a name of `NOISE_LEVELS`).
+
+    Attributes:
+        value: A scalar in the unit `kind` names: percent of RMS(V_ref) (>= 0), dB (any finite
+            number) or volts (the standard deviation, >= 0). A leaf (differentiable).
+        kind: "percent" (default), "snr_db" or "volts" (static).
+
+    Raises:
+        ValueError: For an unknown kind, a value that is not one finite number, or a negative
+            percentage or voltage.
     """
 
     value: ArrayLike
@@ -125,28 +135,75 @@ class Noise(eqx.Module):
 
     @classmethod
     def percent(cls, percent: ArrayLike) -> Noise:
-        """Noise of standard deviation percent/100 x RMS(V_ref)."""
+        """Noise of standard deviation percent/100 x RMS(V_ref).
+
+        Arguments:
+            percent: p, percent of RMS(V_ref), >= 0.
+
+        Returns:
+            The `Noise`.
+
+        Raises:
+            ValueError: For a value that is not one finite number >= 0.
+        """
         return cls(percent, "percent")
 
     @classmethod
     def snr_db(cls, snr_db: ArrayLike) -> Noise:
-        """Noise of signal-to-noise ratio 20 log10(RMS(V_ref) / sigma) = snr_db (dB)."""
+        """Noise of signal-to-noise ratio 20 log10(RMS(V_ref) / sigma) = snr_db.
+
+        Arguments:
+            snr_db: The SNR, dB, any finite number.
+
+        Returns:
+            The `Noise`.
+
+        Raises:
+            ValueError: For a value that is not one finite number.
+        """
         return cls(snr_db, "snr_db")
 
     @classmethod
     def volts(cls, volts: ArrayLike) -> Noise:
-        """Noise of standard deviation `volts` (V)."""
+        """Noise of a standard deviation given in volts.
+
+        Arguments:
+            volts: The standard deviation, volts, >= 0.
+
+        Returns:
+            The `Noise`.
+
+        Raises:
+            ValueError: For a value that is not one finite number >= 0.
+        """
         return cls(volts, "volts")
 
     @classmethod
     def level(cls, name: str) -> Noise:
-        """A named level of `NOISE_LEVELS` ("low", "medium", "high"), as a percentage."""
+        """A named level of `NOISE_LEVELS`, as a percentage.
+
+        Arguments:
+            name: "low" (0.1%), "medium" (0.5%) or "high" (2%).
+
+        Returns:
+            The `Noise`, of kind "percent".
+
+        Raises:
+            ValueError: For any other name.
+        """
         if name not in NOISE_LEVELS:
             raise ValueError(f"Noise.level must be one of {sorted(NOISE_LEVELS)}; got {name!r}")
         return cls(NOISE_LEVELS[name], "percent")
 
     def std(self, reference: ArrayLike) -> jax.Array:
-        """The standard deviation in volts, given the reference frame `reference` (M,) in volts."""
+        """The standard deviation of the noise, volts.
+
+        Arguments:
+            reference: (M,) the reference frame, volts (read for percent and dB noise only).
+
+        Returns:
+            () sigma, volts.
+        """
         if self.kind == "volts":
             return jnp.asarray(self.value, dtype=float)
         scale = rms(reference)
@@ -156,16 +213,31 @@ class Noise(eqx.Module):
 
 
 def rms(reference: ArrayLike) -> jax.Array:
-    """RMS(V_ref) = sqrt(mean(V_ref^2)) of a reference frame (M,), volts."""
+    """RMS(V_ref) = sqrt(mean(V_ref^2)) of a reference frame: the scale of percent and dB noise.
+
+    Arguments:
+        reference: (M,) the reference frame, volts.
+
+    Returns:
+        () the RMS, volts.
+    """
     reference = jnp.asarray(reference)
     return jnp.sqrt(jnp.mean(reference**2))
 
 
 def add_noise(frames: ArrayLike, reference: ArrayLike, noise: Noise, key: jax.Array) -> jax.Array:
-    """`frames` (T, M) plus independent Gaussian noise of `noise.std(reference)` volts per reading.
+    """Frames plus independent Gaussian noise of `noise.std(reference)` volts per reading.
 
-    `reference` (M,) is the reference frame in volts (it sets the scale of percent and dB noise);
-    `key` a `jax.random` key: the same key gives the same noise. Differentiable in `noise.value`.
+    The same key gives the same noise. Differentiable in `noise.value`.
+
+    Arguments:
+        frames: (T, M) readings, volts (integers are converted to floats).
+        reference: (M,) the reference frame, volts: it sets the scale of percent and dB noise.
+        noise: The `Noise`.
+        key: A `jax.random` key.
+
+    Returns:
+        (T, M) the noisy frames, volts, in the frames' float dtype.
     """
     frames = jnp.asarray(frames)
     if not jnp.issubdtype(frames.dtype, jnp.floating):
@@ -175,8 +247,18 @@ def add_noise(frames: ArrayLike, reference: ArrayLike, noise: Noise, key: jax.Ar
 
 
 class MeasurementNoise(eqx.Module):
-    """The effect "noise": Gaussian noise of `noise` (a `Noise`) on every reading of every frame
-    and of the reference, drawn from `jax.random.key(seed)` (static)."""
+    """The effect "noise": Gaussian noise on every reading of every frame and of the reference.
+
+    The scale of percent and dB noise is the noise-free, drift-free reference
+    (docs/science.md#noise).
+
+    Attributes:
+        noise: The `Noise`.
+        seed: The seed of `jax.random.key` the noise is drawn from (static, default 0).
+
+    Raises:
+        ValueError: For a `noise` that is not a `Noise` or a seed that is not an integer.
+    """
 
     noise: Noise
     seed: int = eqx.field(default=0, static=True)
@@ -194,13 +276,20 @@ class MeasurementNoise(eqx.Module):
 class CommonModeDrift(eqx.Module):
     """Drift common to all readings: V'(t) = (1 + gain_rate t) V(t) + offset(t).
 
-    - `offset`: constant offset (volts).
-    - `rate`: linear offset drift (volts per second).
-    - `amplitude`, `period`, `phase`: a sinusoid amplitude sin(2 pi t / period + phase) (volts,
-      seconds > 0, radians).
-    - `gain_rate`: relative gain drift (1/s): the gain is 1 + gain_rate t.
-
+    offset(t) = offset + rate t + amplitude sin(2 pi t / period + phase), volts, t in seconds.
     Every field is a scalar leaf (differentiable). All zero (the defaults): no change.
+
+    Attributes:
+        offset: Constant offset, volts.
+        rate: Linear offset drift, volts per second.
+        amplitude: The sinusoid's amplitude, volts.
+        period: The sinusoid's period, seconds, > 0 (default 1).
+        phase: The sinusoid's phase, radians.
+        gain_rate: Relative gain drift, 1/s: the gain is 1 + gain_rate t.
+
+    Raises:
+        ValueError: Naming the field, for a value that is not numbers or not finite, or a
+            period that is not positive.
     """
 
     offset: ArrayLike = 0.0
@@ -218,17 +307,43 @@ class CommonModeDrift(eqx.Module):
             raise ValueError(f"CommonModeDrift.period must be positive (seconds); got {period}")
 
     def offset_at(self, times: ArrayLike) -> jax.Array:
-        """(T,) common offset in volts at `times` (T,) in seconds."""
+        """The common offset at the given times.
+
+        Arguments:
+            times: (T,) seconds.
+
+        Returns:
+            (T,) offset(t), volts.
+        """
         t = jnp.asarray(times, dtype=float)
         return self.offset + self.rate * t + self.amplitude * jnp.sin(2 * jnp.pi * t / self.period + self.phase)
 
     def gain_at(self, times: ArrayLike) -> jax.Array:
-        """(T,) common gain (dimensionless) at `times` (T,) in seconds."""
+        """The common gain at the given times.
+
+        Arguments:
+            times: (T,) seconds.
+
+        Returns:
+            (T,) 1 + gain_rate t, unit-free.
+        """
         return 1.0 + self.gain_rate * jnp.asarray(times, dtype=float)
 
 
 def add_drift(frames: ArrayLike, times: ArrayLike, drift: CommonModeDrift) -> jax.Array:
-    """`frames` (T, M) in volts at `times` (T,) seconds, with the common-mode drift applied."""
+    """Frames with the common-mode drift applied: gain(t) V + offset(t).
+
+    Arguments:
+        frames: (T, M) readings, volts (integers are converted to floats).
+        times: (T,) their times, seconds.
+        drift: The `CommonModeDrift`.
+
+    Returns:
+        (T, M) the drifted frames, volts, in the frames' float dtype.
+
+    Raises:
+        ValueError: For times not of shape (T,).
+    """
     frames = jnp.asarray(frames)
     if not jnp.issubdtype(frames.dtype, jnp.floating):
         frames = frames.astype(float)
@@ -244,14 +359,19 @@ def add_drift(frames: ArrayLike, times: ArrayLike, drift: CommonModeDrift) -> ja
 
 
 class ContactDrift(eqx.Module):
-    """How the contact impedance of every electrode drifts in time (the skin holds its value
-    at t = 0).
+    """How the contact impedance of every electrode drifts in time.
 
-    - `rate`: 1/s, a scalar or (L,) one per electrode: z0 exp(rate t) ("exponential") or
-      z0 (1 + rate t) ("linear"; keep 1 + rate t > 0 over the scene).
-    - `kind`: "exponential" (default) or "linear" (static).
+    The skin holds its value z0 (ohm m) at t = 0; at t seconds electrode l has
+    z0_l exp(rate_l t) ("exponential", stays positive) or z0_l (1 + rate_l t) ("linear"; keep
+    1 + rate t > 0 over the scene). A rate of 0: no change. See `contact_impedance`.
 
-    `rate` is a leaf (differentiable). A rate of 0: no change.
+    Attributes:
+        rate: 1/s, a scalar or (L,) one per electrode; a leaf (differentiable).
+        kind: "exponential" (default) or "linear" (static).
+
+    Raises:
+        ValueError: For an unknown kind, or a rate that is not finite numbers or has more than
+            one dimension.
     """
 
     rate: ArrayLike = 0.0
@@ -266,9 +386,22 @@ class ContactDrift(eqx.Module):
 
 
 def contact_impedance(initial: ArrayLike, times: ArrayLike, drift: ContactDrift) -> jax.Array:
-    """(T, L) contact impedances (ohm m) at `times` (T,) seconds, one row per frame, from their
-    values `initial` (L,) at t = 0 (ohm m). Feed row k to
-    `ForwardModel.measure(conductivity_k, z[k])`."""
+    """Drifted contact impedances, one row per frame.
+
+    Feed row k to `ForwardModel.measure(conductivity_k, z[k])` (for example under
+    `jax.vmap`).
+
+    Arguments:
+        initial: (L,) the contact impedances at t = 0, ohm m.
+        times: (T,) seconds.
+        drift: The `ContactDrift`.
+
+    Returns:
+        (T, L) z, ohm m.
+
+    Raises:
+        ValueError: For `initial` not of shape (L,).
+    """
     initial = jnp.asarray(initial, dtype=float)
     if initial.ndim != 1:
         raise ValueError(f"initial contact impedance must have one value per electrode, (L,); got {initial.shape}")
@@ -295,7 +428,23 @@ def _checked_electrodes(electrodes: int | Sequence[int], n_electrodes: int) -> n
 def open_contact_impedance(
     contact_impedance: ArrayLike, electrodes: int | Sequence[int], factor: float = OPEN_FACTOR
 ) -> jax.Array:
-    """Contact impedances (..., L) (ohm m) with those of the open `electrodes` multiplied by `factor`."""
+    """Contact impedances with those of the open electrodes multiplied by `factor`.
+
+    An open electrode then carries no current: it no longer shunts current past the sheet
+    under it.
+
+    Arguments:
+        contact_impedance: (..., L) z, ohm m.
+        electrodes: The open electrodes: an index or a sequence of indices in [0, L).
+        factor: The multiple, finite and positive (default `OPEN_FACTOR`, 1e6).
+
+    Returns:
+        (..., L) z, ohm m.
+
+    Raises:
+        ValueError: For a scalar `contact_impedance`, a factor that is not finite and
+            positive, or electrodes that are not integers in [0, L).
+    """
     z = jnp.asarray(contact_impedance, dtype=float)
     if z.ndim == 0:
         raise ValueError("contact_impedance must have one value per electrode, shape (..., L); got a scalar")
@@ -308,8 +457,18 @@ def open_contact_impedance(
 
 
 def lost_readings(protocol: Protocol, electrodes: int | Sequence[int]) -> np.ndarray:
-    """(M,) boolean, True for the readings an open electrode loses: those weighting it and those
-    of drives sending current through it."""
+    """The readings the open electrodes lose: those weighting them and those of drives through them.
+
+    Arguments:
+        protocol: The skin's protocol.
+        electrodes: The open electrodes: an index or a sequence of indices.
+
+    Returns:
+        (M,) boolean, True where lost.
+
+    Raises:
+        ValueError: For electrodes that are not integers in [0, L).
+    """
     index = _checked_electrodes(electrodes, protocol.n_electrodes)
     reads = np.any(protocol.measure[:, index] != 0, axis=1)
     drives = np.any(protocol.drive[:, index] != 0, axis=1)[protocol.drive_index]
@@ -319,8 +478,26 @@ def lost_readings(protocol: Protocol, electrodes: int | Sequence[int]) -> np.nda
 def open_electrodes(
     frames: ArrayLike, protocol: Protocol, electrodes: int | Sequence[int], fill: float = 0.0
 ) -> tuple[jax.Array, np.ndarray]:
-    """`frames` (T, M) with the readings lost to the open `electrodes` set to `fill` (volts,
-    finite; default 0), and the mask (M,) of lost readings (True where lost)."""
+    """Frames with the readings lost to open electrodes replaced, and the mask of lost readings.
+
+    Lost readings are those of `lost_readings`. The fault is discrete: the mask has no
+    gradient.
+
+    Arguments:
+        frames: (T, M) or (M,) readings, volts.
+        protocol: The skin's protocol.
+        electrodes: The open electrodes: an index or a sequence of indices.
+        fill: The value of a lost reading, volts, finite (default 0; never NaN, so frames stay
+            finite).
+
+    Returns:
+        (the frames with lost readings set to `fill`, the shape of `frames`; the (M,) boolean
+        mask, True where lost).
+
+    Raises:
+        ValueError: For a fill that is not finite, frames whose last axis is not M, or
+            electrodes that are not integers in [0, L).
+    """
     if not np.isfinite(fill):
         raise ValueError(f"fill must be a finite voltage (NaN is not allowed); got {fill}")
     frames = jnp.asarray(frames)
@@ -339,9 +516,19 @@ def _electrode_indices(electrodes: Any) -> tuple[int, ...]:
 
 
 class OpenElectrodes(eqx.Module):
-    """The effect "open_electrode": the electrodes (indices) that carry no current; their
-    readings are replaced by `fill` volts and flagged (`Simulation.lost`). Static: the fault is
-    discrete."""
+    """The effect "open_electrode": electrodes that carry no current.
+
+    Their contact impedance is multiplied by `OPEN_FACTOR`, and their readings are replaced by
+    `fill` and flagged (`Simulation.lost`). Static: the fault is discrete.
+
+    Attributes:
+        electrodes: The open electrodes' indices, a tuple of at least one (static).
+        fill: The value of a lost reading, volts, finite (static, default 0).
+
+    Raises:
+        ValueError: For electrodes that are not integer indices, or a fill that is not a
+            finite number.
+    """
 
     electrodes: tuple[int, ...] = eqx.field(static=True, converter=_electrode_indices)
     fill: float = eqx.field(default=0.0, static=True)
@@ -363,16 +550,37 @@ def _offsets(offsets: Any) -> tuple[float, ...]:
 
 
 class ElectrodePositionError(eqx.Module):
-    """The effect "electrode_position_error": every electrode of the simulation mesh moved along
-    the boundary by `offsets` (metres, counter-clockwise; one per electrode), while the
+    """The effect "electrode_position_error": the simulation mesh's electrodes off their places.
+
+    Every electrode of the simulation mesh is moved along the boundary, while the
     reconstruction mesh keeps the nominal positions. Static: it changes the mesh, so it has no
-    gradient."""
+    gradient.
+
+    Attributes:
+        offsets: One offset per electrode, metres along the boundary, counter-clockwise
+            positive (static).
+
+    Raises:
+        ValueError: For offsets that are not a 1-D sequence of finite numbers.
+    """
 
     offsets: tuple[float, ...] = eqx.field(static=True, converter=_offsets)
 
     @classmethod
     def random(cls, n_electrodes: int, std: float, seed: int = 0) -> ElectrodePositionError:
-        """Independent Gaussian offsets of standard deviation `std` metres."""
+        """Independent Gaussian offsets, from `numpy.random.default_rng(seed)`.
+
+        Arguments:
+            n_electrodes: L, the number of electrodes.
+            std: The standard deviation, metres, >= 0.
+            seed: The seed of the random generator.
+
+        Returns:
+            The `ElectrodePositionError`.
+
+        Raises:
+            ValueError: For a `std` that is negative or not finite.
+        """
         if not (math.isfinite(std) and std >= 0):
             raise ValueError(f"effects.electrode_position_error.std must be >= 0 (metres); got {std}")
         return cls(tuple(np.random.default_rng(seed).normal(0.0, std, n_electrodes)))
@@ -397,7 +605,8 @@ class ReadoutMixing(eqx.Module):
     """The effect "readout_mixing": each reading mixes in other electrodes' potentials.
 
     The model is `diffeit.readout.Readout` (its module docstring, and this module's): reading m
-    of drive d becomes `sum_l (W_ml + X_ml) U_dl`, U the electrode potentials in volts.
+    of drive d becomes `sum_l (W_ml + X_ml) U_dl`, U the electrode potentials in volts. Every
+    field is a float array leaf (differentiable). All zero: the protocol's readings.
 
     Attributes:
         source: The weight of the drive's current-source electrode, relative to the measuring
@@ -406,8 +615,6 @@ class ReadoutMixing(eqx.Module):
         offsets: (L,) the weight of the electrode j places on from the measuring pair's
             positive electrode (counter-clockwise in electrode order); `offsets[L // 2]` is
             the far electrode. Unit-free.
-
-    Every field is a float array leaf (differentiable). All zero: the protocol's readings.
 
     Raises:
         ValueError: Naming the field, for a source or sink that is not one number, offsets
@@ -485,13 +692,12 @@ class ReadingGains(eqx.Module):
     """The effect "reading_gains": every reading multiplied by a unit-free gain of its own.
 
     A channel's amplifier, a drive's current: `gains[m]` multiplies reading m (1 nominal), after
-    the readout mixing and before the noise.
+    the readout mixing and before the noise. `gains` is a float array leaf (differentiable).
+    All 1: no change.
 
     Attributes:
         gains: (M,) one gain per reading of the skin's protocol, unit-free; any sign (a
             negative gain is a reversed channel).
-
-    `gains` is a float array leaf (differentiable). All 1: no change.
 
     Raises:
         ValueError: Naming the field, for gains that are not a 1-D array or not finite. The

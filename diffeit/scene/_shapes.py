@@ -25,12 +25,10 @@ its derivative in r is exactly 2 pi r.
 
 Default edge width (`default_edge_width`): twice the spacing of the sample points in the
 largest element, 2 sqrt(max area) / level, one width for the whole mesh (about 0.02 m on a unit
-disc meshed at h = 0.1, 0.01 m at h = 0.05, with level 8). The samples then resolve the edge:
-over ten discs well inside unit discs meshed at h = 0.15, 0.1 and 0.05, the derivative of the
-covered area in the radius is 2 pi r within 9e-4 and in the centre 0 within 4e-4 of 2 pi r.
-Narrower defaults did worse: one sample spacing up to 2e-3, and the local spacing of each
-element up to 2e-2 (a blur whose width jumps between elements is no longer a normalised
-kernel). A finer mesh (or a higher level) gives a sharper default, converging to the exact area
+disc meshed at h = 0.1, 0.01 m at h = 0.05, with level 8). The samples then resolve the edge,
+and the derivatives of the covered area in a disc's radius and centre are accurate (a blur
+whose width jumps between elements would no longer be a normalised kernel, so the width is
+one for the mesh). A finer mesh (or a higher level) gives a sharper default, converging to the exact area
 fraction. Pass `edge_width` (metres) for a physical edge that does not depend on the mesh; keep
 it well below the radius (the area bias is (edge_width / r)^2: small touches need a fine mesh
 or a narrow edge) and above the sample spacing (narrower edges make the gradients jumpy).
@@ -55,15 +53,30 @@ from ._time_courses import AbstractTimeCourse, ArrayLike, as_float, float_array,
 
 
 class AbstractShape(eqx.Module):
-    """A footprint (of a touch or a region). Its parameters are numbers or time courses (metres,
-    radians); `centre` (2,) is a point of it (metres)."""
+    """A footprint (of a touch or a region), with a smooth edge.
+
+    Its parameters are numbers or time courses (metres, radians): `Disc`, `Ellipse` and
+    `Polygon` are the shapes.
+
+    Attributes:
+        centre: (2,) a point of it, metres (a number or a time course).
+    """
 
     centre: AbstractVar[ArrayLike | AbstractTimeCourse]
 
     @abc.abstractmethod
     def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
-        """(...) the distance (metres) of `points` (..., 2) to the footprint's boundary at time
-        `t` (seconds): negative inside, 0 on the boundary, with unit gradient at the boundary."""
+        """The signed distance of points to the footprint's boundary at a time.
+
+        Negative inside, 0 on the boundary, with unit gradient at the boundary.
+
+        Arguments:
+            points: (..., 2) points, metres.
+            t: The time, seconds.
+
+        Returns:
+            (...) the distances, metres.
+        """
 
 
 def _check_centre(centre: ArrayLike | AbstractTimeCourse, name: str) -> None:
@@ -80,8 +93,16 @@ def _safe_norm(v: jax.Array) -> jax.Array:
 
 
 class Disc(AbstractShape):
-    """A round footprint: `centre` (2,) and `radius` (> 0), metres; either may be a time
-    course (`Path` for a slide, `Ramp` for a growing contact)."""
+    """A round footprint; its centre and radius may be time courses.
+
+    Attributes:
+        centre: (2,) metres, or a time course of such points (`Path` for a slide).
+        radius: Metres, > 0, or a time course of such (`Ramp` for a growing contact).
+
+    Raises:
+        ValueError: For a centre that is not a point (2,) or a radius that is not one positive
+            number (at every breakpoint of a time course).
+    """
 
     centre: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Disc.centre"))
     radius: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Disc.radius"))
@@ -96,18 +117,37 @@ class Disc(AbstractShape):
                 raise ValueError(f"Disc.radius must be positive (metres); got {radius.min()}")
 
     def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        """The signed distance |x - centre| - radius, exact.
+
+        Arguments:
+            points: (..., 2) points, metres.
+            t: The time, seconds.
+
+        Returns:
+            (...) the distances, metres, negative inside.
+        """
         t = as_float(t)
         return _safe_norm(points - value_at(self.centre, t)) - value_at(self.radius, t)
 
 
 class Ellipse(AbstractShape):
-    """An elliptic footprint: `centre` (2,) and `semi_axes` (2,) (> 0) in metres, the first
-    semi-axis turned `angle` radians counter-clockwise from the x axis; each may be a time course.
+    """An elliptic footprint; each of its parameters may be a time course.
 
     The signed distance is the first-order estimate d = k0 (k0 - 1) / k1, k0 = |q / (a, b)|,
     k1 = |q / (a^2, b^2)|, q the point in the ellipse's axes: exact on the boundary with unit
     gradient there (so `edge_width` is a width across the edge, in metres), exact for a circle,
-    an estimate away from the boundary (where the edge weight is 0 or 1 anyway)."""
+    an estimate away from the boundary (where the edge weight is 0 or 1 anyway).
+
+    Attributes:
+        centre: (2,) metres, or a time course of such points.
+        semi_axes: (2,) the semi-axes (a, b), metres, > 0, or a time course of such.
+        angle: The angle of the first semi-axis, radians counter-clockwise from the x axis
+            (default 0), or a time course of such.
+
+    Raises:
+        ValueError: For a centre that is not a point (2,), semi-axes that are not two positive
+            numbers, or an angle that is not one number.
+    """
 
     centre: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Ellipse.centre"))
     semi_axes: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Ellipse.semi_axes"))
@@ -128,6 +168,15 @@ class Ellipse(AbstractShape):
             raise ValueError(f"Ellipse.angle must be a number (radians); got values of shape {angle.shape[1:]}")
 
     def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        """The first-order estimate of the signed distance (exact on the boundary).
+
+        Arguments:
+            points: (..., 2) points, metres.
+            t: The time, seconds.
+
+        Returns:
+            (...) the distances, metres, negative inside (-min(a, b) at the centre itself).
+        """
         t = as_float(t)
         axes, angle = value_at(self.semi_axes, t), value_at(self.angle, t)
         offset = points - value_at(self.centre, t)
@@ -141,10 +190,18 @@ class Ellipse(AbstractShape):
 
 
 class Polygon(AbstractShape):
-    """A polygonal footprint or region: `vertices` (K, 2) in metres, K >= 3, a simple polygon in
-    either orientation (the region of a non-uniform background, a half of the skin). The signed
-    distance is exact: the distance to the nearest edge, negative inside (even-odd rule). Its
-    `centre` is the mean of the vertices."""
+    """A polygonal footprint or region (the region of a non-uniform background, a half of the skin).
+
+    A simple polygon in either orientation, fixed in time. The signed distance is exact: the
+    distance to the nearest edge, negative inside (even-odd rule).
+
+    Attributes:
+        vertices: (K, 2) metres, K >= 3.
+
+    Raises:
+        ValueError: For vertices that are not (K, 2) finite numbers with K >= 3, or that
+            repeat a vertex (an edge of zero length).
+    """
 
     vertices: ArrayLike = eqx.field(converter=float_array("Polygon.vertices"))
 
@@ -161,9 +218,19 @@ class Polygon(AbstractShape):
 
     @property
     def centre(self) -> jax.Array:
+        """(2,) the mean of the vertices, metres."""
         return jnp.mean(as_float(self.vertices), axis=0)
 
     def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
+        """The exact signed distance: to the nearest edge, negative inside (even-odd rule).
+
+        Arguments:
+            points: (..., 2) points, metres.
+            t: The time, seconds (unused: a polygon does not move).
+
+        Returns:
+            (...) the distances, metres.
+        """
         start = as_float(self.vertices)
         stop = jnp.roll(start, -1, axis=0)
         edge = stop - start
@@ -181,15 +248,40 @@ class Polygon(AbstractShape):
 # --- Fractions on a mesh --------------------------------------------------------------------
 
 
+# Why twice the sample spacing of the largest element: over ten discs well inside unit discs
+# meshed at h = 0.15, 0.1 and 0.05, the derivative of the covered area in the radius is 2 pi r
+# within 9e-4 and in the centre 0 within 4e-4 of 2 pi r. Narrower defaults did worse: one sample
+# spacing up to 2e-3, and the local spacing of each element up to 2e-2 (a blur whose width jumps
+# between elements is no longer a normalised kernel).
 def default_edge_width(mesh: Mesh, level: int = 8) -> float:
-    """The default edge width of `mesh`, metres: 2 sqrt(max element area) / level, twice the
-    spacing of the sample points in the largest element (module docstring)."""
+    """The default edge width of a mesh: 2 sqrt(max element area) / level.
+
+    Twice the spacing of the sample points in the largest element, one width for the whole
+    mesh (module docstring).
+
+    Arguments:
+        mesh: The mesh.
+        level: level^2 sample points per element (a positive integer).
+
+    Returns:
+        The edge width, metres.
+
+    Raises:
+        ValueError: For a level that is not a positive integer.
+    """
     check_level(level)
     return 2.0 * math.sqrt(float(np.max(mesh.element_areas))) / level
 
 
 def check_level(level: int) -> None:
-    """ValueError unless `level` (level^2 sample points per element) is a positive integer."""
+    """Check a sampling level: level^2 sample points per element.
+
+    Arguments:
+        level: The level.
+
+    Raises:
+        ValueError: Unless `level` is a positive integer.
+    """
     if not isinstance(level, int | np.integer) or isinstance(level, bool) or level < 1:
         raise ValueError(f"level must be a positive integer (level^2 samples per element); got {level!r}")
 
@@ -197,9 +289,20 @@ def check_level(level: int) -> None:
 def covered_fraction(
     points: np.ndarray, default_width: float, shape: AbstractShape, width: ArrayLike | None, t: jax.Array
 ) -> jax.Array:
-    """(E,) the fraction of each element under `shape` at time `t` (seconds): the mean edge
-    weight over its sample `points` (E, S, 2) (module docstring), with an edge of standard
-    deviation `width` (metres; None: `default_width`)."""
+    """The fraction of each element under a shape: the mean edge weight over its sample points.
+
+    The weight is erfc(d / (sqrt(2) width)) / 2, d the signed distance (module docstring).
+
+    Arguments:
+        points: (E, S, 2) the sample points of each element, metres.
+        default_width: The edge width when `width` is None, metres.
+        shape: The footprint.
+        width: The edge's standard deviation, metres, or None.
+        t: The time, seconds.
+
+    Returns:
+        (E,) fractions in [0, 1].
+    """
     width = default_width if width is None else width
     distance = shape.signed_distance(points, t)
     return jnp.mean(0.5 * erfc(distance / (math.sqrt(2) * width)), axis=1)
@@ -208,10 +311,25 @@ def covered_fraction(
 def shape_fraction(
     mesh: Mesh, shape: AbstractShape, t: ArrayLike = 0.0, *, edge_width: ArrayLike | None = None, level: int = 8
 ) -> jax.Array:
-    """(E,) the fraction in [0, 1] of each element under `shape` at time `t` (seconds), with a
-    Gaussian-blurred edge of standard deviation `edge_width` (metres; default
-    `default_edge_width`), averaged over level^2 sample points per element (module docstring).
-    Pure JAX in the shape's parameters and t: jit, grad and vmap work."""
+    """The fraction of each element under a shape at a time, with a Gaussian-blurred edge.
+
+    Averaged over level^2 sample points per element (module docstring). Pure JAX in the
+    shape's parameters and t: jit, grad and vmap work.
+
+    Arguments:
+        mesh: The mesh.
+        shape: The footprint (`Disc`, `Ellipse` or `Polygon`).
+        t: The time, seconds.
+        edge_width: The edge's standard deviation, metres (default `default_edge_width`).
+        level: level^2 sample points per element (a positive integer).
+
+    Returns:
+        (E,) fractions in [0, 1].
+
+    Raises:
+        ValueError: For a level that is not a positive integer, or a `shape` that is not a
+            shape.
+    """
     check_level(level)
     if not isinstance(shape, AbstractShape):
         raise ValueError(f"shape must be a Disc or an Ellipse; got {shape!r}")

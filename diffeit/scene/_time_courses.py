@@ -29,15 +29,31 @@ ArrayLike = float | jax.Array | np.ndarray
 
 
 def as_float(value: Any) -> jax.Array:
-    """`value` as a JAX array of a floating dtype (integers become the default float)."""
+    """A value as a JAX array of a floating dtype (integers become the default float).
+
+    Arguments:
+        value: A number, array or anything `jnp.asarray` takes.
+
+    Returns:
+        The JAX array.
+    """
     array = jnp.asarray(value)
     return array if jnp.issubdtype(array.dtype, jnp.floating) else array.astype(jnp.result_type(float))
 
 
 def float_array(name: str) -> Callable[[Any], Any]:
-    """A field converter: lists and tuples become one float array (as pytrees they would make
-    every number a leaf of its own, and hide tracers inside them from the checks); other values
-    pass unchanged. ValueError naming the field `name` when they are not numbers."""
+    """A field converter: lists and tuples become one float array; other values pass unchanged.
+
+    As pytrees, lists and tuples would make every number a leaf of its own, and hide tracers
+    inside them from the checks.
+
+    Arguments:
+        name: The field's name, for the error message.
+
+    Returns:
+        The converter; it raises `ValueError` naming the field for a list or tuple that is not
+        numbers.
+    """
 
     def convert(value: Any) -> Any:
         if not isinstance(value, list | tuple):
@@ -51,7 +67,17 @@ def float_array(name: str) -> Callable[[Any], Any]:
 
 
 def check_shape(value: Any, name: str, shape: tuple[int, ...], what: str) -> None:
-    """ValueError naming `name` unless `value` has `shape` (`what` says what it should be)."""
+    """Check the shape of a value.
+
+    Arguments:
+        value: The value.
+        name: Its name, for the error message.
+        shape: The shape it must have.
+        what: What it should be, in words ("a number"), for the error message.
+
+    Raises:
+        ValueError: Naming `name`, unless `value` has `shape`.
+    """
     if np.shape(value) != shape:
         raise ValueError(f"{name} must be {what} (shape {shape}); got shape {np.shape(value)}")
 
@@ -75,12 +101,22 @@ def _interpolate(start: jax.Array, end: jax.Array, s: jax.Array, value_ndim: int
 
 
 class AbstractTimeCourse(eqx.Module):
-    """A value that changes in time: `course(t)` for t in seconds (a scalar, or an array:
-    element-wise, the result of shape t.shape + value shape). Its continuous parameters are
-    leaves: jit, grad (in t and in the parameters) and vmap work."""
+    """A value that changes in time: `course(t)` for t in seconds.
+
+    Its continuous parameters are leaves: jit, grad (in t and in the parameters) and vmap
+    work. `Press`, `Ramp` and `Path` are the courses.
+    """
 
     def __call__(self, t: ArrayLike) -> jax.Array:
-        """The value at time `t` (seconds)."""
+        """The value at a time.
+
+        Arguments:
+            t: Seconds, a scalar or an array (element-wise).
+
+        Returns:
+            The value, of shape t.shape + the value's shape, in the unit of the parameter the
+            course stands for.
+        """
         return _evaluate(self, as_float(t))
 
     @abc.abstractmethod
@@ -89,19 +125,35 @@ class AbstractTimeCourse(eqx.Module):
 
     @abc.abstractmethod
     def breakpoint_values(self) -> np.ndarray | None:
-        """(K, ...) the values at the breakpoints, in time order (None when traced). Between
-        consecutive breakpoints the value moves monotonically along the straight segment joining
-        them, so these bound the course and trace its path (validation uses them)."""
+        """The values at the breakpoints, in time order.
+
+        Between consecutive breakpoints the value moves monotonically along the straight
+        segment joining them, so these bound the course and trace its path (validation uses
+        them).
+
+        Returns:
+            (K, ...) the values, or None when they are traced.
+        """
 
 
 class Press(AbstractTimeCourse):
-    """A press envelope in [0, 1]: 0 until `start`, up to 1 over `ramp_in`, held 1 for `hold`,
-    down to 0 over `ramp_out`, 0 after (seconds). Multiplies a touch's amplitude.
+    """A press envelope in [0, 1]: 0, a ramp up to 1, a hold at 1, a ramp down, 0.
 
-    Key times: 0 at `start` (1 if ramp_in = 0), 1 from start + ramp_in to start + ramp_in + hold,
-    0 from start + ramp_in + hold + ramp_out on (a step release: 0 at the release time itself).
-    Durations >= 0; a duration of 0 is a step (the skin's instant rise and drop). `smooth` (static)
-    selects smoothstep ramps (see the module docstring for the derivatives).
+    Multiplies a touch's amplitude. Key times: 0 at `start` (1 if ramp_in = 0), 1 from
+    start + ramp_in to start + ramp_in + hold, 0 from start + ramp_in + hold + ramp_out on (a
+    step release: 0 at the release time itself). A duration of 0 is a step (the skin's instant
+    rise and drop).
+
+    Attributes:
+        start: When the ramp in starts, seconds (default 0).
+        ramp_in: Its duration, seconds, >= 0 (default 0).
+        hold: How long it holds 1, seconds, >= 0 (default 1).
+        ramp_out: The duration of the ramp out, seconds, >= 0 (default 0).
+        smooth: Smoothstep ramps (static; the module docstring gives the derivatives).
+
+    Raises:
+        ValueError: Naming the field, for a value that is not one finite number, or a
+            negative duration.
     """
 
     start: ArrayLike = eqx.field(default=0.0, converter=float_array("Press.start"))
@@ -132,14 +184,33 @@ class Press(AbstractTimeCourse):
         return self.start + self.ramp_in + self.hold + self.ramp_out
 
     def breakpoint_values(self) -> np.ndarray:
+        """The values at the breakpoints: 0, 1, 1, 0.
+
+        Returns:
+            (4,) the values.
+        """
         return np.array([0.0, 1.0, 1.0, 0.0])
 
 
 class Ramp(AbstractTimeCourse):
-    """`initial` until `start`, then linearly (or by smoothstep, `smooth`, static) to `final` over
-    `duration` seconds, `final` after: a growing contact (radius from r0 to r1, metres), a rising
-    load (an envelope from 0 to 1), a straight move of a centre (two points). Values are numbers
-    or arrays of one shape; duration >= 0 (0 is a step to `final` at `start`)."""
+    """A ramp from one value to another: `initial` until `start`, then to `final` over `duration`.
+
+    Linear (or smoothstep), `final` after: a growing contact (radius from r0 to r1, metres), a
+    rising load (an envelope from 0 to 1), a straight move of a centre (two points). A duration
+    of 0 is a step to `final` at `start`.
+
+    Attributes:
+        initial: The value before `start`, a number or an array, in the parameter's unit.
+        final: The value from start + duration on, the shape of `initial`.
+        start: When the ramp starts, seconds (default 0).
+        duration: Seconds, >= 0 (default 1).
+        smooth: A smoothstep ramp rather than a linear one (static).
+
+    Raises:
+        ValueError: Naming the field, for values that are not finite numbers, `initial` and
+            `final` of different shapes, a start or duration that is not one number, or a
+            negative duration.
+    """
 
     initial: ArrayLike = eqx.field(converter=float_array("Ramp.initial"))
     final: ArrayLike = eqx.field(converter=float_array("Ramp.final"))
@@ -167,17 +238,32 @@ class Ramp(AbstractTimeCourse):
         return _interpolate(initial, as_float(self.final), s, initial.ndim)
 
     def breakpoint_values(self) -> np.ndarray | None:
+        """The values at the breakpoints: `initial`, `final`.
+
+        Returns:
+            (2, ...) the values, or None when either is traced.
+        """
         if not (is_concrete(self.initial) and is_concrete(self.final)):
             return None
         return np.stack([np.asarray(self.initial, dtype=float), np.asarray(self.final, dtype=float)])
 
 
 class Path(AbstractTimeCourse):
-    """Waypoints `values` (K, ...) reached at `times` (K,) seconds, strictly increasing, K >= 2;
-    linear (or smoothstep, `smooth`, static: the mover stops at every waypoint) in between,
-    held at the first value before times[0] and at the last after times[-1]. A sliding finger is
-    `Disc(centre=Path(times, points), ...)` with points (K, 2) in metres. Exactly values[k] at
-    times[k]."""
+    """Waypoints reached at given times: linear (or smoothstep) in between.
+
+    Held at the first value before times[0] and at the last after times[-1]; exactly
+    values[k] at times[k]. A sliding finger is `Disc(centre=Path(times, points), ...)` with
+    points (K, 2) in metres.
+
+    Attributes:
+        times: (K,) seconds, strictly increasing, K >= 2.
+        values: (K, ...) the waypoints, in the parameter's unit.
+        smooth: Smoothstep segments: the mover stops at every waypoint (static).
+
+    Raises:
+        ValueError: Naming the field, for values that are not finite numbers, times that are
+            not 1D, fewer than 2 or not strictly increasing, or values not one per time.
+    """
 
     times: ArrayLike = eqx.field(converter=float_array("Path.times"))
     values: ArrayLike = eqx.field(converter=float_array("Path.values"))
@@ -213,6 +299,11 @@ class Path(AbstractTimeCourse):
         return _interpolate(values[segment], values[segment + 1], s, values.ndim - 1)
 
     def breakpoint_values(self) -> np.ndarray | None:
+        """The waypoints.
+
+        Returns:
+            (K, ...) the values, or None when they are traced.
+        """
         return np.asarray(self.values, dtype=float) if is_concrete(self.values) else None
 
 
@@ -222,13 +313,31 @@ def _evaluate(course: AbstractTimeCourse, t: jax.Array) -> jax.Array:
 
 
 def value_at(value: Any, t: jax.Array) -> jax.Array:
-    """A parameter at time `t` (seconds): the course's value, or the plain value."""
+    """A parameter at a time: the course's value, or the plain value.
+
+    Arguments:
+        value: A plain value or an `AbstractTimeCourse`.
+        t: The time, seconds.
+
+    Returns:
+        The value at `t`, as a float array.
+    """
     return value(t) if isinstance(value, AbstractTimeCourse) else as_float(value)
 
 
 def reach(value: Any, name: str) -> np.ndarray | None:
-    """(K, ...) the values a parameter (a plain value or a time course) takes at its breakpoints
-    (one row for a plain value), None when traced; ValueError naming `name` when not finite."""
+    """The values a parameter takes at its breakpoints, for validation.
+
+    Arguments:
+        value: A plain value or an `AbstractTimeCourse`.
+        name: Its name, for the error message.
+
+    Returns:
+        (K, ...) the values (one row for a plain value), or None when traced.
+
+    Raises:
+        ValueError: Naming `name`, for values that are not numbers or not finite.
+    """
     values = value.breakpoint_values() if isinstance(value, AbstractTimeCourse) else value
     array = concrete_floats(values, name) if values is not None else None
     if array is None:

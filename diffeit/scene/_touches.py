@@ -51,18 +51,27 @@ _INSIDE_TOLERANCE = -1e-9
 class Touch(eqx.Module):
     """One touch: a footprint, an amplitude and its time course.
 
-    - `shape`: the footprint (`Disc` or `Ellipse`; its parameters may move in time).
-    - `amplitude`: the relative conductivity change dsigma/sigma under the footprint at full
-      press (dimensionless, > -1: negative for a touch, about -0.2 at 2% strain to -0.7 at 25%).
-    - `envelope`: a time course in [0, 1] multiplying the amplitude (`Press`, or a `Ramp`/`Path`
-      of such values); None: pressed all the time.
-    - `edge_width`: the standard deviation (metres, > 0) of the footprint's Gaussian-blurred edge;
-      None: `default_edge_width` of the mesh.
+    Its stimulus at time t is amplitude x envelope(t) x the fraction of each element under the
+    footprint (`touch_field`). Amplitude, edge width and every continuous parameter of the
+    shape and courses are leaves (jit, grad, vmap); the kinds of shape and course and their
+    `smooth` flags are structure. Concrete values are checked on construction, the position
+    on the skin by `check_touches` (called by `touch_field` and `stimulus`).
 
-    Amplitude, edge width and every continuous parameter of the shape and courses are leaves
-    (jit, grad, vmap); the kinds of shape and course and their `smooth` flags are structure.
-    Concrete values are checked on construction, the position on the skin by `check_touches`
-    (called by `touch_field` and `stimulus`): `ValueError` names the field.
+    Attributes:
+        shape: The footprint (a `Disc`, `Ellipse` or `Polygon`; its parameters may move in
+            time).
+        amplitude: The relative conductivity change dsigma/sigma under the footprint at full
+            press (dimensionless, > -1: negative for a touch, about -0.2 at 2% strain to -0.7
+            at 25%).
+        envelope: A time course in [0, 1] multiplying the amplitude (`Press`, or a
+            `Ramp`/`Path` of such values); None: pressed all the time.
+        edge_width: The standard deviation (metres, > 0) of the footprint's Gaussian-blurred
+            edge; None: `default_edge_width` of the mesh.
+
+    Raises:
+        ValueError: Naming the field, for a shape that is not a shape, an amplitude that is
+            not one finite number > -1, an envelope that is not a time course of numbers in
+            [0, 1], or an edge width that is not one positive number.
     """
 
     shape: AbstractShape
@@ -94,7 +103,14 @@ class Touch(eqx.Module):
                 raise ValueError(f"Touch.edge_width must be a positive number (metres) or None; got {width}")
 
     def amplitude_at(self, t: ArrayLike) -> jax.Array:
-        """dsigma/sigma at full coverage at time `t` (seconds): amplitude x envelope(t)."""
+        """The amplitude at a time: amplitude x envelope(t).
+
+        Arguments:
+            t: Seconds, a scalar or an array.
+
+        Returns:
+            dsigma/sigma at full coverage, the shape of `t` (a scalar without envelope).
+        """
         amplitude = as_float(self.amplitude)
         return amplitude if self.envelope is None else amplitude * self.envelope(t)
 
@@ -103,9 +119,24 @@ class Touch(eqx.Module):
 
 
 def touch_field(mesh: Mesh, touch: Touch, t: ArrayLike, *, level: int = 8) -> jax.Array:
-    """(E,) the relative conductivity change dsigma/sigma (dimensionless) of one touch at time
-    `t` (seconds): amplitude(t) x the fraction of each element under its footprint at t.
-    Exactly 0 where the amplitude is 0. Checks concrete touches with `check_touches`."""
+    """The relative conductivity change of one touch at one time, per element.
+
+    amplitude(t) x the fraction of each element under its footprint at t (`shape_fraction`).
+    Exactly 0 where the amplitude is 0.
+
+    Arguments:
+        mesh: The skin's mesh.
+        touch: The `Touch`.
+        t: The time, seconds.
+        level: level^2 sample points per element (a positive integer).
+
+    Returns:
+        (E,) dsigma/sigma.
+
+    Raises:
+        ValueError: For a level that is not a positive integer, or a concrete touch whose
+            centre leaves the skin (`check_touches`).
+    """
     check_level(level)
     check_touches(mesh, [touch])
     return _jitted_touch_field(mesh, touch, as_float(t), level)
@@ -121,25 +152,47 @@ def _touch_field(points: np.ndarray, default_width: float, touch: Touch, t: jax.
 
 
 def combine_changes(first: ArrayLike, second: ArrayLike) -> jax.Array:
-    """Two relative conductivity changes (dsigma/sigma, each > -1) of overlapping touches, combined
-    by adding their relative resistance changes (strains add; module docstring):
-    (a + b + 2 a b) / (1 - a b). Exactly `first` where `second` is 0 and vice versa; symmetric and
-    associative; above -1 whenever 1 - a b > 0 (always when neither is positive)."""
+    """Two relative conductivity changes of overlapping touches, combined: (a + b + 2 a b) / (1 - a b).
+
+    Their relative resistance changes add (strains add; module docstring). Exactly `first`
+    where `second` is 0 and vice versa; symmetric and associative; above -1 whenever
+    1 - a b > 0 (always when neither is positive).
+
+    Arguments:
+        first: a, dsigma/sigma, > -1; any shape broadcasting with `second`.
+        second: b, dsigma/sigma, > -1.
+
+    Returns:
+        The combined dsigma/sigma, the broadcast shape.
+    """
     a, b = as_float(first), as_float(second)
     product = a * b
     return (a + b + 2 * product) / (1 - product)
 
 
 def stimulus(mesh: Mesh, touches: Sequence[Touch], times: ArrayLike, *, level: int = 8) -> jax.Array:
-    """(T, E) the relative conductivity change dsigma/sigma (dimensionless) per frame and element
-    of several touches at frame `times` (T,) seconds: each touch's `touch_field`, overlaps
-    combined by `combine_changes` in order (zeros without touches).
+    """The stimulus of several touches: dsigma/sigma per frame and element.
 
-    Pure JAX in the touches' parameters and the times (jit, grad and vmap work); frames are mapped
-    in batches (`jax.lax.map` with `batch_size`, vmap within a batch) so memory stays bounded on
-    long scenes. Checks concrete inputs: `check_touches`, finite 1D times, and conductivity
-    increases whose resistance drops sum to 100% or more (sum of a / (1 + a) over positive
-    amplitudes >= 1) are refused, since where they overlap the conductivity would not be positive.
+    Each touch's `touch_field`, overlaps combined by `combine_changes` in order (zeros without
+    touches). Pure JAX in the touches' parameters and the times (jit, grad and vmap work);
+    frames are mapped in batches (`jax.lax.map` with `batch_size`, vmap within a batch) so
+    memory stays bounded on long scenes.
+
+    Arguments:
+        mesh: The skin's mesh.
+        touches: The `Touch`es.
+        times: (T,) the frame times, seconds.
+        level: level^2 sample points per element (a positive integer).
+
+    Returns:
+        (T, E) dsigma/sigma.
+
+    Raises:
+        ValueError: For a level that is not a positive integer, a touch that is not a `Touch`
+            or whose concrete centre leaves the skin (`check_touches`), times that are not 1D
+            or (concrete) not finite, and conductivity increases whose resistance drops sum to
+            100% or more (sum of a / (1 + a) over positive amplitudes >= 1): where they
+            overlap the conductivity would not be positive.
     """
     check_level(level)
     touches = tuple(touches)
@@ -180,10 +233,20 @@ def _check_increases(touches: tuple[Touch, ...]) -> None:
 
 
 def check_touches(mesh: Mesh, touches: Sequence[Touch]) -> None:
-    """ValueError unless every touch's centre lies on the skin at every time: the centre (or a
-    moving centre's breakpoints and points along the segments between them) inside some triangle
-    of `mesh`. A footprint may overhang the rim (a finger at the edge): the part off the skin
-    covers no element. Traced centres are not checked."""
+    """Check that every touch's centre lies on the skin at every time.
+
+    The centre (or a moving centre's breakpoints and points along the segments between them)
+    must lie inside some triangle of `mesh`. A footprint may overhang the rim (a finger at the
+    edge): the part off the skin covers no element. Traced centres are not checked.
+
+    Arguments:
+        mesh: The skin's mesh.
+        touches: The touches.
+
+    Raises:
+        ValueError: For an item that is not a `Touch`, or a centre off the skin (naming the
+            touch and the point).
+    """
     for index, touch in enumerate(touches):
         if not isinstance(touch, Touch):
             raise ValueError(f"touches[{index}] must be a Touch; got {touch!r}")
@@ -222,10 +285,21 @@ def _on_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
 
 
 class FoamStack(eqx.Module):
-    """How a pressure on the skin over soft foam changes its conductivity (skin1 of the
-    multi-layer skin stack the tactile-skin dissertation builds on): the relative resistance
-    rises by `sensitivity` per kPa up to the `knee` (kPa), then by `sensitivity_above` per kPa.
-    Sensitivities are fractions per kPa (1.3 %/kPa = 0.013), each a leaf."""
+    """How a pressure on the skin over soft foam changes its conductivity.
+
+    skin1 of the multi-layer skin stack the tactile-skin dissertation builds on: the relative
+    resistance dR/R0 rises by `sensitivity` per kPa up to the `knee`, then by
+    `sensitivity_above` per kPa (docs/science.md#pressure). See `pressure_to_change`.
+
+    Attributes:
+        sensitivity: dR/R0 per kPa below the knee, a fraction (1.3 %/kPa = 0.013, the
+            default), >= 0; a leaf.
+        knee: The end of the linear range, kPa (default 38), >= 0; a leaf.
+        sensitivity_above: dR/R0 per kPa above the knee (default 0.002), >= 0; a leaf.
+
+    Raises:
+        ValueError: Naming the field, for a value that is not finite numbers or is negative.
+    """
 
     sensitivity: ArrayLike = 0.013
     knee: ArrayLike = 38.0
@@ -239,10 +313,22 @@ class FoamStack(eqx.Module):
 
 
 def pressure_to_change(pressure: ArrayLike, stack: FoamStack | None = None) -> jax.Array:
-    """dsigma/sigma (dimensionless, in (-1, 0]) under a pressure (kPa, >= 0) through the foam
-    stack: the bilinear relative resistance change x = s p for p <= knee, s knee + s_above
-    (p - knee) above; R = R0 (1 + x) gives dsigma/sigma = -x / (1 + x). With the defaults
-    20 kPa gives x = 0.26 (dsigma/sigma = -0.206), 38 kPa x = 0.494, 100 kPa x = 0.618."""
+    """The relative conductivity change under a pressure, through the foam stack.
+
+    The bilinear relative resistance change x = s p for p <= knee, s knee + s_above (p - knee)
+    above; R = R0 (1 + x) gives dsigma/sigma = -x / (1 + x). With the defaults 20 kPa gives
+    x = 0.26 (dsigma/sigma = -0.206), 38 kPa x = 0.494, 100 kPa x = 0.618.
+
+    Arguments:
+        pressure: kPa, >= 0, any shape.
+        stack: The `FoamStack` (default `FoamStack()`).
+
+    Returns:
+        dsigma/sigma, in (-1, 0], the shape of `pressure`.
+
+    Raises:
+        ValueError: For a concrete negative pressure.
+    """
     stack = FoamStack() if stack is None else stack
     p = jnp.asarray(pressure, dtype=float)
     if is_concrete(p) and not np.all(np.asarray(p) >= 0):
