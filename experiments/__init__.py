@@ -15,6 +15,7 @@ from pathlib import Path
 from ._study import Findings, Study
 from .accuracy_time import STUDY as _ACCURACY_TIME
 from .background import STUDY as _BACKGROUND
+from .curvature import STUDY as _CURVATURE
 from .hyperparameter import STUDY as _HYPERPARAMETER
 from .memory import STUDY as _MEMORY
 from .metrics import STUDY as _METRICS
@@ -35,6 +36,7 @@ STUDIES: dict[str, Study] = {
         _SIZE,
         _ACCURACY_TIME,
         _SWEEP,
+        _CURVATURE,
     )
 }
 
