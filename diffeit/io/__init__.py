@@ -31,8 +31,8 @@ The frames file (HDF5, schema "diffeit.frames", version 2):
                      of the model's drive current (positive into the sheet)
 /protocol/measure    (n_meas, L) float64: the weights of each reading, sum_l w_l U_l
 /protocol/drive_index  (n_meas,) int64: the drive of each reading, drive by drive
-/mesh/nodes          (N, 2) float64, attribute units = "m"                     [optional]
-/mesh/triangles      (E, 3) int64, counter-clockwise
+/mesh/nodes          (N, 2) float64 ((N, 3): a surface in 3D), attribute units = "m"  [optional]
+/mesh/triangles      (E, 3) int64, counter-clockwise (in 3D consistently oriented)
 /mesh/electrode_nodes   (K,) int64: every electrode's boundary node chain, concatenated
 /mesh/electrode_offsets (L + 1,) int64: electrode l is electrode_nodes[offsets[l]:offsets[l+1]]
 /geometry            group whose attributes describe the sheet for a generator     [optional]
