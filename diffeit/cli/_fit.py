@@ -362,7 +362,7 @@ def plot_fit(
     same frames (every k-th, at most `max_panels`) on one colour scale; returns the frames shown."""
     from matplotlib.figure import Figure
 
-    from ..plotting import plot_elements
+    from ..plotting import mesh_projection, plot_elements
     from ..results import RESULTS, messages
 
     stimulus = np.asarray(fit.stimulus)
@@ -372,6 +372,9 @@ def plot_fit(
     figure = Figure(figsize=(1.6 * columns + 1.0, 9.0), layout="constrained")
     top, *strips = figure.subfigures(3, 1, height_ratios=[1.7, 1.0, 1.0])
     map_axes, table_axes = top.subplots(1, 2, width_ratios=[1.0, 1.6])
+    if mesh_projection(mesh) is not None:  # a skin on a curved surface: its map in 3D axes in the same place
+        map_axes.remove()
+        map_axes = top.add_subplot(map_axes.get_subplotspec(), projection=mesh_projection(mesh))
     plot_elements(map_axes, mesh, np.asarray(fit.background), cmap="viridis", symmetric=False, label="S/sq")
     map_axes.set_title("background conductivity", fontsize=9)
     table_axes.set_axis_off()
@@ -390,7 +393,8 @@ def plot_fit(
         top.suptitle(title, fontsize=10)
     names = ("before: plain one-step images against the reference", "after: the fitted stimulus")
     for strip, images, name in zip(strips, (before, stimulus), names, strict=True):
-        axes = np.atleast_1d(strip.subplots(1, columns, squeeze=False)).ravel()
+        kw = {"projection": mesh_projection(mesh)}  # 3D axes for a skin on a curved surface
+        axes = np.atleast_1d(strip.subplots(1, columns, squeeze=False, subplot_kw=kw)).ravel()
         for ax, frame in zip(axes, shown, strict=False):
             artist = plot_elements(ax, mesh, images[frame], label=None)
             artist.set_clim(-limit, limit)
