@@ -34,6 +34,7 @@ TUTORIALS = [
     pytest.param("docs/tutorials/fitting.md", marks=pytest.mark.slow),
     pytest.param("docs/tutorials/scenes.md", marks=pytest.mark.slow),
     pytest.param("docs/tutorials/hardware.md", marks=pytest.mark.slow),
+    pytest.param("docs/tutorials/curved-skins.md", marks=pytest.mark.slow),
 ]
 # Public modules documented elsewhere than the API reference: the demo (Getting started) and the
 # command line (every command's --help, and the tutorials).
