@@ -127,7 +127,16 @@ from .fit import memory_from_presses
 from .forward import ForwardModel
 from .inverse import LinearisedProblem, OneStep, select_hyperparameter
 from .inverse.hyperparameter import DEFAULT_CANDIDATES
-from .io import Presses, Recording, create_checked, mesh_from_geometry, read_checked, write_atomically
+from .io import (
+    Presses,
+    Recording,
+    create_checked,
+    mesh_from_geometry,
+    read_attributes,
+    read_checked,
+    write_atomically,
+    write_attributes,
+)
 from .memory import MemoryParameters
 from .mesh import Mesh, disc, disc_fraction
 from .protocol import Protocol
@@ -1874,7 +1883,7 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
     }
 
     def write(file: h5py.File) -> None:
-        file.attrs.update(attributes)
+        write_attributes(file, attributes)
         for name, value in arrays.items():
             create_checked(file, name, np.asarray(value))
 
@@ -1900,10 +1909,11 @@ def load(path: str | Path, *, recording: Recording | None = None) -> SkinCalibra
     path = Path(path)
 
     def read(file: h5py.File) -> tuple[dict, dict]:
-        schema = file.attrs.get("schema")
+        stored = read_attributes(file)
+        schema = stored.get("schema")
         if schema != SCHEMA:
             raise ValueError(f"{path} is not a diffeit calibration (schema {schema!r}, expected {SCHEMA!r})")
-        version = int(file.attrs.get("schema_version", -1))
+        version = int(stored.get("schema_version", -1))
         if version > SCHEMA_VERSION:
             raise ValueError(
                 f"{path} is a calibration of schema version {version}, newer than this diffeit reads "
@@ -1917,7 +1927,7 @@ def load(path: str | Path, *, recording: Recording | None = None) -> SkinCalibra
         file.visititems(
             lambda name, item: arrays.__setitem__(name, item[()]) if isinstance(item, h5py.Dataset) else None
         )
-        return arrays, dict(file.attrs)
+        return arrays, stored
 
     arrays, attributes = read_checked(path, read, what="calibration file")
     try:

@@ -37,7 +37,16 @@ from typing import Any
 import h5py
 import numpy as np
 
-from diffeit.io import CHUNK_ROWS, Recording, create_checked, read_checked, read_frames, write_frames
+from diffeit.io import (
+    CHUNK_ROWS,
+    Recording,
+    create_checked,
+    read_attributes,
+    read_checked,
+    read_frames,
+    write_attributes,
+    write_frames,
+)
 from diffeit.protocol import Protocol
 
 from .frame import Frame
@@ -101,9 +110,9 @@ class Recorder:
         acquisition = self._file.create_group("acquisition")
         for name, dtype in (("counter", np.int64), ("device_time", np.float64)):
             create_checked(acquisition, name, np.empty(0, dtype), maxshape=(None,), chunks=(CHUNK_ROWS,))
-        acquisition["device_time"].attrs["units"] = "s"
+        write_attributes(acquisition["device_time"], {"units": "s"})
         drops = create_checked(acquisition, "drops", np.zeros(len(_KINDS), dtype=np.int64))
-        drops.attrs["kinds"] = list(_KINDS)
+        write_attributes(drops, {"kinds": list(_KINDS)})
         # (1,), not a scalar: a chunked dataset carries a checksum, and SWMR readers see it change.
         create_checked(self._file, "committed_frames", np.zeros(1, dtype=np.int64))
         self._file.swmr_mode = True  # from here on: appends only, readable at every instant
@@ -162,8 +171,9 @@ class Recorder:
         while True:
             try:
                 with h5py.File(self.path, "r+") as file:
-                    metadata = {**json.loads(file.attrs["metadata"]), "drop_statistics": self._statistics.as_dict()}
-                    file.attrs["metadata"] = json.dumps(metadata)
+                    stored = json.loads(read_attributes(file)["metadata"])
+                    metadata = {**stored, "drop_statistics": self._statistics.as_dict()}
+                    write_attributes(file, {"metadata": json.dumps(metadata)})
                 return
             except OSError as error:  # BlockingIOError included
                 if time.monotonic() > deadline:
@@ -210,7 +220,7 @@ def recorded_statistics(path: str | os.PathLike) -> DropStatistics:
 
     def read(file: h5py.File) -> DropStatistics:
         drops = _acquisition_group(file, path)["drops"]
-        kinds = [str(kind) for kind in drops.attrs["kinds"]]
+        kinds = [str(kind) for kind in read_attributes(drops)["kinds"]]
         return DropStatistics(**{kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)})
 
     return read_checked(path, read, what=_WHAT, warn_unchecked=False)

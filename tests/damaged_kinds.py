@@ -47,6 +47,7 @@ KINDS = (
     "csv",
     "scene",
     "correction",
+    "skin_calibration",
     "serial",
 )
 DAMAGE_READS_AS = {
@@ -59,6 +60,7 @@ DAMAGE_READS_AS = {
     "csv": "as written",
     "scene": "as written",
     "correction": "whole",
+    "skin_calibration": "whole",
     "serial": "frames",
 }
 _RNG_SEED = 30
@@ -160,6 +162,31 @@ def read_correction(path: Path) -> dict[str, Any]:
     arrays = ("positions", "image_positions", "intensity_factor", "size_factor", "intensity_table", "size_table")
     return {name: np.asarray(getattr(calibration, name)) for name in arrays} | {
         "settings": dataclasses.asdict(calibration.settings)
+    }
+
+
+def write_skin_calibration(folder: Path) -> Path:
+    """A skin's calibration (`de.calibrate` on ten reference frames of a coarse disc, with its
+    electrode positions fitted), saved by `SkinCalibration.save`."""
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.4)
+    protocol = de.protocol.adjacent(16)
+    clean = np.asarray(de.ForwardModel(mesh, protocol, 0.02).measure(np.ones(mesh.n_elements)))
+    rng = np.random.default_rng(_RNG_SEED)
+    frames = clean * (1 + 1e-3 * rng.standard_normal((10, clean.size)))
+    recording = de.io.Recording(frames=frames, times=0.1 * np.arange(10), protocol=protocol, mesh=mesh)
+    calibration = de.calibrate(recording, reference_groups=("contact_impedance", "electrode_positions"))
+    return calibration.save(Path(folder) / "skin.cal.h5")
+
+
+def read_skin_calibration(path: Path) -> dict[str, Any]:
+    calibration = de.calibration.load(path)
+    sigma = np.full(calibration.model.n_elements, calibration.conductivity)
+    return {
+        "values": calibration.values,
+        "standard_errors": calibration.standard_errors,
+        "lines": calibration.lines(),
+        "voltages": np.asarray(calibration.model.measure(sigma)),
+        "noise": calibration.noise,
     }
 
 

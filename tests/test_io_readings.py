@@ -285,7 +285,7 @@ def test_frames_file_keeps_the_readings(tmp_path):
     assert back.readings == "magnitude"
     np.testing.assert_array_equal(back.frames, magnitudes.frames)
     with h5py.File(path) as file:
-        assert file["frames"].attrs["readings"] == "magnitude"
+        assert file["frames"].attrs["readings"] == b"magnitude"
     # Appending to a file of magnitudes: negative values are refused, the file left as it was.
     with pytest.raises(ValueError, match="holds magnitudes"):
         append_frames(path, -np.ones(208), 10.0)

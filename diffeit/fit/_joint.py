@@ -29,10 +29,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._arrays import concrete_floats
+from .._precision import ensure_float64
 from ..forward import ForwardModel
 from ..inverse import OneStep
 from ..inverse.linearised import check_frames
-from ..io import create_checked, read_checked, write_atomically
+from ..io import create_checked, read_attributes, read_checked, write_atomically, write_attributes
 from ..memory import MemoryParameters, memory_response, over_foam
 from ..mesh import element_adjacency
 from ..results import RESULTS, messages, names, throw_if_failed
@@ -280,7 +281,8 @@ class JointFit(eqx.Module):
         settings, parameters = self.settings, self.parameters
 
         def write(file: h5py.File) -> None:
-            file.attrs.update(
+            write_attributes(
+                file,
                 {
                     "schema": _SCHEMA,
                     "schema_version": _SCHEMA_VERSION,
@@ -290,7 +292,7 @@ class JointFit(eqx.Module):
                     "memory_free": json.dumps(list(settings.memory_free)),
                     "priors": json.dumps(dataclasses.asdict(settings.priors)),
                     "data_scale": settings.data_scale,
-                }
+                },
             )
             for name in ("background", "contact_impedance", "stimulus", "response", "times"):
                 create_checked(file, name, np.asarray(getattr(self, name)))
@@ -327,8 +329,13 @@ def load(path: str | os.PathLike) -> JointFit:
         ValueError: Naming the file, for anything but a sound joint fit: empty, not HDF5,
             truncated, altered bytes (a failed checksum), another schema or version, missing or
             non-numeric datasets.
+
+    Warns:
+        diffeit.PrecisionWarning: When loading turns on `jax_enable_x64`: the fit's float64
+            numbers are returned as they are, never rounded to float32.
     """
     path = Path(path)
+    ensure_float64()
 
     def read(file: h5py.File) -> JointFit:
         try:
@@ -340,10 +347,11 @@ def load(path: str | os.PathLike) -> JointFit:
 
 
 def _read_fit(file: h5py.File, path: Path) -> JointFit:
-    schema = file.attrs.get("schema")
+    attributes = read_attributes(file)
+    schema = attributes.get("schema")
     if schema != _SCHEMA:
         raise ValueError(f"{path} is not a joint fit (schema {schema!r}, not {_SCHEMA!r})")
-    version = int(file.attrs["schema_version"])
+    version = int(attributes["schema_version"])
     if version != _SCHEMA_VERSION:
         older = " (its priors were charged per frame and mean otherwise now: fit again)" if version < 2 else ""
         newer = " (a newer diffeit wrote it?)" if version > _SCHEMA_VERSION else ""
@@ -363,16 +371,16 @@ def _read_fit(file: h5py.File, path: Path) -> JointFit:
         read = {name: values(f"{group}/{name}") for name in MEMORY_FIELDS}
         return MemoryParameters(**{name: float(v) if np.ndim(v) == 0 else jnp.asarray(v) for name, v in read.items()})
 
-    result = str(file.attrs["result"])
+    result = str(attributes["result"])
     if result not in RESULTS._name_to_item:
         raise ValueError(f"{path}: result {result!r} is not a diffeit.results.RESULTS code")
     if not isinstance(file.get("parameters/memory"), h5py.Group):
         raise ValueError(f"{path} is not a complete joint fit: the group 'parameters/memory' is missing")
     settings = JointSettings(
-        free=tuple(json.loads(file.attrs["free"])),
-        memory_free=tuple(json.loads(file.attrs["memory_free"])),
-        priors=JointPriors(**json.loads(file.attrs["priors"])),
-        data_scale=float(file.attrs["data_scale"]),
+        free=tuple(json.loads(attributes["free"])),
+        memory_free=tuple(json.loads(attributes["memory_free"])),
+        priors=JointPriors(**json.loads(attributes["priors"])),
+        data_scale=float(attributes["data_scale"]),
         memory_centre=memory("settings/memory_centre"),
         log_contact_impedance_centre=array("settings/log_contact_impedance_centre"),
     )
@@ -389,7 +397,7 @@ def _read_fit(file: h5py.File, path: Path) -> JointFit:
         stimulus=array("stimulus"),
         response=array("response"),
         times=array("times"),
-        misfit=float(file.attrs["misfit"]),
+        misfit=float(attributes["misfit"]),
         history=History(values("history/objective"), values("history/gradient_norm")),
         result=getattr(RESULTS, result),
         parameters=parameters,

@@ -62,8 +62,10 @@ file follows (frames, fits, recorders): use them for files of your own.
 from ._checked import NoChecksumWarning as NoChecksumWarning
 from ._checked import create_checked as create_checked
 from ._checked import open_checked as open_checked
+from ._checked import read_attributes as read_attributes
 from ._checked import read_checked as read_checked
 from ._checked import write_atomically as write_atomically
+from ._checked import write_attributes as write_attributes
 from ._csv import read_csv as read_csv
 from ._eidors import read_eidors_mat as read_eidors_mat
 from ._hdf5 import CHUNK_ROWS as CHUNK_ROWS

@@ -9,9 +9,10 @@ seconds to reach its recorded end. Everything HDF5 raises while reading becomes 
 naming the file.
 
 Writing: every array dataset carries HDF5's Fletcher-32 checksum (read back with verification
-on), every scalar sits in its object header (compact layout), and files use the HDF5 1.10
-format, whose metadata blocks carry checksums of their own: altered bytes anywhere are
-detected when read, never returned as data. Files are written under a temporary name and
+on), every scalar sits in its object header (compact layout), every attribute too
+(`write_attributes`: strings fixed-length, not in HDF5's global heap, which carries no
+checksum), and files use the HDF5 1.10 format, whose metadata blocks carry checksums of their
+own: altered bytes anywhere are detected when read, never returned as data. Files are written under a temporary name and
 renamed when complete, so an interrupted write leaves nothing half-written at the path.
 """
 
@@ -238,6 +239,47 @@ def create_checked(group: h5py.Group, name: str, data: ArrayLike, **options: Any
     if values.size == 0 and "chunks" not in options:
         options = {"chunks": True, "maxshape": (None, *values.shape[1:]), **options}
     return group.create_dataset(name, data=values, fletcher32=True, **options)
+
+
+def write_attributes(item: h5py.Group | h5py.Dataset, attributes: dict[str, Any]) -> None:
+    """Set attributes of an HDF5 group or dataset, each stored in its object header, whose
+    checksum covers it.
+
+    A string (or a list of strings) is stored as fixed-length UTF-8: h5py would otherwise put
+    it in HDF5's global heap, whose bytes no checksum covers, and an altered byte there would
+    read as another string. `read_attributes` reads them back as `str`.
+
+    Arguments:
+        item: The group (or file) or dataset.
+        attributes: Name -> value: a string, a list of strings, or what h5py stores as it is
+            (numbers, arrays of numbers).
+    """
+    for name, value in attributes.items():
+        item.attrs.create(name, _inline(value))
+
+
+def read_attributes(item: h5py.Group | h5py.Dataset) -> dict[str, Any]:
+    """The attributes of an HDF5 group or dataset, strings (fixed-length or, in files written
+    before `write_attributes`, variable-length) as `str` and lists of strings as lists of `str`."""
+    return {name: _text(value) for name, value in item.attrs.items()}
+
+
+def _inline(value: Any) -> Any:
+    if isinstance(value, str):
+        encoded = value.encode("utf-8")
+        return np.array(encoded, dtype=h5py.string_dtype("utf-8", max(len(encoded), 1)))
+    if isinstance(value, list | tuple) and value and all(isinstance(item, str) for item in value):
+        encoded = [item.encode("utf-8") for item in value]
+        return np.array(encoded, dtype=h5py.string_dtype("utf-8", max(max(map(len, encoded)), 1)))
+    return value
+
+
+def _text(value: Any) -> Any:
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.ndarray) and value.dtype.kind in "SO":
+        return [item.decode("utf-8") if isinstance(item, bytes) else str(item) for item in value.tolist()]
+    return value
 
 
 def unchecked_datasets(file: h5py.File) -> list[str]:

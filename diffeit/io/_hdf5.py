@@ -17,7 +17,14 @@ from numpy.typing import ArrayLike
 
 from ..mesh import Mesh
 from ..protocol import Protocol
-from ._checked import create_checked, open_checked, read_checked, write_atomically
+from ._checked import (
+    create_checked,
+    open_checked,
+    read_attributes,
+    read_checked,
+    write_atomically,
+    write_attributes,
+)
 from ._recording import Recording
 
 SCHEMA = "diffeit.frames"
@@ -139,7 +146,7 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
             raise ValueError(f"times have shape {times.shape}; expected ({len(frames)},), one per appended frame")
         if not (np.all(np.isfinite(frames)) and np.all(np.isfinite(times))):
             raise ValueError("frames or times to append hold non-finite values (NaN or inf)")
-        if stored.attrs.get("readings") == "magnitude" and np.any(frames < 0):
+        if read_attributes(stored).get("readings") == "magnitude" and np.any(frames < 0):
             raise ValueError(
                 f'{path} holds magnitudes (readings="magnitude"); the frames to append hold negative values'
             )
@@ -166,25 +173,29 @@ def append_frames(path: str | os.PathLike, frames: ArrayLike, times: ArrayLike) 
 
 def _write(file: h5py.File, recording: Recording, metadata: str) -> None:
     provenance = recording.provenance
-    file.attrs["schema"] = SCHEMA
-    file.attrs["schema_version"] = SCHEMA_VERSION
-    file.attrs["diffeit_version"] = provenance.get("diffeit_version", importlib.metadata.version("diffeit"))
-    file.attrs["created_utc"] = provenance.get("created_utc", _now())
-    file.attrs["source"] = provenance.get("source", "")
-    file.attrs["metadata"] = metadata
+    write_attributes(
+        file,
+        {
+            "schema": SCHEMA,
+            "schema_version": SCHEMA_VERSION,
+            "diffeit_version": provenance.get("diffeit_version", importlib.metadata.version("diffeit")),
+            "created_utc": provenance.get("created_utc", _now()),
+            "source": provenance.get("source", ""),
+            "metadata": metadata,
+        },
+    )
 
     n_meas = recording.n_measurements
     frames = create_checked(file, "frames", recording.frames, maxshape=(None, n_meas), chunks=(CHUNK_ROWS, n_meas))
-    frames.attrs["units"] = recording.voltage_unit
-    frames.attrs["readings"] = recording.readings
+    write_attributes(frames, {"units": recording.voltage_unit, "readings": recording.readings})
     times = create_checked(file, "times", recording.times, maxshape=(None,), chunks=(CHUNK_ROWS,))
-    times.attrs["units"] = "s"
+    write_attributes(times, {"units": "s"})
     if recording.reference is not None:
         reference = create_checked(file, "reference", recording.reference)
-        reference.attrs["units"] = recording.voltage_unit
+        write_attributes(reference, {"units": recording.voltage_unit})
 
     protocol = file.create_group("protocol")
-    protocol.attrs["drive_units"] = "multiples of the model's drive current, positive into the sheet"
+    write_attributes(protocol, {"drive_units": "multiples of the model's drive current, positive into the sheet"})
     create_checked(protocol, "drive", recording.protocol.drive)
     create_checked(protocol, "measure", recording.protocol.measure)
     create_checked(protocol, "drive_index", recording.protocol.drive_index.astype(np.int64))
@@ -192,31 +203,30 @@ def _write(file: h5py.File, recording: Recording, metadata: str) -> None:
     if recording.mesh is not None:
         mesh = file.create_group("mesh")
         nodes = create_checked(mesh, "nodes", recording.mesh.nodes)
-        nodes.attrs["units"] = "m"
+        write_attributes(nodes, {"units": "m"})
         create_checked(mesh, "triangles", recording.mesh.triangles.astype(np.int64))
         chains = recording.mesh.electrodes
         create_checked(mesh, "electrode_nodes", np.concatenate(chains).astype(np.int64))
         create_checked(mesh, "electrode_offsets", np.cumsum([0, *map(len, chains)]).astype(np.int64))
     if recording.geometry is not None:
         geometry = file.create_group("geometry")
-        geometry.attrs["units"] = "m"
-        for key, value in recording.geometry.items():
-            if value is not None:  # every generator's None default; HDF5 attributes cannot hold None
-                geometry.attrs[key] = value
+        # None is every generator's default; HDF5 attributes cannot hold it.
+        given = {key: value for key, value in recording.geometry.items() if value is not None}
+        write_attributes(geometry, {"units": "m", **given})
     if recording.images is not None:
         images = create_checked(file, "images", recording.images)
-        images.attrs["units"] = "S/sq"
-        images.attrs["quantity"] = recording.image_quantity
+        write_attributes(images, {"units": "S/sq", "quantity": recording.image_quantity})
 
 
 def _read(file: h5py.File) -> Recording:
     _check_schema(file)
+    attributes = read_attributes(file)
     provenance: dict[str, Any] = {
-        key: str(file.attrs[key]) for key in ("source", "created_utc", "diffeit_version") if key in file.attrs
+        key: str(attributes[key]) for key in ("source", "created_utc", "diffeit_version") if key in attributes
     }
-    if "metadata" in file.attrs:
+    if "metadata" in attributes:
         try:
-            provenance["metadata"] = json.loads(file.attrs["metadata"])
+            provenance["metadata"] = json.loads(attributes["metadata"])
         except json.JSONDecodeError as error:
             raise ValueError(f"the 'metadata' attribute is not valid JSON: {error}") from None
     drive = _dataset(file, "protocol/drive")[()]
@@ -263,12 +273,12 @@ def _read(file: h5py.File) -> Recording:
         mesh = Mesh.from_arrays(nodes, triangles, chains)
     geometry = None
     if "geometry" in file:
-        attrs = file["geometry"].attrs
-        geometry = {key: _python(attrs[key]) for key in attrs if key != "units"}
+        attrs = read_attributes(file["geometry"])
+        geometry = {key: _python(value) for key, value in attrs.items() if key != "units"}
     images, quantity = None, None
     if "images" in file:
         images = _dataset(file, "images")[()]
-        quantity = str(file["images"].attrs.get("quantity", "conductivity change"))
+        quantity = str(read_attributes(file["images"]).get("quantity", "conductivity change"))
     return Recording(
         frames=frames,
         times=times,
@@ -279,8 +289,9 @@ def _read(file: h5py.File) -> Recording:
         provenance=provenance,
         images=images,
         image_quantity=quantity,
-        voltage_unit=str(frames_dataset.attrs.get("units", "V")),
-        readings=str(frames_dataset.attrs.get("readings", "signed")),  # files written before the attribute: signed
+        voltage_unit=str(read_attributes(frames_dataset).get("units", "V")),
+        # Files written before the attribute: signed.
+        readings=str(read_attributes(frames_dataset).get("readings", "signed")),
     )
 
 
@@ -296,10 +307,11 @@ def _protocol(drive: np.ndarray, measure: np.ndarray, drive_index: np.ndarray) -
 
 
 def _check_schema(file: h5py.File) -> None:
-    schema = file.attrs.get("schema")
+    attributes = read_attributes(file)
+    schema = attributes.get("schema")
     if schema != SCHEMA:
         raise ValueError(f"not a diffeit frames file (attribute 'schema' is {schema!r}, expected {SCHEMA!r})")
-    version = int(file.attrs.get("schema_version", 0))
+    version = int(attributes.get("schema_version", 0))
     if not 1 <= version <= SCHEMA_VERSION:
         raise ValueError(
             f"schema version {version}; this diffeit reads versions 1..{SCHEMA_VERSION} (a newer diffeit wrote it?)"
