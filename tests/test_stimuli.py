@@ -265,7 +265,7 @@ def test_stimulus_gradients_and_batches(mesh, monkeypatch):
     [
         (lambda: Disc((0.0, 0.0), 0.0), r"Disc\.radius must be positive"),
         (lambda: Disc((0.0, 0.0), Ramp(0.1, -0.1)), r"Disc\.radius must be positive"),
-        (lambda: Disc((0.0, 0.0, 0.0), 0.1), r"Disc\.centre must be a point"),
+        (lambda: Disc((0.0, 0.0, 0.0, 0.0), 0.1), r"Disc\.centre must be a point"),
         (lambda: Ellipse((0.0, 0.0), (0.2, -0.1)), r"Ellipse\.semi_axes must be positive"),
         (lambda: Ellipse((0.0, 0.0), (0.2, 0.1), np.nan), r"Ellipse\.angle must be finite"),
         (lambda: Touch(Disc((0.0, 0.0), 0.1), -1.0), r"Touch\.amplitude .* must be > -1"),

@@ -23,13 +23,17 @@ if TYPE_CHECKING:
 
 
 def _demo(arguments: argparse.Namespace) -> int:
-    from ..demo import run_demo
+    from ..demo import run_curved_demo, run_demo
 
-    result = run_demo(arguments.output, seed=arguments.seed)
+    if arguments.skin == "disc":
+        result = run_demo(arguments.output, seed=arguments.seed)
+    else:
+        result = run_curved_demo(arguments.skin, arguments.output, seed=arguments.seed)
+    where = "unit disc" if arguments.skin == "disc" else f"{arguments.skin}, 3D distance"
     print(
         f"data mesh {result.n_data_elements} triangles, reconstruction mesh "
         f"{result.n_reconstruction_elements} triangles\n"
-        f"position error: {result.position_error:.4f} m (unit disc)\n"
+        f"position error: {result.position_error:.4f} m ({where})\n"
         f"correlation with the truth: {result.correlation:.3f}\n"
         f"peak dsigma: {result.peak:.3e} S/sq\n"
         f"wrote {result.figure}"
@@ -293,6 +297,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     demo = commands.add_parser("demo", help="simulate a touch on a 16-electrode skin and image it")
     demo.add_argument("-o", "--output", default="demo.png", help="PNG to write (default demo.png)")
     demo.add_argument("--seed", type=int, default=0, help="noise seed")
+    demo.add_argument(
+        "--skin",
+        choices=("disc", "forearm", "fingertip"),
+        default="disc",
+        help="the skin: the flat unit disc (default), a forearm (a cylinder patch, radius 4 cm) or a fingertip "
+        "(a sphere cap, radius 1 cm), drawn in 3D",
+    )
     demo.set_defaults(run=_demo)
 
     reconstruct = commands.add_parser(

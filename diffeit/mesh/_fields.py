@@ -67,7 +67,8 @@ def element_sample_points(mesh: Mesh, level: int = 8) -> np.ndarray:
         level: The subdivision of each side, a positive integer.
 
     Returns:
-        (E, S, 2) the points, metres; read-only.
+        (E, S, d) the points, metres, d = 2 for a flat mesh and 3 for a surface mesh ((N, 3)
+        nodes); read-only.
     """
     points = np.einsum("sk,ekx->esx", barycentric_samples(level), mesh.nodes[mesh.triangles])
     points.flags.writeable = False

@@ -68,5 +68,6 @@ from ._time_courses import Ramp as Ramp
 from ._touches import FoamStack as FoamStack
 from ._touches import Touch as Touch
 from ._touches import pressure_to_change as pressure_to_change
+from ._touches import project_to_surface as project_to_surface
 from ._touches import stimulus as stimulus
 from ._touches import touch_field as touch_field

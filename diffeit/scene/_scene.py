@@ -79,7 +79,7 @@ from ._background import Background
 from ._effects import EFFECT_NAMES, EFFECTS, effect_name
 from ._scene_file import read_scene_file, scene_arguments, scene_to_dict
 from ._skin import Skin
-from ._touches import Touch, check_touches
+from ._touches import Touch, check_shape_fits, check_touches
 
 # --- Scene ----------------------------------------------------------------------------------
 
@@ -127,7 +127,9 @@ class Scene(eqx.Module):
             electrode position offsets not one per electrode (or moving electrodes off the
             sheet), a contact drift rate of the wrong length or taking z to zero, readout
             mixing offsets not one per electrode, reading gains not one per reading of the
-            skin's protocol, a touch off the skin.
+            skin's protocol, a touch off the skin, a touch or background region whose shape
+            does not fit the skin (on a curved skin only `Disc`s with centres (x, y, z)), an
+            electrode position error on a curved skin.
     """
 
     _: KW_ONLY
@@ -183,7 +185,9 @@ class Scene(eqx.Module):
         except ValueError as error:
             raise ValueError(f"effects.electrode_position_error: {error}") from None
         # On the simulation mesh, finer than the reconstruction's: its rim reaches further out.
-        check_touches(mesh, self.touches)
+        check_touches(mesh, self.touches, surface=self.skin.surface)
+        for index, region in enumerate(self.background.regions):
+            check_shape_fits(mesh, region.shape, f"background.regions[{index}].shape")
 
     def _check_contact_drift(self) -> None:
         drift = self.effect("contact_drift")

@@ -79,10 +79,19 @@ class AbstractShape(eqx.Module):
         """
 
 
-def _check_centre(centre: ArrayLike | AbstractTimeCourse, name: str) -> None:
+def _check_centre(centre: ArrayLike | AbstractTimeCourse, name: str, surface: bool = False) -> None:
     values = reach(centre, name)
-    if values is not None and values.shape[1:] != (2,):
-        raise ValueError(f"{name} must be a point (x, y) in metres, shape (2,); got values of shape {values.shape[1:]}")
+    if values is None or values.shape[1:] == (2,) or (surface and values.shape[1:] == (3,)):
+        return
+    if surface:
+        raise ValueError(
+            f"{name} must be a point (x, y) on a flat skin or (x, y, z) on a curved one, in metres; got values of "
+            f"shape {values.shape[1:]}"
+        )
+    raise ValueError(
+        f"{name} must be a point (x, y) in metres, shape (2,); got values of shape {values.shape[1:]} "
+        "(only a Disc may lie on a curved skin, with a centre (x, y, z))"
+    )
 
 
 def _safe_norm(v: jax.Array) -> jax.Array:
@@ -95,20 +104,32 @@ def _safe_norm(v: jax.Array) -> jax.Array:
 class Disc(AbstractShape):
     """A round footprint; its centre and radius may be time courses.
 
+    On a flat skin the centre is (x, y). On a curved skin (`Skin` kinds "cylinder_patch" and
+    "sphere_cap", meshes with (N, 3) nodes) it is a point (x, y, z) on the surface, and the
+    disc is the part of the surface within `radius` of it, distances measured as the 3D chord
+    between the points rather than along the surface: for a geodesic radius s on a surface
+    of curvature radius rho the chord is shorter by about s^3 / (24 rho^2), a relative error
+    of s^2 / (24 rho^2) (0.2% for s = 0.2 rho, 0.7% for s = 0.4 rho): the disc reaches that
+    much further along the surface than `radius`. A moving centre (`Path`, `Ramp` of points
+    (x, y, z)) goes along the straight segments between its waypoints, each point moved to
+    the nearest point of the skin's surface (`diffeit.scene.project_to_surface`, applied by
+    `stimulus` and `touch_field` when given the skin's `surface`).
+
     Attributes:
-        centre: (2,) metres, or a time course of such points (`Path` for a slide).
+        centre: (2,) metres on a flat skin, (3,) on a curved one, or a time course of such
+            points (`Path` for a slide).
         radius: Metres, > 0, or a time course of such (`Ramp` for a growing contact).
 
     Raises:
-        ValueError: For a centre that is not a point (2,) or a radius that is not one positive
-            number (at every breakpoint of a time course).
+        ValueError: For a centre that is not a point (2,) or (3,), or a radius that is not one
+            positive number (at every breakpoint of a time course).
     """
 
     centre: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Disc.centre"))
     radius: ArrayLike | AbstractTimeCourse = eqx.field(converter=float_array("Disc.radius"))
 
     def __check_init__(self) -> None:
-        _check_centre(self.centre, "Disc.centre")
+        _check_centre(self.centre, "Disc.centre", surface=True)
         radius = reach(self.radius, "Disc.radius")
         if radius is not None:
             if radius.shape[1:] != ():
@@ -117,10 +138,10 @@ class Disc(AbstractShape):
                 raise ValueError(f"Disc.radius must be positive (metres); got {radius.min()}")
 
     def signed_distance(self, points: jax.Array, t: ArrayLike = 0.0) -> jax.Array:
-        """The signed distance |x - centre| - radius, exact.
+        """The signed distance |x - centre| - radius, exact (the chord on a curved skin).
 
         Arguments:
-            points: (..., 2) points, metres.
+            points: (..., 2) points, metres ((..., 3) for a centre (x, y, z)).
             t: The time, seconds.
 
         Returns:

@@ -111,15 +111,18 @@ class Touches(eqx.Module):
         name: The stage's name, as `Simulation.stages` lists it (a class variable).
         mesh: The simulation `Mesh`.
         touches: The scene's `Touch`es.
+        surface: The curved skin's surface (`Skin.surface`; centres are moved onto it), or
+            None for a flat skin.
     """
 
     name: ClassVar[str] = "touches"
     mesh: Mesh = eqx.field(static=True)
     touches: tuple[Touch, ...]
+    surface: tuple[str, float] | None = eqx.field(default=None, static=True)
 
     def __call__(self, state: State) -> State:
         """`state` with `stimulus` and `response` set to the touches' stimulus."""
-        change = stimulus(self.mesh, self.touches, state.times, level=_LEVEL)
+        change = stimulus(self.mesh, self.touches, state.times, level=_LEVEL, surface=self.surface)
         return state.replace(stimulus=change, response=change)
 
 
@@ -405,7 +408,7 @@ def pipeline(scene: Scene, *, progress: bool = True) -> tuple[Stage, ...]:
     skin = scene.skin
     stages: list[Stage] = []
     if scene.touches:
-        stages.append(Touches(mesh, scene.touches))
+        stages.append(Touches(mesh, scene.touches, skin.surface))
         memory = scene.effect("memory")
         if memory is not None:
             stages.append(Memory(memory))
@@ -510,7 +513,8 @@ class Simulation(eqx.Module):
         """The simulation as a `diffeit.io.Recording`, what `save` writes.
 
         Frames, times, reference, the simulation mesh with the truth as its images
-        ("conductivity", S/sq), the reconstruction mesh's geometry, and the scene, the stages,
+        ("conductivity", S/sq), the reconstruction mesh's geometry (a flat skin's only: the
+        geometries of `diffeit.io` are flat), and the scene, the stages,
         the solves and the lost readings in the provenance metadata.
 
         Returns:
@@ -530,7 +534,8 @@ class Simulation(eqx.Module):
             protocol=self.protocol,
             reference=np.asarray(self.reference),
             mesh=self.mesh,
-            geometry=skin.geometry_with_h(skin.h),
+            # diffeit.io names flat generators only: a curved skin's file holds its mesh alone.
+            geometry=None if skin.surface is not None else skin.geometry_with_h(skin.h),
             provenance={"source": f"diffeit simulate {self.scene.name}".rstrip(), "metadata": metadata},
             images=np.asarray(self.truth),
             image_quantity="conductivity",

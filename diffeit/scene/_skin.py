@@ -21,12 +21,23 @@ from ..protocol import Protocol
 
 ArrayLike = float | jax.Array | np.ndarray
 
-SKIN_KINDS = ("disc", "rectangle", "polygon")
+SKIN_KINDS = ("disc", "rectangle", "polygon", "cylinder_patch", "sphere_cap")
+# The kinds on curved surfaces (meshes with (N, 3) nodes), and the keys their generators need.
+CURVED_KINDS = ("cylinder_patch", "sphere_cap")
+_REQUIRED_KEYS = {"cylinder_patch": ("radius", "length", "angle"), "sphere_cap": ("radius", "polar_angle")}
 # Keys of [skin] that are the mesh generator's arguments, per kind (h is added per mesh).
 GEOMETRY_KEYS = {
     "disc": {"n_electrodes": None, "electrode_width": "length", "radius": "length", "first_electrode_angle": "angle"},
     "rectangle": {"n_electrodes": None, "electrode_width": "length", "width": "length", "height": "length"},
     "polygon": {"n_electrodes": None, "electrode_width": "length", "vertices": "length"},
+    "cylinder_patch": {
+        "n_electrodes": None,
+        "electrode_width": "length",
+        "radius": "length",
+        "length": "length",
+        "angle": "angle",
+    },
+    "sphere_cap": {"n_electrodes": None, "electrode_width": "length", "radius": "length", "polar_angle": "angle"},
 }
 
 
@@ -39,9 +50,13 @@ class Skin(eqx.Module):
 
     Attributes:
         geometry: The sheet for a `diffeit.mesh` generator: `kind` ("disc", "rectangle",
-            "polygon") and that generator's keyword arguments (lengths in metres) except `h`,
+            "polygon", or on a curved surface "cylinder_patch", "sphere_cap") and that
+            generator's keyword arguments (lengths in metres, angles in radians) except `h`,
             e.g. `{"kind": "disc", "radius": 1.0, "n_electrodes": 16, "electrode_width":
-            0.2}`; given as a dict, held as nested tuples (static).
+            0.2}` or `{"kind": "cylinder_patch", "radius": 0.04, "length": 0.15, "angle":
+            2.6, "n_electrodes": 16}` (a forearm: radius, length and angle are required);
+            given as a dict, held as nested tuples (static). A curved skin's mesh has (N, 3)
+            nodes: its touches are `Disc`s with centres (x, y, z) on the surface.
         h: Element size of the reconstruction mesh, metres.
         simulation_h: Element size of the simulation mesh, metres; default h / 2, so
             simulated data never come from the mesh they are reconstructed on.
@@ -50,7 +65,8 @@ class Skin(eqx.Module):
         protocol: "adjacent", "opposite" or "skip K".
 
     Raises:
-        ValueError: Naming the field, for an unknown kind or geometry key, an `h`,
+        ValueError: Naming the field, for an unknown kind or geometry key, a missing key a
+            curved kind requires, an `h`,
             `simulation_h` or drive current that is not a positive number, a contact
             impedance of the wrong shape, not finite or not positive, an unknown protocol or
             one the electrodes do not allow, or a geometry that cannot be meshed.
@@ -85,6 +101,9 @@ class Skin(eqx.Module):
         unknown = sorted(set(dict(geometry)) - {"kind"} - set(GEOMETRY_KEYS[kind]))
         if unknown:
             raise ValueError(f"skin: unknown keys {unknown} for a {kind}; known: {sorted(GEOMETRY_KEYS[kind])}")
+        missing = [key for key in _REQUIRED_KEYS.get(kind, ()) if key not in dict(geometry)]
+        if missing:
+            raise ValueError(f"skin: a {kind} needs {missing} (lengths in metres, angles in radians)")
         given = {"h": h, "drive_current": drive_current} | (
             {} if simulation_h is None else {"simulation_h": simulation_h}
         )
@@ -117,8 +136,19 @@ class Skin(eqx.Module):
 
     @property
     def kind(self) -> str:
-        """The sheet's kind: "disc", "rectangle" or "polygon"."""
+        """The sheet's kind: "disc", "rectangle", "polygon", "cylinder_patch" or "sphere_cap"."""
         return dict(self.geometry)["kind"]
+
+    @property
+    def surface(self) -> tuple[str, float] | None:
+        """The curved surface the skin lies on: ("cylinder", radius) about the z axis,
+        ("sphere", radius) centred at the origin (radius in metres), or None for a flat skin.
+
+        `diffeit.scene.project_to_surface` moves points onto it."""
+        kind = self.kind
+        if kind not in CURVED_KINDS:
+            return None
+        return ("cylinder" if kind == "cylinder_patch" else "sphere", float(dict(self.geometry)["radius"]))
 
     @property
     def n_electrodes(self) -> int:
@@ -127,7 +157,8 @@ class Skin(eqx.Module):
 
     def mesh(self, h: float | None = None, electrode_offsets: tuple[float, ...] | None = None) -> Mesh:
         """The skin's mesh with element size `h` (metres; default the reconstruction mesh's),
-        electrodes moved along the boundary by `electrode_offsets` (metres, counter-clockwise)."""
+        electrodes moved along the boundary by `electrode_offsets` (metres, counter-clockwise;
+        not on a curved skin, whose generators place the electrodes evenly: ValueError)."""
         return _mesh(self.geometry, self.h if h is None else h, electrode_offsets)
 
     def make_protocol(self) -> Protocol:
@@ -162,7 +193,11 @@ def protocol_of(name: str, n_electrodes: int) -> Protocol:
 def _mesh(geometry: tuple, h: float, electrode_offsets: tuple[float, ...] | None) -> Mesh:
     keywords = thawed(geometry)
     kind = keywords.pop("kind")
-    if electrode_offsets is not None:
+    if kind in CURVED_KINDS:
+        if electrode_offsets is not None:
+            raise ValueError(f"a {kind} places its electrodes evenly: electrode position errors are flat skins' only")
+        keywords.setdefault("n_electrodes", 16)
+    elif electrode_offsets is not None:
         n = keywords.get("n_electrodes", 16)
         if kind == "disc":
             radius = keywords.get("radius", 1.0)

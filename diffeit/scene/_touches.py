@@ -35,9 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._arrays import concrete_floats, is_concrete
-from ..mesh import Mesh, element_sample_points
-from ._shapes import AbstractShape, check_level, covered_fraction, default_edge_width
-from ._time_courses import AbstractTimeCourse, ArrayLike, as_float, check_shape, float_array, reach
+from ..mesh import Mesh, distance_to_segments, element_sample_points
+from ._shapes import AbstractShape, Disc, check_level, covered_fraction, default_edge_width
+from ._time_courses import AbstractTimeCourse, ArrayLike, as_float, check_shape, float_array, reach, value_at
 
 # Sample points held in memory at once by `stimulus` (frames x elements x samples): frames are
 # mapped in batches of this size, so long scenes on fine meshes stay within a few hundred MB.
@@ -46,6 +46,11 @@ _SAMPLES_PER_BATCH = 1 << 22
 _CHECKS_PER_SEGMENT = 16
 # A point is on the skin when its barycentric coordinates in some triangle are all above this.
 _INSIDE_TOLERANCE = -1e-9
+# On a curved skin a centre is on the skin within this fraction of the mesh's longest edge of it
+# (the flat triangles lie up to a^2 / (8 rho) inside the surface for edges a, rho its radius).
+_SURFACE_TOLERANCE = 0.5
+# The surfaces a curved skin lies on (`Skin.surface`).
+SURFACES = ("cylinder", "sphere")
 
 
 class Touch(eqx.Module):
@@ -118,37 +123,82 @@ class Touch(eqx.Module):
 # --- Fields on a mesh -----------------------------------------------------------------------
 
 
-def touch_field(mesh: Mesh, touch: Touch, t: ArrayLike, *, level: int = 8) -> jax.Array:
+def touch_field(
+    mesh: Mesh, touch: Touch, t: ArrayLike, *, level: int = 8, surface: tuple[str, float] | None = None
+) -> jax.Array:
     """The relative conductivity change of one touch at one time, per element.
 
     amplitude(t) x the fraction of each element under its footprint at t (`shape_fraction`).
-    Exactly 0 where the amplitude is 0.
+    Exactly 0 where the amplitude is 0. On a curved skin the footprint is a `Disc` centred
+    on the surface (its docstring).
 
     Arguments:
         mesh: The skin's mesh.
         touch: The `Touch`.
         t: The time, seconds.
         level: level^2 sample points per element (a positive integer).
+        surface: The curved surface of the skin (`Skin.surface`): the centre at t is moved to
+            its nearest point (`project_to_surface`); None: used as it is.
 
     Returns:
         (E,) dsigma/sigma.
 
     Raises:
         ValueError: For a level that is not a positive integer, or a concrete touch whose
-            centre leaves the skin (`check_touches`).
+            centre leaves the skin or whose shape does not fit it (`check_touches`).
     """
     check_level(level)
-    check_touches(mesh, [touch])
-    return _jitted_touch_field(mesh, touch, as_float(t), level)
+    check_touches(mesh, [touch], surface=surface)
+    return _jitted_touch_field(mesh, touch, as_float(t), level, surface)
 
 
-@partial(jax.jit, static_argnames=("mesh", "level"))
-def _jitted_touch_field(mesh: Mesh, touch: Touch, t: jax.Array, level: int) -> jax.Array:
-    return _touch_field(element_sample_points(mesh, level), default_edge_width(mesh, level), touch, t)
+@partial(jax.jit, static_argnames=("mesh", "level", "surface"))
+def _jitted_touch_field(
+    mesh: Mesh, touch: Touch, t: jax.Array, level: int, surface: tuple[str, float] | None
+) -> jax.Array:
+    return _touch_field(element_sample_points(mesh, level), default_edge_width(mesh, level), touch, t, surface)
 
 
-def _touch_field(points: np.ndarray, default_width: float, touch: Touch, t: jax.Array) -> jax.Array:
-    return touch.amplitude_at(t) * covered_fraction(points, default_width, touch.shape, touch.edge_width, t)
+def _touch_field(
+    points: np.ndarray, default_width: float, touch: Touch, t: jax.Array, surface: tuple[str, float] | None = None
+) -> jax.Array:
+    shape = touch.shape
+    if surface is not None and isinstance(shape, Disc):
+        centre = project_to_surface(surface, value_at(shape.centre, t))
+        shape = eqx.tree_at(lambda disc: disc.centre, shape, centre)
+    return touch.amplitude_at(t) * covered_fraction(points, default_width, shape, touch.edge_width, t)
+
+
+def project_to_surface(surface: tuple[str, float], points: ArrayLike) -> jax.Array:
+    """The nearest points of a curved skin's surface.
+
+    On ("cylinder", rho) (axis the z axis) a point keeps its z and azimuth and moves to
+    distance rho from the axis; on ("sphere", rho) (centred at the origin) it keeps its
+    direction and moves to distance rho from the centre. Pure JAX (jit, grad), smooth away
+    from the axis (the centre), where the nearest point is not unique (a point there stays
+    there).
+
+    Arguments:
+        surface: ("cylinder", rho) or ("sphere", rho), rho in metres (`Skin.surface`).
+        points: (..., 3) points, metres.
+
+    Returns:
+        (..., 3) the projected points, metres.
+
+    Raises:
+        ValueError: For an unknown surface.
+    """
+    kind, radius = surface
+    if kind not in SURFACES:
+        raise ValueError(f"surface must be one of {SURFACES} with a radius; got {surface!r}")
+    points = as_float(points)
+    moved = points[..., :2] if kind == "cylinder" else points
+    squared = jnp.sum(moved * moved, axis=-1, keepdims=True)
+    positive = squared > 0
+    scale = jnp.where(positive, radius / jnp.sqrt(jnp.where(positive, squared, 1.0)), 1.0)
+    if kind == "cylinder":
+        return jnp.concatenate([points[..., :2] * scale, points[..., 2:]], axis=-1)
+    return points * scale
 
 
 def combine_changes(first: ArrayLike, second: ArrayLike) -> jax.Array:
@@ -170,7 +220,14 @@ def combine_changes(first: ArrayLike, second: ArrayLike) -> jax.Array:
     return (a + b + 2 * product) / (1 - product)
 
 
-def stimulus(mesh: Mesh, touches: Sequence[Touch], times: ArrayLike, *, level: int = 8) -> jax.Array:
+def stimulus(
+    mesh: Mesh,
+    touches: Sequence[Touch],
+    times: ArrayLike,
+    *,
+    level: int = 8,
+    surface: tuple[str, float] | None = None,
+) -> jax.Array:
     """The stimulus of several touches: dsigma/sigma per frame and element.
 
     Each touch's `touch_field`, overlaps combined by `combine_changes` in order (zeros without
@@ -183,20 +240,23 @@ def stimulus(mesh: Mesh, touches: Sequence[Touch], times: ArrayLike, *, level: i
         touches: The `Touch`es.
         times: (T,) the frame times, seconds.
         level: level^2 sample points per element (a positive integer).
+        surface: The curved surface of the skin (`Skin.surface`): each centre is moved to
+            its nearest point at every frame (`project_to_surface`); None: used as it is.
 
     Returns:
         (T, E) dsigma/sigma.
 
     Raises:
         ValueError: For a level that is not a positive integer, a touch that is not a `Touch`
-            or whose concrete centre leaves the skin (`check_touches`), times that are not 1D
+            or whose concrete centre leaves the skin or whose shape does not fit it
+            (`check_touches`), times that are not 1D
             or (concrete) not finite, and conductivity increases whose resistance drops sum to
             100% or more (sum of a / (1 + a) over positive amplitudes >= 1): where they
             overlap the conductivity would not be positive.
     """
     check_level(level)
     touches = tuple(touches)
-    check_touches(mesh, touches)
+    check_touches(mesh, touches, surface=surface)
     times = as_float(times)
     if times.ndim != 1:
         raise ValueError(f"times must be a 1D array of frame times (seconds); got shape {times.shape}")
@@ -204,17 +264,24 @@ def stimulus(mesh: Mesh, touches: Sequence[Touch], times: ArrayLike, *, level: i
         raise ValueError("times must be finite (seconds)")
     _check_increases(touches)
     batch = max(1, min(times.shape[0], _SAMPLES_PER_BATCH // (mesh.n_elements * level**2)))
-    return _stimulus(mesh, touches, times, level, batch)
+    return _stimulus(mesh, touches, times, level, batch, surface)
 
 
-@partial(jax.jit, static_argnames=("mesh", "level", "batch"))
-def _stimulus(mesh: Mesh, touches: tuple[Touch, ...], times: jax.Array, level: int, batch: int) -> jax.Array:
+@partial(jax.jit, static_argnames=("mesh", "level", "batch", "surface"))
+def _stimulus(
+    mesh: Mesh,
+    touches: tuple[Touch, ...],
+    times: jax.Array,
+    level: int,
+    batch: int,
+    surface: tuple[str, float] | None,
+) -> jax.Array:
     points, default_width = element_sample_points(mesh, level), default_edge_width(mesh, level)
 
     def frame(t: jax.Array) -> jax.Array:
         field = jnp.zeros(mesh.n_elements, dtype=jnp.result_type(float))
         for index, touch in enumerate(touches):
-            change = _touch_field(points, default_width, touch, t)
+            change = _touch_field(points, default_width, touch, t, surface)
             field = change if index == 0 else combine_changes(field, change)
         return field
 
@@ -232,38 +299,121 @@ def _check_increases(touches: tuple[Touch, ...]) -> None:
         )
 
 
-def check_touches(mesh: Mesh, touches: Sequence[Touch]) -> None:
+def check_touches(mesh: Mesh, touches: Sequence[Touch], *, surface: tuple[str, float] | None = None) -> None:
     """Check that every touch's centre lies on the skin at every time.
 
     The centre (or a moving centre's breakpoints and points along the segments between them)
     must lie inside some triangle of `mesh`. A footprint may overhang the rim (a finger at the
     edge): the part off the skin covers no element. Traced centres are not checked.
 
+    On a curved skin (a mesh with (N, 3) nodes) a touch must be a `Disc` with a centre
+    (x, y, z) within half the mesh's longest edge of its triangles (the triangles are chords of
+    the surface, a point on the surface lies a little outside them); the points along a moving
+    centre's segments are first moved onto `surface` when given (`project_to_surface`), as
+    `stimulus` moves them.
+
     Arguments:
         mesh: The skin's mesh.
         touches: The touches.
+        surface: The curved surface of the skin (`Skin.surface`), or None.
 
     Raises:
-        ValueError: For an item that is not a `Touch`, or a centre off the skin (naming the
-            touch and the point).
+        ValueError: For an item that is not a `Touch`, a shape that does not fit the skin
+            (an `Ellipse` or `Polygon`, or a centre (x, y), on a curved skin; a centre
+            (x, y, z) on a flat one), or a centre off the skin (naming the touch and the point).
     """
     for index, touch in enumerate(touches):
         if not isinstance(touch, Touch):
             raise ValueError(f"touches[{index}] must be a Touch; got {touch!r}")
+        check_shape_fits(mesh, touch.shape, f"touches[{index}].shape")
         centres = reach(touch.shape.centre, f"touches[{index}].shape.centre")
         if centres is None:
             continue
+        dimension = centres.shape[1]
         fractions = np.linspace(0.0, 1.0, _CHECKS_PER_SEGMENT + 1)[:-1, None, None]
-        along = (centres[:-1] + fractions * (centres[1:] - centres[:-1])).reshape(-1, 2)
+        along = (centres[:-1] + fractions * (centres[1:] - centres[:-1])).reshape(-1, dimension)
+        if surface is not None and len(along):
+            along = np.asarray(project_to_surface(surface, along))
         points = np.concatenate([centres, along])
-        outside = ~_on_mesh(mesh, points)
+        if dimension == 2:
+            outside = ~_on_mesh(mesh, points)
+            where_off = "lies outside the skin"
+        else:
+            tolerance = _SURFACE_TOLERANCE * _longest_edge(mesh)
+            outside = _distance_to_surface(mesh, points) > tolerance
+            where_off = f"lies further than {tolerance:.3g} m (half the mesh's longest edge) from the skin's surface"
         if np.any(outside):
             where = points[np.flatnonzero(outside)[0]]
             moving = " (along its path)" if len(centres) > 1 else ""
+            coordinates = ", ".join(f"{value:.6g}" for value in where)
             raise ValueError(
-                f"touches[{index}].shape.centre{moving} lies outside the skin at ({where[0]:.6g}, {where[1]:.6g}) m; "
+                f"touches[{index}].shape.centre{moving} {where_off} at ({coordinates}) m; "
                 "a touch's centre must be on the mesh"
             )
+
+
+def check_shape_fits(mesh: Mesh, shape: AbstractShape, name: str) -> None:
+    """Check that a shape can lie on a skin: a flat shape on a flat skin, a `Disc` with a
+    centre (x, y, z) on a curved one.
+
+    Arguments:
+        mesh: The skin's mesh ((N, 2) nodes flat, (N, 3) curved).
+        shape: The footprint.
+        name: Its name, for the error message.
+
+    Raises:
+        ValueError: Naming `name`, for an `Ellipse` or `Polygon` (or a centre (x, y)) on a
+            curved skin, or a centre (x, y, z) on a flat one.
+    """
+    curved = mesh.nodes.shape[1] == 3
+    if curved and not isinstance(shape, Disc):
+        raise ValueError(
+            f"{name}: {'an' if type(shape).__name__[0] in 'AEIOU' else 'a'} {type(shape).__name__} is flat-only; "
+            "on a curved skin (cylinder_patch, sphere_cap) use a "
+            "Disc with a centre (x, y, z) on the surface"
+        )
+    if not isinstance(shape, Disc):
+        return
+    centres = reach(shape.centre, f"{name}.centre")
+    if centres is None:
+        return
+    if curved and centres.shape[1] != 3:
+        raise ValueError(
+            f"{name}.centre must be a point (x, y, z) on a curved skin, metres; got {centres.shape[1]} values"
+        )
+    if not curved and centres.shape[1] != 2:
+        raise ValueError(f"{name}.centre must be a point (x, y) on a flat skin, metres; got {centres.shape[1]} values")
+
+
+def _longest_edge(mesh: Mesh) -> float:
+    corners = mesh.nodes[mesh.triangles]
+    return float(np.max(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)))
+
+
+def _distance_to_surface(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """(P,) the distance from each point (P, 3) to the nearest triangle of a surface mesh:
+    to its plane where the point's projection falls inside it, else to its nearest edge."""
+    corners = mesh.nodes[mesh.triangles]  # (E, 3, 3)
+    origin, edge1, edge2 = corners[:, 0], corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    normal = np.cross(edge1, edge2)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    # Barycentric coordinates of the projection on each plane: the Gram matrix of the edges.
+    g11, g12, g22 = np.sum(edge1 * edge1, 1), np.sum(edge1 * edge2, 1), np.sum(edge2 * edge2, 1)
+    determinant = g11 * g22 - g12 * g12
+    starts = np.concatenate([corners[:, 0], corners[:, 1], corners[:, 2]])
+    stops = np.concatenate([corners[:, 1], corners[:, 2], corners[:, 0]])
+    distances = np.empty(len(points))
+    for start in range(0, len(points), 64):  # bounds the (points x elements) temporaries
+        offset = points[start : start + 64, None, :] - origin  # (p, E, 3)
+        d1, d2 = np.einsum("pex,ex->pe", offset, edge1), np.einsum("pex,ex->pe", offset, edge2)
+        u = (g22 * d1 - g12 * d2) / determinant
+        v = (g11 * d2 - g12 * d1) / determinant
+        inside = (u >= 0) & (v >= 0) & (u + v <= 1)
+        height = np.abs(np.einsum("pex,ex->pe", offset, normal))
+        to_plane = np.min(np.where(inside, height, np.inf), axis=1)
+        to_edge = distance_to_segments(points[start : start + 64], starts, stops)
+        distances[start : start + 64] = np.minimum(to_plane, to_edge)
+    return distances
 
 
 def _on_mesh(mesh: Mesh, points: np.ndarray) -> np.ndarray:
