@@ -11,12 +11,18 @@ from numpy.typing import ArrayLike
 
 from .._arrays import readonly
 from .._messages import name_indices
-from ..mesh import Mesh, disc, polygon, rectangle
+from ..mesh import Mesh, cylinder_patch, disc, polygon, rectangle, sphere_cap
 from ..protocol import Protocol
 
 PROVENANCE_KEYS = ("source", "created_utc", "diffeit_version", "metadata")
 # The generators a geometry description may name; their keyword arguments are its other entries.
-_GENERATORS = {"disc": disc, "rectangle": rectangle, "polygon": polygon}
+_GENERATORS = {
+    "disc": disc,
+    "rectangle": rectangle,
+    "polygon": polygon,
+    "cylinder_patch": cylinder_patch,
+    "sphere_cap": sphere_cap,
+}
 GEOMETRY_KINDS = tuple(_GENERATORS)
 # What a reading is: a signed voltage, or its magnitude |V| from instruments that lose the sign.
 READINGS = ("signed", "magnitude")
@@ -215,7 +221,8 @@ class Recording(eqx.Module):
 
 def mesh_from_geometry(geometry: Mapping[str, Any]) -> Mesh:
     """The mesh a geometry description names: `{"kind": "disc", **keywords}` calls
-    `diffeit.mesh.disc(**keywords)`; likewise "rectangle" and "polygon" (lengths in metres)."""
+    `diffeit.mesh.disc(**keywords)`; likewise "rectangle", "polygon", and the curved skins
+    "cylinder_patch" and "sphere_cap" (lengths in metres, angles in radians)."""
     geometry = _checked_geometry(geometry)
     keywords = {k: v for k, v in geometry.items() if k != "kind"}
     generator = _GENERATORS[geometry["kind"]]

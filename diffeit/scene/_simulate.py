@@ -513,8 +513,7 @@ class Simulation(eqx.Module):
         """The simulation as a `diffeit.io.Recording`, what `save` writes.
 
         Frames, times, reference, the simulation mesh with the truth as its images
-        ("conductivity", S/sq), the reconstruction mesh's geometry (a flat skin's only: the
-        geometries of `diffeit.io` are flat), and the scene, the stages,
+        ("conductivity", S/sq), the reconstruction mesh's geometry, and the scene, the stages,
         the solves and the lost readings in the provenance metadata.
 
         Returns:
@@ -535,7 +534,7 @@ class Simulation(eqx.Module):
             reference=np.asarray(self.reference),
             mesh=self.mesh,
             # diffeit.io names flat generators only: a curved skin's file holds its mesh alone.
-            geometry=None if skin.surface is not None else skin.geometry_with_h(skin.h),
+            geometry=skin.geometry_with_h(skin.h),
             provenance={"source": f"diffeit simulate {self.scene.name}".rstrip(), "metadata": metadata},
             images=np.asarray(self.truth),
             image_quantity="conductivity",
