@@ -3,17 +3,23 @@
 `diffeit live --calibration` (tests/test_cli_live_touches.py).
 
 `skin_session(seed, board, ...)` builds one; `gains_board` and `mixing_board` are the boards
-(`Readout`s) the tests read their skins with."""
+(`Readout`s) the tests read their skins with. `calibrated_session(tmp_path_factory)` is one
+session written to files and calibrated by `diffeit calibrate`, made once per test process and
+shared by the CLI tests (pytest-xdist runs two processes: each makes its own)."""
 
 from __future__ import annotations
 
+import csv
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
 import diffeit as de
+from diffeit.cli import main
 from diffeit.readout import Readout
 
 PROTOCOL = de.protocol.adjacent(16)
@@ -134,3 +140,51 @@ def skin_session(
     step = 2 if untouched_between else 1  # from one pressed frame to the next
     presses = de.io.Presses(centres, RADIUS, times[UNTOUCHED::step]) if n_presses else None
     return SkinSession(recording, presses, readout, truth, std)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibratedSession:
+    """A session's files and their calibration by `diffeit calibrate` (see `calibrated_session`).
+
+    Attributes:
+        skin: The session.
+        path: The session file (`diffeit.io.write_frames`).
+        presses: The presses' CSV file (x_m, y_m, radius_m, time_s, label).
+        status: `diffeit calibrate`'s exit status.
+        calibration: The calibration file it wrote (and its figure beside it, .png).
+    """
+
+    skin: SkinSession
+    path: Path
+    presses: Path
+    status: int
+    calibration: Path
+
+
+def calibrated_session(tmp_path_factory) -> CalibratedSession:
+    """The session of a board with drive and channel gains up to 25% (`gains_board`), contact
+    impedances spread 3x, 0.1% noise: 10 untouched frames, then 30 presses at known places, one
+    after another (`skin_session(4, gains_board, untouched_between=False)`), written to a session
+    file and a presses CSV and calibrated by `diffeit calibrate SESSION.h5 --presses PRESSES.csv
+    -o SKIN.cal.h5`. Made once per test process (pytest's `tmp_path_factory` is one per session):
+    a calibration takes about 15 s, and the CLI tests (tests/test_cli_calibrate.py,
+    tests/test_cli_live_touches.py) share this one."""
+    return _calibrated_session(tmp_path_factory.getbasetemp())
+
+
+@functools.cache
+def _calibrated_session(basetemp: Path) -> CalibratedSession:
+    skin = skin_session(4, gains_board, untouched_between=False)
+    recording, centres, times = skin.recording, skin.presses.centres, skin.recording.times
+    folder = basetemp / "calibrated_session"
+    folder.mkdir()
+    path = de.io.write_frames(folder / "session.h5", recording)
+    presses = folder / "presses.csv"
+    with open(presses, "w", newline="") as file:
+        writer = csv.writer(file, lineterminator="\n")
+        writer.writerow(["x_m", "y_m", "radius_m", "time_s", "label"])
+        for k, ((x, y), t) in enumerate(zip(centres, times[UNTOUCHED:], strict=True)):
+            writer.writerow([repr(float(x)), repr(float(y)), RADIUS, repr(float(t)), f"press {k}"])
+    output = folder / "skin.cal.h5"
+    status = main(["calibrate", str(path), "--presses", str(presses), "-o", str(output)])
+    return CalibratedSession(skin, path, presses, status, output)

@@ -5,7 +5,7 @@ import csv
 
 import numpy as np
 import pytest
-from skin_sessions import gains_board, skin_session
+from skin_sessions import calibrated_session
 
 import diffeit as de
 from diffeit.cli import main
@@ -13,28 +13,20 @@ from diffeit.cli import main
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
-    """A session file and its presses CSV (tests/skin_sessions.py's skin): a board with drive
-    and channel gains up to 25%, contact impedances spread 3x, 0.1% noise; 10 untouched frames,
-    then 30 presses (radius 0.15, dsigma/sigma = -0.3) at known places, one after another."""
-    skin = skin_session(4, gains_board, untouched_between=False)
-    recording, centres, times = skin.recording, skin.presses.centres, skin.recording.times
-    folder = tmp_path_factory.mktemp("session")
-    path = de.io.write_frames(folder / "session.h5", recording)
-    presses = folder / "presses.csv"
-    with open(presses, "w", newline="") as file:
-        writer = csv.writer(file, lineterminator="\n")
-        writer.writerow(["x_m", "y_m", "radius_m", "time_s", "label"])
-        for k, ((x, y), t) in enumerate(zip(centres, times[10:], strict=True)):
-            writer.writerow([repr(float(x)), repr(float(y)), 0.15, repr(float(t)), f"press {k}"])
-    return path, presses, centres
+    """A session file and its presses CSV (tests/skin_sessions.py's `calibrated_session`): a board
+    with drive and channel gains up to 25%, contact impedances spread 3x, 0.1% noise; 10
+    untouched frames, then 30 presses (radius 0.15, dsigma/sigma = -0.3) at known places, one
+    after another."""
+    shared = calibrated_session(tmp_path_factory)
+    return shared.path, shared.presses, shared.skin.presses.centres
 
 
 @pytest.fixture(scope="module")
-def calibrated(session, tmp_path_factory):
-    path, presses, _ = session
-    output = tmp_path_factory.mktemp("calibration") / "skin.cal.h5"
-    status = main(["calibrate", str(path), "--presses", str(presses), "-o", str(output)])
-    return status, output
+def calibrated(tmp_path_factory):
+    """`diffeit calibrate SESSION.h5 --presses PRESSES.csv -o SKIN.cal.h5` run on the session once
+    per test process, shared with tests/test_cli_live_touches.py: its exit status and output."""
+    shared = calibrated_session(tmp_path_factory)
+    return shared.status, shared.calibration
 
 
 def test_calibrate_writes_a_calibration_file_and_its_figure(session, calibrated, capsys):

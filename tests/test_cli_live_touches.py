@@ -6,7 +6,7 @@ import re
 
 import numpy as np
 import pytest
-from skin_sessions import gains_board, skin_session
+from skin_sessions import calibrated_session
 
 import diffeit as de
 import hw
@@ -18,16 +18,17 @@ PLACES = np.array([[0.35, 0.2], [-0.3, -0.35]])
 
 @pytest.fixture(scope="module")
 def skin(tmp_path_factory):
-    """A small calibration session of one board (tests/skin_sessions.py's skin): drive and channel
-    gains up to 25%, contact impedances spread 3x, 0.1% noise (its own seed, 1); 10 untouched
-    frames, then 12 labelled presses; calibrated with `de.calibrate` and saved. Returns the path,
-    a function giving the board's noisy frames of conductivities (T of (E,)) and a seed, one
-    giving the conductivity (E,) under a press at a centre, and the mesh."""
-    skin = skin_session(7, gains_board, n_presses=12, untouched_between=False, noise_seed=1)
-    calibration = de.calibrate(skin.recording, skin.presses)
+    """A calibration session of one board (tests/skin_sessions.py's `calibrated_session`, shared
+    with tests/test_cli_calibrate.py: one calibration per test process): drive and channel gains
+    up to 25%, contact impedances spread 3x, 0.1% noise; 10 untouched frames, then 30 labelled
+    presses; calibrated by `diffeit calibrate`. Returns the calibration file's path, a function
+    giving the board's noisy frames of conductivities (T of (E,)) and a seed, one giving the
+    conductivity (E,) under a press at a centre, and the mesh."""
+    shared = calibrated_session(tmp_path_factory)
+    assert shared.status == 0
+    calibration = de.calibration.load(shared.calibration)
     assert calibration.position_map is not None and calibration.noise is not None
-    path = calibration.save(tmp_path_factory.mktemp("skin") / "skin.cal.h5")
-    return path, skin.frames, skin.pressed, skin.mesh
+    return shared.calibration, shared.skin.frames, shared.skin.pressed, shared.skin.mesh
 
 
 def _live(port, *options):
