@@ -23,7 +23,7 @@ import numpy as np
 import scipy.sparse
 
 from ._arrays import StaticData, fingerprint, readonly
-from .mesh import Mesh, pixel_overlaps
+from .mesh import Mesh, pixel_overlaps, require_flat
 
 
 @dataclass(eq=False)
@@ -139,9 +139,10 @@ def pixel_grid(mesh: Mesh, grid: int | tuple[int, int] = 64, min_coverage: float
         The `PixelGrid`.
 
     Raises:
-        ValueError: For a grid that is not a positive integer or a pair of them, or a
-            `min_coverage` outside [0, 1).
+        ValueError: For a grid that is not a positive integer or a pair of them, a
+            `min_coverage` outside [0, 1), or a surface mesh (a curved skin).
     """
+    require_flat(mesh, "pixel_grid (GREIT and rendered images)")
     shape = (grid, grid) if np.ndim(grid) == 0 else tuple(grid)
     if len(shape) != 2 or not all(isinstance(n, int | np.integer) and n >= 1 for n in shape):
         raise ValueError(f"grid must be a positive integer or a pair of them (n_rows, n_columns); got {grid!r}")

@@ -274,3 +274,18 @@ def test_flat_and_3d_meshes_differ_and_3d_meshes_refuse_scikit_fem():
 def test_surface_generators_refuse_impossible_shapes(generator, kwargs, message):
     with pytest.raises(ValueError, match=message):
         generator(n_electrodes=8, h=0.2, **kwargs)
+
+
+def test_what_works_in_the_plane_refuses_a_curved_skin_by_name():
+    """Point location, pixel grids (GREIT, rendering) and mesh-to-mesh interpolation would read
+    a surface's first two coordinates as a plane: they refuse it."""
+    cap = de.mesh.sphere_cap(1.0, 1.0, 16, h=0.4)
+    message = "works on flat meshes"
+    with pytest.raises(ValueError, match=message):
+        de.mesh.locate(cap, [0.0, 0.0])
+    with pytest.raises(ValueError, match=message):
+        de.render.pixel_grid(cap, 16)
+    with pytest.raises(ValueError, match=message):
+        de.mesh.interpolate(np.ones(cap.n_elements), cap, cap)
+    with pytest.raises(ValueError, match=message):
+        de.inverse.GREIT(de.ForwardModel(cap, de.protocol.adjacent(16)))

@@ -13,6 +13,7 @@ from ._interpolate import overlap_areas as overlap_areas
 from ._interpolate import pixel_overlaps as pixel_overlaps
 from ._interpolate import remap_matrix as remap_matrix
 from ._mesh import Mesh as Mesh
+from ._mesh import require_flat as require_flat
 from ._read import read as read
 from ._surface import cylinder_patch as cylinder_patch
 from ._surface import sphere_cap as sphere_cap

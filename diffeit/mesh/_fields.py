@@ -9,7 +9,7 @@ import matplotlib.tri
 import numpy as np
 from numpy.typing import ArrayLike
 
-from ._mesh import Mesh
+from ._mesh import Mesh, require_flat
 
 
 def locate(mesh: Mesh, points: ArrayLike) -> np.ndarray:
@@ -24,7 +24,11 @@ def locate(mesh: Mesh, points: ArrayLike) -> np.ndarray:
     Returns:
         (P,) (or a scalar for one point) int: the index of the triangle containing each point,
         -1 for a point off the mesh. A point on an edge goes to one of its triangles.
+
+    Raises:
+        ValueError: For a surface mesh (a curved skin): the locator is planar.
     """
+    require_flat(mesh, "locate (point location)")
     positions = np.asarray(points, dtype=float)
     found = _finder(mesh)(*np.atleast_2d(positions).T)
     return np.asarray(found, dtype=int).reshape(positions.shape[:-1])

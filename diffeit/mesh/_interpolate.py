@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
 
 from .._messages import name_indices
-from ._mesh import Mesh
+from ._mesh import Mesh, require_flat
 
 # Candidate pairs clipped per batch: bounds the temporaries to a few tens of MB.
 _PAIRS_PER_BATCH = 1 << 16
@@ -48,9 +48,12 @@ def overlap_areas(source: Mesh, target: Mesh) -> scipy.sparse.csr_array:
 
     Raises:
         TypeError: For a source or target that is not a `Mesh`.
+        ValueError: For a surface mesh (a curved skin): the clipping is planar.
     """
     _check_mesh(source, "source")
     _check_mesh(target, "target")
+    require_flat(source, "overlap_areas (mesh-to-mesh interpolation)")
+    require_flat(target, "overlap_areas (mesh-to-mesh interpolation)")
     target_index, source_index = _candidate_pairs(source, target)
     corners_t, corners_s = target.nodes[target.triangles], source.nodes[source.triangles]
     areas = np.empty(len(target_index))
@@ -239,7 +242,11 @@ def pixel_overlaps(mesh: Mesh, x_edges: np.ndarray, y_edges: np.ndarray) -> scip
     Returns:
         Sparse (n_rows * n_columns, E): the area, m^2, of pixel p (row-major, row 0 at the
         smallest y) inside triangle e.
+
+    Raises:
+        ValueError: For a surface mesh (a curved skin).
     """
+    require_flat(mesh, "pixel_overlaps (a pixel grid)")
     corners = mesh.nodes[mesh.triangles]  # (E, 3, 2), counter-clockwise
     n_columns, n_rows = len(x_edges) - 1, len(y_edges) - 1
     dx, dy = x_edges[1] - x_edges[0], y_edges[1] - y_edges[0]

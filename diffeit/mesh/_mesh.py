@@ -353,3 +353,19 @@ def _boundary_chain(nodes: np.ndarray, boundary_edges: np.ndarray) -> np.ndarray
     while chain[-1] in following and len(chain) < len(nodes):
         chain.append(following[chain[-1]])
     return np.array(chain) if len(chain) == len(nodes) else None
+
+
+def require_flat(mesh: Mesh, what: str) -> None:
+    """Refuse a surface mesh for `what`, which works in the plane (a point locator, polygon
+    clipping, a pixel grid): it would read the first two coordinates of a curved skin's nodes
+    as a plane and answer wrongly without a word.
+
+    Arguments:
+        mesh: The mesh.
+        what: What needs the flat mesh, for the message.
+
+    Raises:
+        ValueError: For a mesh with (N, 3) nodes.
+    """
+    if mesh.nodes.shape[1] != 2:
+        raise ValueError(f"{what} works on flat meshes ((N, 2) nodes); this mesh is a surface in 3D (a curved skin)")
