@@ -4,7 +4,9 @@ a capped fit that does not converge; a fit killed mid-run and resumed from its c
 input; and `diffeit live --memory` with a saved fit."""
 
 import concurrent.futures
+import contextlib
 import dataclasses
+import io
 import os
 import signal
 import subprocess
@@ -51,9 +53,15 @@ def scene() -> Scene:
 
 
 @pytest.fixture(scope="module")
-def frames_file(scene, tmp_path_factory):
+def simulation(scene):
+    """The scene simulated once, for the frames file and the live viewer's tests."""
+    return simulate(scene, progress=False)
+
+
+@pytest.fixture(scope="module")
+def frames_file(simulation, tmp_path_factory):
     path = tmp_path_factory.mktemp("fit") / "memory.h5"
-    simulate(scene, progress=False).save(path)
+    simulation.save(path)
     return path
 
 
@@ -65,6 +73,18 @@ def small_frames_file(scene, tmp_path_factory):
     path = tmp_path_factory.mktemp("fit") / "small.h5"
     simulate(dataclasses.replace(scene, skin=Skin(h=0.4), duration=4.0), progress=False).save(path)
     return path
+
+
+@pytest.fixture(scope="module")
+def whole(frames_file, tmp_path_factory) -> SimpleNamespace:
+    """`diffeit fit` of the frames file run to its end, once for the tests that read it (what it
+    writes, and the path the killed and resumed runs must follow): its exit status, what it
+    printed, and its output name."""
+    out = tmp_path_factory.mktemp("whole") / "skin"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        status = main(["fit", str(frames_file), "-o", str(out)])
+    return SimpleNamespace(status=status, printed=printed.getvalue(), out=out)
 
 
 def _gaps(scene: Scene, mesh: de.Mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -81,13 +101,12 @@ def _energy(mesh: de.Mesh, images: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, tmp_path, capsys):
-    out = tmp_path / "skin"
-    assert main(["fit", str(frames_file), "-o", str(out)]) == 0
-    printed = capsys.readouterr().out
+def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, whole):
+    assert whole.status == 0
+    printed, folder = whole.printed, whole.out.parent
     assert " s, converged\n" in printed and "misfit" in printed
 
-    corrected = read_frames(tmp_path / "skin.h5")
+    corrected = read_frames(folder / "skin.h5")
     mesh = corrected.mesh
     n_frames = len(scene.times)
     assert mesh.n_elements == scene.reconstruction_mesh().n_elements
@@ -95,7 +114,7 @@ def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, tmp_pa
     assert corrected.image_quantity == IMAGE_QUANTITY
     np.testing.assert_array_equal(corrected.frames, read_frames(frames_file).frames)
 
-    saved = fit.load(tmp_path / "skin.fit.h5")
+    saved = fit.load(folder / "skin.fit.h5")
     assert saved.result == RESULTS.successful
     np.testing.assert_allclose(corrected.images, saved.stimulus)
     assert saved.background.shape == (mesh.n_elements,) and saved.contact_impedance.shape == (16,)
@@ -117,7 +136,7 @@ def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, tmp_pa
     before = _plain_images(saved, mesh, read_frames(frames_file))
     assert _energy(mesh, before[gaps]) > 5 * _energy(mesh, stimulus[gaps])
 
-    figure = matplotlib.image.imread(tmp_path / "skin.png")
+    figure = matplotlib.image.imread(folder / "skin.png")
     assert figure.shape[0] > 600 and figure.shape[1] > 900 and np.ptp(figure[..., :3]) > 0.5
 
 
@@ -280,11 +299,10 @@ def test_bad_input_exits_2_with_a_message_and_writes_nothing(tmp_path, capsys):
 # --- diffeit live --memory -------------------------------------------------------------------
 
 
-def test_live_memory_corrects_frame_by_frame_across_batches(scene, tmp_path):
+def test_live_memory_corrects_frame_by_frame_across_batches(scene, simulation, tmp_path):
     """The live viewer's correction of batches of 3 frames equals `correct_memory` of all the
     frames at once (the memory state carries over from batch to batch), with a dead band of 3
     standard deviations of the image noise the fit's data scale implies."""
-    simulation = simulate(scene, progress=False)
     frames, times = np.asarray(simulation.frames), np.asarray(simulation.times)
     settings = ModelSettings(h=0.25)
     mesh = settings.unit_disc(16)
@@ -319,13 +337,12 @@ def _relative_images(viewer: _LiveViewer, batch: list, reference: np.ndarray) ->
 
 
 @pytest.mark.slow
-def test_live_memory_with_the_emulator(scene, tmp_path, capsys):
+def test_live_memory_with_the_emulator(simulation, tmp_path, capsys):
     """A fit saved by `JointFit.save` (from given parts, no steps), applied by `diffeit live
     --memory` to frames streamed by the emulator."""
     settings = ModelSettings(h=0.25)
     mesh = settings.unit_disc(16)
     model = settings.model(mesh, de.protocol.adjacent(16))
-    simulation = simulate(scene, progress=False)
     frames = np.asarray(simulation.frames)
     initial = {
         "background": 0.01,
