@@ -38,12 +38,15 @@ from numpy.typing import ArrayLike
 LIBVER = "v110"
 # Seconds a reader gives a file a live recorder holds to reach the end its superblock records.
 GROWTH_WAIT = 1.0
+# Seconds a read of a file a writer holds open is tried again when it fails (a chunk caught while
+# it was rewritten: the writer finishes it within milliseconds; damage fails every time).
+REREAD_WAIT = 0.5
 # Seconds a reader waits while another process holds a file's lock (a recorder creating it).
 LOCK_WAIT = 5.0
 # Tries HDF5 gives a metadata block that fails its checksum under SWMR access (a writer may be
 # rewriting it). HDF5 waits twice as long before each try, and its default of 100 tries waits
 # for hours on a damaged byte; 10 tries wait about a millisecond, and `read_checked` then tries
-# the whole read again for up to GROWTH_WAIT seconds.
+# the whole read again for up to REREAD_WAIT seconds.
 SWMR_READ_ATTEMPTS = 10
 
 _SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -167,7 +170,7 @@ def read_checked(
     """Read an HDF5 file with `read(file)`, opened by `open_checked`.
 
     A file a writer holds open may be caught mid-write (a chunk half rewritten fails its
-    checksum): its reading is tried again for up to `GROWTH_WAIT` seconds before the failure
+    checksum): its reading is tried again for up to `REREAD_WAIT` seconds before the failure
     is reported.
 
     Arguments:
@@ -188,7 +191,7 @@ def read_checked(
             no checksums.
     """
     path = Path(path)
-    deadline = time.monotonic() + GROWTH_WAIT
+    deadline = time.monotonic() + REREAD_WAIT
     while True:
         try:
             with open_checked(path, "r", what=what) as file:
