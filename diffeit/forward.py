@@ -330,6 +330,8 @@ def _checked_electrode_shift(electrode_shift, n: int) -> jax.Array:
         raise ValueError(
             f"electrode_shift has shape {shift.shape}; expected ({n},), one per electrode, or ({n}, 2), start and end"
         )
+    if is_concrete(shift) and not np.all(np.isfinite(np.asarray(shift))):
+        raise ValueError(f"electrode_shift is not finite: {np.asarray(shift)}")
     return shift
 
 
@@ -341,8 +343,6 @@ def _within_margin(shift: jax.Array, system: CompleteElectrodeSystem) -> jax.Arr
     beyond = jnp.abs(shift) > margin * (1 + 1e-9)
     collapsed = lengths + shift[:, 1] - shift[:, 0] <= 0
     if is_concrete(shift):
-        if not np.all(np.isfinite(np.asarray(shift))):
-            raise ValueError(f"electrode_shift is not finite: {np.asarray(shift)}")
         if np.any(beyond):
             raise ValueError(
                 f"electrode_shift moves electrode(s) {name_indices(np.flatnonzero(np.any(beyond, axis=1)))} "

@@ -85,6 +85,7 @@ def test_the_derivative_in_the_shift_agrees_with_finite_differences(mesh):
         ({"electrode_shift": np.full(16, 0.1), "electrode_margin": 0.05}, "further than electrode_margin"),
         ({"electrode_shift": np.tile([0.05, -0.2], (16, 1))}, "no length"),
         ({"electrode_shift": np.full(16, np.nan), "electrode_margin": 0.05}, "not finite"),
+        ({"electrode_shift": np.full(16, np.nan)}, "electrode_shift is not finite"),
         ({"electrode_shift": np.zeros(16), "electrode_model": "point"}, "complete electrode model"),
         ({"electrode_margin": -1.0}, "electrode_margin must be"),
     ],
