@@ -182,17 +182,37 @@ class JointSettings(eqx.Module):
         free: The groups of `GROUPS` fitted.
         memory_free: The memory fields fitted when "memory" is free.
         priors: `JointPriors`.
-        data_scale: s, volts (the noise standard deviation the misfit is measured in).
-        memory_centre: The memory prior's centre (`MemoryParameters`; the fixed fields' values).
+        data_scale: s, volts (the noise standard deviation the misfit is measured in), a
+            scalar array.
+        memory_centre: The memory prior's centre (`MemoryParameters`; the fixed fields'
+            values), its fields arrays.
         log_contact_impedance_centre: (L,) the contact prior's centre, ln(ohm m).
     """
 
     free: tuple[str, ...] = eqx.field(static=True)
     memory_free: tuple[str, ...] = eqx.field(static=True)
     priors: JointPriors
-    data_scale: float = eqx.field(static=True)
+    data_scale: jax.Array
     memory_centre: MemoryParameters
     log_contact_impedance_centre: jax.Array
+
+    def __init__(
+        self,
+        free: Collection[str],
+        memory_free: Collection[str],
+        priors: JointPriors,
+        data_scale: float | jax.Array,
+        memory_centre: MemoryParameters,
+        log_contact_impedance_centre: jax.Array,
+    ) -> None:
+        self.free = tuple(free)
+        self.memory_free = tuple(memory_free)
+        self.priors = priors
+        # Arrays, not Python floats: a float is static to jit and would be compiled into the
+        # fit's programs, so that every fit of other data or from another start compiled again.
+        self.data_scale = jnp.asarray(data_scale, float)
+        self.memory_centre = jax.tree_util.tree_map(lambda value: jnp.asarray(value, float), memory_centre)
+        self.log_contact_impedance_centre = jnp.asarray(log_contact_impedance_centre)
 
     @property
     def memory_fitted(self) -> tuple[str, ...]:
@@ -291,7 +311,7 @@ class JointFit(eqx.Module):
                     "free": json.dumps(list(settings.free)),
                     "memory_free": json.dumps(list(settings.memory_free)),
                     "priors": json.dumps(dataclasses.asdict(settings.priors)),
-                    "data_scale": settings.data_scale,
+                    "data_scale": float(settings.data_scale),
                 },
             )
             for name in ("background", "contact_impedance", "stimulus", "response", "times"):
