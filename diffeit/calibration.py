@@ -441,12 +441,18 @@ def _voltages(model: ForwardModel, protocol: Protocol, background: float, contac
     return np.asarray(_with(model, protocol, contact_impedance).measure(jnp.full(model.n_elements, background)))
 
 
-def _with(model: ForwardModel, protocol: Protocol, contact_impedance: np.ndarray) -> ForwardModel:
+def _with(
+    model: ForwardModel, protocol: Protocol, contact_impedance: np.ndarray, margin: float | None = None
+) -> ForwardModel:
     """`model` under another protocol and contact impedance (same mesh, electrodes, drive
-    current and solver)."""
+    current and solver); with `margin`, its electrodes free to move that far, m, from where
+    they are."""
     moved = {}
-    if model.electrode_shift is not None:
-        moved = {"electrode_shift": model.electrode_shift, "electrode_margin": model.system.electrode_margin}
+    if model.electrode_shift is not None or margin is not None:
+        moved = {
+            "electrode_shift": model.electrode_shift,
+            "electrode_margin": model.system.electrode_margin if margin is None else margin,
+        }
     return ForwardModel(
         model.mesh, protocol, contact_impedance, drive_current=model.drive_current, solver=model.solver, **moved
     )
@@ -1123,7 +1129,7 @@ def _refine(
     position_prior, margin = _position_prior(model, priors["electrode_positions"])
     prior = dict(priors, electrode_positions=position_prior)
     if "electrode_positions" in groups:
-        model = _movable(model, margin)
+        model = _with(model, protocol, model.contact_impedance, margin)
     fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     sizes = {
         "level": 1,
@@ -1326,20 +1332,6 @@ def _position_prior(model: ForwardModel, fraction: float) -> tuple[float, float]
     return fraction * spacing, min(_POSITION_REACH * fraction * spacing, _POSITION_GAP * gap)
 
 
-def _movable(model: ForwardModel, margin: float) -> ForwardModel:
-    """`model` with its electrodes free to move `margin` m (where they are, or the mesh's)."""
-    shift = np.zeros(model.mesh.n_electrodes) if model.electrode_shift is None else model.electrode_shift
-    return ForwardModel(
-        model.mesh,
-        model.protocol,
-        model.contact_impedance,
-        drive_current=model.drive_current,
-        solver=model.solver,
-        electrode_shift=shift,
-        electrode_margin=margin,
-    )
-
-
 def _electrode_spacing(model: ForwardModel) -> tuple[float, float]:
     """The mean distance between neighbouring electrode centres along the boundary, and the
     narrowest gap between two electrodes, m (electrodes on the outer boundary loop)."""
@@ -1437,9 +1429,8 @@ def _fit_presses(
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
-    model = _with(calibration.model, protocol, calibration.contact_impedance)
-    if positions is not None:
-        model = _movable(model, positions[1])
+    margin = None if positions is None else positions[1]
+    model = _with(calibration.model, protocol, calibration.contact_impedance, margin)
     level = calibration.conductivity
     sigma = jnp.full(model.n_elements, level)
     patterns = jnp.asarray(
