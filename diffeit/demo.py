@@ -94,10 +94,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
 
     mesh = meshes.disc(16, electrode_width=0.2, h=RECONSTRUCTION_H)
     model = ForwardModel(mesh, adjacent, CONTACT_IMPEDANCE)
-    # The hyperparameter from the data (generalised cross-validation), never tuned to the truth;
-    # a choice at an end of the candidates is still used (throw=False): the demo always draws its figure.
-    hyperparameter = select_hyperparameter(model, difference, "gcv", background=BACKGROUND, throw=False).value
-    image = np.asarray(OneStep(model, "noser", hyperparameter, BACKGROUND).solve(difference).value)
+    hyperparameter, image = _one_step(model, difference)
     truth = BACKGROUND * TOUCH_CHANGE * meshes.disc_fraction(mesh, TOUCH_CENTRE, TOUCH_RADIUS)
     error = metrics.position_error(mesh, image, TOUCH_CENTRE)
 
@@ -119,17 +116,7 @@ def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
         f"position error {error:.3f} m (+: half-amplitude centroid)",
         fontsize=9,
     )
-    output = Path(output)
-    figure.savefig(output, dpi=120)
-    return DemoResult(
-        position_error=error,
-        hyperparameter=hyperparameter,
-        correlation=metrics.correlation(mesh, truth, image),
-        peak=metrics.peak(image),
-        n_data_elements=data_mesh.n_elements,
-        n_reconstruction_elements=mesh.n_elements,
-        figure=output,
-    )
+    return _saved(figure, output, mesh, data_mesh, truth, image, error, hyperparameter)
 
 
 def run_curved_demo(skin: str = "forearm", output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
@@ -180,8 +167,7 @@ def run_curved_demo(skin: str = "forearm", output: str | Path = "demo.png", seed
 
     mesh = scene.reconstruction_mesh()
     model = ForwardModel(mesh, scene.skin.make_protocol(), CONTACT_IMPEDANCE)
-    hyperparameter = select_hyperparameter(model, difference, "gcv", background=BACKGROUND, throw=False).value
-    image = np.asarray(OneStep(model, "noser", hyperparameter, BACKGROUND).solve(difference).value)
+    hyperparameter, image = _one_step(model, difference)
     surface = scene.skin.surface
     truth = BACKGROUND * np.asarray(touch_field(mesh, touch, 0.0, surface=surface))
     centroid = metrics.half_amplitude_centroid(mesh, image)
@@ -205,6 +191,29 @@ def run_curved_demo(skin: str = "forearm", output: str | Path = "demo.png", seed
         f"position error {1e3 * error:.1f} mm (x: touch centre, +: half-amplitude centroid)",
         fontsize=9,
     )
+    return _saved(figure, output, mesh, data_mesh, truth, image, error, hyperparameter)
+
+
+def _one_step(model: ForwardModel, difference: np.ndarray) -> tuple[float, np.ndarray]:
+    """The hyperparameter generalised cross-validation chooses from the data (never tuned to
+    the truth; one at an end of the candidates is still used, throw=False: the demo always
+    draws its figure), and the one-step NOSER image (E,) of `difference` at it, S/sq."""
+    hyperparameter = select_hyperparameter(model, difference, "gcv", background=BACKGROUND, throw=False).value
+    image = np.asarray(OneStep(model, "noser", hyperparameter, BACKGROUND).solve(difference).value)
+    return hyperparameter, image
+
+
+def _saved(
+    figure: Figure,
+    output: str | Path,
+    mesh: meshes.Mesh,
+    data_mesh: meshes.Mesh,
+    truth: np.ndarray,
+    image: np.ndarray,
+    error: float,
+    hyperparameter: float,
+) -> DemoResult:
+    """Save `figure` to `output` (PNG) and return the demo's figures of merit."""
     output = Path(output)
     figure.savefig(output, dpi=120)
     return DemoResult(
