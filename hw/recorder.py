@@ -9,8 +9,8 @@ first `/committed_frames` rows only, so a kill or a power cut at any instant los
 batch being written (the recorder of `diffeit acquire` writes one frame a batch), and never
 yields a half-written row. The file stays readable meanwhile and afterwards:
 `diffeit.io.read_frames` (a `Recording`) and `read_recorded_frames` (`hw.Frame`s with counters
-and timestamps). `close()` leaves SWMR mode and stores the final drop statistics in the
-provenance metadata as well.
+and timestamps). `close()` leaves SWMR mode. `read_frames` reports the committed drop
+statistics in the provenance metadata (`drop_statistics`).
 
 Additions to the frames file (all under `/acquisition`, written by the recorder only):
 
@@ -26,10 +26,8 @@ in the provenance metadata): the recorder's start.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import time
-import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -54,8 +52,6 @@ from .parser import DropStatistics
 
 _KINDS = tuple(field.name for field in dataclasses.fields(DropStatistics))
 _WHAT = "recorder's frames file"
-# Seconds `close` keeps trying to reopen the file when a reader holds it.
-_CLOSE_RETRY_SECONDS = 5.0
 
 
 class Recorder:
@@ -160,30 +156,15 @@ class Recorder:
         return self.n_frames
 
     def close(self) -> None:
-        """Leave SWMR mode and store the final statistics in the provenance metadata."""
+        """Close the file, which leaves SWMR mode.
+
+        The statistics are stored by `append`; nothing is written after the close, when a
+        reader polling the file could hold its lock.
+        """
         if self._file is None:
             return
         self._file.close()
         self._file = None
-        # A reader opening the file just now holds a lock for a moment: retry, and if it keeps
-        # it, warn; /acquisition/drops holds the same statistics (`recorded_statistics`).
-        deadline = time.monotonic() + _CLOSE_RETRY_SECONDS
-        while True:
-            try:
-                with h5py.File(self.path, "r+") as file:
-                    stored = json.loads(read_attributes(file)["metadata"])
-                    metadata = {**stored, "drop_statistics": self._statistics.as_dict()}
-                    write_attributes(file, {"metadata": json.dumps(metadata)})
-                return
-            except OSError as error:  # BlockingIOError included
-                if time.monotonic() > deadline:
-                    warnings.warn(
-                        f"{self.path}: could not store the drop statistics in the metadata ({error}); "
-                        "/acquisition/drops holds them",
-                        stacklevel=2,
-                    )
-                    return
-                time.sleep(0.05)
 
     def __enter__(self) -> Recorder:
         return self

@@ -229,6 +229,15 @@ def _read(file: h5py.File) -> Recording:
             provenance["metadata"] = json.loads(attributes["metadata"])
         except json.JSONDecodeError as error:
             raise ValueError(f"the 'metadata' attribute is not valid JSON: {error}") from None
+    if "acquisition/drops" in file:
+        # A recorder's latest drop statistics: in the metadata, beside what it stored at the start.
+        drops = _dataset(file, "acquisition/drops")
+        if file.swmr_mode:
+            drops.refresh()
+        kinds = [str(kind) for kind in read_attributes(drops)["kinds"]]
+        provenance.setdefault("metadata", {})["drop_statistics"] = {
+            kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)
+        }
     drive = _dataset(file, "protocol/drive")[()]
     measure = _dataset(file, "protocol/measure")[()]
     drive_index = _dataset(file, "protocol/drive_index")[()]
