@@ -7,7 +7,7 @@ import h5py
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from skin_sessions import PROTOCOL, gains_board, mixing_board, skin_session
+from skin_sessions import PROTOCOL, UNTOUCHED, gains_board, mixing_board, skin_session
 
 import diffeit as de
 from diffeit.calibration import PositionMap
@@ -43,6 +43,38 @@ def test_the_refinement_finds_a_boards_drive_and_channel_gains_in_its_reference(
         assert calibration.standard_errors[group].shape == values.shape
         assert np.all(np.isfinite(calibration.standard_errors[group]))
     assert calibration.fitted["reference"] == ("level", "contact_impedance", "drive_gains", "channel_gains")
+
+
+@pytest.mark.parametrize("readings", ["signed", "magnitude"])
+def test_the_reference_alone_finds_the_source_and_far_weights_of_a_boards_mixing(mixing_skin, readings):
+    """From its untouched frames alone, the board's source (0.2) and far electrode (0.1)
+    weights, and with them touches at half the distance of a model without mixing."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    frames = np.abs(recording.frames) if readings == "magnitude" else recording.frames
+    session = dataclasses.replace(
+        recording, frames=frames[:UNTOUCHED], times=recording.times[:UNTOUCHED], readings=readings
+    )
+    later = dataclasses.replace(
+        recording,
+        frames=frames[UNTOUCHED:],
+        times=recording.times[UNTOUCHED:],
+        reference=frames[:UNTOUCHED].mean(axis=0),
+        readings=readings,
+    )
+    pressed = np.array([frames[0] for frames in presses.frames(later.times)])
+    errors = {}
+    for groups in (("contact_impedance",), de.calibration.REFERENCE_GROUPS):
+        calibration = de.calibrate(session, reference_groups=groups)
+        found = de.touches(de.reconstruct(later, calibration=calibration, progress=False), calibration)
+        errors[groups] = np.linalg.norm(found.position[pressed, 0] - presses.centres, axis=1)
+    mixing, error = calibration.values["mixing"], calibration.standard_errors["mixing"]
+    np.testing.assert_allclose(mixing[[0, 2 + 8]], [0.2, 0.1], atol=0.01)
+    assert np.all(mixing[[1, *range(2, 2 + 8), *range(2 + 9, 18)]] == 0)  # held: the reference does not tell them
+    assert np.all(error[[0, 2 + 8]] > 0) and np.all(error[[0, 2 + 8]] < 0.01)
+    assert calibration.correlation > 0.999 and calibration.fitted["reference"] == ("level", *groups)
+    # Measured: medians 42 mm against 78 mm, the largest 62 against 115 mm, on a disc of radius 1 m.
+    nominal, fitted = errors[("contact_impedance",)], errors[de.calibration.REFERENCE_GROUPS]
+    assert np.median(fitted) < 0.6 * np.median(nominal) and np.max(fitted) < 0.08, (fitted, nominal)
 
 
 def test_presses_determine_the_readouts_mixing(calibrated):
