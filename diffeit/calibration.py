@@ -1074,18 +1074,7 @@ def calibrate(
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
     if "mixing" not in press_groups or not set(press_groups) <= set(_PRESS_GROUPS_POSSIBLE):
         raise ValueError(f"press_groups must hold 'mixing' and may hold 'electrode_positions'; got {press_groups}")
-    calibration = _refine(first, reference, priors, recording, tuple(reference_groups))
-    if "mixing" in reference_groups and calibration.correlation < _LEAST_CORRELATION:
-        # Mixing that leaves the reference unexplained stands in for what the readout model
-        # lacks (the Montreal tank's channel gains): fitted there, it misleads the images.
-        others = tuple(group for group in reference_groups if group != "mixing")
-        without = _refine(first, reference, priors, recording, others)
-        note = (
-            f"the readout's mixing fitted to the reference left the model's correlation with it at "
-            f"{calibration.correlation:.3f} (< {_LEAST_CORRELATION}): not kept, the reference departs from the model "
-            "in a way mixing does not explain (gains per reading, the sheet)"
-        )
-        calibration = eqx.tree_at(lambda c: c.warnings, without, (*without.warnings, note))
+    calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return calibration
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
@@ -1128,6 +1117,42 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
             f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
             f"radius ({size:.3g} m) from its centre"
         )
+
+
+def _refine_to_reference(
+    first: ReferenceCalibration,
+    reference: np.ndarray,
+    recording: Recording,
+    priors: Mapping[str, float] | None = None,
+    groups: tuple[str, ...] = REFERENCE_GROUPS,
+) -> SkinCalibration:
+    """The refinement of a first stage on its reference frames (module docstring): the level
+    and the parameter `groups`, with mixing dropped (and a warning noted) when it leaves the
+    model's correlation with the reference under 0.9.
+
+    Arguments:
+        first: The first stage (`calibrate_to_reference`).
+        reference: (N, M) or (M,) the reference frames, as recorded.
+        recording: The recording they come from (its protocol and kind of readings).
+        priors: Prior standard deviations by group; None for `PRIORS`.
+        groups: The groups of `PRIORS` fitted.
+
+    Returns:
+        The `SkinCalibration` (no presses: no position map, polarity -1).
+    """
+    priors = PRIORS if priors is None else priors
+    calibration = _refine(first, reference, priors, recording, groups)
+    if "mixing" in groups and calibration.correlation < _LEAST_CORRELATION:
+        # Mixing that leaves the reference unexplained stands in for what the readout model
+        # lacks (the Montreal tank's channel gains): fitted there, it misleads the images.
+        without = _refine(first, reference, priors, recording, tuple(group for group in groups if group != "mixing"))
+        note = (
+            f"the readout's mixing fitted to the reference left the model's correlation with it at "
+            f"{calibration.correlation:.3f} (< {_LEAST_CORRELATION}): not kept, the reference departs from the model "
+            "in a way mixing does not explain (gains per reading, the sheet)"
+        )
+        calibration = eqx.tree_at(lambda c: c.warnings, without, (*without.warnings, note))
+    return calibration
 
 
 def _refine(
