@@ -56,9 +56,9 @@ readings in use:
   standard deviation 0.3 of the pair's weight. From a reference (the default) only the
   source electrode's and the far electrode's weights, started from the best of a grid of
   the two: a magnitude board's readings flip sign along the way, where small steps from no
-  mixing stop short. Mixing that leaves the refined model's correlation with the reference
-  under 0.9 is dropped (with a warning): what the model lacks is then something else, gains
-  per reading or the sheet;
+  mixing stop short. Not fitted (with a warning) to a reference the first stage's model
+  correlates with under 0.5: what the model lacks is then something else, gains per reading
+  or the wiring, that mixing would only mask;
 - "drive_gains", "channel_gains": ln g per drive and per measuring channel, prior 0.5;
 - "electrode_positions": how far each electrode's centre lies from the mesh's, along the
   boundary, prior standard deviation 0.1 of the mean spacing between electrode centres
@@ -652,6 +652,8 @@ _UNDETERMINED = 0.7
 _REFINE_STEPS, _REFINE_ROUNDS = 25, 2
 # The grid of the source's and far electrode's mixing weights the refinement starts from: -reach to reach.
 _MIXING_REACH, _MIXING_GRID = 0.5, 41
+# Mixing is fitted to a reference the first stage's model correlates with at least this well.
+_MIXING_LEAST_CORRELATION = 0.5
 # Per-reading gains are kept within this factor of 1.
 _LARGEST_READING_GAIN = 2.0
 # Degrees of the position map tried by cross-validation (None: no map).
@@ -1029,9 +1031,9 @@ def calibrate(
             is); the default, the contact impedances and the mixing's source and far
             electrode weights, is what a reference determines on a skin whose electrode
             positions and sheet the model does not know (measured in
-            docs/tutorials/calibration.md). Mixing that leaves the model's correlation with
-            the reference under 0.9 is not kept (a warning says so). The presses fit every
-            mixing weight.
+            docs/tutorials/calibration.md). Mixing is not fitted (a warning says so) to a
+            reference the first stage's model correlates with under 0.5. The presses fit
+            every mixing weight.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
             and "electrode_positions" (not by default: measured in
             docs/tutorials/calibration.md).
@@ -1127,8 +1129,8 @@ def _refine_to_reference(
     groups: tuple[str, ...] = REFERENCE_GROUPS,
 ) -> SkinCalibration:
     """The refinement of a first stage on its reference frames (module docstring): the level
-    and the parameter `groups`, with mixing dropped (and a warning noted) when it leaves the
-    model's correlation with the reference under 0.9.
+    and the parameter `groups`, without mixing (and a warning noted) when the first stage's
+    model correlates with the reference under 0.5.
 
     Arguments:
         first: The first stage (`calibrate_to_reference`).
@@ -1141,18 +1143,19 @@ def _refine_to_reference(
         The `SkinCalibration` (no presses: no position map, polarity -1).
     """
     priors = PRIORS if priors is None else priors
-    calibration = _refine(first, reference, priors, recording, groups)
-    if "mixing" in groups and calibration.correlation < _LEAST_CORRELATION:
-        # Mixing that leaves the reference unexplained stands in for what the readout model
-        # lacks (the Montreal tank's channel gains): fitted there, it misleads the images.
-        without = _refine(first, reference, priors, recording, tuple(group for group in groups if group != "mixing"))
+    if "mixing" in groups and first.correlation < _MIXING_LEAST_CORRELATION:
+        # A reference the nominal model does not follow at all (the Montreal tank's, its channel
+        # gains spanning 12x) is explained by mixing only in part, and wrongly: fitted there, it
+        # misleads the images.
+        others = tuple(group for group in groups if group != "mixing")
+        calibration = _refine(first, reference, priors, recording, others)
         note = (
-            f"the readout's mixing fitted to the reference left the model's correlation with it at "
-            f"{calibration.correlation:.3f} (< {_LEAST_CORRELATION}): not kept, the reference departs from the model "
-            "in a way mixing does not explain (gains per reading, the sheet)"
+            f"the readout's mixing was not fitted to the reference: the nominal model correlates with it at "
+            f"{first.correlation:.3f} (< {_MIXING_LEAST_CORRELATION}), so it departs from the model in ways mixing "
+            "would only mask (gains per reading, the wiring)"
         )
-        calibration = eqx.tree_at(lambda c: c.warnings, without, (*without.warnings, note))
-    return calibration
+        return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+    return _refine(first, reference, priors, recording, groups)
 
 
 def _refine(
