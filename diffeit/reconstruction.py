@@ -322,7 +322,9 @@ def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh:
         raise ValueError(
             f"the calibration is for {calibration.readings} readings; the recording's are {recording.readings}"
         )
-    if recording.mesh is not None and recording.mesh != calibration.model.mesh:
+    # A recording with a geometry is imaged on that geometry's mesh (a simulation's mesh is finer):
+    # only a recording that brings the mesh it is imaged on must match the calibration's.
+    if recording.geometry is None and recording.mesh is not None and recording.mesh != calibration.model.mesh:
         raise ValueError("the calibration is for another mesh than the recording's")
     if mesh is not None or h is not None:
         raise ValueError("a calibration brings its mesh: give no mesh or h with it")

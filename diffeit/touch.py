@@ -82,7 +82,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from .forward import ForwardModel
 from .io import Recording
-from .mesh import Mesh
+from .mesh import Mesh, require_flat
 from .scene import Disc, FoamStack, shape_fraction
 
 # A hill counts when its peak exceeds this many robust standard deviations of the image; in a
@@ -107,8 +107,9 @@ class Touches(eqx.Module):
 
     Attributes:
         count: (T,) int, the touches found in each frame.
-        position: (T, K, 2) centres, m, in the skin's frame (the labels' frame after a
-            calibration's position map); NaN where a frame has fewer than K touches.
+        position: (T, K, D) centres, m, in the skin's frame (the labels' frame after a
+            calibration's position map); NaN where a frame has fewer than K touches. D is
+            the mesh's: 2 on a flat sheet, 3 on a curved skin (points on its surface).
         radius: (T, K) contact radius, m: sqrt(area / pi) of the half-amplitude set.
         depth: (T, K) the peak relative conductivity change dsigma / sigma (negative for a
             touch that lowers it).
@@ -145,9 +146,10 @@ class Touches(eqx.Module):
         """
         lines = []
         for k in range(int(self.count[frame])):
-            x, y = 1e3 * self.position[frame, k]
+            x, y, *z = 1e3 * self.position[frame, k]
             if self.standard_errors is None:
-                line = f"touch {k}: ({x:+.1f}, {y:+.1f}) mm, radius {1e3 * self.radius[frame, k]:.1f} mm, "
+                point = ", ".join(f"{value:+.1f}" for value in (x, y, *z))
+                line = f"touch {k}: ({point}) mm, radius {1e3 * self.radius[frame, k]:.1f} mm, "
                 line += f"depth {self.depth[frame, k]:+.3f}"
             else:
                 ex, ey, er, ed = self.standard_errors[frame, k] * [1e3, 1e3, 1e3, 1.0]
@@ -215,6 +217,8 @@ def touches(
         )
     if not isinstance(recording, Recording) or recording.images is None or recording.mesh is None:
         raise ValueError("touches reads a reconstructed recording (diffeit.reconstruct's result, with images)")
+    if method == "fit":
+        require_flat(recording.mesh, 'method="fit" (its discs are centred in the plane)')
     images = np.asarray(recording.images, np.float64)
     if recording.image_quantity == "conductivity change":
         level = recording.provenance.get("metadata", {}).get("calibration", {}).get("conductivity")
@@ -328,8 +332,10 @@ def read(
         raise ValueError(f"polarity must be -1 (a touch lowers the conductivity) or +1; got {polarity}")
     if not (np.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be a positive number of standard deviations; got {threshold}")
+    if position_map is not None:
+        require_flat(mesh, "a position map (fitted in the plane)")
     count = np.zeros(len(images), int)
-    position = np.full((len(images), max_touches, 2), np.nan)
+    position = np.full((len(images), max_touches, mesh.nodes.shape[1]), np.nan)
     radius = np.full((len(images), max_touches), np.nan)
     depth = np.full((len(images), max_touches), np.nan)
     noise = np.zeros(len(images))
@@ -383,8 +389,22 @@ def _hills(
         claimed[order] = True
         weight = values[order] * areas[order]
         centre = weight @ centroids[order] / weight.sum()
+        if mesh.nodes.shape[1] == 3:
+            centre = _onto_surface(mesh, centre, order)
         hills.append((centre, float(np.sqrt(areas[order].sum() / np.pi)), float(peak)))
     return hills, noise
+
+
+def _onto_surface(mesh: Mesh, point: np.ndarray, elements: np.ndarray) -> np.ndarray:
+    """`point` (3,), a weighted mean of a curved skin's element centroids (inside the surface's
+    chord), projected onto the plane of the nearest of `elements`: a point on the surface to
+    within that element's own flatness."""
+    centroids = mesh.element_centroids[elements]
+    nearest = elements[int(np.argmin(np.linalg.norm(centroids - point, axis=1)))]
+    a, b, c = mesh.nodes[mesh.triangles[nearest]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal)
+    return point - ((point - mesh.element_centroids[nearest]) @ normal) * normal
 
 
 def _restricted(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray) -> scipy.sparse.csr_matrix:

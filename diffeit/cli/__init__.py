@@ -179,17 +179,18 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
 def _report_touches(reconstructed: Recording, calibration: Any, path: Path) -> None:
     """Print every frame's touches (`diffeit.touches`, through the calibration's position map when
     it has one) and write them to the CSV file `path`: a header, then one row per touch (frame,
-    time_s, count, touch, x_m, y_m, radius_m, depth); a frame without touches has no row."""
+    time_s, count, touch, x_m, y_m (and z_m on a curved skin), radius_m, depth); a frame without
+    touches has no row."""
     from ..touch import touches
 
     found = touches(reconstructed, calibration)
-    rows = ["frame,time_s,count,touch,x_m,y_m,radius_m,depth"]
+    axes = "xyz"[: found.position.shape[-1]]  # a curved skin's touches are points in 3D
+    rows = ["frame,time_s,count,touch," + ",".join(f"{axis}_m" for axis in axes) + ",radius_m,depth"]
     for frame in range(reconstructed.n_frames):
         lines = found.lines(frame)
         print(f"frame {frame} (t = {reconstructed.times[frame]:.3f} s): " + ("; ".join(lines) or "no touch"))
         for k in range(int(found.count[frame])):
-            x, y = found.position[frame, k]
-            measured = (x, y, found.radius[frame, k], found.depth[frame, k])
+            measured = (*found.position[frame, k], found.radius[frame, k], found.depth[frame, k])
             rows.append(
                 f"{frame},{float(reconstructed.times[frame])!r},{int(found.count[frame])},{k},"
                 + ",".join(repr(float(value)) for value in measured)
