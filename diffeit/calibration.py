@@ -141,7 +141,7 @@ from .io import (
     write_attributes,
 )
 from .memory import MemoryParameters
-from .mesh import Mesh, disc, disc_fraction
+from .mesh import Mesh, disc, disc_fraction, require_flat
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
@@ -1065,6 +1065,7 @@ def calibrate(
         raise ValueError(f"prior standard deviations must be finite and positive; got {priors}")
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if presses is not None:
+        require_flat(mesh, "calibration with labelled presses (their discs and position map are in the plane)")
         _check_presses(presses, recording, mesh)
     reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
     nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
