@@ -103,5 +103,5 @@ def test_touches_on_a_forearm_are_read_as_points_on_its_surface():
     with pytest.raises(ValueError, match=r'method="fit" .* flat meshes'):
         de.touches(images, calibration, method="fit")
     presses = de.io.Presses(np.array([CENTRE[:2]]), 0.012, [0.5])
-    with pytest.raises(ValueError, match="calibration with labelled presses .* flat meshes"):
+    with pytest.raises(ValueError, match=r"calibration with labelled presses .* flat meshes"):
         de.calibrate(recording, presses)
