@@ -12,15 +12,15 @@ the recording's reference that it rests on (`calibrate_to_reference`).
   more than 30 times off the median g, or where V_ref or V_h is under 5% of its RMS, are
   masked (and reported): the Montreal gains span 12x, a reference reading near zero makes
   hundreds.
-- "auto" (the default): with a skin calibration (`calibration=`, `diffeit.calibrate`),
+- "auto" (the default): with a skin calibration given (`calibration=`, `diffeit.calibrate`),
   "calibrated" when its model follows the reference at all (correlation at least 0.5): the
   calibration fitted what its session determines, and on a simulated skin the gains per reading
   barely moved the touches while a ratio per reading carried the model's error into the data
   (docs/tutorials/calibration.md); on a real skin whose model correlated 0.77 with its
   reference, calibrated differences placed presses at 20 mm, normalised ones at 28.5 mm. Below
   0.5 (the Montreal tank, -0.48) "normalised": the rod's path spread 0.7% of its radius against
-  2.7% with calibrated differences. Without a skin calibration, "calibrated" when the
-  calibrated model reproduces the reference (correlation at least 0.9), else "normalised":
+  2.7% with calibrated differences. Without one (the model calibrated and refined here),
+  "calibrated" when it reproduces the reference (correlation at least 0.9), else "normalised":
   then the reference is not what the model predicts, and gains per reading are the
   explanation left (measured on the real tanks:
   docs/tutorials/real-recordings.md#which-differences).
@@ -65,6 +65,7 @@ from .calibration import (
     CalibrationWarning,
     DrivenReadings,
     SkinCalibration,
+    _refine_to_reference,
     _rms,
     _with,
     auto_hyperparameter,
@@ -133,8 +134,10 @@ def reconstruct(
     `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
     `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
-    `CalibrationWarning`), and optionally a smooth background map is fitted to it
-    (`diffeit.fit.background`). The frames' differences (module docstring, "Which
+    `CalibrationWarning`) and refined as `diffeit.calibrate` refines a session without presses
+    (a contact impedance per electrode, the readout's source and far mixing weights), or
+    instead a smooth background map is fitted to it (`diffeit.fit.background`, which fits the
+    level and contacts its own way). The frames' differences (module docstring, "Which
     differences") are then imaged at that state by the solver: a solver object's settings
     bound to the calibrated model and background (`solver.bound(model, background)`), or the
     solver a `method` names. The choices and their measurements on real tanks are in
@@ -156,8 +159,8 @@ def reconstruct(
             `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure"),
             chosen from all frames at once. None: "auto" for a `method`, the solver's own
             for a solver object (a value or rule given replaces it).
-        calibrate: Calibrate the model to the reference (`diffeit.calibrate`; False keeps the
-            nominal model, signing magnitudes only).
+        calibrate: Calibrate and refine the model to the reference (`diffeit.calibrate`
+            without presses); False keeps the nominal model, signing magnitudes only.
         calibration: A `diffeit.calibration.SkinCalibration` of this skin and board (from
             `diffeit.calibrate`): images at its model, mesh and gains; with labelled presses,
             one-step images by default at the hyperparameter its position map was fitted at.
@@ -181,7 +184,7 @@ def reconstruct(
         and reference as recorded (a recording without one gets the reference it was imaged
         against). With volts (`voltage_unit="V"`) the images are conductivity changes dsigma,
         S/sq; in any other unit relative changes dsigma / sigma_h (unit-free). The
-        provenance's metadata holds the calibration (`ReferenceCalibration.summary`), the
+        provenance's metadata holds the calibration (its `summary()`), the
         method, prior, hyperparameter and how it was chosen (with what each selection method
         gives and its code's name), every option, and the outcome: "results", the name of
         each frame's `diffeit.results.RESULTS` code (the solver's; `nonfinite` for an image
@@ -233,6 +236,8 @@ def reconstruct(
             driven_readings=driven_readings,
             fit=calibrate,
         )
+        if calibrate and not background_map:  # the map fits the level and contacts its own way
+            calibration = _refine_to_reference(calibration, reference_set, recording)
     for note in calibration.warnings:
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     model = calibration.model
@@ -262,7 +267,7 @@ def reconstruct(
             "range": [float(level.min()), float(level.max())],
         }
     dv = frames - signed_reference
-    difference, difference_reason = _difference(difference, calibration)
+    difference, difference_reason = _difference(difference, calibration, given)
     unsafe: list[int] = []
     if difference == "normalised":
         model, dv, unsafe = _normalised(model, dv, signed_reference, level, calibration)
@@ -330,11 +335,11 @@ def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh:
         raise ValueError("a calibration brings its mesh: give no mesh or h with it")
 
 
-def _difference(difference: str, calibration: Any) -> tuple[str, str]:
+def _difference(difference: str, calibration: Any, given: bool) -> tuple[str, str]:
     """The differences imaged, and why (module docstring, "Which differences")."""
     if difference != "auto":
         return difference, "given"
-    if isinstance(calibration, SkinCalibration) and calibration.correlation >= _SKIN_LEAST_CORRELATION:
+    if given and calibration.correlation >= _SKIN_LEAST_CORRELATION:
         return "calibrated", (
             f"a skin calibration whose model follows the reference (correlation {calibration.correlation:.3f}): a "
             "ratio per reading would carry the model's remaining error into every difference"

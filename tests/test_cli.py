@@ -107,6 +107,7 @@ def test_frames_that_did_not_converge_are_written_named_and_exit_1(tmp_path, sim
     assert (tmp_path / "capped.png").exists()
     # GCV on noise-free differences ends at its smallest candidate: a note, not a failure.
     arguments = ["reconstruct", str(frames), "-o", str(tmp_path / "gcv"), "--hyperparameter", "gcv", "--h", "0.2"]
+    arguments += ["--no-calibrate"]  # a model refined to the reference reads the coarser mesh's error as noise
     assert main(arguments) == 0
     assert "that gcv chose is at an end of its candidates" in capsys.readouterr().err
     choice = read_frames(tmp_path / "gcv.h5").provenance["metadata"]["hyperparameter_choice"]
@@ -170,7 +171,7 @@ def test_reconstruct_an_eidors_mat_file_with_the_defaults(tmp_path, capsys):
     printed = capsys.readouterr().out
     # The Montreal reference does not look like the model's (gains per channel): the user is told.
     assert "warning: the model does not reproduce the reference (correlation -0.48" in printed
-    assert "correlation -0.479" in printed.split("calibration:")[1] and "normalised differences" in printed
+    assert "correlation -0.478" in printed.split("calibration:")[1] and "normalised differences" in printed
     out = read_frames(tmp_path / "rod.h5")
     assert out.images.shape == (99, out.mesh.n_elements) and out.voltage_unit == "arbitrary"
     assert out.mesh.n_elements == de.mesh.disc(16, electrode_width=np.pi / 16, h=0.15).n_elements  # default disc
