@@ -650,6 +650,8 @@ _PRESS_ROUNDS = 30
 _UNDETERMINED = 0.7
 # Levenberg-Marquardt steps of the refinement, and the rounds that re-estimate the misfit's scale.
 _REFINE_STEPS, _REFINE_ROUNDS = 25, 2
+# The refinement stops when no parameter moves by more than this fraction of its prior's spread.
+_REFINE_TOLERANCE = 1e-3
 # The grid of the source's and far electrode's mixing weights the refinement starts from: -reach to reach.
 _MIXING_REACH, _MIXING_GRID = 0.5, 41
 # Mixing is fitted to a reference the first stage's model correlates with at least this well.
@@ -1387,12 +1389,12 @@ def _levenberg_marquardt(
         return float(np.sum(residual**2) / scale**2 + np.sum(precision * theta**2))
 
     cost, damping = cost_of(theta), 1e-3
+    free = ~fixed
+    design = fit.jacobian(jnp.asarray(theta), free) / scale
     for _ in range(_REFINE_STEPS):
-        design = fit.jacobian(jnp.asarray(theta), ~fixed) / scale
         residual = (data - np.asarray(fit.readings(jnp.asarray(theta)))) / scale
         curvature = design.T @ design + np.diag(precision)
         gradient = design.T @ residual - precision * theta
-        free = ~fixed
         while True:
             block = curvature[np.ix_(free, free)]
             step = np.zeros_like(theta)
@@ -1404,9 +1406,10 @@ def _levenberg_marquardt(
             damping *= 10
             if damping > 1e8:
                 break
-        if damping > 1e8 or np.max(np.abs(step)) < 1e-6:
+        # The curvature is wanted at the minimiser, so the Jacobian follows every accepted step.
+        design = fit.jacobian(jnp.asarray(theta), free) / scale
+        if damping > 1e8 or np.max(np.abs(step) / spread) < _REFINE_TOLERANCE:
             break
-    design = fit.jacobian(jnp.asarray(theta), ~fixed) / scale
     return theta, design.T @ design + np.diag(precision)
 
 
