@@ -77,6 +77,24 @@ def test_the_reference_alone_finds_the_source_and_far_weights_of_a_boards_mixing
     assert np.median(fitted) < 0.6 * np.median(nominal) and np.max(fitted) < 0.08, (fitted, nominal)
 
 
+def test_without_the_readings_noise_the_voltage_test_still_tells_touched_frames(mixing_skin):
+    """A calibration from one reference frame knows no noise: the frames are tested in the
+    Jacobian's subspace against the rest (`touch._subspace_test`): every press read, no touch
+    on the untouched frames between them."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    calibration = de.calibrate(dataclasses.replace(recording, frames=recording.frames[:1], times=recording.times[:1]))
+    assert calibration.noise is None
+    later = dataclasses.replace(
+        recording, frames=recording.frames[UNTOUCHED:], times=recording.times[UNTOUCHED:], reference=recording.frames[0]
+    )
+    pressed = np.array([frames[0] for frames in presses.frames(later.times)])
+    untouched = np.setdiff1d(np.arange(later.n_frames), pressed)
+    touched = de.touch.touched(later.frames, later.reference, calibration)
+    assert np.all(touched[pressed]) and not np.any(touched[untouched])
+    found = de.touches(de.reconstruct(later, calibration=calibration, progress=False), calibration)
+    assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
+
+
 def test_presses_determine_the_readouts_mixing(calibrated):
     mixing = calibrated.values["mixing"]
     errors = calibrated.standard_errors["mixing"]

@@ -84,8 +84,9 @@ def test_a_saved_curved_simulation_is_reconstructed_from_its_file(tmp_path):
 
 def test_touches_on_a_forearm_are_read_as_points_on_its_surface():
     """A simulated recording (the truth on its finer mesh, the reconstruction mesh's geometry)
-    calibrated from its untouched frames, imaged at the calibration and read: the pressed frames
-    each give one touch, a point on the meshed cylinder near the press (measured 1.2-1.9 mm off
+    calibrated from its reference (one frame: no noise, so the voltage test is the subspace
+    one), imaged at the calibration and read: the pressed frames each give a touch, the
+    strongest a point on the meshed cylinder near the press (measured 1.2-1.9 mm off
     on a 40 mm forearm, 1.3-1.7% inside the cylinder: its triangles' planes are chords), the
     others none."""
     recording = de.simulate(forearm_scene(), progress=False).to_recording()
@@ -93,7 +94,7 @@ def test_touches_on_a_forearm_are_read_as_points_on_its_surface():
     images = de.reconstruct(recording, calibration=calibration, progress=False)
     found = de.touches(images, calibration)
     pressed = np.isin(np.arange(recording.n_frames), [3, 4, 5, 6])  # held from 0.3 s to 0.7 s, 10 frames a second
-    assert np.all(found.count[pressed] == 1) and np.all(found.count[~pressed] == 0), found.count
+    assert np.all(found.count[pressed] >= 1) and np.all(found.count[~pressed] == 0), found.count
     points = found.position[pressed, 0]
     assert found.position.shape[-1] == 3
     np.testing.assert_allclose(np.hypot(points[:, 0], points[:, 1]), RHO, rtol=0.025)  # on the surface
