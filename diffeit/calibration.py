@@ -163,8 +163,9 @@ _OUTLIER_DEVIATIONS, _OUTLIER_RELATIVE, _OUTLIER_FLOOR = 6.0, 0.5, 0.1
 _BROKEN_ELECTRODE = 0.5
 # Driven readings stay when their relative misfit is at most this factor times the others' (or the floor).
 _DRIVEN_FACTOR, _DRIVEN_FLOOR = 2.0, 0.05
-# The model does not reproduce the reference below this correlation.
+# The model does not reproduce the reference below this correlation (the warning begins so).
 _LEAST_CORRELATION = 0.9
+_NOT_REPRODUCED = "the model does not reproduce the reference"
 # Contact impedance factors searched (log-spaced) before a golden-section refinement, and the
 # most Levenberg-Marquardt steps of the per-electrode fit that follows.
 _CONTACT_GRID = np.logspace(-3, 3, 25)
@@ -392,7 +393,7 @@ def _calibration(
     if correlation < _LEAST_CORRELATION:
         notes.insert(
             0,
-            f"the model does not reproduce the reference (correlation {correlation:.2f}, misfit {misfit:.0%}): "
+            f"{_NOT_REPRODUCED} (correlation {correlation:.2f}, misfit {misfit:.0%}): "
             "check the protocol (electrode order, first electrode, drive sign), the sheet's geometry and the "
             "instrument's gains",
         )
@@ -1227,7 +1228,8 @@ def _refine(
     reading_sign = first.reading_sign.copy()
     if magnitude:  # the signs of the refined model's readings
         reading_sign[first.used] = fit.signs(jnp.asarray(theta))
-    notes = list(first.warnings)
+    # The first stage's warning that its model misses the reference goes when the refined one does not.
+    notes = [n for n in first.warnings if correlation < _LEAST_CORRELATION or not n.startswith(_NOT_REPRODUCED)]
     structured = np.exp(values["drive_gains"][protocol.drive_index] + values["channel_gains"][protocol.pattern_index])
     level = first.conductivity / math.exp(values["level"][0])
     contact = first.contact_impedance * np.exp(values["contact_impedance"]) * math.exp(values["level"][0])
