@@ -317,8 +317,11 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     """
     model = calibration.model
     jacobian = np.asarray(model.jacobian(jnp.full(model.n_elements, calibration.conductivity)))
-    basis, singular, _ = scipy.linalg.svd(jacobian, full_matrices=False)
-    k = int(np.sum(singular > _SUBSPACE_CUT * singular[0]))
+    # The left singular vectors from the M x M Gram matrix (M readings, fewer than the elements):
+    # eigenvalues are squared singular values, and the cut at 0.1 of the largest is far above rounding.
+    squared, basis = scipy.linalg.eigh(jacobian @ jacobian.T)
+    basis = basis[:, ::-1]
+    k = int(np.sum(squared > _SUBSPACE_CUT**2 * squared[-1]))
     rest = dv.shape[1] - k
     if rest < _LEAST_REST:
         return None
