@@ -214,8 +214,8 @@ def touches(
         ValueError: For an unknown method, a recording without images (or with conductivity
             changes but no calibrated level in its provenance), images that are not finite, a
             bad option (`max_touches` not a positive integer, `threshold` not positive,
-            `polarity` not -1 or +1); for `method="fit"` without a calibration or without the
-            recording's reference.
+            `polarity` not -1 or +1); for `method="fit"` without a calibration, without the
+            recording's reference or on a curved skin; for a position map on a curved skin.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
@@ -269,6 +269,10 @@ def touched(
     The standardised sum over the readings of (dv_m / s_m)^2 / (1 + 1/R), each F(1, n - 1)
     distributed for an untouched frame (module docstring, "The rule", step 1).
 
+    Without the calibration's noise (a reference of fewer than 6 frames), each frame's
+    differences in the subspace a conductivity change reaches are compared with those outside
+    it (`_subspace_test`).
+
     Arguments:
         frames: (T, M) recorded frames.
         reference: (M,) the reference they are differences from, as recorded.
@@ -276,10 +280,6 @@ def touched(
         detection: The statistic z above which a frame is touched.
         reference_frames: How many frames the reference is the mean of; None: the
             calibration's own reference frames (`noise_frames`).
-
-    Without the calibration's noise (a reference of fewer than 6 frames), the test compares
-    each frame's differences in the subspace a conductivity change reaches with those outside
-    it (`_subspace_test`).
 
     Returns:
         (T,) bool, or None without a calibration (or with too few readings for the subspace
@@ -317,8 +317,9 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     """
     model = calibration.model
     jacobian = np.asarray(model.jacobian(jnp.full(model.n_elements, calibration.conductivity)))
-    # The left singular vectors from the M x M Gram matrix (M readings, fewer than the elements):
-    # eigenvalues are squared singular values, and the cut at 0.1 of the largest is far above rounding.
+    # The left singular vectors from the M x M Gram matrix, cheaper than an SVD while the readings
+    # are fewer than the elements: its eigenvalues are the squared singular values, and the cut at
+    # 0.1 of the largest is far above their rounding.
     squared, basis = scipy.linalg.eigh(jacobian @ jacobian.T)
     basis = basis[:, ::-1]
     k = int(np.sum(squared > _SUBSPACE_CUT**2 * squared[-1]))
