@@ -86,7 +86,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from .forward import ForwardModel
 from .io import Recording
-from .mesh import Mesh, require_flat
+from .mesh import Mesh, onto_surface, require_flat
 from .scene import Disc, FoamStack, shape_fraction
 
 # A hill counts when its peak exceeds this many robust standard deviations of the image; in a
@@ -434,22 +434,9 @@ def _hills(
         claimed[order] = True
         weight = values[order] * areas[order]
         centre = weight @ centroids[order] / weight.sum()
-        if mesh.nodes.shape[1] == 3:
-            centre = _onto_surface(mesh, centre, order)
+        centre = onto_surface(mesh, centre, order)  # on a curved skin, onto it
         hills.append((centre, float(np.sqrt(areas[order].sum() / np.pi)), float(peak)))
     return hills, noise
-
-
-def _onto_surface(mesh: Mesh, point: np.ndarray, elements: np.ndarray) -> np.ndarray:
-    """`point` (3,), a weighted mean of a curved skin's element centroids (inside the surface's
-    chord), projected onto the plane of the nearest of `elements`: a point on the surface to
-    within that element's own flatness."""
-    centroids = mesh.element_centroids[elements]
-    nearest = elements[int(np.argmin(np.linalg.norm(centroids - point, axis=1)))]
-    a, b, c = mesh.nodes[mesh.triangles[nearest]]
-    normal = np.cross(b - a, c - a)
-    normal /= np.linalg.norm(normal)
-    return point - ((point - mesh.element_centroids[nearest]) @ normal) * normal
 
 
 def _restricted(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray) -> scipy.sparse.csr_matrix:

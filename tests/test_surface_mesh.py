@@ -289,3 +289,17 @@ def test_what_works_in_the_plane_refuses_a_curved_skin_by_name():
         de.mesh.interpolate(np.ones(cap.n_elements), cap, cap)
     with pytest.raises(ValueError, match=message):
         de.inverse.GREIT(de.ForwardModel(cap, de.protocol.adjacent(16)))
+
+
+def test_onto_surface_projects_onto_the_nearest_elements_plane():
+    """On a flat sheet turned in 3D every element's plane is the sheet's: a point off it comes
+    back with its height removed and its place kept; a flat mesh keeps the point; another
+    dimension is refused."""
+    flat = de.mesh.rectangle(1.0, 0.6, 8, h=0.2)
+    rotation = _rotation(3)
+    surface = de.Mesh(_in_3d(flat.nodes) @ rotation.T, flat.triangles, flat.electrodes)
+    above = rotation @ np.array([0.3, 0.2, 0.05])
+    np.testing.assert_allclose(de.mesh.onto_surface(surface, above), rotation @ np.array([0.3, 0.2, 0.0]), atol=1e-12)
+    np.testing.assert_array_equal(de.mesh.onto_surface(flat, [0.3, 0.2]), [0.3, 0.2])
+    with pytest.raises(ValueError, match="a point of this mesh has 3 coordinates"):
+        de.mesh.onto_surface(surface, [0.3, 0.2])

@@ -34,6 +34,39 @@ def locate(mesh: Mesh, points: ArrayLike) -> np.ndarray:
     return np.asarray(found, dtype=int).reshape(positions.shape[:-1])
 
 
+def onto_surface(mesh: Mesh, point: ArrayLike, elements: ArrayLike | None = None) -> np.ndarray:
+    """A point near a curved skin taken onto it: projected onto the plane of the element
+    (among `elements`) whose centroid is nearest.
+
+    A weighted mean of element centroids (a touch's or an image's centroid) lies inside the
+    surface's chord; its projection lies on the surface to within that element's own flatness.
+    On a flat sheet the point is returned as it is.
+
+    Arguments:
+        mesh: The sheet.
+        point: (D,) a point, m, D the mesh's dimension.
+        elements: The elements to project onto (indices); None for all.
+
+    Returns:
+        (D,) the point on the surface, m.
+
+    Raises:
+        ValueError: For a point of another dimension than the mesh's.
+    """
+    point = np.asarray(point, dtype=float)
+    if point.shape != (mesh.nodes.shape[1],):
+        raise ValueError(f"a point of this mesh has {mesh.nodes.shape[1]} coordinates; got shape {point.shape}")
+    if mesh.nodes.shape[1] == 2:
+        return point
+    elements = np.arange(mesh.n_elements) if elements is None else np.asarray(elements)
+    centroids = mesh.element_centroids[elements]
+    nearest = elements[int(np.argmin(np.linalg.norm(centroids - point, axis=1)))]
+    a, b, c = mesh.nodes[mesh.triangles[nearest]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal)
+    return point - ((point - mesh.element_centroids[nearest]) @ normal) * normal
+
+
 @functools.lru_cache(maxsize=16)
 def _finder(mesh: Mesh) -> matplotlib.tri.TriFinder:
     """matplotlib's trapezoid-map point locator of `mesh`, built once per mesh (by content)."""
