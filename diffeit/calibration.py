@@ -1386,24 +1386,24 @@ def _levenberg_marquardt(
     theta = start.copy()
     precision = 1.0 / spread**2
 
-    def cost_of(theta: np.ndarray) -> float:
-        residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
-        return float(np.sum(residual**2) / scale**2 + np.sum(precision * theta**2))
+    def misfit(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The cost at `theta` and its scaled residual (which the next step starts from)."""
+        residual = (data - np.asarray(fit.readings(jnp.asarray(theta)))) / scale
+        return float(np.sum(residual**2) + np.sum(precision * theta**2)), residual
 
-    cost, damping = cost_of(theta), 1e-3
+    (cost, residual), damping = misfit(theta), 1e-3
     free = ~fixed
     design = fit.jacobian(jnp.asarray(theta), free) / scale
     for _ in range(_REFINE_STEPS):
-        residual = (data - np.asarray(fit.readings(jnp.asarray(theta)))) / scale
         curvature = design.T @ design + np.diag(precision)
         gradient = design.T @ residual - precision * theta
         while True:
             block = curvature[np.ix_(free, free)]
             step = np.zeros_like(theta)
             step[free] = np.linalg.solve(block + damping * np.diag(np.diag(block)), gradient[free])
-            trial = cost_of(theta + step)
+            trial, trial_residual = misfit(theta + step)
             if trial <= cost:
-                theta, cost, damping = theta + step, trial, max(damping / 10, 1e-9)
+                theta, cost, residual, damping = theta + step, trial, trial_residual, max(damping / 10, 1e-9)
                 break
             damping *= 10
             if damping > 1e8:

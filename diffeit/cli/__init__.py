@@ -312,7 +312,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="image every frame of a frames file (or an EIDORS .mat file) against its reference",
         description="diffeit.reconstruct on a file's recording, with its defaults for every option not given: "
         "the model is calibrated to the reference (the file's, frame K with --reference-frame, else the mean of "
-        "the first frames; level, orientation, signs of magnitudes, broken readings), then every frame is imaged. "
+        "the first frames; level, orientation, signs of magnitudes, broken readings) and refined (a contact "
+        "impedance per electrode, the readout's mixing), then every frame is imaged. "
         "Writes OUT.png (an image strip) and OUT.h5 (a diffeit frames file with the images (T, E), their mesh and "
         "the calibration in its provenance). Images are conductivity changes (S/sq) for frames in volts, else "
         "relative conductivity changes. The sheet: the file's geometry, else its mesh, else a unit disc. A "
@@ -340,7 +341,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--no-calibrate",
         dest="calibrate",
         action="store_false",
-        help="image with the nominal model as it is: no fit of level, orientation or readings",
+        help="image with the nominal model as it is: no fit of level, orientation, readings, contacts or mixing",
     )
     reconstruct.add_argument(
         "--background-map",

@@ -45,6 +45,9 @@ The frames file (HDF5, schema "diffeit.frames", version 2):
 /acquisition/        written by hw.Recorder (counters, device times, drop statistics) [optional]
 ```
 
+`read_frames` reports a recorder's drop statistics (`/acquisition/drops`) in the provenance
+metadata, as `drop_statistics`.
+
 n_meas is the protocol's number of readings and L its number of electrodes. Frames are in the
 protocol's order and sign (for `adjacent(16)`, EIDORS's). Files are written in the HDF5 1.10
 format, which single-writer/multiple-reader (SWMR) access needs; `read_frames` reads a file a
