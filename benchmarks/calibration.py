@@ -13,7 +13,8 @@ within 80% of the radius, one frame each. For each seed the calibration uses the
 of the session (K = 0: the reference alone) and the touches are read (`de.reconstruct(...,
 calibration=...)`, `de.touches`) on `--test` other presses, against:
 
-- **nominal**: `de.reconstruct` and `de.touches` with their defaults (no calibration);
+- **nominal**: `de.reconstruct` and `de.touches` with their defaults (no calibration; the
+  test recording starts with the session's untouched frames, its reference);
 - **true model**: the calibration's pipeline with the truth's electrode positions, readout,
   gains, contact impedances and mean level put in its place (no position map).
 
@@ -171,12 +172,13 @@ def main() -> None:
         recording, presses, truth = session(seed, most + options.test)
         reference = recording.frames[:REFERENCE_FRAMES]
         used = recording.frames[: REFERENCE_FRAMES + 2 * most]
-        test_frames = recording.frames[REFERENCE_FRAMES + 2 * most :]
+        # The test recording: the untouched frames, then the test presses (the calibration's
+        # presses left out); `de.reconstruct` takes its reference from the first frames.
+        tested = np.r_[np.arange(REFERENCE_FRAMES), np.arange(REFERENCE_FRAMES + 2 * most, recording.n_frames)]
         test = de.io.Recording(
-            frames=test_frames,
-            times=recording.times[REFERENCE_FRAMES + 2 * most :],
+            frames=recording.frames[tested],
+            times=recording.times[tested],
             protocol=recording.protocol,
-            reference=reference.mean(axis=0),
             geometry=recording.geometry,
             readings="magnitude",
         )

@@ -910,8 +910,9 @@ def reference_frames(
 
     The recording's reference; else its frame `reference_frame`; else, with presses, the
     frames before the first press (or, when there are none, those outside every hold); else
-    the first `REFERENCE_FRAMES` frames (`every_frame`: those of the first `_SESSION_FRAMES`
-    that look untouched, `_untouched`).
+    the recording's first frames up to the first that looks touched (`_untouched`, among the
+    first `_SESSION_FRAMES`), or the first `REFERENCE_FRAMES` when those are fewer
+    (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched).
 
     Arguments:
         recording: The recording.
@@ -935,9 +936,15 @@ def reference_frames(
             pressed[frames] = True
         if (~pressed).any():
             return recording.frames[~pressed], f"the {int((~pressed).sum())} frames outside the presses"
-    if every_frame and recording.n_frames > REFERENCE_FRAMES:
+    if recording.n_frames > REFERENCE_FRAMES:
         still = _untouched(recording.frames[:_SESSION_FRAMES])
-        return recording.frames[:_SESSION_FRAMES][still], f"the {int(still.sum())} untouched frames of the first ones"
+        if every_frame:
+            frames = recording.frames[:_SESSION_FRAMES][still]
+            return frames, f"the {len(frames)} untouched frames of the first ones"
+        # Only the leading run: a light press later on can pass for untouched.
+        count = len(still) if still.all() else int(np.argmin(still))
+        if count > REFERENCE_FRAMES:
+            return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
     count = min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"
 

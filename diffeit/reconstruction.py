@@ -61,6 +61,7 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from .calibration import (
     _LEAST_CORRELATION,
+    _NOISE_FRAMES,
     _UNCERTAIN_SIGN,
     CalibrationWarning,
     DrivenReadings,
@@ -129,19 +130,20 @@ def reconstruct(
 ) -> Recording:
     """Image every frame of a recording against its reference: recorded frames to images in one call.
 
-    The reference is the recording's, its frame `reference_frame`, or the mean of its first
-    `REFERENCE_FRAMES` frames when it has none. The model (the sheet `mesh`, else
-    `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
+    The reference is the recording's, its frame `reference_frame`, or, when it has none, the
+    mean of its first frames up to the first that looks touched (at least `REFERENCE_FRAMES`;
+    their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
+    `diffeit.touches` tests frames against without a calibration). The model (the sheet `mesh`,
+    else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
     `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
     `CalibrationWarning`) and refined as `diffeit.calibrate` refines a session without presses
-    (a contact impedance per electrode, the readout's source and far mixing weights), or
-    instead a smooth background map is fitted to it (`diffeit.fit.background`, which fits the
-    level and contacts its own way). The frames' differences (module docstring, "Which
-    differences") are then imaged at that state by the solver: a solver object's settings
-    bound to the calibrated model and background (`solver.bound(model, background)`), or the
-    solver a `method` names. The choices and their measurements on real tanks are in
-    docs/tutorials/real-recordings.md.
+    (a contact impedance per electrode, the readout's source and far mixing weights), or instead
+    a smooth background map is fitted to it (`diffeit.fit.background`, which fits the level and
+    contacts its own way). The frames' differences (module docstring, "Which differences") are
+    then imaged at that state by the solver: a solver object's settings bound to the calibrated
+    model and background (`solver.bound(model, background)`), or the solver a `method` names.
+    The choices and their measurements on real tanks are in docs/tutorials/real-recordings.md.
 
     Arguments:
         recording: The frames, with their protocol (and reference, mesh or geometry).
@@ -226,6 +228,7 @@ def reconstruct(
     mesh = default_mesh(recording, h) if mesh is None else mesh
     reference_set, reference_source = reference_frames(recording, reference_frame)
     reference = reference_set.mean(axis=0)
+    still = _still_frames(recording, reference_frame, reference_set)
     if calibration is None:
         nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
         calibration = calibrate_to_reference(
@@ -297,6 +300,10 @@ def reconstruct(
         "difference_reason": difference_reason,
         "unsafe_ratio_readings": unsafe,
         "reference": reference_source,
+        # How many frames the reference is the mean of; None for the recording's own (unknown).
+        "reference_frames": None if recording.reference is not None and reference_frame is None else len(reference_set),
+        "noise_frames": 0 if still is None else len(still),
+        "reading_noise": None if still is None else still.std(axis=0, ddof=1).tolist(),
         "calibrated": bool(calibrate) or given,
         "calibration": calibration.summary(),
         "background_map": map_summary,
@@ -314,6 +321,15 @@ def reconstruct(
         image_quantity="relative conductivity change" if relative else "conductivity change",
         provenance={"source": f"diffeit.reconstruct ({method})", "metadata": metadata},
     )
+
+
+def _still_frames(recording: Recording, reference_frame: int | None, reference_set: np.ndarray) -> np.ndarray | None:
+    """(n, M) the untouched frames whose spread is the readings' noise, which `diffeit.touches`
+    tests frames against without a calibration (kept in the provenance as "reading_noise"): the
+    reference frames, when the reference is the mean of enough of the recording's frames; else
+    None."""
+    from_frames = recording.reference is None and reference_frame is None
+    return reference_set if from_frames and len(reference_set) >= _NOISE_FRAMES else None
 
 
 def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh: Mesh | None, h: float | None) -> None:

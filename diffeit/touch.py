@@ -10,18 +10,21 @@ touch raises): in each image a = polarity * change, the touches are the hills of
 
 1. **Is the frame touched?** With a calibration that knows the readings' noise (from its
    reference frames), a frame is touched when its differences dv (in the calibrated model's
-   units) stand out of that noise: z > `detection` (default 5), z the standardised sum over
-   the readings of (dv_m / s_m)^2 / (1 + 1/n), each F(1, n - 1) distributed for an untouched
-   frame (s_m estimated from n reference frames, dv against their mean). With a calibration
-   that knows no noise (fewer than 6 reference frames), the differences inside the subspace
-   a conductivity change reaches are compared with those outside it, where only noise is
-   (`touched`): the ratio of their mean squares is about 1 for an untouched frame, and a frame
-   is touched when it exceeds 1 by `detection` of its standard deviations. A
-   touched frame reports its strongest hill however low, and the others above `low`
-   (default 3) robust standard deviations of its image; an untouched frame reports none.
-   Without a calibration, a hill counts when its peak exceeds `threshold` (default 6) robust standard
-   deviations of the image: sigma_t = 1.4826 * MAD of a over the elements (a touch covers few
-   of them, so this is the image's noise and artefacts).
+   units) stand out of that noise: z > `detection` (default 5), z the standardised sum over the
+   readings of (dv_m / s_m)^2 / (1 + 1/n), each F(1, n - 1) distributed for an untouched frame
+   (s_m estimated from n reference frames, dv against their mean). Without a calibration, the
+   same test runs on the raw readings when the images' recording says their noise:
+   `diffeit.reconstruct` keeps the spread of its reference frames in the provenance
+   ("reading_noise") when the reference is the mean of 6 or more of the recording's frames. With
+   a calibration that knows no noise (fewer than 6 reference frames), the differences inside the
+   subspace a conductivity change reaches are compared with those outside it, where only noise
+   is (`touched`): the ratio of their mean squares is about 1 for an untouched frame, and a
+   frame is touched when it exceeds 1 by `detection` of its standard deviations. A touched frame
+   reports its strongest hill however low, and the others above `low` (default 3) robust
+   standard deviations of its image; an untouched frame reports none. Without either, a hill
+   counts when its peak exceeds `threshold` (default 6) robust standard deviations of the image:
+   sigma_t = 1.4826 * MAD of a over the elements (a touch covers few of them, so this is the
+   image's noise and artefacts).
 2. **Hills.** The local maxima of a (at least every element sharing an edge), highest
    first. Each claims the connected elements at or above half its peak (its half-amplitude
    set). A maximum whose half-amplitude set reaches a set already claimed is the same touch
@@ -186,8 +189,9 @@ def touches(
 
     Read from the images by the rule of the module docstring ("The rule"); with
     `method="fit"`, refined by fitting discs to the frames' voltages (module docstring,
-    "Refinement by the model"). Frames are tested against the calibration's noise (`touched`)
-    when the recording has a reference and the calibration knows its noise.
+    "Refinement by the model"). When the recording has a reference, frames are tested against
+    the readings' noise (`touched`): the calibration's, else the reference frames' spread that
+    `diffeit.reconstruct` kept in the recording's provenance.
 
     Arguments:
         recording: A recording with images (`diffeit.reconstruct`'s result), relative changes
@@ -195,8 +199,8 @@ def touches(
         calibration: A `diffeit.calibration.SkinCalibration` whose position map (from labelled
             presses) maps the positions into the labels' frame; None reads them in the mesh's.
         max_touches: The most touches reported per frame.
-        threshold: Without the calibration's noise, a touch's peak must exceed this many
-            robust standard deviations of its image.
+        threshold: Without the voltage test, a touch's peak must exceed this many robust
+            standard deviations of its image.
         detection: With it, the voltage test's z above which a frame is touched.
         polarity: -1 when a touch lowers the conductivity, +1 when it raises it; None: the
             calibration's (found from its presses), else -1.
@@ -247,9 +251,7 @@ def touches(
         polarity=polarity,
         position_map=mapping if method == "image" else None,
         stack=stack if method == "image" else None,
-        touched=None
-        if recording.reference is None
-        else touched(recording.frames, recording.reference, calibration, detection=detection),
+        touched=None if recording.reference is None else _touched_frames(recording, calibration, detection),
     )
     if method == "image":
         return found
@@ -294,7 +296,31 @@ def touched(
     # Each reading's variance s^2 is estimated from n frames; an untouched frame's difference from
     # a reference of R frames has variance s^2 (1 + 1/R): (dv / s)^2 / (1 + 1/R) is F(1, n - 1).
     n = calibration.noise_frames
-    averaged = n if reference_frames is None else reference_frames
+    return _noise_test(dv, noise, n, n if reference_frames is None else reference_frames, detection)
+
+
+def _touched_frames(recording: Recording, calibration: Any, detection: float) -> np.ndarray | None:
+    """`touched` for a recording with a reference: against the calibration's noise when it
+    knows it, else against the reference frames' spread kept by `diffeit.reconstruct` (raw
+    readings: a difference of magnitudes is as noisy as the signed difference), else by the
+    calibration's subspace test; None when none of them applies."""
+    metadata = recording.provenance.get("metadata", {})
+    spread = metadata.get("reading_noise")
+    if getattr(calibration, "noise", None) is None and spread is not None:
+        dv = np.atleast_2d(recording.frames) - recording.reference
+        spread = np.asarray(spread, np.float64)
+        return _noise_test(dv, spread, metadata["noise_frames"], metadata["reference_frames"], detection)
+    averaged = metadata.get("reference_frames")  # the reference's own frames, where known
+    return touched(recording.frames, recording.reference, calibration, detection=detection, reference_frames=averaged)
+
+
+def _noise_test(dv: np.ndarray, noise: np.ndarray, n: int, averaged: int, detection: float) -> np.ndarray:
+    """(T,) whether the standardised sum of (dv_m / s_m)^2 / (1 + 1 / averaged) over the readings
+    exceeds `detection`: each term F(1, n - 1) for an untouched frame, `noise` s (M,) estimated
+    from n frames and the reference the mean of `averaged`. A reading whose spread is zero
+    (a constant channel) is left out."""
+    kept = noise > 0
+    dv, noise = dv[:, kept], noise[kept]
     freedom = n - 1
     mean = freedom / (freedom - 2)
     variance = 2 * freedom**2 * (freedom - 1) / ((freedom - 2) ** 2 * (freedom - 4))

@@ -101,6 +101,30 @@ def test_without_the_readings_noise_the_voltage_test_still_tells_touched_frames(
     assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
 
 
+def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_and_the_noise(mixing_skin):
+    """`de.reconstruct` with no calibration takes its reference from the recording's first frames
+    up to the first touched one, and keeps their spread: `de.touches` tests the frames against it
+    (on the raw readings, no model), so every press is read and no touch between them. With the
+    spread dropped, the image threshold alone reads touches on untouched frames."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    images = de.reconstruct(recording, progress=False)
+    metadata = images.provenance["metadata"]
+    assert metadata["reference"] == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
+    assert metadata["reference_frames"] == metadata["noise_frames"] == UNTOUCHED
+    np.testing.assert_allclose(images.reference, recording.frames[:UNTOUCHED].mean(axis=0))
+    # 10 frames estimate each reading's standard deviation to about 24%; over the readings the
+    # median is the board's noise (measured 0.96 of it).
+    assert np.median(metadata["reading_noise"]) == pytest.approx(mixing_skin.noise, rel=0.1)
+    pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
+    untouched = np.setdiff1d(np.arange(recording.n_frames), pressed)
+    found = de.touches(images)
+    assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
+    distance = np.linalg.norm(found.position[pressed, 0] - presses.centres, axis=1)
+    assert np.median(distance) < 0.15, np.median(distance)
+    without = dataclasses.replace(images, provenance={"metadata": {**metadata, "reading_noise": None}})
+    assert np.sum(de.touches(without).count[untouched] > 0) >= 4  # measured 8 of the 40
+
+
 def test_presses_determine_the_readouts_mixing(calibrated):
     mixing = calibrated.values["mixing"]
     errors = calibrated.standard_errors["mixing"]
