@@ -312,20 +312,18 @@ def test_memory_fit_with_medium_noise(small_scene, medium_images):
 
 @pytest.mark.slow
 def test_memory_fit_degrades_with_noise_on_a_larger_problem(capsys):
-    """10 frames/s on a finer mesh: medium noise meets the criteria; the table reports low and
-    high noise beside it. Of the 404 elements about 60 rise above the noise threshold; the 40
-    strongest fit the parameters (`max_elements`, as on fine meshes: the three fits then share
-    one compiled program, and take 40-700 L-BFGS steps where all of them took 500-1000), and
-    every element is corrected."""
+    """10 frames/s on a finer mesh: low and medium noise meet the criteria, and the table reports
+    them. Of the 404 elements about 60 rise above the noise threshold; the 40 strongest fit the
+    parameters (`max_elements`, as on fine meshes: the fits then share one compiled program, and
+    take 40-700 L-BFGS steps where all of them took 500-1000), and every element is corrected."""
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.15)
     times, truth, clean = touch_scene(mesh, rate=10.0, duration=40.0)
     rows = []
-    for level in (0.005, 0.02, 0.05):
+    for level in (0.005, 0.02):
         images = clean + level * abs(DEPTH) * np.random.default_rng(13).standard_normal(clean.shape)
         fit = memory(images, times, max_elements=40, progress=False, throw=False)
-        if level <= 0.02:
-            assert fit.result == RESULTS.successful
-            check_memory_criteria(times, truth, images, fit, parameter_tolerance=0.2)
+        assert fit.result == RESULTS.successful
+        check_memory_criteria(times, truth, images, fit, parameter_tolerance=0.2)
         peaks = touch_peaks(times, truth, np.asarray(fit.stimulus))
         ghosts = ghost_energy(times, truth, images) / ghost_energy(times, truth, fit.stimulus)
         rows.append((level, relative_errors(fit.memory), peaks[1:] / peaks[0], ghosts))
