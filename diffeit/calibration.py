@@ -93,6 +93,15 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   with the mixing: Gauss-Newton
   steps on the same differences, their derivative in the positions by `jax.jacfwd` through the
   forward model, with the positions' prior.
+- **Held-out presses decide** whether the presses' fit is kept: the presses in five folds,
+  each fold read at the mixing (and positions) fitted to the other four, through a position map
+  fitted on those (the labels' frame held at the one all presses gave). When the median of
+  these distances exceeds the leave-one-out median of the reference's calibration with a
+  position map, the presses' fit made unseen presses worse: the reference's calibration is
+  kept instead, with a warning giving both (`_kept_if_it_generalises`). Kept, its press errors
+  are these held-out ones. The presses' mixing fits every weight to a linearised disc model;
+  a board or sheet the model does not capture can pull it anywhere, and only presses it did
+  not see show it (measured in docs/tutorials/calibration.md).
 - **A position map**: each press's frames are imaged at the calibrated model, its touch read
   (`diffeit.touch.read`), and a smooth map from read positions to labelled ones fitted: the
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
@@ -645,6 +654,9 @@ _CORNER_MARGIN = 10.0
 _HELD_FRAMES = 3
 # The most misfits evaluated in the search for the labels' frame.
 _FRAME_EVALUATIONS = 80
+# The presses' fit is judged on presses it did not see: every fifth press held out in turn, with
+# at least this many presses (fewer: kept without the test).
+_HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 10
 # Alternations between the presses' depths and the readout's mixing.
 _PRESS_ROUNDS = 30
 # A parameter whose standard error exceeds this fraction of its prior's is not determined by the data.
@@ -750,8 +762,10 @@ class SkinCalibration(eqx.Module):
         misfit: ||v - V|| / ||v|| of the refined model before per-reading gains, and
             `correlation` (Pearson) on the readings used.
         position_map: The `PositionMap` fitted on labelled presses, or None.
-        press_errors: (K,) leave-one-out distances, m, between mapped and labelled press
-            positions (NaN for a press no touch was read at), or None.
+        press_errors: (K,) distances, m, between mapped and labelled press positions, each
+            press held out: of the presses' fit and the position map when the presses' fit
+            is kept (five folds), of the position map alone otherwise (leave-one-out); NaN for
+            a press no touch was read at; None without presses.
         press_positions: (K, 2) where each press was read, m, through the position map (NaN
             for a press no touch was read at), or None.
         noise: (M_used,) the standard deviation of one reading, in the units of `signed`, from
@@ -1021,9 +1035,12 @@ def calibrate(
     per-reading gains.
     With presses held over several frames, the skin's memory is fitted to the whole session's
     images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
-    With labelled `presses`: each press is imaged at the calibrated model (`diffeit.inverse.
-    OneStep`, NOSER prior), read as a touch (`diffeit.touch.read`), and a `PositionMap`
-    from read to labelled positions is fitted, its degree chosen by cross-validation.
+    With labelled `presses`: the readout's mixing (and the electrode positions when
+    `press_groups` names them) is fitted to the presses' differences, and kept only when it
+    reads presses it did not see better than the reference's calibration does (five folds);
+    each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
+    as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
+    fitted, its degree chosen by cross-validation.
 
     Arguments:
         recording: The session: untouched frames (or a reference) and, with presses, the
@@ -1091,20 +1108,24 @@ def calibrate(
     if presses is None:
         return calibration
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
-    calibration, frame = _fit_frame_and_mixing(
-        calibration,
-        recording,
-        presses,
-        reference,
-        priors["mixing"],
-        polarity,
-        found.position[:, 0],
+    reference_only = _with_position_map(calibration, presses, found, chosen, polarity)
+    positions = (
         _position_prior(calibration.model, priors["electrode_positions"])
         if "electrode_positions" in press_groups
-        else None,
+        else None
+    )
+    calibration, frame = _fit_frame_and_mixing(
+        calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0], positions
     )
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
     calibration = _with_position_map(calibration, presses, found, chosen, polarity)
+    calibration = _kept_if_it_generalises(
+        calibration,
+        reference_only,
+        _held_out_errors(
+            reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity
+        ),
+    )
     if memory and _held(presses, recording.times):
         calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
     return calibration
@@ -1889,6 +1910,63 @@ def _leave_one_out_errors(read: np.ndarray, labelled: np.ndarray, degree: int | 
     hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
     residual = (shift - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
     return np.linalg.norm(residual, axis=1) * length
+
+
+def _held_out_errors(
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses,
+    reference: np.ndarray,
+    prior: float,
+    frame: np.ndarray,
+    positions: tuple[float, float] | None,
+    hyperparameter: float,
+    polarity: int,
+) -> np.ndarray | None:
+    """(K,) each press's distance, m, from where it is read when the presses' fit (mixing, and
+    positions when `positions` is given) and the position map are made without it: the
+    presses in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted
+    to the others, in the labels' frame `frame` found from all of them. NaN for a press no
+    touch was read at; None with fewer than `_LEAST_HELD_OUT` presses."""
+    if presses.n_presses < _LEAST_HELD_OUT:
+        return None
+    fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
+    errors = np.full(presses.n_presses, np.nan)
+    for k in range(_HELD_OUT_FOLDS):
+        train, test = presses.select(np.flatnonzero(fold != k)), np.flatnonzero(fold == k)
+        fitted, _ = _fit_presses(calibration, recording, _moved(train, frame), reference, prior, polarity, positions)
+        found, _, _ = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
+        read = found.position[:, 0]
+        seen = np.all(np.isfinite(read), axis=1)
+        trained = seen & (fold != k)
+        if trained.sum() < 3:
+            continue
+        mapping = PositionMap.fit(read[trained], presses.centres[trained])
+        errors[test] = np.linalg.norm(mapping(read[test]) - presses.centres[test], axis=1)
+    return errors
+
+
+def _kept_if_it_generalises(
+    fitted: SkinCalibration, reference_only: SkinCalibration, held_out: np.ndarray | None
+) -> SkinCalibration:
+    """`fitted` (the presses' fit) with its held-out press errors `held_out` as `press_errors`,
+    unless their median (a press not read counts as the largest) exceeds that of the
+    calibration from the reference alone with a position map (`reference_only`, its
+    leave-one-out errors): then that one, with a warning giving both. What the presses' fit
+    adds is measured on presses it did not see; a board whose readout is not the model's
+    mixing can make it worse, not better."""
+    if held_out is None:
+        return fitted
+    ours = float(np.median(np.where(np.isnan(held_out), np.inf, held_out)))
+    theirs = reference_only.press_errors
+    if theirs is None or ours <= float(np.median(np.where(np.isnan(theirs), np.inf, theirs))):
+        return eqx.tree_at(lambda c: c.press_errors, fitted, held_out)
+    note = (
+        f"the presses' fit ({', '.join(fitted.fitted['presses'])}) is not kept: presses it did not see were read "
+        f"{1e3 * ours:.1f} mm off (median) against {1e3 * float(np.nanmedian(theirs)):.1f} mm with the reference's "
+        "calibration and a position map"
+    )
+    return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
 
 
 # ---------------------------------------------------------------------------------------------
