@@ -1,5 +1,5 @@
-"""`diffeit fit`: the joint fit of a simulated frames file (two presses at one place on a skin
-with memory, simulated on a finer mesh with noise), its corrected images, saved fit and figure;
+"""`diffeit fit`: the joint fit of a simulated frames file (a press on a skin with memory,
+simulated on a finer mesh with noise), its corrected images, saved fit and figure;
 a capped fit that does not converge; a fit killed mid-run and resumed from its checkpoint; bad
 input; and `diffeit live --memory` with a saved fit."""
 
@@ -60,31 +60,30 @@ def simulation(scene):
 
 
 @pytest.fixture(scope="module")
-def frames_file(simulation, tmp_path_factory):
-    path = tmp_path_factory.mktemp("fit") / "memory.h5"
-    simulation.save(path)
-    return path
+def small_scene(scene) -> Scene:
+    """The scene's first press alone on a coarse skin: 8 frames (the press held from 1 s to
+    2.5 s, then 3 frames recovering), 92 triangles."""
+    return dataclasses.replace(scene, skin=Skin(h=0.4), duration=4.0)
 
 
 @pytest.fixture(scope="module")
-def small_frames_file(scene, tmp_path_factory):
-    """The scene's first press alone on a coarse skin: 8 frames, 92 triangles. Its fit takes about
-    100 steps of milliseconds each; the start (background and memory fits, compiling) most of the
-    time."""
+def small_frames_file(small_scene, tmp_path_factory):
+    """`small_scene` simulated. Its fit takes about 100 steps of milliseconds each; the start
+    (background and memory fits, compiling) most of the time."""
     path = tmp_path_factory.mktemp("fit") / "small.h5"
-    simulate(dataclasses.replace(scene, skin=Skin(h=0.4), duration=4.0), progress=False).save(path)
+    simulate(small_scene, progress=False).save(path)
     return path
 
 
 @pytest.fixture(scope="module")
-def whole(frames_file, tmp_path_factory) -> SimpleNamespace:
-    """`diffeit fit` of the frames file run to its end, once for the tests that read it (what it
-    writes, and the path the killed and resumed runs must follow): its exit status, what it
-    printed, and its output name."""
+def whole(small_frames_file, tmp_path_factory) -> SimpleNamespace:
+    """`diffeit fit` of the small frames file run to its end, once for the tests that read it
+    (what it writes, and the path the killed and resumed runs must follow): its exit status,
+    what it printed, and its output name."""
     out = tmp_path_factory.mktemp("whole") / "skin"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        status = main(["fit", str(frames_file), "-o", str(out)])
+        status = main(["fit", str(small_frames_file), "-o", str(out)])
     return SimpleNamespace(status=status, printed=printed.getvalue(), out=out)
 
 
@@ -102,18 +101,18 @@ def _energy(mesh: de.Mesh, images: np.ndarray) -> float:
 
 
 @pytest.mark.slow
-def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, whole):
+def test_fit_writes_the_stimulus_the_fit_and_a_figure(small_scene, small_frames_file, whole):
     assert whole.status == 0
     printed, folder = whole.printed, whole.out.parent
     assert " s, converged\n" in printed and "misfit" in printed
 
     corrected = read_frames(folder / "skin.h5")
     mesh = corrected.mesh
-    n_frames = len(scene.times)
-    assert mesh.n_elements == scene.reconstruction_mesh().n_elements
+    n_frames = len(small_scene.times)
+    assert mesh.n_elements == small_scene.reconstruction_mesh().n_elements
     assert corrected.images.shape == (n_frames, mesh.n_elements)
     assert corrected.image_quantity == IMAGE_QUANTITY
-    np.testing.assert_array_equal(corrected.frames, read_frames(frames_file).frames)
+    np.testing.assert_array_equal(corrected.frames, read_frames(small_frames_file).frames)
 
     saved = fit.load(folder / "skin.fit.h5")
     assert saved.result == RESULTS.successful
@@ -130,11 +129,11 @@ def test_fit_writes_the_stimulus_the_fit_and_a_figure(scene, frames_file, whole)
     assert f"slow_time {float(saved.memory.slow_time):.3g} +- {errors['slow_time']:.0%}" in printed
 
     # Between the presses the stimulus is near zero: the memory explains the recovering skin.
-    gaps, pressed = _gaps(scene, mesh)
+    gaps, pressed = _gaps(small_scene, mesh)
     stimulus = np.asarray(saved.stimulus)
     peak = np.abs(stimulus[pressed]).max()
     assert np.abs(stimulus[gaps]).max() < 0.25 * peak
-    before = _plain_images(saved, mesh, read_frames(frames_file))
+    before = _plain_images(saved, mesh, read_frames(small_frames_file))
     assert _energy(mesh, before[gaps]) > 5 * _energy(mesh, stimulus[gaps])
 
     figure = matplotlib.image.imread(folder / "skin.png")
@@ -149,7 +148,7 @@ def _plain_images(saved, mesh, recording) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_a_capped_fit_says_it_did_not_converge(frames_file, tmp_path, capsys, monkeypatch):
+def test_a_capped_fit_says_it_did_not_converge(small_frames_file, tmp_path, capsys, monkeypatch):
     """--max-steps 2: exit status 1 (FELL_SHORT), the reason on stderr, the result code's name in
     OUT.h5's provenance, and the files of the last iterate written (to resume from). A memory
     uncertainty that fails (made to, here) is said on stderr and kept in the provenance too."""
@@ -159,7 +158,7 @@ def test_a_capped_fit_says_it_did_not_converge(frames_file, tmp_path, capsys, mo
 
     monkeypatch.setattr(fit, "memory_uncertainty", singular)
     out = tmp_path / "capped"
-    status = main(["fit", str(frames_file), "-o", str(out), "--max-steps", "2", "--free", "memory", "stimulus"])
+    status = main(["fit", str(small_frames_file), "-o", str(out), "--max-steps", "2", "--free", "memory", "stimulus"])
     captured = capsys.readouterr()
     assert status == FELL_SHORT == 1
     assert "did not converge" in captured.out and "did not converge" in captured.err
@@ -178,7 +177,7 @@ def test_a_capped_fit_says_it_did_not_converge(frames_file, tmp_path, capsys, mo
 
 
 @pytest.mark.slow
-def test_a_fit_killed_mid_run_goes_on_from_its_checkpoint(small_frames_file, tmp_path, capsys):
+def test_a_fit_killed_mid_run_goes_on_from_its_checkpoint(small_frames_file, whole, tmp_path, capsys):
     """A run SIGKILLed after its first checkpoint (every 5 accepted steps), in a process of its own;
     then resumed from it and stopped by SIGTERM (exit status 143, the checkpoint written at the next
     step), in this process, whose compiled programs it shares; then resumed to the end: the
@@ -198,31 +197,23 @@ def test_a_fit_killed_mid_run_goes_on_from_its_checkpoint(small_frames_file, tmp
     arguments = [frames, "-o", str(out), "--checkpoint-every", "5"]
     command = [*FIT_COMMAND, *arguments]
 
-    def killed_run() -> fit.JointFit:
-        """The first checkpoint of a run killed after writing it."""
-        killed = subprocess.Popen(
-            command,
-            env=_compiling_environment(tmp_path / "compilation-cache"),
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
-        _wait_for_a_new_file(killed, checkpoint, None)
-        killed.kill()
-        assert killed.wait() == -signal.SIGKILL
-        return fit.load(checkpoint)
-
-    # The killed run (a process of its own, watched by a thread) goes on beside the
-    # uninterrupted fit in this process: on two cores, in about the time of the longer.
-    with concurrent.futures.ThreadPoolExecutor(1) as pool:
-        interrupted = pool.submit(killed_run)
-        assert main(["fit", frames, "-o", str(tmp_path / "whole")]) == 0
-        first = interrupted.result()
-    whole = fit.load(tmp_path / "whole.fit.h5")
+    killed = subprocess.Popen(
+        command,
+        env=_compiling_environment(tmp_path / "compilation-cache"),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    _wait_for_a_new_file(killed, checkpoint, None)
+    killed.kill()
+    assert killed.wait() == -signal.SIGKILL
+    first = fit.load(checkpoint)
     assert not (tmp_path / "cut.fit.h5").exists()
+    assert whole.status == 0
+    uninterrupted = fit.load(whole.out.parent / "skin.fit.h5")
 
     steps = len(first.history.objective) - 1
     assert first.result == RESULTS.max_iterations_reached and steps > 0 and steps % 5 == 0
-    np.testing.assert_allclose(first.history.objective, whole.history.objective[: steps + 1], rtol=1e-9)
+    np.testing.assert_allclose(first.history.objective, uninterrupted.history.objective[: steps + 1], rtol=1e-9)
 
     # SIGTERM to this process once the resumed run writes its next checkpoint. The fit defers the
     # signal while it runs; the handler set here catches one that would come after it.
@@ -255,13 +246,15 @@ def test_a_fit_killed_mid_run_goes_on_from_its_checkpoint(small_frames_file, tmp
     resumed = fit.load(tmp_path / "cut.fit.h5")
     assert resumed.result == RESULTS.successful
     np.testing.assert_array_equal(resumed.history.objective[: len(second.history.objective)], second.history.objective)
-    assert abs(resumed.history.objective[-1] - whole.history.objective[-1]) < 0.1
+    assert abs(resumed.history.objective[-1] - uninterrupted.history.objective[-1]) < 0.1
     for name in resumed.settings.memory_fitted:
-        assert float(getattr(resumed.memory, name)) == pytest.approx(float(getattr(whole.memory, name)), rel=0.1)
-    np.testing.assert_allclose(resumed.stimulus, whole.stimulus, atol=0.05)
-    np.testing.assert_allclose(resumed.background, whole.background, rtol=0.03)
-    np.testing.assert_allclose(resumed.contact_impedance, whole.contact_impedance, rtol=0.1)
-    assert resumed.misfit == pytest.approx(whole.misfit, rel=0.01)
+        assert float(getattr(resumed.memory, name)) == pytest.approx(
+            float(getattr(uninterrupted.memory, name)), rel=0.1
+        )
+    np.testing.assert_allclose(resumed.stimulus, uninterrupted.stimulus, atol=0.05)
+    np.testing.assert_allclose(resumed.background, uninterrupted.background, rtol=0.03)
+    np.testing.assert_allclose(resumed.contact_impedance, uninterrupted.contact_impedance, rtol=0.1)
+    assert resumed.misfit == pytest.approx(uninterrupted.misfit, rel=0.01)
 
 
 def _compiling_environment(own_cache: Path) -> dict[str, str]:
