@@ -60,10 +60,13 @@ def test_backends_work_under_jit_vmap_jvp_and_jacrev(backend_pair, rough_conduct
     direction = jnp.asarray(np.random.default_rng(3).normal(size=model.n_elements))
     tangent = jax.jvp(model.measure, (rough_conductivity,), (direction,))[1]
     assert _relative(tangent, reference.jacobian(rough_conductivity) @ direction) < 1e-9
-    reverse = jax.jacrev(model.measure)(rough_conductivity)
-    assert _relative(reverse, reference.jacobian(rough_conductivity)) < 1e-9
-    in_z = jax.jacrev(lambda z: model.measure(rough_conductivity, z))(contact_impedance)
-    assert _relative(in_z, reference.jacobian(rough_conductivity, wrt="contact_impedance")) < 1e-9
+    # Reverse mode on every 13th reading (one of each drive's): each row is an adjoint solve, and
+    # the conjugate-gradient backend's 208 of them take seconds where 16 show the same.
+    rows = slice(None, None, 13)
+    reverse = jax.jacrev(lambda sigma: model.measure(sigma)[rows])(rough_conductivity)
+    assert _relative(reverse, reference.jacobian(rough_conductivity)[rows]) < 1e-9
+    in_z = jax.jacrev(lambda z: model.measure(rough_conductivity, z)[rows])(contact_impedance)
+    assert _relative(in_z, reference.jacobian(rough_conductivity, wrt="contact_impedance")[rows]) < 1e-9
 
 
 _GAUSS_NEWTON_ON_A_BATCH = """
