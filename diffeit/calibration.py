@@ -93,15 +93,15 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   with the mixing: Gauss-Newton
   steps on the same differences, their derivative in the positions by `jax.jacfwd` through the
   forward model, with the positions' prior.
-- **Held-out presses decide** whether the presses' fit is kept: the presses in five folds,
-  each fold read at the mixing (and positions) fitted to the other four, through a position map
-  fitted on those (the labels' frame held at the one all presses gave). When the median of
-  these distances exceeds the leave-one-out median of the reference's calibration with a
-  position map, the presses' fit made unseen presses worse: the reference's calibration is
-  kept instead, with a warning giving both (`_kept_if_it_generalises`). Kept, its press errors
-  are these held-out ones. The presses' mixing fits every weight to a linearised disc model;
-  a board or sheet the model does not capture can pull it anywhere, and only presses it did
-  not see show it (measured in docs/tutorials/calibration.md).
+- **Held-out presses decide** whether the presses' fit is kept: the presses in five folds, each
+  fold read at the mixing (and positions) fitted to the other four, through a position map fitted
+  on those (the labels' frame held at the one all the presses gave). When the median
+  of these distances exceeds the leave-one-out median of the reference's calibration with a
+  position map, the presses' fit made unseen presses worse: the reference's calibration is kept
+  instead, with a warning giving both (`_kept_if_it_generalises`). Kept, its press errors are
+  these held-out ones. The presses' mixing fits every weight to a linearised disc model; a board
+  or sheet the model does not capture can pull it anywhere, and only presses it did not see show
+  it (measured in docs/tutorials/calibration.md).
 - **A position map**: each press's frames are imaged at the calibrated model, its touch read
   (`diffeit.touch.read`), and a smooth map from read positions to labelled ones fitted: the
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
@@ -764,8 +764,9 @@ class SkinCalibration(eqx.Module):
         position_map: The `PositionMap` fitted on labelled presses, or None.
         press_errors: (K,) distances, m, between mapped and labelled press positions, each
             press held out: of the presses' fit and the position map when the presses' fit
-            is kept (five folds), of the position map alone otherwise (leave-one-out); NaN for
-            a press no touch was read at; None without presses.
+            is kept (five folds), of the position map alone otherwise, or with fewer than 10
+            presses (leave-one-out); NaN for a press no touch was read at; None without
+            presses.
         press_positions: (K, 2) where each press was read, m, through the position map (NaN
             for a press no touch was read at), or None.
         noise: (M_used,) the standard deviation of one reading, in the units of `signed`, from
@@ -1119,13 +1120,10 @@ def calibrate(
     )
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
     calibration = _with_position_map(calibration, presses, found, chosen, polarity)
-    calibration = _kept_if_it_generalises(
-        calibration,
-        reference_only,
-        _held_out_errors(
-            reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity
-        ),
+    held_out = _held_out_errors(
+        reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity
     )
+    calibration = _kept_if_it_generalises(calibration, reference_only, held_out)
     if memory and _held(presses, recording.times):
         calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
     return calibration
@@ -1531,10 +1529,13 @@ def _fit_presses(
     prior: float,
     polarity: int,
     positions: tuple[float, float] | None = None,
+    train: np.ndarray | None = None,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
     "Presses"), and the relative misfit of the presses' differences; with `positions` (the
-    prior standard deviation and margin, m), the electrode positions too.
+    prior standard deviation and margin, m), the electrode positions too; with `train` (K,)
+    bool, to those presses alone (the others' potentials are computed all the same: the
+    compiled programs are those of all K presses).
 
     Each press k is a disc of the labelled centre and radius and an unknown depth a_k; its
     differences are linearised at the calibrated level, dv_k = a_k s * ((W + X) dU_k), dU_k the
@@ -1571,6 +1572,8 @@ def _fit_presses(
         / gains
         - signed_reference
     )
+    keep = np.ones(presses.n_presses, bool) if train is None else np.asarray(train, bool)
+    differences = differences[keep]
     magnitude = recording.readings == "magnitude"
     if magnitude:
         differences = differences * first.reading_sign[first.used]  # back to |V| differences
@@ -1581,7 +1584,7 @@ def _fit_presses(
     position_errors = None
     for position_round in range(rounds):
         unchanged = np.asarray(model.potentials(sigma).electrode)
-        changes = np.asarray(_potential_changes(model, sigma, patterns))  # (K, drives, L)
+        changes = np.asarray(_potential_changes(model, sigma, patterns))[keep]  # (K, drives, L)
         base = np.einsum("ml,kml->km", weights, changes[:, drive])  # (K, M)
         columns = np.einsum("pml,kml->kmp", basis, changes[:, drive])  # (K, M, p)
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
@@ -1604,7 +1607,7 @@ def _fit_presses(
         # A Gauss-Newton step of the positions, the weights and depths held.
         shift = model.electrode_shift[:, 0]
         mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
-        along = np.asarray(_press_readings_jacobian(model, sigma, patterns, full_weights, mixed, shift))  # (K, M, L)
+        along = np.asarray(_press_readings_jacobian(model, sigma, patterns, full_weights, mixed, shift))[keep]
         design_shift = (depth[:, None, None] * sign[None, :, None] * along).reshape(-1, len(shift))
         residual = (differences - depth[:, None] * sign * (base + columns @ mixing)).ravel()
         scale = _residual_scale(residual, differences)
@@ -1924,17 +1927,18 @@ def _held_out_errors(
     polarity: int,
 ) -> np.ndarray | None:
     """(K,) each press's distance, m, from where it is read when the presses' fit (mixing, and
-    positions when `positions` is given) and the position map are made without it: the
-    presses in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted
-    to the others, in the labels' frame `frame` found from all of them. NaN for a press no
-    touch was read at; None with fewer than `_LEAST_HELD_OUT` presses."""
+    positions when `positions` is given) and the position map are made without it: the presses
+    in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted to the
+    others, in the labels' frame `frame` found from all of them. NaN for a press no touch was
+    read at; None with fewer than `_LEAST_HELD_OUT` presses."""
     if presses.n_presses < _LEAST_HELD_OUT:
         return None
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
     errors = np.full(presses.n_presses, np.nan)
+    moved = _moved(presses, frame)
     for k in range(_HELD_OUT_FOLDS):
-        train, test = presses.select(np.flatnonzero(fold != k)), np.flatnonzero(fold == k)
-        fitted, _ = _fit_presses(calibration, recording, _moved(train, frame), reference, prior, polarity, positions)
+        test = np.flatnonzero(fold == k)
+        fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, positions, fold != k)
         found, _, _ = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
         read = found.position[:, 0]
         seen = np.all(np.isfinite(read), axis=1)
