@@ -1961,9 +1961,12 @@ def _kept_if_it_generalises(
     mixing can make it worse, not better."""
     if held_out is None:
         return fitted
-    ours = float(np.median(np.where(np.isnan(held_out), np.inf, held_out)))
-    theirs = reference_only.press_errors
-    if theirs is None or ours <= float(np.median(np.where(np.isnan(theirs), np.inf, theirs))):
+
+    def median(errors: np.ndarray) -> float:
+        return float(np.median(np.where(np.isnan(errors), np.inf, errors)))  # a press not read: the largest
+
+    ours, theirs = median(held_out), reference_only.press_errors
+    if theirs is None or ours <= median(theirs):
         return eqx.tree_at(lambda c: c.press_errors, fitted, held_out)
     note = (
         f"the presses' fit ({', '.join(fitted.fitted['presses'])}) is not kept: presses it did not see were read "

@@ -127,14 +127,18 @@ def _disc_fraction(geometry: Geometry, centre: np.ndarray, radius: float) -> np.
     return np.mean(np.linalg.norm(points - centre, axis=2) < radius, axis=1)
 
 
+def _point(dimension: int) -> str:
+    """How a point of `dimension` coordinates is written in messages."""
+    return "(x, y)" if dimension == 2 else "(x, y, z)"
+
+
 def _checked_centres(centres, name: str = "centres", dimension: int = 2) -> np.ndarray:
     array = np.asarray(centres, dtype=float)
     if array.ndim == 1:
         array = array[None]
     if array.ndim != 2 or array.shape[1] != dimension or len(array) == 0:
-        point = "(x, y)" if dimension == 2 else "(x, y, z)"
         raise ValueError(
-            f"{name} must be one point {point} or a list of them (K, {dimension}) in metres; "
+            f"{name} must be one point {_point(dimension)} or a list of them (K, {dimension}) in metres; "
             f"got shape {np.shape(centres)}"
         )
     if not np.all(np.isfinite(array)):
@@ -146,8 +150,7 @@ def _checked_point(point, name: str, dimension: int = 2) -> np.ndarray:
     """(D,) one point (x, y), or (x, y, z) with `dimension` 3, in metres."""
     array = _checked_centres(point, name, dimension)
     if len(array) != 1:
-        point = "(x, y)" if dimension == 2 else "(x, y, z)"
-        raise ValueError(f"{name} must be one point {point}; got {len(array)} points")
+        raise ValueError(f"{name} must be one point {_point(dimension)}; got {len(array)} points")
     return array[0]
 
 

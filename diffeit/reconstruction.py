@@ -228,7 +228,10 @@ def reconstruct(
     mesh = default_mesh(recording, h) if mesh is None else mesh
     reference_set, reference_source = reference_frames(recording, reference_frame)
     reference = reference_set.mean(axis=0)
-    still = _still_frames(recording, reference_frame, reference_set)
+    # The readings' spread over the reference frames, when the reference is the mean of enough of
+    # the recording's own frames: `diffeit.touches` tests frames against it without a calibration.
+    from_frames = recording.reference is None and reference_frame is None
+    spread = reference_set.std(axis=0, ddof=1) if from_frames and len(reference_set) >= _NOISE_FRAMES else None
     if calibration is None:
         nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
         calibration = calibrate_to_reference(
@@ -302,8 +305,8 @@ def reconstruct(
         "reference": reference_source,
         # How many frames the reference is the mean of; None for the recording's own (unknown).
         "reference_frames": None if recording.reference is not None and reference_frame is None else len(reference_set),
-        "noise_frames": 0 if still is None else len(still),
-        "reading_noise": None if still is None else still.std(axis=0, ddof=1).tolist(),
+        "noise_frames": 0 if spread is None else len(reference_set),
+        "reading_noise": None if spread is None else spread.tolist(),
         "calibrated": bool(calibrate) or given,
         "calibration": calibration.summary(),
         "background_map": map_summary,
@@ -321,15 +324,6 @@ def reconstruct(
         image_quantity="relative conductivity change" if relative else "conductivity change",
         provenance={"source": f"diffeit.reconstruct ({method})", "metadata": metadata},
     )
-
-
-def _still_frames(recording: Recording, reference_frame: int | None, reference_set: np.ndarray) -> np.ndarray | None:
-    """(n, M) the untouched frames whose spread is the readings' noise, which `diffeit.touches`
-    tests frames against without a calibration (kept in the provenance as "reading_noise"): the
-    reference frames, when the reference is the mean of enough of the recording's frames; else
-    None."""
-    from_frames = recording.reference is None and reference_frame is None
-    return reference_set if from_frames and len(reference_set) >= _NOISE_FRAMES else None
 
 
 def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh: Mesh | None, h: float | None) -> None:
