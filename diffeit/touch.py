@@ -219,7 +219,9 @@ def touches(
             changes but no calibrated level in its provenance), images that are not finite, a
             bad option (`max_touches` not a positive integer, `threshold` not positive,
             `polarity` not -1 or +1); for `method="fit"` without a calibration, without the
-            recording's reference or on a curved skin; for a position map on a curved skin.
+            recording's reference or on a curved skin; for a position map on a curved skin;
+            for a "reading_noise" in the recording's provenance that is not one finite value
+            per reading.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
@@ -309,6 +311,11 @@ def _touched_frames(recording: Recording, calibration: Any, detection: float) ->
     if getattr(calibration, "noise", None) is None and spread is not None:
         dv = np.atleast_2d(recording.frames) - recording.reference
         spread = np.asarray(spread, np.float64)
+        if spread.shape != dv.shape[1:] or not np.all(np.isfinite(spread)):
+            raise ValueError(
+                f"the recording's reading_noise (provenance) must hold {dv.shape[1]} finite values, one per reading; "
+                f"got shape {spread.shape}"
+            )
         return _noise_test(dv, spread, metadata["noise_frames"], metadata["reference_frames"], detection)
     averaged = metadata.get("reference_frames")  # the reference's own frames, where known
     return touched(recording.frames, recording.reference, calibration, detection=detection, reference_frames=averaged)

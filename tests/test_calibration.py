@@ -125,6 +125,9 @@ def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_a
     assert np.median(distance) < 0.15, np.median(distance)
     without = dataclasses.replace(images, provenance={"metadata": {**metadata, "reading_noise": None}})
     assert np.sum(de.touches(without).count[untouched] > 0) >= 4  # measured 8 of the 40
+    damaged = dataclasses.replace(images, provenance={"metadata": {**metadata, "reading_noise": [1.0, 2.0]}})
+    with pytest.raises(ValueError, match="reading_noise"):
+        de.touches(damaged)
 
 
 def test_presses_determine_the_readouts_mixing(calibrated):
