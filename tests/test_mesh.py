@@ -172,6 +172,28 @@ def test_disc_fraction_integrates_the_disc_area():
     np.testing.assert_allclose(fraction @ mesh.element_areas, np.pi * 0.25**2, rtol=2e-3)
 
 
+@pytest.mark.parametrize("surface", [False, True], ids=["flat", "dome"])
+def test_disc_fractions_equal_testing_every_triangles_sample_points(surface):
+    """The batched fractions sample only the triangles near each disc; testing every triangle's
+    sample points against each disc gives the same numbers."""
+    mesh = de.mesh.sphere_cap(1.0, 1.0, 8, 0.2) if surface else de.mesh.disc(h=0.1)
+    rng = np.random.default_rng(3)
+    centres = mesh.element_centroids[rng.choice(mesh.n_elements, 5, replace=False)]
+    radii = np.array([0.05, 0.1, 0.2, 0.3, 2.0])
+    samples = de.mesh.element_sample_points(mesh)
+    every = np.stack(
+        [(np.linalg.norm(samples - c, axis=2) < r).mean(axis=1) for c, r in zip(centres, radii, strict=True)], axis=1
+    )
+    fractions = de.mesh.disc_fractions(mesh, centres, radii)
+    np.testing.assert_array_equal(fractions.toarray(), every)
+    assert np.all(fractions.toarray()[:, -1] == 1)  # a disc holding the whole mesh
+    np.testing.assert_array_equal(de.mesh.disc_fraction(mesh, centres[1], 0.1), every[:, 1])
+    with pytest.raises(ValueError, match="radius must be positive"):
+        de.mesh.disc_fractions(mesh, centres, -1.0)
+    with pytest.raises(ValueError, match="centres must have shape"):
+        de.mesh.disc_fractions(mesh, centres[:, :1], 0.1)
+
+
 def test_locate_finds_the_element_holding_each_point(small_disc):
     """Every centroid is in its own element; a point off the sheet is in none (-1)."""
     found = de.mesh.locate(small_disc, small_disc.element_centroids)

@@ -20,11 +20,10 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 import scipy.special
-from scipy.spatial import cKDTree
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..mesh import Mesh, distance_to_segments, element_sample_points, locate
+from ..mesh import Mesh, disc_fractions, distance_to_segments, locate
 from ..render import PixelGrid, pixel_grid
 from ..results import RESULTS
 from .linearised import LinearisedProblem, apply_matrix, check_frames
@@ -405,19 +404,8 @@ def _target_positions(mesh: Mesh, n_targets: int, radius: float, rng: np.random.
 
 def _disc_fractions(mesh: Mesh, centres: np.ndarray, radius: float) -> tuple[scipy.sparse.csc_array, np.ndarray]:
     """(E, K) sparse fraction of each element inside each disc (midpoint rule on 64
-    sub-triangles, as `diffeit.mesh.disc_fraction`), and (K,) the discs' areas on the mesh."""
-    samples = element_sample_points(mesh, _TARGET_SAMPLING_LEVEL)
-    centroids = mesh.element_centroids
-    reach = np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - centroids[:, None], axis=2))
-    near = cKDTree(centroids).query_ball_point(centres, radius + reach)
-    target = np.repeat(np.arange(len(centres)), [len(n) for n in near])
-    element = np.concatenate([np.asarray(n, dtype=int) for n in near])
-    inside = np.linalg.norm(samples[element] - centres[target][:, None], axis=2) < radius
-    fraction = inside.mean(axis=1)
-    kept = fraction > 0
-    fractions = scipy.sparse.csc_array(
-        (fraction[kept], (element[kept], target[kept])), shape=(mesh.n_elements, len(centres))
-    )
+    sub-triangles, `diffeit.mesh.disc_fractions`), and (K,) the discs' areas on the mesh."""
+    fractions = disc_fractions(mesh, centres, radius, _TARGET_SAMPLING_LEVEL)
     areas = fractions.T @ mesh.element_areas
     if np.any(areas <= 0):
         raise ValueError("a training target covers no element: raise target_radius or refine the mesh")

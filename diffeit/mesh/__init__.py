@@ -2,6 +2,7 @@
 geometric fields, and conservative interpolation of element fields between meshes."""
 
 from ._fields import disc_fraction as disc_fraction
+from ._fields import disc_fractions as disc_fractions
 from ._fields import distance_to_segments as distance_to_segments
 from ._fields import element_sample_points as element_sample_points
 from ._fields import locate as locate
