@@ -104,14 +104,17 @@ def minimise(
 
     objectives: list[float] = []
     norms: list[float] = []
-    record(*_value_and_gradient(scaled, flat))
-    y, accepted, result = flat, 0, RESULTS.max_iterations_reached
+    # optimistix's first step evaluates the start and accepts it: the start's value and gradient,
+    # with no program of their own to compile.
+    y, state, _ = _step(solver, scaled, flat, state)
+    record(state.f_info.f, state.f_info.grad)
+    accepted, result = 1, RESULTS.max_iterations_reached
     small, rejected, finite = 0, 0, flat
     if not np.isfinite(objectives[0]) or not np.isfinite(norms[0]):
-        return Minimum(scaled.unscaled(y), np.asarray(objectives), np.asarray(norms), RESULTS.nonfinite)
+        return Minimum(scaled.unscaled(flat), np.asarray(objectives), np.asarray(norms), RESULTS.nonfinite)
     report(y)
-    with tqdm(total=max_steps, desc=description, disable=not progress, leave=False) as bar:
-        for _ in range(max_steps):
+    with tqdm(total=max_steps, initial=min(max_steps, 1), desc=description, disable=not progress, leave=False) as bar:
+        for _ in range(max_steps - 1):
             y, state, _ = _step(solver, scaled, y, state)
             bar.update()
             if not bool(state.result == optx.RESULTS.successful):
@@ -183,8 +186,3 @@ def _init(solver: optx.LBFGS, scaled: _Scaled, w: jax.Array) -> Any:
 @eqx.filter_jit
 def _step(solver: optx.LBFGS, scaled: _Scaled, w: jax.Array, state: Any) -> tuple[jax.Array, Any, Any]:
     return solver.step(scaled, w, None, {}, state, frozenset())
-
-
-@eqx.filter_jit
-def _value_and_gradient(scaled: _Scaled, w: jax.Array) -> tuple[jax.Array, jax.Array]:
-    return jax.value_and_grad(scaled.value)(w)
