@@ -116,6 +116,49 @@ def test_a_sheet_folded_along_mesh_edges_has_the_flat_sheets_voltages_and_jacobi
     _assert_same_physics(flat, folded)
 
 
+def test_distances_along_a_folded_sheet_and_its_smoothness_prior_are_the_flat_sheets():
+    """The Matern prior's distances between neighbouring centroids are taken along the sheet
+    (across the shared edge, unfolded): a sheet folded along mesh edges keeps them, and its
+    one-step image equals the flat sheet's. The straight chords through the folds are shorter."""
+    nodes, triangles, electrodes = _grid_sheet()
+    flat = de.Mesh(nodes, triangles, electrodes)
+    folded = de.Mesh(_folded(nodes, fold_lines=[-0.5, 0.25], turns=[1.0, -2.0]) @ _rotation(3).T, triangles, electrodes)
+    first, second, _ = de.mesh.element_adjacency(flat)
+    chords = np.linalg.norm(flat.element_centroids[first] - flat.element_centroids[second], axis=1)
+    np.testing.assert_allclose(de.mesh.centroid_distances(flat), chords, rtol=1e-14)
+    np.testing.assert_allclose(de.mesh.centroid_distances(folded), chords, rtol=1e-13)
+    through = np.linalg.norm(folded.element_centroids[first] - folded.element_centroids[second], axis=1)
+    assert np.max(1 - through / chords) > 0.05  # pairs across a fold
+    protocol = de.protocol.adjacent(flat.n_electrodes)
+    sigma = _rough_conductivity(flat.n_elements)
+    difference = de.ForwardModel(flat, protocol).measure(sigma * 1.1) - de.ForwardModel(flat, protocol).measure(sigma)
+    images = [
+        np.asarray(
+            de.inverse.OneStep(de.ForwardModel(mesh, protocol), de.inverse.Matern(0.5), 1e-2, background=sigma)
+            .solve(difference)
+            .value
+        )
+        for mesh in (flat, folded)
+    ]
+    assert _relative(images[1], images[0]) < 1e-10
+
+
+def test_centroid_distances_on_a_dome_exceed_the_chords_by_the_bend():
+    """On a sphere cap each unfolded distance is at least the chord, and longer by about the
+    angle between the two triangles' planes squared, over 8, of it (d theta^2 / 8 for a path
+    bent by theta in the middle)."""
+    dome = de.mesh.sphere_cap(1.0, 1.0, 8, 0.15)
+    first, second, _ = de.mesh.element_adjacency(dome)
+    chords = np.linalg.norm(dome.element_centroids[first] - dome.element_centroids[second], axis=1)
+    along = de.mesh.centroid_distances(dome)
+    corners = dome.nodes[dome.triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    bend = np.arccos(np.clip(np.sum(normals[first] * normals[second], axis=1), -1, 1))
+    assert np.all(along >= chords * (1 - 1e-14)) and np.max(along / chords - 1) > 1e-4
+    np.testing.assert_allclose(along / chords - 1, bend**2 / 8, rtol=0.6, atol=1e-6)
+
+
 def test_a_cylinder_patch_converges_to_the_flat_rectangle_it_unrolls_to():
     # Same parameter mesh, rolled and flat: the difference is the chords' error alone, second order.
     radius, length, angle, n_electrodes = 0.5, 1.0, 2.0, 8

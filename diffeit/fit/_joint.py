@@ -35,7 +35,7 @@ from ..inverse import OneStep
 from ..inverse.linearised import check_frames
 from ..io import create_checked, read_attributes, read_checked, write_atomically, write_attributes
 from ..memory import MemoryParameters, memory_response, over_foam
-from ..mesh import element_adjacency
+from ..mesh import centroid_distances, element_adjacency
 from ..results import RESULTS, messages, names, throw_if_failed
 from ._background import background as fit_background
 from ._memory import (
@@ -486,7 +486,8 @@ class JointProblem(eqx.Module):
         neighbours: (first, second), two (P,) index arrays: the P pairs of elements that share
             an edge.
         edge_weights: (P,) l_ij / d_ij, the shared edge's length over the distance of the
-            centroids (the background prior's weights).
+            centroids along the sheet (`diffeit.mesh.centroid_distances`; the background
+            prior's weights).
         edge_lengths: (P,) l_ij / sqrt(A), the shared edge's length relative to the sheet's
             size (the total variation's weights).
     """
@@ -509,9 +510,8 @@ class JointProblem(eqx.Module):
         area = mesh.element_areas.sum()
         self.area_fractions = jnp.asarray(mesh.element_areas / area)
         first, second, lengths = element_adjacency(mesh)
-        centroids = mesh.element_centroids
         self.neighbours = (jnp.asarray(first), jnp.asarray(second))
-        self.edge_weights = jnp.asarray(lengths / np.linalg.norm(centroids[first] - centroids[second], axis=1))
+        self.edge_weights = jnp.asarray(lengths / centroid_distances(mesh))
         self.edge_lengths = jnp.asarray(lengths / np.sqrt(area))
 
     def _response(self, parameters: JointParameters) -> tuple[MemoryParameters, jax.Array]:

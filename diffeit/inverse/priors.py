@@ -27,7 +27,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from ..linear_solve import splu_spd
-from ..mesh import Mesh, element_adjacency
+from ..mesh import Mesh, centroid_distances, element_adjacency
 
 
 class PriorOperator(NamedTuple):
@@ -208,7 +208,8 @@ class Matern(AbstractPrior):
     Applied through its sparse precision (Lindgren, Rue and Lindstrom 2011, the SPDE
     (kappa^2 - Laplacian) x = white noise): P^-1 = K C^-1 K with K = kappa^2 C + G, C the
     diagonal of element areas (m^2), G the finite-volume Laplacian of the element graph (flux
-    |shared edge| / |centroid distance|), kappa = sqrt(8 nu) / correlation_length. At the
+    |shared edge| / |centroid distance|, the distance along the sheet: on a curved skin, across
+    the shared edge with the two triangles unfolded, `diffeit.mesh.centroid_distances`), kappa = sqrt(8 nu) / correlation_length. At the
     correlation length the correlation has fallen to about 0.14.
 
     Attributes:
@@ -235,7 +236,7 @@ class Matern(AbstractPrior):
         """
         kappa = np.sqrt(8.0) / self.correlation_length
         first, second, edge_lengths = element_adjacency(mesh)
-        distance = np.linalg.norm(mesh.element_centroids[first] - mesh.element_centroids[second], axis=1)
+        distance = centroid_distances(mesh)  # along the sheet, on a curved one too
         laplacian = _graph_laplacian(first, second, edge_lengths / distance, mesh.n_elements)
         areas = mesh.element_areas
         operator = (kappa**2 * scipy.sparse.diags(areas) + laplacian).tocsc()

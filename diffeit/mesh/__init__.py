@@ -19,4 +19,5 @@ from ._mesh import require_flat as require_flat
 from ._read import read as read
 from ._surface import cylinder_patch as cylinder_patch
 from ._surface import sphere_cap as sphere_cap
+from ._topology import centroid_distances as centroid_distances
 from ._topology import element_adjacency as element_adjacency
