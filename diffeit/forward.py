@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from typing import Literal
 
@@ -156,13 +157,12 @@ class ForwardModel(IdentityModule):
             solver = HostSparse()
         elif not isinstance(solver, AbstractLinearSolver):
             raise ValueError(f"solver must be a diffeit.linear_solve backend or its name; got {solver!r}")
-        systems = {"complete": CompleteElectrodeSystem, "point": PointElectrodeSystem}
-        if electrode_model not in systems:
+        if electrode_model not in ("complete", "point"):
             raise ValueError(f"electrode_model must be 'complete' or 'point'; got {electrode_model!r}")
         self.solver = solver
         self.contact_impedance = _checked_contact_impedance(contact_impedance, mesh.n_electrodes)
         if electrode_shift is None and electrode_margin is None:
-            self.system = systems[electrode_model].from_mesh(mesh)
+            self.system = _system(mesh, electrode_model, None)
             self.electrode_shift = None
             return
         if electrode_model != "complete":
@@ -170,7 +170,7 @@ class ForwardModel(IdentityModule):
         shift = _checked_electrode_shift(electrode_shift, mesh.n_electrodes)
         if electrode_margin is None:
             electrode_margin = float(np.max(np.abs(shift)))
-        self.system = CompleteElectrodeSystem.from_mesh(mesh, electrode_margin)
+        self.system = _system(mesh, "complete", float(electrode_margin))
         self.electrode_shift = _within_margin(shift, self.system)
 
     @property
@@ -297,6 +297,18 @@ class ForwardModel(IdentityModule):
                 PrecisionWarning,
                 stacklevel=3,
             )
+
+
+@functools.lru_cache(maxsize=32)
+def _system(
+    mesh: Mesh, electrode_model: str, electrode_margin: float | None
+) -> CompleteElectrodeSystem | PointElectrodeSystem:
+    """The assembled electrode system of `mesh`, built once per mesh (by content), electrode
+    model and margin: models that differ in protocol, contact impedance or solver share it (a
+    calibration builds hundreds)."""
+    if electrode_model == "point":
+        return PointElectrodeSystem.from_mesh(mesh)
+    return CompleteElectrodeSystem.from_mesh(mesh, 0.0 if electrode_margin is None else electrode_margin)
 
 
 def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
