@@ -50,9 +50,13 @@ model's unit) through the calibrated forward model V:
 sigma_h the calibrated level, f_k the fraction of each element under disc k: the smooth disc
 footprint of `diffeit.scene.shape_fraction` (an erf edge of the mesh's default edge width at
 `FIT_LEVEL`^2 sample points per element, about half an element), differentiable in its centre
-(x, y, m) and radius (m, where the edge weight is 1/2). Each disc is fitted as (x, y, radius,
-strength = depth radius^2): for a small disc the data fix the strength (the change it makes
-far off) much better than depth and radius apart, and depth = 0 is strength = 0.
+and radius (m, where the edge weight is 1/2). The centre moves in a plane through the image
+method's touch: (u, v) along the axes on a flat sheet; on a curved skin along two orthonormal
+directions of the element nearest the touch, the footprint the part of the surface within the
+radius of the centre (3D chord, as `diffeit.scene.Disc`), and the fitted centre taken onto the
+surface (`diffeit.mesh.onto_surface`). Each disc is fitted as (u, v, radius, strength = depth
+radius^2): for a small disc the data fix the strength (the change it makes far off) much better
+than depth and radius apart, and depth = 0 is strength = 0.
 
 Levenberg-Marquardt on the residual weighted by the calibration's per-reading noise
 (unweighted when it knows none), the Jacobian by forward differentiation (`jax.jacfwd` of each
@@ -127,9 +131,11 @@ class Touches(eqx.Module):
             touch that lowers it).
         pressure: (T, K) kPa through the given foam stack's map, or None.
         noise: (T,) the robust standard deviation of each image, in relative change.
-        standard_errors: With `method="fit"`, (T, K, 4) the standard errors of x, y (m, in
-            the frame of `position`), radius (m) and depth (relative change) of each fitted
-            disc, NaN where there is none; None for the image method.
+        standard_errors: With `method="fit"`, (T, K, 4) the standard errors of the centre's
+            two coordinates (m: x, y in the frame of `position` on a flat sheet; on a curved
+            skin along two orthonormal directions of the surface at the image's touch), radius
+            (m) and depth (relative change) of each fitted disc, NaN where there is none; None
+            for the image method.
         misfit: With `method="fit"`, (T,) ||dv - dv(theta)|| / ||dv|| of each fitted frame's
             differences (NaN for a frame not fitted, 1 where every disc was dropped); None for
             the image method.
@@ -219,7 +225,7 @@ def touches(
             changes but no calibrated level in its provenance), images that are not finite, a
             bad option (`max_touches` not a positive integer, `threshold` not positive,
             `polarity` not -1 or +1); for `method="fit"` without a calibration, without the
-            recording's reference or on a curved skin; for a position map on a curved skin;
+            recording's reference; for a position map on a curved skin;
             for a "reading_noise" in the recording's provenance that is not one finite value
             per reading.
     """
@@ -232,8 +238,6 @@ def touches(
         )
     if not isinstance(recording, Recording) or recording.images is None or recording.mesh is None:
         raise ValueError("touches reads a reconstructed recording (diffeit.reconstruct's result, with images)")
-    if method == "fit":
-        require_flat(recording.mesh, 'method="fit" (its discs are centred in the plane)')
     images = np.asarray(recording.images, np.float64)
     if recording.image_quantity == "conductivity change":
         level = recording.provenance.get("metadata", {}).get("calibration", {}).get("conductivity")
@@ -526,20 +530,23 @@ class _DiscFit(eqx.Module):
         return cls(model, jnp.asarray(level), model.measure(sigma))
 
 
-def _disc_fraction(fit: _DiscFit, disc: jax.Array) -> jax.Array:
-    """(E,) the fraction of each element under the disc (x, y, radius), m: the smooth disc
-    footprint of `diffeit.scene.shape_fraction` (an erf edge of the mesh's default width)."""
-    return shape_fraction(fit.model.mesh, Disc(disc[:2], disc[2]), level=FIT_LEVEL)
+def _disc_fraction(fit: _DiscFit, disc: jax.Array, plane: jax.Array) -> jax.Array:
+    """(E,) the fraction of each element under the disc (u, v, radius), m, centred at u, v in
+    the plane (3, D) (its origin and two orthonormal directions): the smooth disc footprint of
+    `diffeit.scene.shape_fraction` (an erf edge of the mesh's default width)."""
+    centre = plane[0] + disc[0] * plane[1] + disc[1] * plane[2]
+    return shape_fraction(fit.model.mesh, Disc(centre, disc[2]), level=FIT_LEVEL)
 
 
-def _change(fit: _DiscFit, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _change(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[jax.Array, jax.Array]:
     """The relative conductivity change sum_k depth_k f_k (E,) of discs `theta` (K, 4), rows
-    (x, y, radius, strength) in m, m, m and m^2 (strength = depth radius^2: the data determine
-    it far better than the depth of a small disc), and its derivatives (4K, E), row-major in
-    theta: forward differentiation (`jax.jacfwd`) of each disc's footprint in its own three
-    geometric parameters (not of every disc in all 4K)."""
-    slopes, fractions = jax.vmap(jax.jacfwd(lambda disc: (_disc_fraction(fit, disc),) * 2, has_aux=True))(
-        theta[:, :3]
+    (u, v, radius, strength) in m, m, m and m^2 (u, v in each disc's plane of `planes` (K, 3,
+    D); strength = depth radius^2: the data determine it far better than the depth of a small
+    disc), and its derivatives (4K, E), row-major in theta: forward differentiation
+    (`jax.jacfwd`) of each disc's footprint in its own three geometric parameters (not of every
+    disc in all 4K)."""
+    slopes, fractions = jax.vmap(jax.jacfwd(lambda disc, plane: (_disc_fraction(fit, disc, plane),) * 2, has_aux=True))(
+        theta[:, :3], planes
     )  # (K, E, 3) and (K, E)
     radius, strength = theta[:, 2], theta[:, 3]
     depth = strength / radius**2
@@ -556,12 +563,12 @@ def _change(fit: _DiscFit, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 
 @eqx.filter_jit
-def _disc_readings(fit: _DiscFit, theta: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """The differences dv(theta) (M,) of discs `theta` (K, 4) (`_change`) through the model,
-    their (M, 4K) Jacobian (the model linearised once, along the 4K conductivity changes of
-    `_change`), and the least relative conductivity min(1 + change). Compiled once per model
-    and K."""
-    change, tangents = _change(fit, theta)
+def _disc_readings(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The differences dv(theta) (M,) of discs `theta` (K, 4) in their `planes` (K, 3, D)
+    (`_change`) through the model, their (M, 4K) Jacobian (the model linearised once, along the
+    4K conductivity changes of `_change`), and the least relative conductivity min(1 + change).
+    Compiled once per model and K."""
+    change, tangents = _change(fit, theta, planes)
     # The conductivity is kept positive (the fit rejects steps where 1 + change < 0.02 anyway).
     readings, along = jax.linearize(fit.model.measure, fit.level * jnp.maximum(1.0 + change, 1e-2))
     jacobian = jax.vmap(along)(fit.level * tangents)  # (4K, M)
@@ -594,21 +601,24 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
     misfit = np.full(len(dv), np.nan)
     for t in np.flatnonzero(found.count > 0):
         k = int(found.count[t])
+        planes = np.stack([_tangent_plane(model.mesh, point) for point in found.position[t, :k]])
         start = np.column_stack(
             [
-                found.position[t, :k],
+                np.zeros((k, 2)),
                 np.clip(found.radius[t, :k], width, 0.5 * size),
                 np.clip(found.depth[t, :k], -0.9, 10.0),
             ]
         )
-        theta, covariance, misfit[t] = _fit_discs(fit, dv[t], weights, start, limits)
+        theta, planes, covariance, misfit[t] = _fit_discs(fit, dv[t], weights, start, planes, limits)
         count[t] = len(theta)
         if not len(theta):
             continue
         order = np.argsort(-np.abs(theta[:, 3]))
         n = len(theta)
         blocks = covariance.reshape(n, 4, n, 4)[order, :, order, :]  # (n, 4, 4): each disc's own block
-        position[t, :n], radius[t, :n], depth[t, :n] = theta[order, :2], theta[order, 2], theta[order, 3]
+        centres = planes[order, 0] + theta[order, :1] * planes[order, 1] + theta[order, 1:2] * planes[order, 2]
+        position[t, :n] = [onto_surface(model.mesh, centre) for centre in centres]
+        radius[t, :n], depth[t, :n] = theta[order, 2], theta[order, 3]
         with np.errstate(invalid="ignore"):
             errors[t, :n] = np.sqrt(np.einsum("kii->ki", blocks))
         covariances[t, :n] = blocks[:, :2, :2]
@@ -619,24 +629,40 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
     return Touches(count, position, radius, depth, pressure, found.noise, errors, misfit)
 
 
+def _tangent_plane(mesh: Mesh, point: np.ndarray) -> np.ndarray:
+    """(3, D) `point` and two orthonormal directions of the sheet there: the plane of the
+    element whose centroid is nearest on a curved skin, the axes on a flat one."""
+    if mesh.nodes.shape[1] == 2:
+        return np.vstack([point, np.eye(2)])
+    corners = mesh.nodes[mesh.triangles[np.argmin(np.linalg.norm(mesh.element_centroids - point, axis=1))]]
+    first = corners[1] - corners[0]
+    first /= np.linalg.norm(first)
+    normal = np.cross(first, corners[2] - corners[0])
+    second = np.cross(normal / np.linalg.norm(normal), first)
+    return np.vstack([point, first, second])
+
+
 def _fit_discs(
-    fit: _DiscFit, dv: np.ndarray, weights: np.ndarray | None, start: np.ndarray, limits: tuple
-) -> tuple[np.ndarray, np.ndarray, float]:
+    fit: _DiscFit, dv: np.ndarray, weights: np.ndarray | None, start: np.ndarray, planes: np.ndarray, limits: tuple
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Discs (K', 4) fitted to one frame's differences `dv` (M,) from `start` (K, 4), rows
-    (x, y, radius, depth), the insignificant dropped one at a time (module docstring); their
-    (4K', 4K') covariance and the relative residual ||dv - dv(theta)|| / ||dv||."""
+    (u, v, radius, depth), u and v in each disc's plane of `planes` (K, 3, D), the
+    insignificant dropped one at a time (module docstring); the planes (K', 3, D) of those
+    kept, their (4K', 4K') covariance and the relative residual ||dv - dv(theta)|| / ||dv||."""
     theta = start.copy()
-    theta[:, 3] *= theta[:, 2] ** 2  # fitted as (x, y, radius, strength = depth radius^2)
+    theta[:, 3] *= theta[:, 2] ** 2  # fitted as (u, v, radius, strength = depth radius^2)
     scale = np.ones(len(dv)) if weights is None else weights
     norm = float(np.linalg.norm(dv)) or 1.0
     while len(theta):
-        theta, curvature, residual = _levenberg_marquardt(fit, dv, scale, weights is not None, theta, limits)
+        theta, curvature, residual = _levenberg_marquardt(fit, dv, scale, weights is not None, theta, planes, limits)
         covariance = _covariance(curvature, residual, weights is not None)
         significance = _significance(theta, covariance)
         if np.all(significance >= SIGNIFICANCE):
-            return (*_natural(theta, covariance), float(np.linalg.norm(residual / scale)) / norm)
-        theta = np.delete(theta, int(np.argmin(significance)), axis=0)
-    return theta, np.zeros((0, 0)), 1.0
+            natural, covariance = _natural(theta, covariance)
+            return natural, planes, covariance, float(np.linalg.norm(residual / scale)) / norm
+        weakest = int(np.argmin(significance))
+        theta, planes = np.delete(theta, weakest, axis=0), np.delete(planes, weakest, axis=0)
+    return theta, planes, np.zeros((0, 0)), 1.0
 
 
 def _covariance(curvature: np.ndarray, residual: np.ndarray, noise_known: bool) -> np.ndarray:
@@ -683,18 +709,20 @@ def _levenberg_marquardt(
     weights: np.ndarray,
     noise_known: bool,
     theta: np.ndarray,
+    planes: np.ndarray,
     limits: tuple,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The discs (K, 4) (x, y, radius, strength) minimising ||weights (dv - dv(theta))||^2
-    from `theta`, the Gauss-Newton curvature J^T W^2 J there and the weighted residual. With
-    `noise_known` (weights 1 / noise) chi^2 is in units of the noise variance, else of the
-    residual's. The centre and radius of a disc whose strength is not significant at the
+    """The discs (K, 4) (u, v, radius, strength; u, v in their `planes` (K, 3, D)) minimising
+    ||weights (dv - dv(theta))||^2 from `theta`, the Gauss-Newton curvature J^T W^2 J there
+    and the weighted residual. With `noise_known` (weights 1 / noise) chi^2 is in units of
+    the noise variance, else of the residual's. The centre and radius of a disc whose strength is not significant at the
     current step are held (they are not determined: free, they wander and cost steps); the
     strength is always fitted."""
     middle, size, width = limits
 
     def evaluate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
-        centres, radii, depths = theta[:, :2], theta[:, 2], theta[:, 3] / theta[:, 2] ** 2
+        centres = planes[:, 0] + theta[:, :1] * planes[:, 1] + theta[:, 1:2] * planes[:, 2]
+        radii, depths = theta[:, 2], theta[:, 3] / theta[:, 2] ** 2
         if (
             np.any(np.linalg.norm(centres - middle, axis=1) > size)
             or np.any(radii < 0.25 * width)
@@ -702,18 +730,16 @@ def _levenberg_marquardt(
             or np.any(depths <= -0.98)
         ):
             return None
-        predicted, jacobian, lowest = _disc_readings(fit, jnp.asarray(theta))
+        predicted, jacobian, lowest = _disc_readings(fit, jnp.asarray(theta), jnp.asarray(planes))
         if float(lowest) < 0.02:
             return None
         residual = weights * (dv - np.asarray(predicted))
         return residual, weights[:, None] * np.asarray(jacobian), float(residual @ residual)
 
     state = evaluate(theta)
-    if state is None:  # a start outside the limits: moved into them
+    if state is None:  # a start outside the limits: moved into them (the planes' origins are on the sheet)
         theta = theta.copy()
-        offset = theta[:, :2] - middle
-        distance = np.linalg.norm(offset, axis=1, keepdims=True)
-        theta[:, :2] = middle + offset * np.minimum(1.0, 0.9 * size / np.maximum(distance, 1e-300))
+        theta[:, :2] = 0.0
         theta[:, 2] = np.clip(theta[:, 2], width, 0.5 * size)
         theta[:, 3] = np.clip(theta[:, 3] / theta[:, 2] ** 2, -0.5 / len(theta), 10.0) * theta[:, 2] ** 2
         state = evaluate(theta)
