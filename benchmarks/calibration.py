@@ -1,7 +1,7 @@
 """Calibrating a simulated skin from a calibration session: the median position error of touches
 read on presses the calibration did not use, against the number of labelled presses.
 
-    python benchmarks/calibration.py [--seeds 2] [--presses 0 10 25 50 100] [--test 100]
+    python benchmarks/calibration.py [--seeds 3] [--presses 0 10 25 50 100] [--test 60]
 
 The skin: a disc of radius 80 mm with 16 electrodes, opposition drive, a board that reports
 magnitudes only, and the artefacts real boards have (`diffeit.scene` effects): electrode positions
@@ -157,9 +157,9 @@ def errors(recording, presses, calibration) -> tuple[float, int]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, default=2, help="simulated sessions")
+    parser.add_argument("--seeds", type=int, default=3, help="simulated sessions")
     parser.add_argument("--presses", type=int, nargs="+", default=[0, 10, 25, 50, 100])
-    parser.add_argument("--test", type=int, default=100, help="presses the errors are measured on")
+    parser.add_argument("--test", type=int, default=60, help="presses the errors are measured on")
     parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
     options = parser.parse_args()
     if options.describe:

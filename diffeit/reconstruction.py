@@ -164,8 +164,12 @@ def reconstruct(
         calibrate: Calibrate and refine the model to the reference (`diffeit.calibrate`
             without presses); False keeps the nominal model, signing magnitudes only.
         calibration: A `diffeit.calibration.SkinCalibration` of this skin and board (from
-            `diffeit.calibrate`): images at its model, mesh and gains; with labelled presses,
-            one-step images by default at the hyperparameter its position map was fitted at.
+            `diffeit.calibrate`): images at its model, mesh and gains; with a position map
+            from labelled presses, one-step images by default at the hyperparameter the map
+            was fitted at (without one, where the presses' cross-validation chose no map,
+            the hyperparameter is chosen from the recording's own frames as usual: measured on
+            `benchmarks/calibration.py`'s skins, the presses' choice then read test presses
+            worse in four of five sessions, by up to 1.2 mm).
         mesh: The sheet to image on; None for `default_mesh(recording, h)`.
         h: Element size of the default mesh, m.
         reference_frame: Image against this frame instead of the recording's reference.
@@ -250,7 +254,7 @@ def reconstruct(
     level = calibration.conductivity
     frames = calibration.signed(recording.frames)
     signed_reference = calibration.signed(reference)
-    if shorthand and hyperparameter == "auto" and method == "one_step" and getattr(calibration, "hyperparameter", None):
+    if shorthand and hyperparameter == "auto" and method == "one_step" and _maps_positions(calibration):
         hyperparameter = calibration.hyperparameter  # the position map was fitted on images made at it
     map_summary = None
     if background_map:
@@ -440,6 +444,15 @@ def _unbound_solver(
     if method == "total_variation":
         return TotalVariation(**limit), method
     return GREIT(), method
+
+
+def _maps_positions(calibration: Any) -> bool:
+    """Whether `calibration` holds a position map that moves the positions read (one fitted
+    on images made at its `hyperparameter`)."""
+    mapping = getattr(calibration, "position_map", None)
+    return (
+        getattr(calibration, "hyperparameter", None) is not None and mapping is not None and mapping.degree is not None
+    )
 
 
 def _hyperparameter_of(

@@ -171,6 +171,19 @@ def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin
     assert errors["skin"] < 0.05, errors
 
 
+def test_images_take_the_calibrations_hyperparameter_only_with_a_position_map(mixing_skin, calibrated):
+    """The map was fitted on images made at the calibration's hyperparameter; without one (the
+    presses' cross-validation chose none) the recording's own frames choose it, as uncalibrated."""
+    recording = mixing_skin.recording
+    assert calibrated.position_map.degree is not None
+    chosen = de.reconstruct(recording, calibration=calibrated, progress=False).provenance["metadata"]
+    assert chosen["hyperparameter"] == calibrated.hyperparameter
+    identity = dataclasses.replace(calibrated.position_map, degree=None, coefficients=np.zeros((0, 2)))
+    unmapped = dataclasses.replace(calibrated, position_map=identity)
+    own = de.reconstruct(recording, calibration=unmapped, progress=False).provenance["metadata"]
+    assert own["hyperparameter_choice"]["rule"] == "auto" and own["hyperparameter"] != calibrated.hyperparameter
+
+
 def test_the_presses_fit_is_kept_only_when_presses_it_did_not_see_are_read_better(mixing_skin, calibrated):
     """The presses' fit (mixing, positions) is judged on presses held out of it, five folds: on
     this skin the reference alone finds the board's mixing, and the presses' fit of every weight
