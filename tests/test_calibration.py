@@ -214,6 +214,14 @@ def test_the_presses_fit_is_kept_only_when_presses_it_did_not_see_are_read_bette
     assert np.nanmedian(calibrated.press_errors) == pytest.approx(np.nanmedian(unseen), rel=0.3)
 
 
+def test_with_too_few_presses_to_hold_out_the_references_calibration_is_kept(mixing_skin):
+    few = de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(15)))
+    assert few.fitted["presses"] == () and few.position_map is not None
+    assert any("fewer than 20 presses cannot show" in w for w in few.warnings)
+    assert set(np.flatnonzero(few.values["mixing"])) <= {0, 10}  # the reference's: the source and far weights
+    assert few.press_errors.shape == (15,) and np.isfinite(np.nanmedian(few.press_errors))
+
+
 def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
     rng = np.random.default_rng(0)
     read = rng.uniform(-0.7, 0.7, (25, 2))
