@@ -715,9 +715,9 @@ def _levenberg_marquardt(
     """The discs (K, 4) (u, v, radius, strength; u, v in their `planes` (K, 3, D)) minimising
     ||weights (dv - dv(theta))||^2 from `theta`, the Gauss-Newton curvature J^T W^2 J there
     and the weighted residual. With `noise_known` (weights 1 / noise) chi^2 is in units of
-    the noise variance, else of the residual's. The centre and radius of a disc whose strength is not significant at the
-    current step are held (they are not determined: free, they wander and cost steps); the
-    strength is always fitted."""
+    the noise variance, else of the residual's. The centre and radius of a disc whose strength
+    is not significant at the current step are held (they are not determined: free, they wander
+    and cost steps); the strength is always fitted."""
     middle, size, width = limits
 
     def evaluate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:

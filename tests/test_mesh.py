@@ -188,6 +188,7 @@ def test_disc_fractions_equal_testing_every_triangles_sample_points(surface):
     np.testing.assert_array_equal(fractions.toarray(), every)
     assert np.all(fractions.toarray()[:, -1] == 1)  # a disc holding the whole mesh
     np.testing.assert_array_equal(de.mesh.disc_fraction(mesh, centres[1], 0.1), every[:, 1])
+    assert de.mesh.disc_fractions(mesh, centres[:0], 0.1).shape == (mesh.n_elements, 0)
     with pytest.raises(ValueError, match="radius must be positive"):
         de.mesh.disc_fractions(mesh, centres, -1.0)
     with pytest.raises(ValueError, match="centres must have shape"):

@@ -209,8 +209,9 @@ class Matern(AbstractPrior):
     (kappa^2 - Laplacian) x = white noise): P^-1 = K C^-1 K with K = kappa^2 C + G, C the
     diagonal of element areas (m^2), G the finite-volume Laplacian of the element graph (flux
     |shared edge| / |centroid distance|, the distance along the sheet: on a curved skin, across
-    the shared edge with the two triangles unfolded, `diffeit.mesh.centroid_distances`), kappa = sqrt(8 nu) / correlation_length. At the
-    correlation length the correlation has fallen to about 0.14.
+    the shared edge with the two triangles unfolded, `diffeit.mesh.centroid_distances`),
+    kappa = sqrt(8 nu) / correlation_length. At the correlation length the correlation has
+    fallen to about 0.14.
 
     Attributes:
         correlation_length: Metres (static, default 0.2, positive).

@@ -184,7 +184,7 @@ def disc_fractions(mesh: Mesh, centres: ArrayLike, radius: ArrayLike, level: int
     reach = np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - centroids[:, None], axis=2))
     near = _centroid_tree(mesh).query_ball_point(centres, radii + reach)
     disc = np.repeat(np.arange(len(centres)), [len(n) for n in near])
-    element = np.concatenate([np.asarray(n, dtype=int) for n in near])
+    element = np.concatenate([np.zeros(0, int), *(np.asarray(n, dtype=int) for n in near)])
     inside = np.linalg.norm(samples[element] - centres[disc][:, None], axis=2) < radii[disc][:, None]
     fraction = inside.mean(axis=1)
     kept = fraction > 0
