@@ -1976,10 +1976,11 @@ def _kept_if_it_generalises(
     adds is measured on presses it did not see; a board whose readout is not the model's
     mixing can make it worse, not better. With too few presses to hold out (`held_out` None),
     `reference_only`, with a note."""
+    not_kept = f"the presses' fit ({', '.join(fitted.fitted['presses'])}) is not kept: "
     if held_out is None:
         note = (
-            f"the presses' fit ({', '.join(fitted.fitted['presses'])}) is not kept: fewer than {_LEAST_HELD_OUT} "
-            "presses cannot show that it reads presses it did not see better than the reference's calibration"
+            f"{not_kept}fewer than {_LEAST_HELD_OUT} presses cannot show that it reads presses it did not see "
+            "better than the reference's calibration"
         )
         return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
 
@@ -1990,7 +1991,7 @@ def _kept_if_it_generalises(
     if theirs is None or ours <= median(theirs):
         return eqx.tree_at(lambda c: c.press_errors, fitted, held_out)
     note = (
-        f"the presses' fit ({', '.join(fitted.fitted['presses'])}) is not kept: presses it did not see were read "
+        f"{not_kept}presses it did not see were read "
         f"{1e3 * ours:.1f} mm off (median) against {1e3 * float(np.nanmedian(theirs)):.1f} mm with the reference's "
         "calibration and a position map"
     )

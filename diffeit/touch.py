@@ -534,8 +534,13 @@ def _disc_fraction(fit: _DiscFit, disc: jax.Array, plane: jax.Array) -> jax.Arra
     """(E,) the fraction of each element under the disc (u, v, radius), m, centred at u, v in
     the plane (3, D) (its origin and two orthonormal directions): the smooth disc footprint of
     `diffeit.scene.shape_fraction` (an erf edge of the mesh's default width)."""
-    centre = plane[0] + disc[0] * plane[1] + disc[1] * plane[2]
-    return shape_fraction(fit.model.mesh, Disc(centre, disc[2]), level=FIT_LEVEL)
+    return shape_fraction(fit.model.mesh, Disc(_in_plane(disc, plane), disc[2]), level=FIT_LEVEL)
+
+
+def _in_plane(theta: Any, planes: Any) -> Any:
+    """(..., D) the points at (u, v) = theta[..., :2] in `planes` (..., 3, D): origin + u first
+    direction + v second (NumPy or JAX)."""
+    return planes[..., 0, :] + theta[..., :1] * planes[..., 1, :] + theta[..., 1:2] * planes[..., 2, :]
 
 
 def _change(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -616,8 +621,7 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
         order = np.argsort(-np.abs(theta[:, 3]))
         n = len(theta)
         blocks = covariance.reshape(n, 4, n, 4)[order, :, order, :]  # (n, 4, 4): each disc's own block
-        centres = planes[order, 0] + theta[order, :1] * planes[order, 1] + theta[order, 1:2] * planes[order, 2]
-        position[t, :n] = [onto_surface(model.mesh, centre) for centre in centres]
+        position[t, :n] = [onto_surface(model.mesh, centre) for centre in _in_plane(theta[order], planes[order])]
         radius[t, :n], depth[t, :n] = theta[order, 2], theta[order, 3]
         with np.errstate(invalid="ignore"):
             errors[t, :n] = np.sqrt(np.einsum("kii->ki", blocks))
@@ -721,7 +725,7 @@ def _levenberg_marquardt(
     middle, size, width = limits
 
     def evaluate(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, float] | None:
-        centres = planes[:, 0] + theta[:, :1] * planes[:, 1] + theta[:, 1:2] * planes[:, 2]
+        centres = _in_plane(theta, planes)
         radii, depths = theta[:, 2], theta[:, 3] / theta[:, 2] ** 2
         if (
             np.any(np.linalg.norm(centres - middle, axis=1) > size)
