@@ -1510,8 +1510,10 @@ def _fit_frame_and_mixing(
     at each step."""
     size = float(np.max(np.linalg.norm(calibration.model.mesh.nodes - calibration.model.mesh.nodes.mean(0), axis=1)))
 
+    response = _ElectrodeResponse.of_calibration(calibration, None)
+
     def misfit(frame: np.ndarray) -> float:
-        return _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity)[1]
+        return _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity, response)[1]
 
     starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
     start = min(starts, key=misfit)
@@ -1521,7 +1523,10 @@ def _fit_frame_and_mixing(
         misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
     )
     frame = best.x if best.fun < misfit(start) else start
-    fitted, _ = _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity, positions)
+    if positions is not None:
+        response = _ElectrodeResponse.of_calibration(calibration, positions[1])
+    moved = _moved(presses, frame)
+    fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
     return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
 
 
@@ -1532,6 +1537,7 @@ def _fit_presses(
     reference: np.ndarray,
     prior: float,
     polarity: int,
+    response: _ElectrodeResponse,
     positions: tuple[float, float] | None = None,
     train: np.ndarray | None = None,
 ) -> tuple[SkinCalibration, float]:
@@ -1539,7 +1545,8 @@ def _fit_presses(
     "Presses"), and the relative misfit of the presses' differences; with `positions` (the
     prior standard deviation and margin, m), the electrode positions too; with `train` (K,)
     bool, to those presses alone (the others' potentials are computed all the same: the
-    compiled programs are those of all K presses).
+    compiled programs are those of all K presses). `response` is the calibration's model's
+    (`_ElectrodeResponse.of_calibration`, with the margin of `positions` when they are fitted).
 
     Each press k is a disc of the labelled centre and radius and an unknown depth a_k; its
     differences are linearised at the calibrated level, dv_k = a_k s * ((W + X) dU_k), dU_k the
@@ -1552,15 +1559,11 @@ def _fit_presses(
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
-    margin = None if positions is None else positions[1]
-    model = _with(calibration.model, protocol, calibration.contact_impedance, margin)
-    # Every electrode's potential as a reading: the press patterns' potentials come from one Jacobian.
-    every = _with(model, _every_electrode(protocol), calibration.contact_impedance)
+    every, sigma = response.every, response.sigma
     level = calibration.conductivity
-    sigma = jnp.full(model.n_elements, level)
-    patterns = jnp.asarray(polarity * level * _press_patterns(model.mesh, presses))
+    patterns = jnp.asarray(polarity * level * _press_patterns(every.mesh, presses))
     source, sink, offset = roles(protocol)
-    fixed = _ReadoutFit.of(model, level, calibration.contact_impedance, False).pair_offsets
+    fixed = _ReadoutFit.of(first.model, level, calibration.contact_impedance, False).pair_offsets
     basis = np.concatenate([source[None], sink[None], offset[~fixed]])  # (p, M, L)
     drive = protocol.drive_index
     weights = np.asarray(protocol.measure)
@@ -1582,8 +1585,10 @@ def _fit_presses(
     rounds = 1 if positions is None else 1 + _POSITION_ROUNDS
     position_errors = None
     for position_round in range(rounds):
-        unchanged = np.asarray(every.potentials(sigma).electrode)
-        changes = _potential_changes(every, sigma, patterns)[keep]  # (K, drives, L)
+        if position_round > 0:
+            response = _ElectrodeResponse.of(every, sigma)
+        unchanged = response.potentials
+        changes = response.changes(patterns)[keep]  # (K, drives, L)
         base = np.einsum("ml,kml->km", weights, changes[:, drive])  # (K, M)
         columns = np.einsum("pml,kml->kmp", basis, changes[:, drive])  # (K, M, p)
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
@@ -1704,11 +1709,34 @@ def _every_electrode(protocol: Protocol) -> Protocol:
     return Protocol(protocol.drive, [np.eye(protocol.n_electrodes)] * protocol.n_drives)
 
 
-def _potential_changes(every: ForwardModel, sigma: jax.Array, patterns: jax.Array) -> np.ndarray:
-    """(K, drives, L) the electrode potentials' derivative along each conductivity change (K, E);
-    `every` reads every electrode's potential (`_every_electrode`)."""
-    jacobian = np.asarray(every.jacobian(sigma))  # (drives * L, E), the fast adjoint path
-    return (np.asarray(patterns) @ jacobian.T).reshape(len(patterns), every.protocol.n_drives, -1)
+@dataclasses.dataclass(frozen=True)
+class _ElectrodeResponse:
+    """A model reading every electrode's potential (`_every_electrode`), the conductivity
+    `sigma` (E,), S/sq, and there the electrode potentials (drives, L), V, and their Jacobian
+    (drives * L, E), the fast adjoint path. Every press fit of the frame search, and of the
+    held-out folds, starts from one calibration's model: they share one response."""
+
+    every: ForwardModel
+    sigma: jax.Array
+    potentials: np.ndarray
+    jacobian: np.ndarray
+
+    @classmethod
+    def of(cls, every: ForwardModel, sigma: jax.Array) -> _ElectrodeResponse:
+        return cls(every, sigma, np.asarray(every.potentials(sigma).electrode), np.asarray(every.jacobian(sigma)))
+
+    @classmethod
+    def of_calibration(cls, calibration: SkinCalibration, margin: float | None) -> _ElectrodeResponse:
+        """At the calibration's level and contact impedance, its electrodes free to move by
+        `margin`, m (None: as they are)."""
+        protocol = calibration.first_stage.model.protocol
+        model = _with(calibration.model, protocol, calibration.contact_impedance, margin)
+        every = _with(model, _every_electrode(protocol), calibration.contact_impedance)
+        return cls.of(every, jnp.full(model.n_elements, calibration.conductivity))
+
+    def changes(self, patterns: jax.Array) -> np.ndarray:
+        """(K, drives, L) the electrode potentials' derivative along each conductivity change (K, E)."""
+        return (np.asarray(patterns) @ self.jacobian.T).reshape(len(patterns), self.every.protocol.n_drives, -1)
 
 
 @eqx.filter_jit
@@ -1952,9 +1980,12 @@ def _held_out_errors(
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
     errors = np.full(presses.n_presses, np.nan)
     moved = _moved(presses, frame)
+    response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
     for k in range(_HELD_OUT_FOLDS):
         test = np.flatnonzero(fold == k)
-        fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, positions, fold != k)
+        fitted, _ = _fit_presses(
+            calibration, recording, moved, reference, prior, polarity, response, positions, fold != k
+        )
         found, _, _ = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
         read = found.position[:, 0]
         seen = np.all(np.isfinite(read), axis=1)

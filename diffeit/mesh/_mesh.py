@@ -58,6 +58,7 @@ class Mesh(StaticData):
       it: the sheet lies on their left (counter-clockwise along the outer boundary) in 2D,
       and on their left seen from the side the normals point to in 3D.
     - `element_areas`: (E,) triangle areas in m^2.
+    - `element_centroids`: (E, 2) or, for a surface, (E, 3) triangle centroids in metres.
 
     A mesh is static data for JAX: a pytree without leaves. Meshes compare and hash by content
     (nodes, triangles, electrodes), so functions compiled for one mesh serve an equal one; a
@@ -69,6 +70,7 @@ class Mesh(StaticData):
     electrodes: tuple[np.ndarray, ...]
     boundary_edges: np.ndarray = field(repr=False)
     element_areas: np.ndarray = field(repr=False)
+    element_centroids: np.ndarray = field(repr=False)
     fingerprint: bytes = field(repr=False)
 
     def __init__(self, nodes: ArrayLike, triangles: ArrayLike, electrodes: Sequence[ArrayLike]) -> None:
@@ -102,6 +104,7 @@ class Mesh(StaticData):
         self.electrodes = tuple(readonly(e) for e in electrodes)
         self.boundary_edges = readonly(boundary_edges)
         self.element_areas = readonly(areas)
+        self.element_centroids = readonly(nodes[triangles].mean(axis=1))
         lengths = np.array([len(e) for e in electrodes])
         self.fingerprint = fingerprint(nodes, triangles, lengths, *electrodes)
 
@@ -188,11 +191,6 @@ class Mesh(StaticData):
     @property
     def n_electrodes(self) -> int:
         return len(self.electrodes)
-
-    @property
-    def element_centroids(self) -> np.ndarray:
-        """(E, 2) or, for a surface, (E, 3) triangle centroids in metres."""
-        return self.nodes[self.triangles].mean(axis=1)
 
     def __repr__(self) -> str:
         return f"Mesh(n_nodes={self.n_nodes}, n_elements={self.n_elements}, n_electrodes={self.n_electrodes})"

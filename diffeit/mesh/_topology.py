@@ -1,14 +1,20 @@
 """Which elements of a mesh are neighbours, and how far apart they lie along the sheet."""
 
+import functools
+
 import numpy as np
 
+from .._arrays import readonly
 from ._mesh import Mesh
 
 
+@functools.lru_cache(maxsize=16)
 def element_adjacency(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pairs of elements that share an edge: (first, second, shared edge length in metres)."""
+    """Pairs of elements that share an edge: (first, second, shared edge length in metres).
+
+    Computed once per mesh (by content); the arrays are read-only."""
     first, second, edges = _shared_edges(mesh)
-    return first, second, np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1)
+    return first, second, readonly(np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1))
 
 
 def centroid_distances(mesh: Mesh) -> np.ndarray:
@@ -40,11 +46,12 @@ def centroid_distances(mesh: Mesh) -> np.ndarray:
     return np.hypot(a - b, d + e)  # the centroids lie on either side of the edge once unfolded
 
 
+@functools.lru_cache(maxsize=16)
 def _shared_edges(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(P,) first and (P,) second elements of each interior edge, and (P, 2) its nodes."""
+    """(P,) first and (P,) second elements of each interior edge, and (P, 2) its nodes; read-only."""
     edges = np.sort(mesh.triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
     owner = np.repeat(np.arange(mesh.n_elements), 3)
     order = np.lexsort((edges[:, 1], edges[:, 0]))
     edges, owner = edges[order], owner[order]
     shared = np.flatnonzero(np.all(edges[1:] == edges[:-1], axis=1))  # each interior edge twice
-    return owner[shared], owner[shared + 1], edges[shared]
+    return readonly(owner[shared]), readonly(owner[shared + 1]), readonly(edges[shared])
