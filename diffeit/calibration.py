@@ -82,7 +82,8 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
 - **The labels' frame** (scale, rotation, offset against the mesh's), the one whose discs
   explain the presses' differences best: Nelder-Mead on the presses' misfit (a mixing fit at
   each step) from the better of the mesh's own frame and the similarity that maps the labels
-  onto the positions read (`_fit_frame_and_mixing`).
+  onto the positions read (`_fit_frame_and_mixing`). On a curved skin the labels are points on
+  its surface in the mesh's frame, and no frame is fitted.
 - **The readout's mixing**, from the presses' differences: each press is a disc of the
   labelled centre and radius with an unknown depth, linearised at the calibrated level; the
   mixing enters linearly, and the depths and the mixing weights (with their prior) are solved
@@ -109,6 +110,8 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
   orientation, scale and offset against the labels' frame), 2 or 3, or none, chosen by
   leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
+  On a curved skin the map is the identity (a polynomial in space would move touches off the
+  surface); the presses' errors are still measured.
 - **Memory**, when every press is held over several frames: the skin's memory parameters
   fitted to the session's images with the presses' footprints and holds known
   (`diffeit.fit.memory_from_presses`).
@@ -152,7 +155,7 @@ from .io import (
     write_attributes,
 )
 from .memory import MemoryParameters
-from .mesh import Mesh, disc, disc_fractions, require_flat
+from .mesh import Mesh, disc, disc_fractions
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
@@ -701,7 +704,7 @@ class PositionMap(eqx.Module):
     errors: dict[str, float]
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
-        """(..., 2) the labels'-frame positions, m, of positions `points` (..., 2) read in the
+        """(..., d) the labels'-frame positions, m, of positions `points` (..., d) read in the
         mesh's frame; NaN stays NaN."""
         points = np.asarray(points, np.float64)
         if self.degree is None:
@@ -710,12 +713,16 @@ class PositionMap(eqx.Module):
 
     @classmethod
     def fit(cls, read: np.ndarray, labelled: np.ndarray) -> PositionMap:
-        """The map from `read` (K, 2) to `labelled` (K, 2) positions, m, its degree chosen by
-        leave-one-out cross-validation among those that K presses determine with two to spare."""
+        """The map from `read` (K, 2) to `labelled` (K, 2) positions, m; the identity for points
+        on a curved skin (K, 3), which a polynomial in space would move off the surface.
+
+        Its degree is chosen by leave-one-out cross-validation among those that K presses
+        determine with two to spare: a degree replaces a lower one when its median distance is
+        lower."""
         read, labelled = np.asarray(read, np.float64), np.asarray(labelled, np.float64)
         errors = {"none": float(np.median(_leave_one_out_errors(read, labelled, None)))}
         degree = None
-        for candidate in _MAP_DEGREES[1:]:
+        for candidate in _MAP_DEGREES[1:] if read.shape[1] == 2 else ():
             if len(read) < _terms(read[:1], candidate).shape[1] + 2:
                 break
             errors[str(candidate)] = float(np.median(_leave_one_out_errors(read, labelled, candidate)))
@@ -770,8 +777,8 @@ class SkinCalibration(eqx.Module):
             is kept (five folds), of the position map alone otherwise (leave-one-out; with
             fewer than 20 presses always); NaN for a press no touch was read at; None without
             presses.
-        press_positions: (K, 2) where each press was read, m, through the position map (NaN
-            for a press no touch was read at), or None.
+        press_positions: (K, 2), or (K, 3) on a curved skin, where each press was read, m,
+            through the position map (NaN for a press no touch was read at), or None.
         noise: (M_used,) the standard deviation of one reading, in the units of `signed`, from
             the spread of the reference frames (None with fewer than 6): `diffeit.touches`
             tests each frame's differences against it.
@@ -1097,7 +1104,6 @@ def calibrate(
         raise ValueError(f"prior standard deviations must be finite and positive; got {priors}")
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if presses is not None:
-        require_flat(mesh, "calibration with labelled presses (their discs and position map are in the plane)")
         _check_presses(presses, recording, mesh)
     reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
     nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
@@ -1134,7 +1140,14 @@ def calibrate(
 
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
-    """ValueError for presses outside the recording's time or far outside the skin."""
+    """ValueError for presses outside the recording's time, far outside the skin, or of another
+    dimension than the mesh's."""
+    if presses.centres.shape[1] != mesh.nodes.shape[1]:
+        raise ValueError(
+            f"presses have {presses.centres.shape[1]}-dimensional centres; the mesh's nodes have "
+            f"{mesh.nodes.shape[1]} coordinates (a curved skin's presses are (K, 3) points on its surface, "
+            "a flat skin's (K, 2))"
+        )
     times = recording.times
     if len(times) == 0:
         raise ValueError("presses need the recording's frames; the recording holds none")
@@ -1499,7 +1512,7 @@ def _fit_frame_and_mixing(
     polarity: int,
     read_positions: np.ndarray,
     positions: tuple[float, float] | None,
-) -> tuple[SkinCalibration, np.ndarray]:
+) -> tuple[SkinCalibration, np.ndarray | None]:
     """The readout's mixing fitted to the presses in the labels' frame that explains their
     differences best, and that frame (ln scale, angle, offset; module docstring, "Presses");
     then, in that frame, the electrode positions with the mixing (`positions`: their prior
@@ -1507,10 +1520,33 @@ def _fit_frame_and_mixing(
 
     The frame starts from the better of the mesh's own and the similarity that maps the labels
     onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
-    at each step."""
-    size = float(np.max(np.linalg.norm(calibration.model.mesh.nodes - calibration.model.mesh.nodes.mean(0), axis=1)))
-
+    at each step. On a curved skin the labels are in the mesh's frame: the frame is None."""
     response = _ElectrodeResponse.of_calibration(calibration, None)
+    frame = None
+    if calibration.model.mesh.nodes.shape[1] == 2:
+        frame = _searched_frame(calibration, recording, presses, reference, prior, polarity, read_positions, response)
+    if positions is not None:
+        response = _ElectrodeResponse.of_calibration(calibration, positions[1])
+    moved = _moved(presses, frame)
+    fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
+    if frame is None:
+        return fitted, None
+    return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
+
+
+def _searched_frame(
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses,
+    reference: np.ndarray,
+    prior: float,
+    polarity: int,
+    read_positions: np.ndarray,
+    response: _ElectrodeResponse,
+) -> np.ndarray:
+    """The labels' frame of `_fit_frame_and_mixing` on a flat skin (`response`: the
+    calibration's, its electrodes where they are)."""
+    size = float(np.max(np.linalg.norm(calibration.model.mesh.nodes - calibration.model.mesh.nodes.mean(0), axis=1)))
 
     def misfit(frame: np.ndarray) -> float:
         return _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity, response)[1]
@@ -1522,12 +1558,7 @@ def _fit_frame_and_mixing(
     best = scipy.optimize.minimize(
         misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
     )
-    frame = best.x if best.fun < misfit(start) else start
-    if positions is not None:
-        response = _ElectrodeResponse.of_calibration(calibration, positions[1])
-    moved = _moved(presses, frame)
-    fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
-    return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
+    return best.x if best.fun < misfit(start) else start
 
 
 def _fit_presses(
@@ -1903,8 +1934,11 @@ def _frame_from_reads(read_positions: np.ndarray, presses: Presses) -> np.ndarra
     return np.array([math.log(scale), math.atan2(rotation[1, 0], rotation[0, 0]), *offset])
 
 
-def _moved(presses: Presses, frame: np.ndarray) -> Presses:
-    """The presses in the mesh's frame under `frame` (ln scale, angle, offset; `_frame_from_reads`)."""
+def _moved(presses: Presses, frame: np.ndarray | None) -> Presses:
+    """The presses in the mesh's frame under `frame` (ln scale, angle, offset; `_frame_from_reads`);
+    None: they are in it (a curved skin's)."""
+    if frame is None:
+        return presses
     scale, angle = math.exp(frame[0]), frame[1]
     rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
     return Presses(scale * presses.centres @ rotation.T + frame[2:], presses.radius * scale, presses.times)
@@ -1965,7 +1999,7 @@ def _held_out_errors(
     presses: Presses,
     reference: np.ndarray,
     prior: float,
-    frame: np.ndarray,
+    frame: np.ndarray | None,
     positions: tuple[float, float] | None,
     hyperparameter: float,
     polarity: int,

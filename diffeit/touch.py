@@ -245,6 +245,8 @@ def touches(
             raise ValueError("the recording's images are conductivity changes without the level they are relative to")
         images = images / level
     mapping = None if calibration is None else calibration.position_map
+    if mapping is not None and mapping.degree is None:
+        mapping = None  # the identity: a curved skin's map
     if polarity is None:
         polarity = -1 if calibration is None else calibration.polarity
     if method == "fit" and recording.reference is None:

@@ -94,6 +94,7 @@ def skin_session(
     noise: float = 1e-3,
     untouched_between: bool = True,
     noise_seed: int | None = None,
+    mesh: de.Mesh | None = None,
 ) -> SkinSession:
     """A calibration session of a coarse simulated skin, read by a board with noise.
 
@@ -107,6 +108,9 @@ def skin_session(
     an untouched frame when `untouched_between`. One
     generator, `np.random.default_rng(seed)`, draws the contact impedances, then the board, the
     centres and the noise (the noise from `np.random.default_rng(noise_seed)` when given).
+    With `mesh` (a curved skin), the skin is that mesh, and the presses are centred at the
+    centroids of triangles drawn uniformly among those within 0.6 of the skin's size (its
+    farthest node from the nodes' mean) of the nodes' mean.
 
     Arguments:
         seed: Seeds the session's generator.
@@ -115,19 +119,27 @@ def skin_session(
         noise: The noise's standard deviation, as a fraction of the RMS untouched reading.
         untouched_between: Whether an untouched frame follows each press.
         noise_seed: Seeds the noise's own generator; None draws it from the session's.
+        mesh: The skin's mesh, for one other than the disc.
 
     Returns:
         A `SkinSession`: the recording, its presses (one instant each, at its pressed frame;
         None without presses), the board, the skin's model and the noise in the board's unit.
     """
     rng = np.random.default_rng(seed)
-    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1)
+    disc = mesh is None
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1) if disc else mesh
     truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.55, 0.55, 16)))
     readout = board(rng)
     reference = _readings(truth, readout, np.ones(mesh.n_elements))
-    angles = rng.uniform(0, 2 * np.pi, n_presses)
-    radii = 0.6 * np.sqrt(rng.uniform(0, 1, n_presses))
-    centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
+    if disc:
+        angles = rng.uniform(0, 2 * np.pi, n_presses)
+        radii = 0.6 * np.sqrt(rng.uniform(0, 1, n_presses))
+        centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
+    else:
+        middle = mesh.nodes.mean(axis=0)
+        size = np.max(np.linalg.norm(mesh.nodes - middle, axis=1))
+        inner = np.flatnonzero(np.linalg.norm(mesh.element_centroids - middle, axis=1) < 0.6 * size)
+        centres = mesh.element_centroids[rng.choice(inner, n_presses, replace=False)]
     clean = [reference] * UNTOUCHED
     for centre in centres:
         clean.append(_readings(truth, readout, _pressed(mesh, centre)))

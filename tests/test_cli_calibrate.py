@@ -73,6 +73,12 @@ def test_read_presses_reads_instants_and_holds(tmp_path):
     holds = tmp_path / "holds.csv"
     holds.write_text("end_s,start_s,x_m,y_m,radius_m\r\n2.0,1.0,0,0,0.1\r\n")
     np.testing.assert_array_equal(de.io.read_presses(holds).times, [[1.0, 2.0]])
+    on_a_surface = tmp_path / "surface.csv"
+    on_a_surface.write_text("z_m,x_m,y_m,radius_m,start_s,end_s\n0.9,0.1,-0.2,0.05,1,3\n")
+    presses = de.io.read_presses(on_a_surface)
+    np.testing.assert_array_equal(presses.centres, [[0.1, -0.2, 0.9]])
+    np.testing.assert_array_equal(presses.radius, [0.05])
+    np.testing.assert_array_equal(presses.times, [[1.0, 3.0]])
 
 
 @pytest.mark.parametrize(
@@ -89,6 +95,9 @@ def test_read_presses_reads_instants_and_holds(tmp_path):
         ("x_m,y_m,radius_m,time_s\n0,0,0.1\n", "line 2 has 3 columns; the header has 4"),
         ("x_m,y_m,radius_m,time_s\n0,0,0,1\n", "line 2: radius_m must be positive"),
         ("x_m,y_m,radius_m,start_s,end_s\n0,0,0.1,2,1\n", "line 2: the hold ends"),
+        ("x_m,y_m,z_m,radius_m,start_s,end_s\n0,0,1,0.1,2,1\n", "line 2: the hold ends"),
+        ("x_m,y_m,z_m,radius_m,time_s\n0,0,1,-0.1,2\n", "line 2: radius_m must be positive"),
+        ("x_m,y_m,z_m,radius_m,time_s\n0,0,z,0.1,2\n", "line 2, column z_m is not a number: 'z'"),
         ("x_m,y_m,radius_m,time_s\n", "holds a header but no presses"),
         ("", "is empty"),
     ],

@@ -346,3 +346,19 @@ def test_onto_surface_projects_onto_the_nearest_elements_plane():
     np.testing.assert_array_equal(de.mesh.onto_surface(flat, [0.3, 0.2]), [0.3, 0.2])
     with pytest.raises(ValueError, match="a point of this mesh has 3 coordinates"):
         de.mesh.onto_surface(surface, [0.3, 0.2])
+
+
+def test_the_noise_figure_targets_the_middle_of_a_domes_surface():
+    """The noise figure's small target sits at the area-weighted mean of the centroids, which on
+    a dome lies inside it (0.25 m below the apex here): it is taken onto the surface, where its
+    disc covers elements (it covered none, and the hyperparameter choice failed)."""
+    cap = de.mesh.sphere_cap(1.15, np.deg2rad(60.0), 16, h=0.15, electrode_width=0.2)
+    model = de.ForwardModel(cap, de.protocol.adjacent(16), contact_impedance=0.01)
+    pressed = 1 - 0.3 * de.mesh.disc_fraction(cap, tuple(cap.element_centroids[0]), 0.2)
+    dv = np.asarray(model.measure(jax.numpy.asarray(pressed))) - np.asarray(
+        model.measure(jax.numpy.ones(cap.n_elements))
+    )
+    selection = de.inverse.select_hyperparameter(model, dv[None], "noise_figure")
+    assert selection.target == 0.5 and np.isfinite(selection.value) and selection.value > 0
+    figure = np.interp(np.log(selection.value), np.log(selection.candidates), selection.criterion)
+    assert figure == pytest.approx(0.5, rel=0.2)  # the crossing, between the candidates around it

@@ -70,7 +70,8 @@ def plot_calibration(
 ) -> Path:
     """The figure of a calibration: its mesh with the electrodes, the readout's mixing weights and
     the drive and channel gains (with one-standard-error bars), and, with `presses`, every
-    labelled position with an arrow to its read position (through the position map).
+    labelled position with an arrow to its read position (through the position map). A curved
+    skin is drawn seen along z (its x and y).
 
     Arguments:
         path: The PNG to write.
@@ -89,7 +90,7 @@ def plot_calibration(
     axes = figure.subplots(1, panels)
     axes[0].triplot(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles, color="0.75", linewidth=0.3)
     for index, chain in enumerate(mesh.electrodes):
-        xy = mesh.nodes[chain]
+        xy = mesh.nodes[chain, :2]
         axes[0].plot(xy[:, 0], xy[:, 1], color="0.1", linewidth=4, solid_capstyle="butt")
         axes[0].annotate(str(index), 1.1 * xy[len(xy) // 2], ha="center", va="center", fontsize=7)
     axes[0].set_aspect("equal")
@@ -121,10 +122,10 @@ def plot_calibration(
     axes[2].legend(fontsize=8)
 
     if presses is not None:
-        labelled = presses.centres
+        labelled = presses.centres[:, :2]
         ax = axes[3]
         ax.plot(*labelled.T, "o", color="C0", markersize=4, label="labelled")
-        found = calibration.press_positions
+        found = calibration.press_positions[:, :2]
         for start, end in zip(labelled, found, strict=True):
             if np.all(np.isfinite(end)):
                 ax.annotate("", end, start, arrowprops={"arrowstyle": "->", "color": "C3", "linewidth": 0.8})

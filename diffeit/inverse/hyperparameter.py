@@ -38,7 +38,7 @@ import numpy as np
 
 from .._threads import host_algebra
 from ..forward import ForwardModel
-from ..mesh import disc_fraction
+from ..mesh import disc_fraction, onto_surface
 from ..results import RESULTS, throw_if_failed
 from .linearised import LinearisedProblem, check_frames
 from .one_step import OneStep
@@ -216,10 +216,11 @@ def _crossing(lambdas, function, target, residual, solution, method, *, increasi
 
 
 def _noise_figure_function(problem: LinearisedProblem, eigenvalues, vectors, target_radius):
-    """NF(lambdas) for a small target at the centre of the mesh's area (see the module)."""
+    """NF(lambdas) for a small target at the centre of the mesh's area (see the module), taken
+    onto a curved skin's surface (the mean of its centroids lies inside its chord)."""
     mesh = problem.model.mesh
     areas = mesh.element_areas
-    centre = areas @ mesh.element_centroids / areas.sum()
+    centre = onto_surface(mesh, areas @ mesh.element_centroids / areas.sum())
     diameter = np.ptp(mesh.nodes, axis=0).max()
     radius = 0.05 * diameter if target_radius is None else target_radius
     target = disc_fraction(mesh, centre, radius)

@@ -12,13 +12,14 @@ class Presses(eqx.Module):
 
     Arguments:
         centres: (K, 2) where each press was centred, metres, in the labels' frame (which may
-            be rotated, scaled and offset against the mesh's: calibration fits the map).
+            be rotated, scaled and offset against the mesh's: calibration fits the map); on a
+            curved skin (K, 3), points on its surface in the mesh's frame.
         radius: The contact radius, metres: one for all presses or (K,) one each.
         times: (K,) the instant each press is held, seconds on the recording's clock, or
             (K, 2) the start and end of each hold.
 
     Attributes:
-        centres: (K, 2) float64, metres.
+        centres: (K, 2) or (K, 3) float64, metres.
         radius: (K,) float64, metres.
         times: (K, 2) float64, seconds: each hold's start and end (equal for an instant).
 
@@ -33,8 +34,11 @@ class Presses(eqx.Module):
 
     def __init__(self, centres: ArrayLike, radius: ArrayLike, times: ArrayLike) -> None:
         centres = np.array(centres, dtype=np.float64)
-        if centres.ndim != 2 or centres.shape[1] != 2 or len(centres) == 0:
-            raise ValueError(f"presses: centres has shape {centres.shape}; expected (K, 2), K >= 1, metres")
+        if centres.ndim != 2 or centres.shape[1] not in (2, 3) or len(centres) == 0:
+            raise ValueError(
+                f"presses: centres has shape {centres.shape}; expected (K, 2), or (K, 3) on a curved skin, "
+                "K >= 1, metres"
+            )
         count = len(centres)
         radius = np.array(radius, dtype=np.float64)
         if radius.ndim > 1 or (radius.ndim == 1 and radius.shape != (count,)):

@@ -21,9 +21,10 @@ def read_presses(path: str | os.PathLike) -> Presses:
     """Labelled presses (`Presses`) from a CSV file, strictly: one header row, then one press a row.
 
     The header names the columns `x_m,y_m,radius_m,time_s` (the instant each press is held) or
-    `x_m,y_m,radius_m,start_s,end_s` (each hold's start and end), in any order; other columns
-    (a label, a force) are ignored. Metres and seconds on the recording's clock. A UTF-8
-    byte-order mark is skipped and blank lines are ignored.
+    `x_m,y_m,radius_m,start_s,end_s` (each hold's start and end), in any order, and a `z_m`
+    column too for points on a curved skin; other columns (a label, a force) are ignored.
+    Metres and seconds on the recording's clock. A UTF-8 byte-order mark is skipped and blank
+    lines are ignored.
 
     Arguments:
         path: The CSV file.
@@ -52,10 +53,12 @@ def read_presses(path: str | os.PathLike) -> Presses:
         raise ValueError(f"{path} is empty: expected a header row ({','.join(PLACE_COLUMNS + INSTANT_COLUMNS)})")
     header_line, names = rows[0][0], [name.strip() for name in rows[0][1]]
     times = _time_columns(names, path, header_line)
-    repeated = sorted({name for name in names if names.count(name) > 1} & set(PLACE_COLUMNS + times))
+    place = (*PLACE_COLUMNS[:2], "z_m", PLACE_COLUMNS[2]) if "z_m" in names else PLACE_COLUMNS
+    repeated = sorted({name for name in names if names.count(name) > 1} & set(place + times))
     if repeated:
         raise ValueError(f"{path}: line {header_line} (the header) names column(s) {repeated} more than once")
-    wanted = [names.index(name) for name in PLACE_COLUMNS + times]
+    wanted = [names.index(name) for name in place + times]
+    radius = len(place) - 1  # the radius's place among the numbers of a row
     values = []
     for line, row in rows[1:]:
         if len(row) != len(names):
@@ -71,19 +74,19 @@ def read_presses(path: str | os.PathLike) -> Presses:
             if not math.isfinite(number):
                 raise ValueError(f"{path}: line {line}, column {names[column]} is not finite: {row[column]!r}")
             numbers.append(number)
-        if numbers[2] <= 0:
-            raise ValueError(f"{path}: line {line}: radius_m must be positive, metres; got {row[wanted[2]]!r}")
-        if len(numbers) == 5 and numbers[4] < numbers[3]:
+        if numbers[radius] <= 0:
+            raise ValueError(f"{path}: line {line}: radius_m must be positive, metres; got {row[wanted[radius]]!r}")
+        if len(times) == 2 and numbers[-1] < numbers[-2]:
             raise ValueError(
-                f"{path}: line {line}: the hold ends (end_s {numbers[4]:g}) before it starts ({numbers[3]:g})"
+                f"{path}: line {line}: the hold ends (end_s {numbers[-1]:g}) before it starts ({numbers[-2]:g})"
             )
         values.append(numbers)
     if not values:
         raise ValueError(f"{path} holds a header but no presses")
     return Presses(
-        [row[:2] for row in values],
-        [row[2] for row in values],
-        [row[3:] if len(row) == 5 else row[3] for row in values],
+        [row[:radius] for row in values],
+        [row[radius] for row in values],
+        [row[radius + 1 :] if len(times) == 2 else row[radius + 1] for row in values],
     )
 
 
