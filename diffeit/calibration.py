@@ -102,7 +102,8 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   instead, with a warning giving both (`_kept_if_it_generalises`). Kept, its press errors are
   these held-out ones. With fewer than 20 presses (folds under four) nothing can show it: the
   reference's calibration is kept, with a warning (with 10, folds of two passed fits that read
-  the benchmark's test presses worse). The presses' mixing fits every weight to a linearised
+  the benchmark's test presses worse), and the presses' fit is not made unless the memory is
+  fitted, which needs the labels' frame it finds. The presses' mixing fits every weight to a linearised
   disc model; a board or sheet the model does not capture can pull it anywhere, and only
   presses it did not see show it (measured in docs/tutorials/calibration.md).
 - **A position map**: each press's frames are imaged at the calibrated model, its touch read
@@ -1120,6 +1121,10 @@ def calibrate(
         return calibration
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, chosen, polarity)
+    with_memory = memory and _held(presses, recording.times)
+    if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
+        # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
+        return _too_few_to_hold_out(reference_only, (*press_groups, "press depths"))
     positions = (
         _position_prior(calibration.model, priors["electrode_positions"])
         if "electrode_positions" in press_groups
@@ -1134,7 +1139,7 @@ def calibrate(
         reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity
     )
     calibration = _kept_if_it_generalises(calibration, reference_only, held_out)
-    if memory and _held(presses, recording.times):
+    if with_memory:
         calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
     return calibration
 
@@ -2041,13 +2046,8 @@ def _kept_if_it_generalises(
     adds is measured on presses it did not see; a board whose readout is not the model's
     mixing can make it worse, not better. With too few presses to hold out (`held_out` None),
     `reference_only`, with a note."""
-    not_kept = f"the presses' fit ({', '.join(fitted.fitted['presses'])}) is not kept: "
     if held_out is None:
-        note = (
-            f"{not_kept}fewer than {_LEAST_HELD_OUT} presses cannot show that it reads presses it did not see "
-            "better than the reference's calibration"
-        )
-        return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+        return _too_few_to_hold_out(reference_only, fitted.fitted["presses"])
 
     def median(errors: np.ndarray) -> float:
         return float(np.median(np.where(np.isnan(errors), np.inf, errors)))  # a press not read: the largest
@@ -2056,11 +2056,24 @@ def _kept_if_it_generalises(
     if theirs is None or ours <= median(theirs):
         return eqx.tree_at(lambda c: c.press_errors, fitted, held_out)
     note = (
-        f"{not_kept}presses it did not see were read "
+        f"{_not_kept(fitted.fitted['presses'])}presses it did not see were read "
         f"{1e3 * ours:.1f} mm off (median) against {1e3 * float(np.nanmedian(theirs)):.1f} mm with the reference's "
         "calibration and a position map"
     )
     return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+
+
+def _too_few_to_hold_out(reference_only: SkinCalibration, groups: tuple[str, ...]) -> SkinCalibration:
+    """`reference_only`, with the note that too few presses were given to keep the presses' fit of `groups`."""
+    note = (
+        f"{_not_kept(groups)}fewer than {_LEAST_HELD_OUT} presses cannot show that it reads presses it did not see "
+        "better than the reference's calibration"
+    )
+    return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+
+
+def _not_kept(groups: tuple[str, ...]) -> str:
+    return f"the presses' fit ({', '.join(groups)}) is not kept: "
 
 
 # ---------------------------------------------------------------------------------------------
