@@ -103,9 +103,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   these held-out ones. With fewer than 20 presses (folds under four) nothing can show it: the
   reference's calibration is kept, with a warning (with 10, folds of two passed fits that read
   the benchmark's test presses worse), and the presses' fit is not made unless the memory is
-  fitted, which needs the labels' frame it finds. The presses' mixing fits every weight to a linearised
-  disc model; a board or sheet the model does not capture can pull it anywhere, and only
-  presses it did not see show it (measured in docs/tutorials/calibration.md).
+  fitted, which needs the labels' frame it finds. The presses' mixing fits every weight to a
+  linearised disc model; a board or sheet the model does not capture can pull it anywhere,
+  and only presses it did not see show it (measured in docs/tutorials/calibration.md).
 - **A position map**: each press's frames are imaged at the calibrated model, its touch read
   (`diffeit.touch.read`), and a smooth map from read positions to labelled ones fitted: the
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's

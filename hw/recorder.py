@@ -39,7 +39,7 @@ from diffeit.io import (
     CHUNK_ROWS,
     Recording,
     create_checked,
-    read_attributes,
+    drop_statistics,
     read_checked,
     read_frames,
     write_attributes,
@@ -200,9 +200,11 @@ def recorded_statistics(path: str | os.PathLike) -> DropStatistics:
     """The drop statistics a recorder's file holds (the latest it committed)."""
 
     def read(file: h5py.File) -> DropStatistics:
-        drops = _acquisition_group(file, path)["drops"]
-        kinds = [str(kind) for kind in read_attributes(drops)["kinds"]]
-        return DropStatistics(**{kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)})
+        _acquisition_group(file, path)  # refuses a file hw.Recorder did not write, by name
+        statistics = drop_statistics(file)
+        if statistics is None:
+            raise ValueError(f"{path}: /acquisition holds no drop statistics (/acquisition/drops)")
+        return DropStatistics(**statistics)
 
     return read_checked(path, read, what=_WHAT, warn_unchecked=False)
 

@@ -106,6 +106,6 @@ def test_touches_on_a_forearm_are_read_as_points_on_its_surface():
         de.metrics.position_error(mesh, images.images[4], CENTRE[:2])
     frame = int(np.flatnonzero(pressed)[0])
     assert found.lines(frame)[0].startswith("touch 0: (") and found.lines(frame)[0].split(")")[0].count(",") == 2
-    presses = de.io.Presses(np.array([CENTRE[:2]]), 0.012, [0.5])
-    with pytest.raises(ValueError, match=r"calibration with labelled presses .* flat meshes"):
+    presses = de.io.Presses(np.array([CENTRE[:2]]), 0.012, [0.5])  # a curved skin's presses are points in 3D
+    with pytest.raises(ValueError, match=r"presses have 2-dimensional centres; the mesh's nodes have 3"):
         de.calibrate(recording, presses)

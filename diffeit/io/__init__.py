@@ -46,7 +46,7 @@ The frames file (HDF5, schema "diffeit.frames", version 2):
 ```
 
 `read_frames` reports a recorder's drop statistics (`/acquisition/drops`) in the provenance
-metadata, as `drop_statistics`.
+metadata, as `drop_statistics`; `drop_statistics` reads them alone from an open file.
 
 n_meas is the protocol's number of readings and L its number of electrodes. Frames are in the
 protocol's order and sign (for `adjacent(16)`, EIDORS's). Files are written in the HDF5 1.10
@@ -75,6 +75,7 @@ from ._hdf5 import CHUNK_ROWS as CHUNK_ROWS
 from ._hdf5 import SCHEMA as SCHEMA
 from ._hdf5 import SCHEMA_VERSION as SCHEMA_VERSION
 from ._hdf5 import append_frames as append_frames
+from ._hdf5 import drop_statistics as drop_statistics
 from ._hdf5 import read_frames as read_frames
 from ._hdf5 import write_frames as write_frames
 from ._openeit import read_openeit as read_openeit

@@ -229,15 +229,9 @@ def _read(file: h5py.File) -> Recording:
             provenance["metadata"] = json.loads(attributes["metadata"])
         except json.JSONDecodeError as error:
             raise ValueError(f"the 'metadata' attribute is not valid JSON: {error}") from None
-    if "acquisition/drops" in file:
-        # A recorder's latest drop statistics: in the metadata, beside what it stored at the start.
-        drops = _dataset(file, "acquisition/drops")
-        if file.swmr_mode:
-            drops.refresh()
-        kinds = [str(kind) for kind in read_attributes(drops)["kinds"]]
-        provenance.setdefault("metadata", {})["drop_statistics"] = {
-            kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)
-        }
+    statistics = drop_statistics(file)
+    if statistics is not None:  # in the metadata, beside what the recorder stored at the start
+        provenance.setdefault("metadata", {})["drop_statistics"] = statistics
     drive = _dataset(file, "protocol/drive")[()]
     measure = _dataset(file, "protocol/measure")[()]
     drive_index = _dataset(file, "protocol/drive_index")[()]
@@ -354,6 +348,28 @@ _KINDS = {
     "mesh/electrode_offsets": np.integer,
     "committed_frames": np.integer,
 }
+
+
+def drop_statistics(file: h5py.File) -> dict[str, int] | None:
+    """A recorder's latest drop statistics (`/acquisition/drops`, hw.DropStatistics's fields)
+    in an open frames file, by kind; None in a file without them.
+
+    Arguments:
+        file: The open file (read while a recorder may still write it: SWMR is refreshed).
+
+    Returns:
+        Kind -> count, or None.
+
+    Raises:
+        ValueError: For a drops dataset that is not one integer per kind.
+    """
+    if "acquisition/drops" not in file:
+        return None
+    drops = _dataset(file, "acquisition/drops")
+    if file.swmr_mode:
+        drops.refresh()
+    kinds = [str(kind) for kind in read_attributes(drops)["kinds"]]
+    return {kind: int(value) for kind, value in zip(kinds, drops[()], strict=True)}
 
 
 def _dataset(file: h5py.File, name: str) -> h5py.Dataset:
