@@ -1530,7 +1530,21 @@ def _fit_frame_and_mixing(
     response = _ElectrodeResponse.of_calibration(calibration, None)
     frame = None
     if calibration.model.mesh.nodes.shape[1] == 2:
-        frame = _searched_frame(calibration, recording, presses, reference, prior, polarity, read_positions, response)
+        mesh = calibration.model.mesh
+        size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
+
+        def misfit(frame: np.ndarray) -> float:
+            moved = _moved(presses, frame)
+            return _fit_presses(calibration, recording, moved, reference, prior, polarity, response)[1]
+
+        starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
+        start = min(starts, key=misfit)
+        steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
+        simplex = np.vstack([start, start + np.diag(steps)])
+        best = scipy.optimize.minimize(
+            misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
+        )
+        frame = best.x if best.fun < misfit(start) else start
     if positions is not None:
         response = _ElectrodeResponse.of_calibration(calibration, positions[1])
     moved = _moved(presses, frame)
@@ -1538,33 +1552,6 @@ def _fit_frame_and_mixing(
     if frame is None:
         return fitted, None
     return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
-
-
-def _searched_frame(
-    calibration: SkinCalibration,
-    recording: Recording,
-    presses: Presses,
-    reference: np.ndarray,
-    prior: float,
-    polarity: int,
-    read_positions: np.ndarray,
-    response: _ElectrodeResponse,
-) -> np.ndarray:
-    """The labels' frame of `_fit_frame_and_mixing` on a flat skin (`response`: the
-    calibration's, its electrodes where they are)."""
-    size = float(np.max(np.linalg.norm(calibration.model.mesh.nodes - calibration.model.mesh.nodes.mean(0), axis=1)))
-
-    def misfit(frame: np.ndarray) -> float:
-        return _fit_presses(calibration, recording, _moved(presses, frame), reference, prior, polarity, response)[1]
-
-    starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
-    start = min(starts, key=misfit)
-    steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
-    simplex = np.vstack([start, start + np.diag(steps)])
-    best = scipy.optimize.minimize(
-        misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
-    )
-    return best.x if best.fun < misfit(start) else start
 
 
 def _fit_presses(
