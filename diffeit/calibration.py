@@ -665,8 +665,9 @@ _FRAME_EVALUATIONS = 80
 # at least this many presses (fewer cannot show it: the reference's calibration is kept). With
 # 10, folds of two passed fits that read the benchmark's test presses worse in both such cases.
 _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
-# Gauss-Newton steps of the presses' depths and the readout's mixing (4 to 6 reach steps of 1e-6).
-_PRESS_ROUNDS = 30
+# Gauss-Newton steps of the presses' depths and the readout's mixing, and the step (largest
+# change of a weight) they stop at: 4 to 6 steps reach it.
+_PRESS_ROUNDS, _PRESS_STEP = 30, 1e-6
 # A parameter whose standard error exceeds this fraction of its prior's is not determined by the data.
 _UNDETERMINED = 0.7
 # Levenberg-Marquardt steps of the refinement, and the rounds that re-estimate the misfit's scale.
@@ -1617,7 +1618,7 @@ def _fit_presses(
         columns = np.einsum("pml,kml->kmp", basis, changes[:, drive])  # (K, M, p)
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
         # errors there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
-        mixing, depth, sign, curvature, residual = _mixing_and_depths(
+        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
             differences, base, columns, basis, weights, unchanged[drive], magnitude, mixing, prior
         )
         if position_round == rounds - 1:
@@ -1682,6 +1683,7 @@ def _fit_presses(
             c.fitted,
             c.misfit,
             c.correlation,
+            c.warnings,
         ),
         calibration,
         (
@@ -1702,6 +1704,12 @@ def _fit_presses(
             {**calibration.fitted, "presses": groups},
             misfit,
             float(np.corrcoef(data, readings)[0, 1]),
+            calibration.warnings
+            + (
+                (f"the presses' mixing fit did not converge: its last step moved a weight by {last_step:.2g}",)
+                if last_step >= _PRESS_STEP
+                else ()
+            ),
         ),
     )
     return fitted, _relative(residual.ravel(), differences.ravel())
@@ -1717,7 +1725,7 @@ def _mixing_and_depths(
     magnitude: bool,
     mixing: np.ndarray,
     prior: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """The presses' mixing weights and depths (`_fit_presses`): Gauss-Newton on the bilinear
     model dv_k = a_k s * (base_k + columns_k m), the weights m with their prior, from `mixing`
     and each depth's projection there.
@@ -1740,7 +1748,8 @@ def _mixing_and_depths(
 
     Returns:
         The weights (p,), the depths (K,), the signs (M,), the weights' curvature (p, p) with
-        the depths unknown (its inverse their covariance) and the residual (K, M).
+        the depths unknown (its inverse their covariance), the residual (K, M) and the last
+        step's largest change of a weight (converged below `_PRESS_STEP`).
     """
     depth = None
     for _ in range(_PRESS_ROUNDS):
@@ -1761,11 +1770,11 @@ def _mixing_and_depths(
         step = np.linalg.solve(curvature, gradient)
         mixing = mixing + step
         depth = depth + (on_depth - coupling @ step) / power
-        if np.max(np.abs(step)) < 1e-6:
+        if np.max(np.abs(step)) < _PRESS_STEP:
             break
     sign = _signs(weights + np.einsum("p,pml->ml", mixing, basis), potentials, magnitude)
     residual = differences - depth[:, None] * sign * (base + columns @ mixing)
-    return mixing, depth, sign, curvature, residual
+    return mixing, depth, sign, curvature, residual, float(np.max(np.abs(step)))
 
 
 def _residual_scale(residual: np.ndarray, data: np.ndarray) -> float:

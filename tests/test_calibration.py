@@ -410,3 +410,29 @@ def test_a_domes_presses_are_points_on_its_surface_and_their_map_the_identity(tm
     again = de.calibration.load(calibration.save(tmp_path / "dome.cal.h5"))
     np.testing.assert_array_equal(again.press_positions, calibration.press_positions)
     assert again.position_map.degree is None
+
+
+def test_the_presses_mixing_and_depths_are_solved_together_and_an_unconverged_solve_says_so(monkeypatch):
+    """The bilinear model dv_k = a_k (base_k + columns_k m) of noise-free presses: Gauss-Newton
+    with the depths eliminated finds the weights and depths to 1e-9 (a weak prior) and stops at
+    a step below 1e-6; cut to one step, it reports the step it stopped at."""
+    rng = np.random.default_rng(3)
+    presses, readings, electrodes, count = 12, 40, 6, 5
+    base = rng.normal(size=(presses, readings))
+    columns = rng.normal(size=(presses, readings, count))
+    truth, depths = rng.normal(scale=0.1, size=count), rng.uniform(0.5, 1.5, presses)
+    differences = depths[:, None] * (base + columns @ truth)
+    basis, weights = np.zeros((count, readings, electrodes)), np.zeros((readings, electrodes))
+    solve = calibration_module._mixing_and_depths
+    mixing, depth, sign, curvature, residual, step = solve(
+        differences, base, columns, basis, weights, np.ones((readings, electrodes)), False, np.zeros(count), 1e3
+    )
+    np.testing.assert_allclose(mixing, truth, atol=1e-9)
+    np.testing.assert_allclose(depth, depths, rtol=1e-9)
+    assert np.all(sign == 1) and step < 1e-6 and np.max(np.abs(residual)) < 1e-9
+    assert curvature.shape == (count, count) and np.all(np.linalg.eigvalsh(curvature) > 0)
+    monkeypatch.setattr(calibration_module, "_PRESS_ROUNDS", 1)
+    *_, step = solve(
+        differences, base, columns, basis, weights, np.ones((readings, electrodes)), False, np.zeros(count), 1e3
+    )
+    assert step > 1e-6
