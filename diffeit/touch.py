@@ -246,7 +246,7 @@ def touches(
         images = images / level
     mapping = None if calibration is None else calibration.position_map
     if mapping is not None and mapping.degree is None:
-        mapping = None  # the identity: a curved skin's map
+        mapping = None  # the identity (always on a curved skin): nothing to apply
     if polarity is None:
         polarity = -1 if calibration is None else calibration.polarity
     if method == "fit" and recording.reference is None:
