@@ -1763,9 +1763,8 @@ def _mixing_and_depths(
         scale = _residual_scale(residual, differences)
         coupling = np.einsum("km,kmp->kp", predicted, along.reshape(*predicted.shape, -1))  # (K, p)
         on_depth = np.sum(predicted * residual, axis=1)
-        curvature = (along.T @ along - coupling.T @ (coupling / power[:, None])) / scale**2 + np.eye(
-            len(mixing)
-        ) / prior**2
+        schur = along.T @ along - coupling.T @ (coupling / power[:, None])  # the depths eliminated
+        curvature = schur / scale**2 + np.eye(len(mixing)) / prior**2
         gradient = (along.T @ residual.ravel() - coupling.T @ (on_depth / power)) / scale**2 - mixing / prior**2
         step = np.linalg.solve(curvature, gradient)
         mixing = mixing + step
