@@ -1132,13 +1132,16 @@ def calibrate(
         if "electrode_positions" in press_groups
         else None
     )
+    # The frame search's last fit and the held-out folds start from this model (reference_only's).
+    response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
+    read_positions = found.position[:, 0]
     calibration, frame = _fit_frame_and_mixing(
-        calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0], positions
+        calibration, recording, presses, reference, priors["mixing"], polarity, read_positions, positions, response
     )
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
     calibration = _with_position_map(calibration, presses, found, chosen, polarity)
     held_out = _held_out_errors(
-        reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity
+        reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity, response
     )
     calibration = _kept_if_it_generalises(calibration, reference_only, held_out)
     if with_memory:
@@ -1519,6 +1522,7 @@ def _fit_frame_and_mixing(
     polarity: int,
     read_positions: np.ndarray,
     positions: tuple[float, float] | None,
+    response: _ElectrodeResponse,
 ) -> tuple[SkinCalibration, np.ndarray | None]:
     """The readout's mixing fitted to the presses in the labels' frame that explains their
     differences best, and that frame (ln scale, angle, offset; module docstring, "Presses");
@@ -1527,16 +1531,18 @@ def _fit_frame_and_mixing(
 
     The frame starts from the better of the mesh's own and the similarity that maps the labels
     onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
-    at each step. On a curved skin the labels are in the mesh's frame: the frame is None."""
-    response = _ElectrodeResponse.of_calibration(calibration, None)
+    at each step. On a curved skin the labels are in the mesh's frame: the frame is None.
+    `response` is the calibration's model's, with the margin of `positions` when they are
+    fitted (`_fit_presses`)."""
     frame = None
     if calibration.model.mesh.nodes.shape[1] == 2:
         mesh = calibration.model.mesh
+        unmoved = response if positions is None else _ElectrodeResponse.of_calibration(calibration, None)
         size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
 
         def misfit(frame: np.ndarray) -> float:
             moved = _moved(presses, frame)
-            return _fit_presses(calibration, recording, moved, reference, prior, polarity, response)[1]
+            return _fit_presses(calibration, recording, moved, reference, prior, polarity, unmoved)[1]
 
         starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
         start = min(starts, key=misfit)
@@ -1546,8 +1552,6 @@ def _fit_frame_and_mixing(
             misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
         )
         frame = best.x if best.fun < misfit(start) else start
-    if positions is not None:
-        response = _ElectrodeResponse.of_calibration(calibration, positions[1])
     moved = _moved(presses, frame)
     fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
     if frame is None:
@@ -2054,18 +2058,18 @@ def _held_out_errors(
     positions: tuple[float, float] | None,
     hyperparameter: float,
     polarity: int,
+    response: _ElectrodeResponse,
 ) -> np.ndarray | None:
     """(K,) each press's distance, m, from where it is read when the presses' fit (mixing, and
     positions when `positions` is given) and the position map are made without it: the presses
     in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted to the
-    others, in the labels' frame `frame` found from all of them. NaN for a press no touch was
-    read at; None with fewer than `_LEAST_HELD_OUT` presses."""
+    others, in the labels' frame `frame` found from all of them (`response`: as `_fit_presses`).
+    NaN for a press no touch was read at; None with fewer than `_LEAST_HELD_OUT` presses."""
     if presses.n_presses < _LEAST_HELD_OUT:
         return None
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
     errors = np.full(presses.n_presses, np.nan)
     moved = _moved(presses, frame)
-    response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
     for k in range(_HELD_OUT_FOLDS):
         test = np.flatnonzero(fold == k)
         fitted, _ = _fit_presses(
