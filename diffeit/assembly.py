@@ -40,8 +40,18 @@ from .mesh import Mesh
 
 
 def basis_gradients(mesh: Mesh) -> np.ndarray:
-    """(E, d, 3) gradients of the three P1 basis functions of each triangle, in 1/m, for nodes
-    in d = 2 or 3 dimensions; on a surface (d = 3), the gradient within the triangle's plane."""
+    """The gradients of the three P1 basis functions of each triangle of a mesh.
+
+    For nodes in d = 2 dimensions the gradients lie in the plane; on a surface (d = 3) each is
+    the gradient within its triangle's plane. Computed with NumPy, once per system.
+
+    Arguments:
+        mesh: The mesh, flat ((N, 2) nodes) or a surface in 3D ((N, 3) nodes).
+
+    Returns:
+        (E, d, 3) gradients, 1/m: `[e, :, k]` is the gradient of the basis function of corner k
+        of triangle e.
+    """
     corners = mesh.nodes[mesh.triangles]  # (E, 3, d)
     twice_areas = 2 * mesh.element_areas[:, None, None]
     if mesh.nodes.shape[1] == 2:
@@ -111,8 +121,26 @@ class CompleteElectrodeSystem(_GroundedSystem):
 
     @classmethod
     def from_mesh(cls, mesh: Mesh, electrode_margin: float = 0.0) -> CompleteElectrodeSystem:
-        """The system of `mesh`, its electrodes free to move `electrode_margin` metres (>= 0)
-        along the boundary at either end."""
+        """The system of a mesh, its electrodes free to move along the boundary within a margin.
+
+        With `electrode_margin` m > 0, each electrode's entries also cover the boundary edges
+        within m of its ends, so `values` and `contact_forms` can take electrodes moved by up to
+        m at either end (`ends`); the larger structure makes another system (another
+        fingerprint) than the margin-free one.
+
+        Arguments:
+            mesh: The mesh, with its electrodes' boundary chains.
+            electrode_margin: How far each end of an electrode may move along the boundary,
+                metres, finite and >= 0; 0 fixes the electrodes.
+
+        Returns:
+            The `CompleteElectrodeSystem`, grounded at the node of the last electrode nearest
+            its midpoint.
+
+        Raises:
+            ValueError: For an `electrode_margin` not finite or negative, or one that reaches
+                round the whole boundary loop of an electrode.
+        """
         if not (np.isfinite(electrode_margin) and electrode_margin >= 0):
             raise ValueError(f"electrode_margin must be finite and >= 0 (metres); got {electrode_margin}")
         n_nodes, n_electrodes = mesh.n_nodes, mesh.n_electrodes
@@ -173,9 +201,21 @@ class CompleteElectrodeSystem(_GroundedSystem):
         )
 
     def weights(self, ends: jax.Array | None = None) -> jax.Array:
-        """(C,) the geometric integral of each electrode entry, m: of the mesh's electrodes, or,
-        with `ends` (L, 2), of electrodes whose start and end moved by `ends[l]` metres along
-        the boundary (in the direction of the electrode's nodes), each within the margin."""
+        """The geometric integral of each electrode entry, of the mesh's or of moved electrodes.
+
+        The integrals over the electrode's boundary segment of the products of basis functions
+        (and the electrode's constant) that each electrode entry of the matrix holds, before
+        the factor 1/z_l. A traced JAX function of `ends`, differentiable in them.
+
+        Arguments:
+            ends: (L, 2) how far the start and end of each electrode move along the boundary,
+                metres, in the direction of the electrode's nodes, each within
+                `electrode_margin` (not checked: beyond it an electrode stops at its window's
+                edge); None for the mesh's electrodes.
+
+        Returns:
+            (C,) the integral of each electrode entry, metres.
+        """
         if ends is None:
             return jnp.asarray(self.electrode_weights)
         extent = jnp.stack([ends[:, 0], self.electrode_lengths + ends[:, 1]], axis=1)
@@ -184,33 +224,75 @@ class CompleteElectrodeSystem(_GroundedSystem):
         )
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array, ends: jax.Array | None = None) -> jax.Array:
-        """(nnz,) matrix values for element-wise `conductivity` (E,) in S/sq and per-electrode
-        `contact_impedance` (L,) in ohm m; with `ends` (L, 2), electrodes moved as in `weights`."""
+        """The grounded system matrix's values on `pattern` for a conductivity and contact impedance.
+
+        A traced JAX function of all three arguments: jit, grad and vmap work on it.
+
+        Arguments:
+            conductivity: (E,) sheet conductivity per element, S/sq.
+            contact_impedance: (L,) contact impedance per electrode, ohm m.
+            ends: (L, 2) electrode ends moved along the boundary, metres, as in `weights`;
+                None for the mesh's electrodes.
+
+        Returns:
+            (nnz,) matrix values, siemens, in the order of `pattern`, in the result dtype of
+            `conductivity` and `contact_impedance`.
+        """
         dtype = jnp.result_type(conductivity, contact_impedance)
         values = _stiffness_values(conductivity.astype(dtype), self.unit_stiffness, self.stiffness_table)
         electrode = self.weights(ends).astype(dtype) / contact_impedance[self.electrode_of_entry]
         return values.at[self.electrode_slots].add(electrode)
 
     def current_rhs(self, currents: jax.Array) -> jax.Array:
-        """(n, k) right-hand sides for k electrode current patterns `currents` (k, L) in A,
-        each summing to zero."""
+        """The system's right-hand sides for electrode current patterns.
+
+        The nodal rows are zero and the electrode rows hold the currents.
+
+        Arguments:
+            currents: (k, L) k current patterns, amperes (or unit-free weights), each summing
+                to zero (not checked).
+
+        Returns:
+            (n, k) right-hand sides, n = N - 1 + L unknowns, in the dtype of `currents`.
+        """
         nodal = jnp.zeros((self.n_nodes - 1, currents.shape[0]), currents.dtype)
         return jnp.concatenate([nodal, currents.T])
 
     def split(self, solution: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Nodal (k, N) and electrode (k, L) potentials from solutions (n, k), shifted so the
-        electrode potentials of each solution sum to zero."""
+        """The nodal and electrode potentials of system solutions, shifted to sum to zero.
+
+        The grounded node's potential (0) is put back, and each solution's potentials are
+        shifted so that its electrode potentials sum to zero.
+
+        Arguments:
+            solution: (n, k) solutions of the system, n = N - 1 + L unknowns: volts for
+                currents in amperes.
+
+        Returns:
+            The nodal potentials (k, N) and the electrode potentials (k, L), in the unit of
+            `solution`.
+        """
         nodal = _with_ground(solution[: self.n_nodes - 1], self.grounded_node)
         electrode = solution[self.n_nodes - 1 :].T
         shift = electrode.mean(axis=1, keepdims=True)
         return nodal - shift, electrode - shift
 
     def contact_forms(self, first: jax.Array, second: jax.Array, ends: jax.Array | None = None) -> jax.Array:
-        """(k, L) the electrode terms of the energy, int_(e_l) (u - U_l)(v - V_l) ds, pairing
-        column j of `first` with column j of `second` (system solutions (n, k), unshifted);
-        with `ends`, over the moved electrodes.
+        """The electrode terms of the energy, int_(e_l) (u - U_l)(v - V_l) ds, per electrode.
 
-        z_l^-2 times this is the derivative of the bilinear form u^T A v with respect to -z_l.
+        Pairs column j of `first` with column j of `second`. z_l^-2 times this is the derivative
+        of the bilinear form u^T A v with respect to -z_l: what the contact impedance Jacobian
+        is made of.
+
+        Arguments:
+            first: (n, k) system solutions (as solved, not shifted by `split`): volts for
+                currents in amperes.
+            second: (n, k) system solutions, paired with `first` column by column.
+            ends: (L, 2) electrode ends moved along the boundary, metres, as in `weights`;
+                None for the mesh's electrodes.
+
+        Returns:
+            (k, L) the integrals, in the dtype of `first`: V^2 m for two solutions in volts.
         """
         weights = self.weights(ends).astype(first.dtype)[:, None]
         products = weights * first[self.electrode_rows] * second[self.electrode_cols]  # (C, k)
@@ -275,6 +357,17 @@ class PointElectrodeSystem(_GroundedSystem):
 
     @classmethod
     def from_mesh(cls, mesh: Mesh) -> PointElectrodeSystem:
+        """The point-electrode system of a mesh.
+
+        Each electrode becomes the node of its boundary chain nearest the chain's midpoint by
+        arc length; the last electrode's node is grounded.
+
+        Arguments:
+            mesh: The mesh, with its electrodes' boundary chains.
+
+        Returns:
+            The `PointElectrodeSystem`.
+        """
         electrode_nodes = np.array([_midpoint_node(mesh, chain) for chain in mesh.electrodes])
         grounded = int(electrode_nodes[-1])
         size = mesh.n_nodes - 1
@@ -283,28 +376,69 @@ class PointElectrodeSystem(_GroundedSystem):
         return cls(**cls._stiffness_fields(mesh, stiffness, grounded), electrode_nodes=electrode_nodes)
 
     def values(self, conductivity: jax.Array, contact_impedance: jax.Array) -> jax.Array:
-        """(nnz,) matrix values for element-wise `conductivity` (E,) in S/sq; the contact
-        impedance has no part in the point model."""
+        """The grounded stiffness matrix's values on `pattern` for a conductivity.
+
+        The contact impedance has no part in the point model: it only joins the conductivity
+        in setting the dtype. A traced JAX function, as `CompleteElectrodeSystem.values`.
+
+        Arguments:
+            conductivity: (E,) sheet conductivity per element, S/sq.
+            contact_impedance: Ohm m, scalar or (L,); its values are ignored.
+
+        Returns:
+            (nnz,) matrix values, siemens, in the order of `pattern`, in the result dtype of
+            `conductivity` and `contact_impedance`.
+        """
         dtype = jnp.result_type(conductivity, contact_impedance)
         return _stiffness_values(conductivity.astype(dtype), self.unit_stiffness, self.stiffness_table)
 
     def current_rhs(self, currents: jax.Array) -> jax.Array:
-        """(n, k) right-hand sides for k electrode current patterns `currents` (k, L) in A,
-        each summing to zero (the grounded node's current is implied)."""
+        """The system's right-hand sides for electrode current patterns.
+
+        Electrode l's current enters at its node; the grounded node's current is implied (the
+        currents sum to zero).
+
+        Arguments:
+            currents: (k, L) k current patterns, amperes (or unit-free weights), each summing
+                to zero (not checked).
+
+        Returns:
+            (n, k) right-hand sides, n = N - 1 unknowns, in the dtype of `currents`.
+        """
         rows = _unknown_of_node(self.n_nodes, self.grounded_node, self.pattern.size)[self.electrode_nodes]
         rhs = jnp.zeros((self.pattern.size + 1, currents.shape[0]), currents.dtype)
         return rhs.at[rows].add(currents.T)[:-1]
 
     def split(self, solution: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Nodal (k, N) and electrode (k, L) potentials from solutions (n, k), shifted so the
-        electrode potentials of each solution sum to zero."""
+        """The nodal and electrode potentials of system solutions, shifted to sum to zero.
+
+        The grounded node's potential (0) is put back, each electrode's potential is its
+        node's, and each solution's potentials are shifted so that its electrode potentials sum
+        to zero.
+
+        Arguments:
+            solution: (n, k) solutions of the system, n = N - 1 unknowns: volts for currents in
+                amperes.
+
+        Returns:
+            The nodal potentials (k, N) and the electrode potentials (k, L), in the unit of
+            `solution`.
+        """
         nodal = _with_ground(solution, self.grounded_node)
         electrode = nodal[:, self.electrode_nodes]
         shift = electrode.mean(axis=1, keepdims=True)
         return nodal - shift, electrode - shift
 
     def contact_forms(self, first: jax.Array, second: jax.Array) -> jax.Array:
-        """(k, L) zeros: point electrodes have no contact impedance."""
+        """Zeros: point electrodes have no contact impedance, so no electrode terms.
+
+        Arguments:
+            first: (n, k) system solutions; only its shape and dtype are used.
+            second: (n, k) system solutions; unused.
+
+        Returns:
+            (k, L) zeros, in the dtype of `first`.
+        """
         return jnp.zeros((first.shape[1], self.n_electrodes), first.dtype)
 
 

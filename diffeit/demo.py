@@ -80,8 +80,23 @@ class DemoResult:
 
 
 def run_demo(output: str | Path = "demo.png", seed: int = 0) -> DemoResult:
-    """Simulate a touch on a fine mesh, add 1% noise, reconstruct on a coarse mesh (one-step
-    NOSER), save truth beside reconstruction to `output` (PNG) and return the figures."""
+    """Image a touch on the flat unit disc: simulate, reconstruct, save truth beside the image.
+
+    A touch (dsigma/sigma `TOUCH_CHANGE`, radius `TOUCH_RADIUS` m at `TOUCH_CENTRE`) on a
+    16-electrode unit disc of `BACKGROUND` S/sq is simulated on a fine mesh (element size
+    `DATA_H` m, adjacent protocol, contact impedance `CONTACT_IMPEDANCE` ohm m), with
+    `NOISE_PERCENT` of RMS(V_ref) noise on the difference; a one-step NOSER image on the coarser
+    reconstruction mesh (`RECONSTRUCTION_H` m; hyperparameter by generalised
+    cross-validation) is drawn beside the truth on that mesh and saved to `output` (PNG).
+
+    Arguments:
+        output: The PNG to write (replaced if it exists).
+        seed: The noise seed.
+
+    Returns:
+        The `DemoResult`: the position error is the distance from the touch's centre to the
+        image's half-amplitude centroid (metres), the peak in S/sq.
+    """
     adjacent = protocol.adjacent(16)
     data_mesh = meshes.disc(16, electrode_width=0.2, h=DATA_H)
     data_model = ForwardModel(data_mesh, adjacent, CONTACT_IMPEDANCE)

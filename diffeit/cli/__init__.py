@@ -290,8 +290,24 @@ def _mesh_of(recording: Recording, settings: ModelSettings) -> Mesh:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the `diffeit` command with `argv` (default: the process's arguments); returns the
-    exit status."""
+    """Run the `diffeit` command line: parse the arguments and run the command they name.
+
+    The commands (demo, reconstruct, experiment, simulate, fit, calibrate and the hardware
+    ones) are described by `diffeit COMMAND --help`. Turns on JAX's float64 for the process.
+
+    Arguments:
+        argv: The arguments after the program's name, e.g. `["demo", "-o", "demo.png"]`;
+            None for the process's (`sys.argv[1:]`).
+
+    Returns:
+        The exit status: 0 on success; 1 when a command ran but its computation failed or fell
+        short (each command's help says when); 2 for bad input or options, reported in one
+        line on stderr; 128 + N for a fit stopped by signal N.
+
+    Raises:
+        SystemExit: From argument parsing: status 2 for an unknown command or option, 0 after
+            `--help`.
+    """
     jax.config.update("jax_enable_x64", True)  # the command is a program of its own: float64, said once here
     parser = argparse.ArgumentParser(prog="diffeit", description="Differentiable EIT for tactile skins.")
     commands = parser.add_subparsers(dest="command", required=True)

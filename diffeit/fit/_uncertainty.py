@@ -59,8 +59,18 @@ class MemoryUncertainty(eqx.Module):
     touched: np.ndarray
 
     def error_text(self, name: str) -> str:
-        """The relative standard error of the parameter `name`, as text: "+- 12%", or "not
-        determined" when infinite."""
+        """The relative standard error of one parameter, as text.
+
+        Arguments:
+            name: A free memory field, one of `names`.
+
+        Returns:
+            The error as a percentage of the value, "+- 12%", or "not determined" when it is
+            infinite.
+
+        Raises:
+            ValueError: For a name not in `names`.
+        """
         error = self.relative_error[self.names.index(name)]
         return f"+- {error:.0%}" if np.isfinite(error) else "not determined"
 

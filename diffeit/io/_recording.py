@@ -220,9 +220,23 @@ class Recording(eqx.Module):
 
 
 def mesh_from_geometry(geometry: Mapping[str, Any]) -> Mesh:
-    """The mesh a geometry description names: `{"kind": "disc", **keywords}` calls
-    `diffeit.mesh.disc(**keywords)`; likewise "rectangle", "polygon", and the curved skins
-    "cylinder_patch" and "sphere_cap" (lengths in metres, angles in radians)."""
+    """The mesh a geometry description names.
+
+    `{"kind": "disc", **keywords}` calls `diffeit.mesh.disc(**keywords)`; likewise
+    "rectangle", "polygon", and the curved skins "cylinder_patch" and "sphere_cap". A frames
+    file's geometry is such a description.
+
+    Arguments:
+        geometry: A mapping of "kind" and that generator's keyword arguments (lengths in
+            metres, angles in radians), e.g. `{"kind": "disc", "h": 0.05}`.
+
+    Returns:
+        The generator's `diffeit.mesh.Mesh`.
+
+    Raises:
+        ValueError: For a geometry that is not a mapping, an unknown kind, a
+            keyword the generator does not take, and from the generator for values it refuses.
+    """
     geometry = _checked_geometry(geometry)
     keywords = {k: v for k, v in geometry.items() if k != "kind"}
     generator = _GENERATORS[geometry["kind"]]

@@ -10,9 +10,18 @@ from ._mesh import Mesh
 
 @functools.lru_cache(maxsize=16)
 def element_adjacency(mesh: Mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Pairs of elements that share an edge: (first, second, shared edge length in metres).
+    """Pairs of elements that share an edge, and the length of that edge.
 
-    Computed once per mesh (by content); the arrays are read-only."""
+    Each interior edge gives one pair; boundary edges give none. Computed once per mesh (by
+    content, cached); the arrays are read-only.
+
+    Arguments:
+        mesh: The mesh, flat or a surface in 3D.
+
+    Returns:
+        `(first, second, lengths)`: (P,) int indices of the two elements of each pair
+        (`first < second`) and (P,) the length of their shared edge, metres.
+    """
     first, second, edges = _shared_edges(mesh)
     return first, second, readonly(np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1))
 

@@ -234,7 +234,18 @@ class Scene(eqx.Module):
         return np.arange(self.n_frames) / self.frame_rate
 
     def effect(self, name: str) -> Any:
-        """The effect named `name` (one of `EFFECT_NAMES`), or None when the scene has none."""
+        """The scene's effect of one kind, or None when the scene has none of it.
+
+        Arguments:
+            name: The effect's name, one of `EFFECT_NAMES` (the keys of `EFFECTS`), e.g.
+                "noise" or "open_electrode".
+
+        Returns:
+            The scene's instance of `EFFECTS[name]`, or None.
+
+        Raises:
+            ValueError: For a name not in `EFFECT_NAMES`.
+        """
         if name not in EFFECTS:
             raise ValueError(f"unknown effect {name!r}; effects are {EFFECT_NAMES}")
         return next((e for e in self.effects if isinstance(e, EFFECTS[name])), None)
@@ -261,7 +272,23 @@ class Scene(eqx.Module):
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Scene:
-        """The scene described by `data` (as read from TOML; module docstring)."""
+        """The scene that a scene file's data describe.
+
+        The data are those of a scene file as read from TOML (the format is in
+        docs/tutorials/scenes.md#scene-files): numbers in SI units, or strings that name their
+        unit (`radius = "5 mm"`); keys left out take their defaults. `to_dict` writes such data.
+
+        Arguments:
+            data: The tables and values of a scene file (`skin`, `background`, `touches`,
+                `effects`, `frame_rate`, `duration`, `name`, `description`).
+
+        Returns:
+            The `Scene`.
+
+        Raises:
+            ValueError: Naming the field, for an unknown key or effect, a value of the wrong
+                type, a unit of the wrong kind, or a value the `Scene` refuses.
+        """
         return cls(**scene_arguments(data))
 
     def to_toml(self, path: str | FilePath, *, overwrite: bool = False) -> FilePath:
@@ -323,7 +350,19 @@ class Scene(eqx.Module):
 
     @classmethod
     def from_toml_string(cls, text: str, *, source: str = "scene") -> Scene:
-        """The scene of TOML text (see `from_toml`); `source` names it in errors."""
+        """The scene of TOML text, as `from_toml` reads it from a file.
+
+        Arguments:
+            text: The scene file's text (format as in `from_toml`).
+            source: What to call the text in error messages.
+
+        Returns:
+            The `Scene`.
+
+        Raises:
+            ValueError: For text that is not TOML (naming `source`), and as `from_dict` for its
+                data.
+        """
         import tomllib
 
         try:
@@ -339,12 +378,35 @@ EXAMPLES = ("single_touch", "three_touches", "sliding_finger", "non_uniform_back
 
 
 def example(name: str) -> Scene:
-    """A named example scene shipped with diffeit (`EXAMPLES`); its TOML file is
-    `example_path(name)`."""
+    """A named example scene shipped with diffeit.
+
+    Read from the scene file `example_path(name)`, which can be copied as a starting point for
+    a scene of one's own.
+
+    Arguments:
+        name: One of `EXAMPLES`, e.g. "single_touch".
+
+    Returns:
+        The `Scene`.
+
+    Raises:
+        ValueError: For a name not in `EXAMPLES`.
+    """
     return Scene.from_toml_string(example_path(name).read_text(), source=f"example {name}")
 
 
 def example_path(name: str) -> FilePath:
+    """The TOML scene file of a named example scene shipped with diffeit.
+
+    Arguments:
+        name: One of `EXAMPLES`, e.g. "single_touch".
+
+    Returns:
+        The path of the file, inside the installed package (read it, do not write it).
+
+    Raises:
+        ValueError: For a name not in `EXAMPLES`.
+    """
     if name not in EXAMPLES:
         raise ValueError(f"unknown example scene {name!r}; examples are {EXAMPLES}")
     return FilePath(str(resources.files(__package__).joinpath("examples", f"{name}.toml")))
