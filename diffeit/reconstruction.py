@@ -74,6 +74,7 @@ from .calibration import (
     default_mesh,
     reference_frames,
 )
+from .fit import JointImaging
 from .fit import background as fit_background
 from .forward import ForwardModel
 from .inverse import (
@@ -153,8 +154,9 @@ def reconstruct(
             hyperparameter is "auto"). Not together with `solver`.
         solver: A solver object (`OneStep`, `GaussNewton`, `TotalVariation`, `GREIT`; built
             with or without a model): its settings are used, on the calibrated model and
-            background. Not a normalised `OneStep` (use `difference="normalised"`) nor
-            `AbsoluteGaussNewton`.
+            background. Not a normalised `OneStep` (use `difference="normalised"`),
+            `AbsoluteGaussNewton` nor the joint fit's `diffeit.fit.JointImaging` (call its
+            `solve` on the recording's frames, or `diffeit fit`).
         prior: The prior of "one_step" and "gauss_newton" (default "noser"); a solver object
             brings its own.
         hyperparameter: Unit-free, or "auto" (module docstring), or a method of
@@ -413,6 +415,12 @@ def _unbound_solver(
     if solver is not None:
         if method is not None:
             raise ValueError("give a method or a solver, not both")
+        if isinstance(solver, JointImaging):
+            raise ValueError(
+                "reconstruct images differences on a model it calibrates, while the joint fit (JointImaging) fits its "
+                "own background, contact impedances and memory to the readings over time: call "
+                "solver.solve(recording.frames) on a JointImaging with times=recording.times, or run diffeit fit"
+            )
         if not isinstance(solver, AbstractSolver) or isinstance(solver, AbsoluteGaussNewton):
             raise ValueError(
                 "solver must be a difference solver of diffeit.inverse (OneStep, GaussNewton, TotalVariation, "

@@ -207,6 +207,74 @@ def test_on_step_hands_out_the_fit_so_far_and_stops_the_fit_by_raising(coarse_mo
     assert float(problem(so_far.parameters)) == pytest.approx(seen[-1].objective, rel=1e-9)
 
 
+def test_the_joint_solver_images_what_the_fit_finds_and_throws_as_asked(coarse_model, coarse_frames, capped):
+    """`JointImaging` bound to a model runs the joint fit with its settings (the capped fit's,
+    whose compiled programs it shares): its image is every frame's conductivity change from the
+    fitted background, b r_k in S/sq, its stimulus b a_k, one code per frame; `throw=True`
+    raises for the capped fit."""
+    unbound = fit.JointImaging(times=TIMES, initial=_start(coarse_model), **CAPPED)
+    assert isinstance(unbound, de.inverse.AbstractSolver)
+    with pytest.raises(ValueError, match="has no model"):
+        unbound.solve(coarse_frames)
+    solver = unbound.bound(coarse_model)
+    solution = solver.solve(coarse_frames, throw=False)
+    assert isinstance(solution, de.inverse.Solution)
+    expected = np.asarray(capped.background)[None] * np.asarray(capped.response)
+    assert solution.value.shape == (len(TIMES), coarse_model.n_elements)
+    assert np.abs(expected).max() > 1e-4  # the press, in S/sq
+    np.testing.assert_allclose(solution.value, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    stimulus = np.asarray(capped.background)[None] * np.asarray(capped.stimulus)
+    np.testing.assert_allclose(solution.stats["stimulus"], stimulus, rtol=1e-12, atol=1e-12 * np.abs(stimulus).max())
+    np.testing.assert_allclose(solution.stats["background"], capped.background, rtol=1e-12)
+    np.testing.assert_allclose(solution.stats["contact_impedance"], capped.contact_impedance, rtol=1e-12)
+    assert solution.stats["misfit"] == pytest.approx(capped.misfit, rel=1e-12)
+    assert solution.stats["steps"] == len(capped.history.objective) - 1
+    assert float(solution.stats["memory"].fast_time) == pytest.approx(float(capped.memory.fast_time), rel=1e-12)
+    assert isinstance(solution.stats["fit"], fit.JointFit)
+    np.testing.assert_array_equal(solution.result == RESULTS.max_iterations_reached, np.ones(len(TIMES), bool))
+    with pytest.raises(SolverError, match=r"joint fit \(frames \[0, 1, 2, 3, 4\]\): the iteration limit"):
+        solver.solve(coarse_frames)
+
+
+def test_the_joint_solver_takes_its_frame_times_and_binds_to_another_model(coarse_model, coarse_frames):
+    """Frame times one per frame, or a frame interval; on another model the solver keeps its
+    settings and starts from the background and the contact impedance it is bound with (a fit
+    of no steps: the start). `reconstruct` refuses it, pointing to `solve`."""
+    with pytest.raises(ValueError, match=r"JointImaging\.times holds 4 frame times and the readings 5 frames"):
+        fit.JointImaging(coarse_model, TIMES[:4]).solve(coarse_frames)
+    with pytest.raises(ValueError, match="readings of T frames"):
+        fit.JointImaging(coarse_model, TIMES).solve(coarse_frames[0])
+    with pytest.raises(ValueError, match="needs the frame times"):
+        fit.JointImaging(coarse_model)
+    with pytest.raises(ValueError, match="frame interval must be finite and positive"):
+        fit.JointImaging(coarse_model, -0.5)
+    with pytest.raises(ValueError, match=r"times must increase"):
+        fit.JointImaging(coarse_model, TIMES[::-1])
+    with pytest.raises(ValueError, match="unknown names"):
+        fit.JointImaging(coarse_model, TIMES, free=("touches",))
+
+    start = {name: part for name, part in _start(coarse_model).items() if name != "contact_impedance"}
+    # Settings the capped fit's compiled programs serve (the free groups and the priors are compiled in).
+    solver = fit.JointImaging(coarse_model, 0.5, reference_frames=2, noise=0.2, initial=start, max_steps=0)
+    with pytest.raises(ValueError, match="no hyperparameter"):
+        solver.bound(coarse_model, hyperparameter=0.1)
+    other = de.ForwardModel(coarse_model.mesh, coarse_model.protocol, 0.02)
+    bound = solver.bound(other, 0.012)
+    assert bound.model is other and bound.times == 0.5 and bound.reference_frames == 2
+    assert bound.noise == 0.2 and bound.max_steps == 0 and bound.free == fit.JointImaging(times=0.5).free
+    assert bound.initial["background"] == 0.012 and bound.initial["memory"] is SWAPPED
+    assert solver.initial["background"][0] == 0.011  # the solver bound is unchanged
+    solution = bound.solve(coarse_frames, throw=False)
+    np.testing.assert_array_equal(solution.stats["fit"].times, 0.5 * np.arange(len(TIMES)))
+    np.testing.assert_allclose(solution.stats["background"], 0.012, rtol=1e-12)
+    np.testing.assert_allclose(solution.stats["contact_impedance"], 0.02, rtol=1e-12)  # the bound model's
+    np.testing.assert_array_equal(solution.value, 0.0)  # the start's stimulus, zero, has no response
+
+    recording = de.io.Recording(frames=coarse_frames, times=TIMES, protocol=coarse_model.protocol)
+    with pytest.raises(ValueError, match=r"solver\.solve\(recording\.frames\)"):
+        de.reconstruct(recording, solver=fit.JointImaging(times=TIMES), progress=False)
+
+
 def _frames_file(tmp_path, model, frames):
     recording = de.io.Recording(frames=frames, times=TIMES, protocol=model.protocol)
     return de.io.write_frames(tmp_path / "frames.h5", recording)

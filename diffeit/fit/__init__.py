@@ -14,6 +14,9 @@ recorded frames:
   together, with every frame's misfit through the forward model; `JointFit.save` and `load`
   keep a fit, `joint(..., initial=fit)` resumes it, and `joint(..., on_step=...)` hands out
   the fit so far at every step (`JointProgress`: to save, and resume after a kill);
+- `JointImaging`: the joint fit as a reconstruction solver (`diffeit.inverse.AbstractSolver`):
+  settings on the object, `solve(readings)` returns a `diffeit.inverse.Solution` holding every
+  frame's conductivity change;
 - `memory_uncertainty`: how well the frames determine a joint fit's memory parameters (standard
   errors and correlations, the Cramer-Rao bound at the fit);
 - `memory_from_presses`: the memory parameters from images of labelled presses (footprints and
@@ -26,6 +29,7 @@ Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RES
 from ._background import BackgroundFit as BackgroundFit
 from ._background import background as background
 from ._joint import JointFit as JointFit
+from ._joint import JointImaging as JointImaging
 from ._joint import JointParameters as JointParameters
 from ._joint import JointPriors as JointPriors
 from ._joint import JointProblem as JointProblem

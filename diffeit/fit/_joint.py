@@ -28,11 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import concrete_floats
+from .._arrays import concrete_floats, readonly
 from .._precision import ensure_float64
 from ..forward import ForwardModel
-from ..inverse import OneStep
+from ..inverse import AbstractSolver, OneStep, Solution
 from ..inverse.linearised import check_frames
+from ..inverse.solution import finished, model_of
 from ..io import create_checked, read_attributes, read_checked, write_atomically, write_attributes
 from ..memory import MemoryParameters, memory_response, over_foam
 from ..mesh import centroid_distances, element_adjacency
@@ -752,11 +753,8 @@ def joint(
     before = None if resumed is None else resumed.settings
     free = _checked_names(_setting(free, before, "free", GROUPS), GROUPS, "free")
     memory_free = _checked_memory_free(_setting(memory_free, before, "memory_free", DEFAULT_FREE))
-    priors = _setting(priors, before, "priors", JointPriors())
-    if not isinstance(priors, JointPriors):
-        raise ValueError(f"priors must be a JointPriors; got {type(priors).__name__}")
-    if noise is not None and (isinstance(noise, bool) or not (isinstance(noise, int | float) and noise > 0)):
-        raise ValueError(f"noise must be a positive number (percent of the RMS of the reference); got {noise!r}")
+    priors = _checked_priors(_setting(priors, before, "priors", JointPriors()))
+    _checked_noise(noise)
     rms = float(jnp.sqrt(jnp.mean(jnp.mean(frames[:reference_frames], axis=0) ** 2)))
 
     if resumed is not None:
@@ -799,6 +797,240 @@ def joint(
     return throw_if_failed(fit, fit.result, "joint fit") if throw else fit
 
 
+class JointImaging(AbstractSolver):
+    """The joint fit as a reconstruction: readings over time in, every frame's conductivity change out.
+
+    A solver of `diffeit.inverse`'s interface (`AbstractSolver`) for `joint`: the fit's settings
+    live on the object, and `solve(readings)` fits background, contact impedances, memory
+    parameters and stimulus to the (T, M) readings of T frames, then returns every frame's
+    conductivity change from the fitted background, dsigma_k = sigma_k - b = b r_k in S/sq per
+    element: what the difference solvers (`OneStep`, `GaussNewton`, ...) estimate from
+    V_k - V_ref, the skin's memory included (docs/science.md#joint-fit). The memoryless
+    stimulus, the same change without the memory's ghosts, is in `stats`. Unlike the difference
+    solvers it takes absolute readings (the reference frames first) and needs each frame's time,
+    which is a setting: `times`, one per frame, or a frame interval for readings of any length.
+
+    Arguments:
+        model: The forward model of the fit's mesh and protocol (its contact impedance is the
+            start unless `initial` gives one); None for an unbound solver (see `bound`).
+        times: The frame times: (T,) seconds, increasing, one per frame of the readings `solve`
+            takes; or a frame interval in seconds (> 0), frame k at k * times.
+        reference_frames: How many of the first frames are untouched (>= 1), as `joint`'s.
+        free: The groups fitted (`joint`'s; None for all).
+        memory_free: The memory fields fitted (`joint`'s; None for its default).
+        priors: `JointPriors` (None for `JointPriors()`).
+        noise: The readings' noise, percent of the RMS of the mean reference frame, or None
+            (as `joint`'s).
+        initial: The start, as `joint`'s mapping: any of "background" ((E,) or scalar, S/sq),
+            "contact_impedance" ((L,) or scalar, ohm m), "memory" (`MemoryParameters`) and
+            "stimulus" ((T, E), dsigma/sigma); None, or the parts not given: from the data.
+        max_steps: L-BFGS steps, as `joint`'s.
+        rtol: As `joint`'s.
+        atol: As `joint`'s.
+        progress: Show the fit's progress bars.
+
+    Attributes:
+        model: The forward model (None when unbound).
+        times: The frame times, a read-only (T,) array in seconds, or the frame interval, a
+            float.
+        reference_frames: As given (static).
+        free: The groups fitted, in the order of `GROUPS` (static).
+        memory_free: The memory fields fitted (static).
+        priors: The `JointPriors`.
+        noise: As given (static).
+        initial: The start's parts by name, or None.
+        max_steps: As given (static).
+        rtol: As given (static).
+        atol: As given (static).
+        progress: As given (static).
+
+    Raises:
+        ValueError: For times that are neither an increasing finite (T,) array nor a positive
+            interval, `reference_frames` not an integer >= 1, unknown groups or fields, priors
+            that are not a `JointPriors`, a noise that is not positive, or `initial` with
+            unknown parts.
+    """
+
+    model: ForwardModel | None
+    times: float | np.ndarray = eqx.field(repr=False)
+    reference_frames: int = eqx.field(static=True)
+    free: tuple[str, ...] = eqx.field(static=True)
+    memory_free: tuple[str, ...] = eqx.field(static=True)
+    priors: JointPriors
+    noise: float | None = eqx.field(static=True)
+    initial: dict[str, Any] | None = eqx.field(repr=False)
+    max_steps: int = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    progress: bool = eqx.field(static=True)
+
+    def __init__(
+        self,
+        model: ForwardModel | None = None,
+        times: float | jax.Array | np.ndarray | None = None,
+        *,
+        reference_frames: int = 1,
+        free: Collection[str] | None = None,
+        memory_free: Collection[str] | None = None,
+        priors: JointPriors | None = None,
+        noise: float | None = None,
+        initial: Mapping[str, Any] | None = None,
+        max_steps: int = 500,
+        rtol: float = 1e-4,
+        atol: float = 1e-2,
+        progress: bool = True,
+    ) -> None:
+        self.model = model
+        self.times = _checked_frame_times(times)
+        if isinstance(reference_frames, bool) or not (isinstance(reference_frames, int) and reference_frames >= 1):
+            raise ValueError(f"reference_frames must be an integer >= 1; got {reference_frames!r}")
+        self.reference_frames = reference_frames
+        self.free = GROUPS if free is None else _checked_names(free, GROUPS, "free")
+        self.memory_free = _checked_memory_free(DEFAULT_FREE if memory_free is None else memory_free)
+        self.priors = _checked_priors(JointPriors() if priors is None else priors)
+        self.noise = _checked_noise(noise)
+        if initial is not None:
+            if not isinstance(initial, Mapping):
+                kind = type(initial).__name__
+                raise ValueError(f"initial must be a mapping of the start's parts or None; got {kind}")
+            unknown = sorted(set(initial) - set(GROUPS))
+            if unknown:
+                raise ValueError(f"initial: unknown parts {unknown}; parts are {list(GROUPS)}")
+            initial = dict(initial)
+        self.initial = initial
+        self.max_steps = int(max_steps)
+        self.rtol = float(rtol)
+        self.atol = float(atol)
+        self.progress = bool(progress)
+
+    def bound(
+        self, model: ForwardModel, background: float | np.ndarray | None = None, *, hyperparameter: float | None = None
+    ) -> JointImaging:
+        """This solver's settings on another model (see `AbstractSolver.bound`).
+
+        Arguments:
+            model: The forward model to fit on.
+            background: The fit's start background (`initial["background"]`), S/sq, scalar or
+                (E,); None keeps this solver's start (fitted to the reference frames when it
+                gives none).
+            hyperparameter: Must be None: the joint fit has no hyperparameter (its balance of
+                misfit and priors is set by `priors` and `noise`).
+
+        Returns:
+            A new `JointImaging` with these settings on `model`.
+
+        Raises:
+            ValueError: For a hyperparameter other than None.
+        """
+        if hyperparameter is not None:
+            raise ValueError(
+                "JointImaging has no hyperparameter: the joint fit's balance of misfit and priors is set by priors= "
+                f"(JointPriors, in units of one frame's misfit at the noise level) and noise=; got {hyperparameter!r}"
+            )
+        initial = self.initial if background is None else {**(self.initial or {}), "background": background}
+        return JointImaging(
+            model,
+            self.times,
+            reference_frames=self.reference_frames,
+            free=self.free,
+            memory_free=self.memory_free,
+            priors=self.priors,
+            noise=self.noise,
+            initial=initial,
+            max_steps=self.max_steps,
+            rtol=self.rtol,
+            atol=self.atol,
+            progress=self.progress,
+        )
+
+    def solve(self, data: jax.Array | np.ndarray, *, throw: bool = True) -> Solution:
+        """Fit the readings of T frames jointly and image every frame.
+
+        Runs `joint(model, data, times, ...)` with this solver's settings.
+
+        Arguments:
+            data: The readings v of T frames, (T, M), volts (absolute readings, not
+                differences), the `reference_frames` untouched ones first.
+            throw: Raise when the fit does not succeed (True), or return its code (False).
+
+        Returns:
+            The `Solution`: `value` (T, E) the conductivity change of every frame from the
+            fitted background, sigma_k - b = b r_k, S/sq (`JointFit.background` times
+            `JointFit.response`, the memory's ghosts included); `result` the fit's code, one
+            per frame (the frames are fitted together: all succeed or fail alike). `stats`:
+            "fit" the `JointFit`, "stimulus" (T, E) the memoryless stimulus as a conductivity
+            change b a, S/sq (`JointFit.background` times `JointFit.stimulus`), "background"
+            (E,) b, S/sq, "contact_impedance" (L,) ohm m, "memory" the `MemoryParameters`,
+            "misfit" the relative misfit over all frames and "steps" the accepted steps.
+
+        Raises:
+            ValueError: For an unbound solver, readings that are not (T, M) or not finite,
+                `times` that are not one per frame, and what `joint` refuses (for example
+                `reference_frames` beyond T or an `initial` of the wrong shape).
+            diffeit.results.SolverError: With `throw=True`, for a fit whose result is not
+                `RESULTS.successful` (its iterate is lost: pass throw=False to keep it).
+        """
+        model = model_of(self)
+        if np.ndim(data) != 2:
+            raise ValueError(
+                f"JointImaging.solve takes the readings of T frames, (T, {model.n_measurements}); got shape "
+                f"{np.shape(data)}"
+            )
+        n_frames = np.shape(data)[0]
+        if isinstance(self.times, float):
+            times = self.times * np.arange(n_frames)
+        elif len(self.times) != n_frames:
+            raise ValueError(
+                f"JointImaging.times holds {len(self.times)} frame times and the readings {n_frames} frames: give "
+                "one time per frame, or a frame interval (seconds)"
+            )
+        else:
+            times = self.times
+        fit = joint(
+            model,
+            data,
+            times,
+            reference_frames=self.reference_frames,
+            free=self.free,
+            memory_free=self.memory_free,
+            priors=self.priors,
+            noise=self.noise,
+            initial=self.initial,
+            max_steps=self.max_steps,
+            rtol=self.rtol,
+            atol=self.atol,
+            progress=self.progress,
+            throw=False,
+        )
+        background = fit.background[None]
+        stats = {
+            "fit": fit,
+            "stimulus": background * fit.stimulus,
+            "background": fit.background,
+            "contact_impedance": fit.contact_impedance,
+            "memory": fit.memory,
+            "misfit": fit.misfit,
+            "steps": len(fit.history.objective) - 1,
+        }
+        result = jax.tree_util.tree_map(lambda code: jnp.broadcast_to(code, (n_frames,)), fit.result)
+        return finished(background * fit.response, result, stats, "joint fit", throw)
+
+
+def _checked_frame_times(times: Any) -> float | np.ndarray:
+    """`JointImaging.times` checked: a frame interval (a float, seconds) or (T,) frame times (a
+    read-only array)."""
+    if times is None:
+        raise ValueError("JointImaging needs the frame times: times=(T,) seconds, or a frame interval in seconds")
+    if isinstance(times, bool):
+        raise ValueError(f"times must be frame times (T,) or a frame interval, seconds; got {times!r}")
+    array = np.asarray(times, dtype=float)
+    if array.ndim == 0:
+        if not (np.isfinite(array) and array > 0):
+            raise ValueError(f"a frame interval must be finite and positive (seconds); got {float(array)}")
+        return float(array)
+    return readonly(np.asarray(check_times(array, array.shape[0])))
+
+
 def _joint_fit(problem: JointProblem, start: JointParameters, resumed: JointFit | None, minimum: Minimum) -> JointFit:
     """The `JointFit` of `minimum` (the free groups' values) from `start`, its history continuing
     `resumed`'s when there is one."""
@@ -829,6 +1061,18 @@ def _joint_fit(problem: JointProblem, start: JointParameters, resumed: JointFit 
         parameters=parameters,
         settings=problem.settings,
     )
+
+
+def _checked_priors(priors: Any) -> JointPriors:
+    if not isinstance(priors, JointPriors):
+        raise ValueError(f"priors must be a JointPriors; got {type(priors).__name__}")
+    return priors
+
+
+def _checked_noise(noise: Any) -> float | None:
+    if noise is not None and (isinstance(noise, bool) or not (isinstance(noise, int | float) and noise > 0)):
+        raise ValueError(f"noise must be a positive number (percent of the RMS of the reference); got {noise!r}")
+    return noise
 
 
 def _setting(value: Any, before: JointSettings | None, name: str, default: Any) -> Any:

@@ -1,8 +1,8 @@
 """Reconstruction: conductivity images from boundary voltages.
 
 Every method is a solver object (`OneStep`, `GREIT`, `GaussNewton`, `AbsoluteGaussNewton`,
-`TotalVariation`) holding its settings, with one call `solver.solve(data, throw=True)` that
-returns a `Solution` (`value`, `result`, `stats`).
+`TotalVariation`, and the joint fit's `diffeit.fit.JointImaging`) holding its settings, with one
+call `solver.solve(data, throw=True)` that returns a `Solution` (`value`, `result`, `stats`).
 """
 
 from .gauss_newton import AbsoluteGaussNewton as AbsoluteGaussNewton

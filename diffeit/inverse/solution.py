@@ -33,7 +33,8 @@ class Solution(eqx.Module):
         value: The image. For difference imaging (`OneStep`, `GREIT`, `GaussNewton`,
             `TotalVariation`) the conductivity change dsigma in S/sq per element of the
             solver's mesh, (E,) for one frame or (T, E) for a batch; for `AbsoluteGaussNewton`
-            the conductivity sigma, S/sq.
+            the conductivity sigma, S/sq; for the joint fit (`diffeit.fit.JointImaging`, which
+            takes the readings of T frames) dsigma (T, E) from its fitted background, S/sq.
         result: A `diffeit.results.RESULTS` code, one per frame: `RESULTS.successful`, or why
             the frame failed (see each solver). Compare with `==`.
         stats: The method's extras, keyed by name; each solver documents its keys.
