@@ -118,6 +118,20 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   fitted to the session's images with the presses' footprints and holds known
   (`diffeit.fit.memory_from_presses`).
 
+## Background map
+
+A sheet whose conductivity varies (thickness, filler, a seam) images touches where its
+sensitivity is not the uniform model's. `diffeit.fit.background` fits a smooth map of
+ln sigma (Laplace prior, hyperparameter by the discrepancy principle) to the mean reference at
+the calibrated model, readout included, and the calibration then images at it
+(`SkinCalibration.background`). A reference alone cannot tell a non-uniform sheet from the
+model's other errors (mixing, positions, gains), which a map absorbs as readily; so by
+default the map is fitted only with at least 20 labelled presses and kept only when the
+presses, read at it through a position map fitted again, land closer to their labels
+(leave-one-out) at significantly more presses than farther (a one-sided sign test at 5%:
+with 30 presses, at least 20 of them); its press errors are then those leave-one-out ones.
+`calibrate(..., background_map=True)` fits and keeps it in any case.
+
 The calibrated `ForwardModel` folds the mixing into its protocol's reading weights and carries
 the fitted electrode positions (its `electrode_shift`); gains divide the recorded frames
 (`SkinCalibration.signed`). The readings' noise, from the spread of the reference frames, is kept for the touch
@@ -140,6 +154,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
+import scipy.stats
 
 from ._messages import name_indices
 from .fit import memory_from_presses
@@ -229,6 +244,11 @@ class ReferenceCalibration(eqx.Module):
     def signed(self, frames: np.ndarray) -> np.ndarray:
         """(..., M_used): recorded frames (..., M) in the calibrated model's order and sign."""
         return (np.asarray(frames, np.float64) * self.reading_sign)[..., self.used]
+
+    @property
+    def background(self) -> float:
+        """The conductivity the model images at, S/sq: the level (as `SkinCalibration.background`)."""
+        return self.conductivity
 
     def summary(self) -> dict[str, Any]:
         """The calibration in JSON-serialisable form, for provenance."""
@@ -678,8 +698,12 @@ _REFINE_TOLERANCE = 1e-3
 _MIXING_REACH, _MIXING_GRID = 0.5, 41
 # Mixing is fitted to a reference the first stage's model correlates with at least this well.
 _MIXING_LEAST_CORRELATION = 0.5
-# Per-reading gains are kept within this factor of 1.
-_LARGEST_READING_GAIN = 2.0
+# The prior standard deviation of each of the background map's coefficients (ln sigma, on
+# terms of unit size over the sheet: module docstring, "Background map").
+_SHEET_PRIOR = 0.3
+# Kept by default when the presses are read closer with it at more presses than farther, at
+# this one-sided significance (a sign test).
+_SHEET_SIGNIFICANCE = 0.05
 # Degrees of the position map tried by cross-validation (None: no map).
 _MAP_DEGREES = (None, 0, 1, 2, 3)
 
@@ -758,12 +782,16 @@ class SkinCalibration(eqx.Module):
             the readout's mixing folded into its reading weights, the fitted contact
             impedances, in the recording's voltage unit at `conductivity`.
         conductivity: sigma_h, the fitted level, S/sq in the recording's voltage unit.
+        background_map: (E,) the sheet's conductivity fitted to the reference on the mesh's
+            elements, S/sq in the same unit (module docstring, "Background map"), or None: the
+            sheet is taken uniform at `conductivity`. `background` is the one imaged at.
         contact_impedance: (L,) ohm m, in the same unit.
         electrode_centres: (L,) the electrodes' centres as arc length along the boundary, m,
             counter-clockwise from the first node of the mesh's electrode 0: the mesh's, moved
             by the fitted shifts when "electrode_positions" was fitted.
         readout: The fitted `diffeit.readout.Readout` on the readings used (its gains: the
-            drive, channel and per-reading gains that `signed` divides by).
+            drive and channel gains that `signed` divides by; no gain per reading: a
+            reference cannot tell one from the model's error, and they barely move touches).
         used: (M,) bool, the recording's readings that are imaged.
         reading_sign: (M,) +-1, what a recorded reading is multiplied by to match the model.
         standard_errors: Group -> (n,) standard errors of the fitted parameters, as `values`.
@@ -772,7 +800,7 @@ class SkinCalibration(eqx.Module):
             "channel_gains" (ln g), "electrode_positions" (m along the boundary).
         undetermined: Names of the fitted parameters the data did not determine.
         fitted: "reference" and "presses" -> the groups each determined.
-        misfit: ||v - V|| / ||v|| of the refined model before per-reading gains, and
+        misfit: ||v - V|| / ||v|| of the refined model, and
             `correlation` (Pearson) on the readings used.
         position_map: The `PositionMap` fitted on labelled presses, or None.
         press_errors: (K,) distances, m, between mapped and labelled press positions, each
@@ -801,6 +829,7 @@ class SkinCalibration(eqx.Module):
 
     model: ForwardModel
     conductivity: float
+    background_map: np.ndarray | None
     contact_impedance: np.ndarray
     electrode_centres: np.ndarray
     readout: Readout
@@ -830,6 +859,12 @@ class SkinCalibration(eqx.Module):
         """ "none", "kept" or "dropped": the first stage's choice of the readings on driven electrodes."""
         return self.first_stage.driven_readings
 
+    @property
+    def background(self) -> float | np.ndarray:
+        """The conductivity the model images at, S/sq in the recording's unit: the background
+        map (E,) when one was fitted, else the level."""
+        return self.conductivity if self.background_map is None else self.background_map
+
     def signed(self, frames: np.ndarray) -> np.ndarray:
         """(..., M_used): recorded frames (..., M) in the calibrated model's order, sign and
         gain: what the calibrated model's `measure` predicts."""
@@ -854,6 +889,9 @@ class SkinCalibration(eqx.Module):
             "first_stage_misfit": first["misfit"],
             "first_stage_correlation": first["correlation"],
             "mixing": [float(w) for w in self.values["mixing"]],
+            "background_map_range": None
+            if self.background_map is None
+            else [float(self.background_map.min()), float(self.background_map.max())],
             "undetermined": list(self.undetermined),
             "position_map_degree": None if self.position_map is None else self.position_map.degree,
             "press_error_median": None if self.press_errors is None else float(np.median(self.press_errors)),
@@ -870,6 +908,9 @@ class SkinCalibration(eqx.Module):
             f"model against reference: misfit {first.misfit:.1%} -> {self.misfit:.1%}, "
             f"correlation {first.correlation:.3f} -> {self.correlation:.3f}",
             f"level sigma_h: {self.conductivity:.4g} S/sq (in the recording's unit)",
+            "background: uniform at the level"
+            if self.background_map is None
+            else f"background map: {self.background_map.min():.4g} to {self.background_map.max():.4g} S/sq",
             "contact impedance per electrode, ohm m: " + " ".join(f"{z:.3g}" for z in self.contact_impedance),
             f"readout mixing: source {mixing[0]:+.3f} +- {self.standard_errors['mixing'][0]:.3f}, "
             f"sink {mixing[1]:+.3f} +- {self.standard_errors['mixing'][1]:.3f}, largest offset weight "
@@ -1038,6 +1079,7 @@ def calibrate(
     press_groups: tuple[str, ...] = PRESS_GROUPS,
     hyperparameter: float | None = None,
     memory: bool = True,
+    background_map: bool | None = None,
 ) -> SkinCalibration:
     """Calibrate the model of a real skin and board from a calibration session.
 
@@ -1045,8 +1087,9 @@ def calibrate(
     of the session's first 200 that look untouched): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
-    readout's mixing, drive and channel gains, electrode positions, with standard errors, and
-    per-reading gains.
+    readout's mixing, drive and channel gains, electrode positions (the groups
+    `reference_groups` names), with standard errors. No gain per reading is fitted: a reference
+    cannot tell one from the model's error at that reading.
     With presses held over several frames, the skin's memory is fitted to the whole session's
     images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
     With labelled `presses`: the readout's mixing (and the electrode positions when
@@ -1084,6 +1127,11 @@ def calibrate(
         memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
             memory to the session's images, the presses' footprints and holds known
             (`diffeit.fit.memory_from_presses`).
+        background_map: Fit a smooth map of the sheet's conductivity to the reference frames
+            (module docstring, "Background map"). None: with at least 20 labelled presses,
+            kept when it reads significantly more of them closer to their labels than farther
+            (leave-one-out), else not fitted (a reference alone cannot tell a non-uniform sheet
+            from the model's other errors); True: fitted and kept; False: not fitted.
 
     Returns:
         The `SkinCalibration`.
@@ -1120,13 +1168,14 @@ def calibrate(
         raise ValueError(f"press_groups must hold 'mixing' and may hold 'electrode_positions'; got {press_groups}")
     calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
-        return calibration
+        return _with_background_map(calibration, recording, None, reference) if background_map else calibration
     found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, chosen, polarity)
     with_memory = memory and _held(presses, recording.times)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
         # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
-        return _too_few_to_hold_out(reference_only, (*press_groups, "press depths"))
+        calibration = _too_few_to_hold_out(reference_only, (*press_groups, "press depths"))
+        return _with_background_map(calibration, recording, presses, reference) if background_map else calibration
     positions = (
         _position_prior(calibration.model, priors["electrode_positions"])
         if "electrode_positions" in press_groups
@@ -1135,15 +1184,22 @@ def calibrate(
     # The frame search's last fit and the held-out folds start from this model (reference_only's).
     response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
     read_positions = found.position[:, 0]
-    calibration, frame = _fit_frame_and_mixing(
+    fitted, frame = _fit_frame_and_mixing(
         calibration, recording, presses, reference, priors["mixing"], polarity, read_positions, positions, response
     )
-    found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, polarity)
-    calibration = _with_position_map(calibration, presses, found, chosen, polarity)
-    held_out = _held_out_errors(
-        reference_only, recording, presses, reference, priors["mixing"], frame, positions, chosen, polarity, response
-    )
-    calibration = _kept_if_it_generalises(calibration, reference_only, held_out)
+    if fitted is None:
+        note = f"{_not_kept((*press_groups, 'press depths'))}{_CONTRADICTS}"
+        calibration = eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+    else:
+        found, chosen, polarity = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
+        fitted = _with_position_map(fitted, presses, found, chosen, polarity)
+        prior = priors["mixing"]
+        held_out = _held_out_errors(
+            reference_only, recording, presses, reference, prior, frame, positions, chosen, polarity, response
+        )
+        calibration = _kept_if_it_generalises(fitted, reference_only, held_out)
+    if background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT):
+        calibration = _with_background_map(calibration, recording, presses, reference, required=bool(background_map))
     if with_memory:
         calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
     return calibration
@@ -1299,6 +1355,7 @@ def _refine(
     return SkinCalibration(
         model=calibrated,
         conductivity=float(level),
+        background_map=None,
         contact_impedance=np.asarray(contact),
         electrode_centres=_electrode_centres(model.mesh, shift),
         readout=readout,
@@ -1523,9 +1580,10 @@ def _fit_frame_and_mixing(
     read_positions: np.ndarray,
     positions: tuple[float, float] | None,
     response: _ElectrodeResponse,
-) -> tuple[SkinCalibration, np.ndarray | None]:
+) -> tuple[SkinCalibration | None, np.ndarray | None]:
     """The readout's mixing fitted to the presses in the labels' frame that explains their
-    differences best, and that frame (ln scale, angle, offset; module docstring, "Presses");
+    differences best, and that frame (ln scale, angle, offset; module docstring, "Presses"),
+    the calibration None when that fit contradicts the reference (`_ContradictsReference`);
     then, in that frame, the electrode positions with the mixing (`positions`: their prior
     standard deviation and margin, m; None: not fitted).
 
@@ -1542,21 +1600,37 @@ def _fit_frame_and_mixing(
 
         def misfit(frame: np.ndarray) -> float:
             moved = _moved(presses, frame)
-            return _fit_presses(calibration, recording, moved, reference, prior, polarity, unmoved)[1]
+            try:
+                return _fit_presses(calibration, recording, moved, reference, prior, polarity, unmoved)[1]
+            except _ContradictsReference:
+                return math.inf
 
         starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
-        start = min(starts, key=misfit)
-        steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
-        simplex = np.vstack([start, start + np.diag(steps)])
-        best = scipy.optimize.minimize(
-            misfit, start, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
-        )
-        frame = best.x if best.fun < misfit(start) else start
+        misfits = [misfit(start) for start in starts]
+        frame = starts[int(np.argmin(misfits))]
+        if math.isfinite(min(misfits)):  # else no fit to refine: the last one says so
+            steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
+            simplex = np.vstack([frame, frame + np.diag(steps)])
+            best = scipy.optimize.minimize(
+                misfit, frame, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
+            )
+            frame = best.x if best.fun < min(misfits) else frame
     moved = _moved(presses, frame)
-    fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
+    try:
+        fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
+    except _ContradictsReference:
+        return None, frame
     if frame is None:
         return fitted, None
     return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
+
+
+class _ContradictsReference(Exception):
+    """A presses' fit whose mixing makes the model's reference readings anti-correlate with the
+    recorded ones: no positive level explains the reference under it."""
+
+
+_CONTRADICTS = "its mixing makes the model's reference readings anti-correlate with the recorded ones"
 
 
 def _fit_presses(
@@ -1653,6 +1727,8 @@ def _fit_presses(
     # The mixing changes the reference's readings: the level (and unit) is fitted again.
     readings = np.sum(mixed * unchanged[drive], axis=1)
     data = data * sign
+    if not readings @ data > 0:
+        raise _ContradictsReference(_CONTRADICTS)
     factor = _scale(readings, data)
     contact = calibration.contact_impedance * factor
     fitted_model = _with(every, readout.folded(protocol), contact)
@@ -1818,7 +1894,7 @@ class _ElectrodeResponse:
         protocol = calibration.first_stage.model.protocol
         model = _with(calibration.model, protocol, calibration.contact_impedance, margin)
         every = _with(model, _every_electrode(protocol), calibration.contact_impedance)
-        return cls.of(every, jnp.full(model.n_elements, calibration.conductivity))
+        return cls.of(every, jnp.broadcast_to(jnp.asarray(calibration.background, float), (model.n_elements,)))
 
     def changes(self, patterns: jax.Array) -> np.ndarray:
         """(K, drives, L) the electrode potentials' derivative along each conductivity change (K, E)."""
@@ -1916,7 +1992,7 @@ def _with_memory(
 ) -> SkinCalibration:
     """`calibration` with the skin's memory fitted to the session's one-step images, the
     presses (in the mesh's frame) known but for their depths."""
-    level = calibration.conductivity
+    level = calibration.background
     dv = calibration.signed(recording.frames) - calibration.signed(np.atleast_2d(reference).mean(axis=0))
     solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
     images = np.asarray(solver.solve(dv, throw=True).value) / level
@@ -1957,7 +2033,7 @@ def _read_presses(
     signed_reference = calibration.signed(np.atleast_2d(reference).mean(axis=0))
     frames = presses.frames(recording.times)
     dv = np.stack([calibration.signed(recording.frames[chosen]).mean(axis=0) for chosen in frames]) - signed_reference
-    level = calibration.conductivity
+    level = calibration.background
     if hyperparameter is None:
         hyperparameter, _ = auto_hyperparameter(calibration.model, dv, "noser", level)
     solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
@@ -2072,9 +2148,13 @@ def _held_out_errors(
     moved = _moved(presses, frame)
     for k in range(_HELD_OUT_FOLDS):
         test = np.flatnonzero(fold == k)
-        fitted, _ = _fit_presses(
-            calibration, recording, moved, reference, prior, polarity, response, positions, fold != k
-        )
+        try:
+            fitted, _ = _fit_presses(
+                calibration, recording, moved, reference, prior, polarity, response, positions, fold != k
+            )
+        except _ContradictsReference:
+            continue  # the fold's presses stay NaN: not read, the largest errors
+
         found, _, _ = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
         read = found.position[:, 0]
         seen = np.all(np.isfinite(read), axis=1)
@@ -2098,12 +2178,8 @@ def _kept_if_it_generalises(
     `reference_only`, with a note."""
     if held_out is None:
         return _too_few_to_hold_out(reference_only, fitted.fitted["presses"])
-
-    def median(errors: np.ndarray) -> float:
-        return float(np.median(np.where(np.isnan(errors), np.inf, errors)))  # a press not read: the largest
-
-    ours, theirs = median(held_out), reference_only.press_errors
-    if theirs is None or ours <= median(theirs):
+    ours, theirs = _median_read(held_out), reference_only.press_errors
+    if theirs is None or ours <= _median_read(theirs):
         return eqx.tree_at(lambda c: c.press_errors, fitted, held_out)
     note = (
         f"{_not_kept(fitted.fitted['presses'])}presses it did not see were read "
@@ -2111,6 +2187,158 @@ def _kept_if_it_generalises(
         "calibration and a position map"
     )
     return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+
+
+def _with_background_map(
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses | None,
+    reference: np.ndarray,
+    required: bool = True,
+) -> SkinCalibration:
+    """`calibration` with a background map fitted to the reference frames (module docstring,
+    "Background map"). With `presses`, they are read at the map through a position map fitted
+    again; unless `required`, the map is kept only when their leave-one-out errors are smaller
+    than those of `calibration` read the same way at significantly more presses than they are
+    larger (a one-sided sign test at `_SHEET_SIGNIFICANCE`), else `calibration` is returned
+    with a note."""
+    mapped = _background_fitted(calibration, reference, recording.readings == "magnitude")
+    if mapped is calibration or presses is None:
+        return mapped
+    hyperparameter, polarity = calibration.hyperparameter, calibration.polarity
+    found, chosen, polarity = _read_presses(mapped, recording, presses, reference, hyperparameter, polarity)
+    mapped = _with_position_map(mapped, presses, found, chosen, polarity)
+    if required:
+        return mapped
+    found, chosen, polarity = _read_presses(calibration, recording, presses, reference, chosen, polarity)
+    uniform = _with_position_map(calibration, presses, found, chosen, polarity)
+    ours, theirs = mapped.press_errors, uniform.press_errors
+    closer, farther = int(np.sum(ours < theirs)), int(np.sum(ours > theirs))  # NaN (not read) compares False
+    significance = scipy.stats.binomtest(closer, closer + farther, alternative="greater").pvalue if closer else 1.0
+    if significance < _SHEET_SIGNIFICANCE:
+        return mapped
+    sheet = mapped.background_map
+    note = (
+        f"the background map ({sheet.min():.4g} to {sheet.max():.4g} S/sq) is not kept: it reads {closer} presses "
+        f"closer and {farther} farther (leave-one-out; median {1e3 * _median_read(ours):.1f} mm against "
+        f"{1e3 * _median_read(theirs):.1f} mm without), not significantly better (sign test p = {significance:.2f})"
+    )
+    return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+
+
+def _background_fitted(calibration: SkinCalibration, reference: np.ndarray, magnitude: bool) -> SkinCalibration:
+    """`calibration` with its level and a smooth map of ln sigma fitted to the mean `reference`
+    (module docstring, "Background map"), the readout, gains and contact impedances held; the
+    calibration itself, with a note, when the data determine none of the map's terms."""
+    data = calibration.signed(np.atleast_2d(reference).mean(axis=0))
+    fit = _SheetFit.of(calibration.model, calibration.conductivity, calibration.contact_impedance)
+    n = fit.terms.shape[1]
+    spread = np.r_[1.0, np.full(n, _SHEET_PRIOR)]
+    fixed = np.zeros(n + 1, bool)
+    scale = max(calibration.misfit, 1e-4) * _rms(data)
+    for _ in range(_REFINE_ROUNDS):
+        theta, curvature = _levenberg_marquardt(fit, np.zeros(n + 1), data, scale, spread, fixed)
+        residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
+        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - n - 1, 1))), 1e-9 * _rms(data))
+    errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
+    if np.all(errors[1:] > _UNDETERMINED * _SHEET_PRIOR):
+        note = "no background map: the reference determines none of its terms"
+        return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+    # c V(sigma, z) = V(sigma / c, c z): the fitted factor moves the level and the contacts.
+    factor = math.exp(theta[0])
+    level = calibration.conductivity / factor
+    contact = np.asarray(calibration.contact_impedance) * factor
+    sheet = level * np.exp(np.asarray(fit.terms) @ theta[1:])
+    fitted = np.asarray(fit.readings(jnp.asarray(theta)))
+    names = tuple(f"background[{i}]" for i in np.flatnonzero(errors[1:] > _UNDETERMINED * _SHEET_PRIOR))
+    return eqx.tree_at(
+        lambda c: (
+            c.model,
+            c.conductivity,
+            c.background_map,
+            c.contact_impedance,
+            c.values,
+            c.standard_errors,
+            c.undetermined,
+            c.fitted,
+            c.misfit,
+            c.correlation,
+        ),
+        calibration,
+        (
+            _with(calibration.model, calibration.model.protocol, contact),
+            float(level),
+            sheet,
+            contact,
+            {**calibration.values, "background": theta[1:]},
+            {**calibration.standard_errors, "background": errors[1:]},
+            (*calibration.undetermined, *names),
+            {**calibration.fitted, "reference": (*calibration.fitted["reference"], "background_map")},
+            _relative(data - fitted, data),
+            float(np.corrcoef(data, fitted)[0, 1]),
+        ),
+        is_leaf=lambda node: node is None,
+    )
+
+
+class _SheetFit(eqx.Module):
+    """The calibrated model's readings of a smooth sheet: theta = (ln c, the coefficients of
+    ln sigma's terms), the readings c V(sigma_h exp(terms @ coefficients)) (as `_ReadoutFit`,
+    for `_levenberg_marquardt`)."""
+
+    model: ForwardModel
+    conductivity: jax.Array
+    contact_impedance: jax.Array
+    terms: jax.Array
+
+    @classmethod
+    def of(cls, model: ForwardModel, level: float, contact_impedance: np.ndarray) -> _SheetFit:
+        return cls(
+            model,
+            jnp.asarray(level, float),
+            jnp.asarray(contact_impedance, float),
+            jnp.asarray(_sheet_terms(model.mesh)),
+        )
+
+    def readings(self, theta: jax.Array) -> jax.Array:
+        """(M,) the readings at `theta`, signed."""
+        return _sheet_readings(self, theta)
+
+    def jacobian(self, theta: jax.Array, free: np.ndarray) -> np.ndarray:
+        """(M, n) the derivative of `readings` at `theta` (every parameter is free)."""
+        return np.asarray(_sheet_jacobian(self, theta))
+
+
+@eqx.filter_jit
+def _sheet_readings(fit: _SheetFit, theta: jax.Array) -> jax.Array:
+    sigma = fit.conductivity * jnp.exp(fit.terms @ theta[1:])
+    return jnp.exp(theta[0]) * fit.model.measure(sigma, fit.contact_impedance)
+
+
+@eqx.filter_jit
+def _sheet_jacobian(fit: _SheetFit, theta: jax.Array) -> jax.Array:
+    return jax.jacfwd(lambda parameters: _sheet_readings(fit, parameters))(theta)
+
+
+def _sheet_terms(mesh: Mesh) -> np.ndarray:
+    """(E, n) the background map's terms on the elements: the monomials of degree 1 and 2 in the
+    centroids' coordinates (taken from their mean, in units of their RMS distance from it), each
+    less its area-weighted mean, so that the map's coefficients leave the level alone."""
+    centroids = mesh.element_centroids
+    points = (centroids - centroids.mean(axis=0)) / _spread(centroids)
+    dimensions = range(points.shape[1])
+    terms = [points[:, i] for i in dimensions]
+    terms += [points[:, i] * points[:, j] for i, j in itertools.combinations_with_replacement(dimensions, 2)]
+    terms = np.stack(terms, axis=1)
+    areas = mesh.element_areas
+    return terms - (areas @ terms) / areas.sum()
+
+
+def _median_read(errors: np.ndarray | None) -> float:
+    """The median of press errors, a press not read (NaN) counting as the largest; inf for none."""
+    if errors is None:
+        return math.inf
+    return float(np.median(np.where(np.isnan(errors), np.inf, errors)))
 
 
 def _too_few_to_hold_out(reference_only: SkinCalibration, groups: tuple[str, ...]) -> SkinCalibration:
@@ -2130,8 +2358,9 @@ def _not_kept(groups: tuple[str, ...]) -> str:
 # Files
 
 SCHEMA = "diffeit.calibration"
-# Version 2: the electrodes' positions (model/electrode_shift, electrode_margin). Version 1 reads.
-SCHEMA_VERSION = 2
+# Version 2: the electrodes' positions (model/electrode_shift, electrode_margin); version 3: the
+# background map (background_map), which a reader of version 2 would ignore. Versions 1 and 2 read.
+SCHEMA_VERSION = 3
 
 
 def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
@@ -2165,6 +2394,8 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         arrays["model/electrode_shift"] = np.asarray(model.electrode_shift)
     if calibration.noise is not None:
         arrays["noise"] = calibration.noise
+    if calibration.background_map is not None:
+        arrays["background_map"] = calibration.background_map
     if calibration.position_map is not None:
         arrays["position_map/coefficients"] = calibration.position_map.coefficients
     if calibration.press_errors is not None:
@@ -2319,6 +2550,7 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
     return SkinCalibration(
         model=model,
         conductivity=float(attributes["conductivity"]),
+        background_map=arrays.get("background_map"),
         contact_impedance=arrays["contact_impedance"],
         electrode_centres=_electrode_centres(
             mesh, None if model.electrode_shift is None else np.asarray(model.electrode_shift).mean(axis=1)

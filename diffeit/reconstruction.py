@@ -253,7 +253,7 @@ def reconstruct(
     for note in calibration.warnings:
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     model = calibration.model
-    level = calibration.conductivity
+    level = calibration.background  # the level, or a calibration's background map (E,)
     frames = calibration.signed(recording.frames)
     signed_reference = calibration.signed(reference)
     if shorthand and hyperparameter == "auto" and method == "one_step" and _maps_positions(calibration):

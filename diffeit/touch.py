@@ -355,7 +355,8 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     about 45, medium noise) untouched frames reached F = 1.8 at most, pressed ones 2.4 at least.
     """
     model = calibration.model
-    jacobian = np.asarray(model.jacobian(jnp.full(model.n_elements, calibration.conductivity)))
+    background = jnp.broadcast_to(jnp.asarray(calibration.background, float), (model.n_elements,))
+    jacobian = np.asarray(model.jacobian(background))
     # The left singular vectors from the M x M Gram matrix, cheaper than an SVD while the readings
     # are fewer than the elements: its eigenvalues are the squared singular values, and the cut at
     # 0.1 of the largest is far above their rounding.
@@ -523,13 +524,13 @@ class _DiscFit(eqx.Module):
     docstring, "Refinement by the model")."""
 
     model: ForwardModel
-    level: jax.Array  # sigma_h, the calibrated level
-    base: jax.Array  # (M,) the readings at the level
+    level: jax.Array  # (E,) the calibrated background, S/sq: the level, or the background map
+    base: jax.Array  # (M,) the readings at the background
 
     @classmethod
-    def of(cls, model: ForwardModel, level: float) -> _DiscFit:
-        sigma = jnp.full(model.n_elements, float(level))
-        return cls(model, jnp.asarray(level), model.measure(sigma))
+    def of(cls, model: ForwardModel, background: float | np.ndarray) -> _DiscFit:
+        sigma = jnp.broadcast_to(jnp.asarray(background, float), (model.n_elements,))
+        return cls(model, sigma, model.measure(sigma))
 
 
 def _disc_fraction(fit: _DiscFit, disc: jax.Array, plane: jax.Array) -> jax.Array:
@@ -586,7 +587,7 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
     """The image method's touches `found` (in the mesh's frame) refined by fitting discs to
     each touched frame's differences (module docstring, "Refinement by the model")."""
     model = calibration.model
-    fit = _DiscFit.of(model, calibration.conductivity)
+    fit = _DiscFit.of(model, calibration.background)
     dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
     noise = getattr(calibration, "noise", None)
     weights = None

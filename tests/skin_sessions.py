@@ -95,6 +95,7 @@ def skin_session(
     untouched_between: bool = True,
     noise_seed: int | None = None,
     mesh: de.Mesh | None = None,
+    sheet: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> SkinSession:
     """A calibration session of a coarse simulated skin, read by a board with noise.
 
@@ -110,7 +111,9 @@ def skin_session(
     centres and the noise (the noise from `np.random.default_rng(noise_seed)` when given).
     With `mesh` (a curved skin), the skin is that mesh, and the presses are centred at the
     centroids of triangles drawn uniformly among those within 0.6 of the skin's size (its
-    farthest node from the nodes' mean) of the nodes' mean.
+    farthest node from the nodes' mean) of the nodes' mean. With `sheet`, the untouched skin's
+    conductivity is `sheet(centroids)` (E,) S/sq instead of 1, and a press lowers it by the
+    same fraction.
 
     Arguments:
         seed: Seeds the session's generator.
@@ -120,6 +123,7 @@ def skin_session(
         untouched_between: Whether an untouched frame follows each press.
         noise_seed: Seeds the noise's own generator; None draws it from the session's.
         mesh: The skin's mesh, for one other than the disc.
+        sheet: The untouched conductivity, S/sq, as a function of the elements' centroids.
 
     Returns:
         A `SkinSession`: the recording, its presses (one instant each, at its pressed frame;
@@ -130,7 +134,8 @@ def skin_session(
     mesh = de.mesh.disc(16, electrode_width=0.2, h=0.1) if disc else mesh
     truth = de.ForwardModel(mesh, PROTOCOL, contact_impedance=0.01 * np.exp(rng.uniform(-0.55, 0.55, 16)))
     readout = board(rng)
-    reference = _readings(truth, readout, np.ones(mesh.n_elements))
+    untouched = np.ones(mesh.n_elements) if sheet is None else np.asarray(sheet(mesh.element_centroids), float)
+    reference = _readings(truth, readout, untouched)
     if disc:
         angles = rng.uniform(0, 2 * np.pi, n_presses)
         radii = 0.6 * np.sqrt(rng.uniform(0, 1, n_presses))
@@ -142,7 +147,7 @@ def skin_session(
         centres = mesh.element_centroids[rng.choice(inner, n_presses, replace=False)]
     clean = [reference] * UNTOUCHED
     for centre in centres:
-        clean.append(_readings(truth, readout, _pressed(mesh, centre)))
+        clean.append(_readings(truth, readout, untouched * _pressed(mesh, centre)))
         if untouched_between:
             clean.append(reference)
     std = noise * np.sqrt(np.mean(reference**2))

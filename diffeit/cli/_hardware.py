@@ -454,7 +454,7 @@ class _LiveViewer:
             calibration = skin
         self.calibration = calibration
         self.reference = calibration.signed(reference.mean(axis=0))
-        model, level = calibration.model, calibration.conductivity
+        model, level = calibration.model, calibration.background
         if skin is not None and settings.hyperparameter == "auto" and skin.hyperparameter is not None:
             # The position map was fitted on images made at it (as diffeit reconstruct does).
             hyperparameter, chosen = float(skin.hyperparameter), "the calibration's"
@@ -472,7 +472,7 @@ class _LiveViewer:
         else:
             mapped = "" if skin.position_map is None else f", position map of degree {skin.position_map.degree}"
             print(
-                f"imaging at the calibration's model: level {level:.4g} S/sq, {used}{mapped}; "
+                f"imaging at the calibration's model: level {calibration.conductivity:.4g} S/sq, {used}{mapped}; "
                 f"hyperparameter {hyperparameter:.3g} ({chosen})"
             )
         for note in calibration.warnings:
@@ -485,7 +485,7 @@ class _LiveViewer:
         values = np.array([frame.values for frame in batch])
         if self.fit is None:
             differences = self.calibration.signed(values) - self.reference
-            images = np.asarray(self.solver.solve(differences, throw=False).value) / self.calibration.conductivity
+            images = np.asarray(self.solver.solve(differences, throw=False).value) / self.calibration.background
         else:
             images = np.asarray(self.solver.solve(values - self.reference, throw=False).value)
             images = self._corrected(images / np.asarray(self.fit.background), batch)

@@ -29,6 +29,9 @@ _DAMPING_RETRIES = 6
 # A frame fitted to this relative RMS misfit (of the data scale) is fitted to rounding: no step
 # can lower its objective measurably, and it stops, successful (a frame equal to the reference).
 _EXACT_FIT = 1e-10
+# The homogeneous start: Gauss-Newton steps on ln(sigma_h), each at most this long, until one
+# is shorter than the tolerance.
+_LEVEL_STEPS, _LEVEL_STEP, _LEVEL_TOLERANCE = 30, 1.0, 1e-6
 
 
 class _Frame(NamedTuple):
@@ -156,10 +159,16 @@ class _GaussNewtonIteration(AbstractSolver):
         z = np.broadcast_to(
             np.log(np.asarray(self.model.contact_impedance)), (len(frames), self.model.mesh.n_electrodes)
         )
-        for _ in range(3):  # the contact impedance makes V(sigma) not exactly V(1) / sigma
+        # The contact impedance makes V(sigma) not exactly V(1) / sigma: far from it where the
+        # contact length z sigma is large at sigma = 1 (data in an arbitrary unit, say, whose
+        # level is 1e-3), and there an unbounded step overshoots to zero. Steps are bounded.
+        for _ in range(_LEVEL_STEPS):
             voltages, slope = _uniform_slope(self.model, jnp.asarray(level), jnp.asarray(z))
             voltages, slope = np.asarray(voltages), np.asarray(slope)  # V and dV / d ln(sigma_h), (T, M)
-            level = level - np.sum(slope * (voltages - frames), axis=1) / np.sum(slope**2, axis=1)
+            step = np.sum(slope * (voltages - frames), axis=1) / np.sum(slope**2, axis=1)
+            level = level - np.clip(step, -_LEVEL_STEP, _LEVEL_STEP)
+            if np.all(np.abs(step) < _LEVEL_TOLERANCE):
+                break
         return np.exp(level)
 
     def _solve(self, data: np.ndarray, start: np.ndarray, estimate_z: bool) -> tuple[list[_Frame], list[_Iterate]]:
