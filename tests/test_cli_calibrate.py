@@ -42,6 +42,18 @@ def test_calibrate_writes_a_calibration_file_and_its_figure(session, calibrated,
     assert "diffeit calibrate: error:" in capsys.readouterr().err
 
 
+def test_calibrate_fits_a_background_map_on_request_and_draws_it(session, tmp_path):
+    """`--background-map yes` on the session's untouched frames alone (no presses: the default
+    fits none): the file holds the map and the figure colours the mesh by it (looked at)."""
+    path, _, _ = session
+    output = tmp_path / "skin.cal.h5"
+    assert main(["calibrate", str(path), "--background-map", "yes", "-o", str(output)]) == 0
+    skin = de.calibration.load(output)
+    assert skin.background_map is not None and "background_map" in skin.fitted["reference"]
+    assert skin.background_map.shape == (skin.model.mesh.n_elements,)
+    assert output.with_suffix(".png").stat().st_size > 10_000
+
+
 def test_reconstruct_with_the_calibration_places_the_touches_at_the_presses(session, calibrated, tmp_path, capsys):
     path, _, centres = session
     _, calibration = calibrated

@@ -41,6 +41,14 @@ def add_command(commands: argparse._SubParsersAction) -> None:
         "--reference-frame", type=int, help="calibrate on this frame instead of the file's reference"
     )
     calibrate.add_argument("--h", type=float, help="element size (m) of the mesh built from the file's geometry")
+    calibrate.add_argument(
+        "--background-map",
+        choices=("auto", "yes", "no"),
+        default="auto",
+        help="a smooth map of the sheet's conductivity fitted to the reference: auto (the default) fits it with "
+        "20 or more presses and keeps it when they are read significantly closer through it; yes fits and keeps "
+        "it; no does not fit it",
+    )
     calibrate.add_argument("--overwrite", action="store_true", help="replace existing output files")
     calibrate.set_defaults(run=reporting_user_errors("calibrate", _calibrate_file))
 
@@ -56,7 +64,10 @@ def _calibrate_file(arguments: argparse.Namespace) -> int:
             raise FileExistsError(f"{path} exists; pass --overwrite to replace it")
     recording = io.read_frames(arguments.session)
     presses = None if arguments.presses is None else io.read_presses(arguments.presses)
-    calibration = calibrate(recording, presses, h=arguments.h, reference_frame=arguments.reference_frame)
+    background_map = {"auto": None, "yes": True, "no": False}[arguments.background_map]
+    calibration = calibrate(
+        recording, presses, h=arguments.h, reference_frame=arguments.reference_frame, background_map=background_map
+    )
     calibration.save(output, overwrite=arguments.overwrite)
     plot_calibration(figure, calibration, presses)
     print("\n".join([*calibration.lines(), f"wrote {output} and {figure}"]))
@@ -68,7 +79,8 @@ def plot_calibration(
     calibration: SkinCalibration,
     presses: Presses | None = None,
 ) -> Path:
-    """The figure of a calibration: its mesh with the electrodes, the readout's mixing weights and
+    """The figure of a calibration: its mesh with the electrodes (coloured by the background map
+    when it has one), the readout's mixing weights and
     the drive and channel gains (with one-standard-error bars), and, with `presses`, every
     labelled position with an arrow to its read position (through the position map). A curved
     skin is drawn seen along z (its x and y).
@@ -81,6 +93,7 @@ def plot_calibration(
     Returns:
         The path written.
     """
+    import matplotlib.ticker
     from matplotlib.figure import Figure
 
     values, errors = calibration.values, calibration.standard_errors
@@ -88,7 +101,13 @@ def plot_calibration(
     panels = 4 if presses is not None else 3
     figure = Figure(figsize=(4.2 * panels, 4.2), layout="constrained")
     axes = figure.subplots(1, panels)
-    axes[0].triplot(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles, color="0.75", linewidth=0.3)
+    if calibration.background_map is None:
+        axes[0].triplot(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles, color="0.75", linewidth=0.3)
+    else:
+        relative = calibration.background_map / calibration.conductivity
+        sheet = axes[0].tripcolor(mesh.nodes[:, 0], mesh.nodes[:, 1], mesh.triangles, facecolors=relative)
+        bar = figure.colorbar(sheet, ax=axes[0], location="bottom", shrink=0.8, label="background map / level")
+        bar.locator = matplotlib.ticker.MaxNLocator(4)
     for index, chain in enumerate(mesh.electrodes):
         xy = mesh.nodes[chain, :2]
         axes[0].plot(xy[:, 0], xy[:, 1], color="0.1", linewidth=4, solid_capstyle="butt")
