@@ -149,6 +149,20 @@ def test_the_position_map_moves_the_fitted_centres_and_their_errors(calibration,
     assert moved.pressure is not None and np.all(moved.pressure[:, 0] > 0)
 
 
+def test_a_touched_frames_last_disc_stays_however_weak(calibration, single, monkeypatch):
+    """Every disc held insignificant (the threshold raised to 1e9 standard errors, as a model
+    that misses a board's frames by far more than their noise makes it): a frame the voltage
+    test found touched keeps its one disc, its centre held where the image put it (an
+    insignificant disc's centre is not fitted). On the calibration benchmark's magnitude skins
+    the single disc of 18-20 of 40 presses was dropped so, and those presses read as misses."""
+    monkeypatch.setattr(de.touch, "SIGNIFICANCE", 1e9)
+    image = de.touches(single, calibration)
+    fitted = de.touches(single, calibration, method="fit")
+    assert fitted.count.tolist() == [1] * len(SINGLE)
+    np.testing.assert_allclose(fitted.position[:, 0], image.position[:, 0], atol=1e-12)
+    assert np.all(np.isfinite(fitted.depth[:, 0])) and np.all(fitted.depth[:, 0] < 0)
+
+
 def test_without_the_noise_the_errors_come_from_the_residual(calibration, single):
     unknown = eqx.tree_at(lambda c: c.noise, calibration, None)
     fitted = de.touches(single, unknown, method="fit", threshold=4.0)
