@@ -121,15 +121,22 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
 ## Background map
 
 A sheet whose conductivity varies (thickness, filler, a seam) images touches where its
-sensitivity is not the uniform model's. `diffeit.fit.background` fits a smooth map of
-ln sigma (Laplace prior, hyperparameter by the discrepancy principle) to the mean reference at
-the calibrated model, readout included, and the calibration then images at it
-(`SkinCalibration.background`). A reference alone cannot tell a non-uniform sheet from the
-model's other errors (mixing, positions, gains), which a map absorbs as readily; so by
-default the map is fitted only with at least 20 labelled presses and kept only when the
-presses, read at it through a position map fitted again, land closer to their labels
-(leave-one-out) at significantly more presses than farther (a one-sided sign test at 5%:
-with 30 presses, at least 20 of them); its press errors are then those leave-one-out ones.
+sensitivity is not the uniform model's. The calibration can fit a smooth map of ln sigma to
+the mean reference at the calibrated model, its readout, gains and contacts held: the level
+times exp of the monomials of degree 1 and 2 in the elements' centroids (five coefficients on a
+flat sheet, nine on a curved one, each less its area-weighted mean, prior standard deviation
+0.3), by the refinement's Levenberg-Marquardt, with standard errors (a map none of whose terms
+the data determine is not made). The calibration then images at it
+(`SkinCalibration.background`). (`diffeit.fit.background`'s map of every element, its
+hyperparameter by the discrepancy principle, spanned four decades on simulated skins whose
+readout the model misses: a few smooth terms are what a reference can carry.)
+
+A reference alone cannot tell a non-uniform sheet from the model's other errors (mixing,
+positions, gains), which a map absorbs as readily; so by default the map is fitted only with
+at least 20 labelled presses and kept only when the presses, read at it through a position map
+fitted again, land closer to their labels (leave-one-out) at significantly more presses than
+farther (a one-sided sign test at 5%: with 30 presses, at least 20 of them); its press errors
+are then those leave-one-out ones.
 `calibrate(..., background_map=True)` fits and keeps it in any case.
 
 The calibrated `ForwardModel` folds the mixing into its protocol's reading weights and carries
@@ -2202,8 +2209,8 @@ def _with_background_map(
     than those of `calibration` read the same way at significantly more presses than they are
     larger (a one-sided sign test at `_SHEET_SIGNIFICANCE`), else `calibration` is returned
     with a note."""
-    mapped = _background_fitted(calibration, reference, recording.readings == "magnitude")
-    if mapped is calibration or presses is None:
+    mapped = _background_fitted(calibration, reference)
+    if mapped.background_map is None or presses is None:
         return mapped
     hyperparameter, polarity = calibration.hyperparameter, calibration.polarity
     found, chosen, polarity = _read_presses(mapped, recording, presses, reference, hyperparameter, polarity)
@@ -2226,7 +2233,7 @@ def _with_background_map(
     return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
 
 
-def _background_fitted(calibration: SkinCalibration, reference: np.ndarray, magnitude: bool) -> SkinCalibration:
+def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> SkinCalibration:
     """`calibration` with its level and a smooth map of ln sigma fitted to the mean `reference`
     (module docstring, "Background map"), the readout, gains and contact impedances held; the
     calibration itself, with a note, when the data determine none of the map's terms."""
@@ -2236,8 +2243,9 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray, magn
     spread = np.r_[1.0, np.full(n, _SHEET_PRIOR)]
     fixed = np.zeros(n + 1, bool)
     scale = max(calibration.misfit, 1e-4) * _rms(data)
+    theta = np.zeros(n + 1)
     for _ in range(_REFINE_ROUNDS):
-        theta, curvature = _levenberg_marquardt(fit, np.zeros(n + 1), data, scale, spread, fixed)
+        theta, curvature = _levenberg_marquardt(fit, theta, data, scale, spread, fixed)
         residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
         scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - n - 1, 1))), 1e-9 * _rms(data))
     errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
@@ -2250,7 +2258,7 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray, magn
     contact = np.asarray(calibration.contact_impedance) * factor
     sheet = level * np.exp(np.asarray(fit.terms) @ theta[1:])
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
-    names = tuple(f"background[{i}]" for i in np.flatnonzero(errors[1:] > _UNDETERMINED * _SHEET_PRIOR))
+    undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors[1:] > _UNDETERMINED * _SHEET_PRIOR))
     return eqx.tree_at(
         lambda c: (
             c.model,
@@ -2272,7 +2280,7 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray, magn
             contact,
             {**calibration.values, "background": theta[1:]},
             {**calibration.standard_errors, "background": errors[1:]},
-            (*calibration.undetermined, *names),
+            (*calibration.undetermined, *undetermined),
             {**calibration.fitted, "reference": (*calibration.fitted["reference"], "background_map")},
             _relative(data - fitted, data),
             float(np.corrcoef(data, fitted)[0, 1]),
