@@ -489,3 +489,15 @@ def test_a_presses_fit_that_contradicts_the_reference_is_not_kept_and_stops_noth
     assert calibration.fitted["presses"] == () and calibration.position_map is not None
     (note,) = [w for w in calibration.warnings if w.startswith("the presses' fit")]
     assert note.endswith("anti-correlate with the recorded ones")
+
+
+def test_a_background_map_the_reference_does_not_determine_is_not_made(monkeypatch):
+    """Every term of the map held undetermined (the threshold on its standard errors lowered to
+    zero): asked for, no map is made, and a note says why."""
+    from diffeit.readout import Readout
+
+    monkeypatch.setattr(calibration_module, "_UNDETERMINED", 0.0)
+    skin = skin_session(4, lambda rng: Readout(PROTOCOL), n_presses=0)
+    calibration = de.calibrate(skin.recording, background_map=True)
+    assert calibration.background_map is None and "background_map" not in calibration.fitted["reference"]
+    assert "no background map: the reference determines none of its terms" in calibration.warnings
