@@ -1145,8 +1145,8 @@ def calibrate(
 
     Raises:
         ValueError: For a recording without frames, presses outside the skin or outside the
-            recording's time, an unknown prior group, or a reference the model cannot be
-            calibrated on.
+            recording's time, an unknown prior group, a `background_map` other than None, True
+            or False, or a reference the model cannot be calibrated on.
     """
     if not isinstance(recording, Recording):
         raise ValueError(f"calibrate takes a diffeit.io.Recording; got {type(recording).__name__}")
@@ -1154,6 +1154,8 @@ def calibrate(
         raise ValueError("the recording holds no frames and no reference: nothing to calibrate on")
     if presses is not None and not isinstance(presses, Presses):
         raise ValueError(f"presses must be a diffeit.io.Presses; got {type(presses).__name__}")
+    if background_map is not None and not isinstance(background_map, bool):
+        raise ValueError(f"background_map must be None (auto), True or False; got {background_map!r}")
     priors = {**PRIORS, **({} if priors is None else dict(priors))}
     unknown = set(priors) - set(PRIORS)
     if unknown:

@@ -501,3 +501,9 @@ def test_a_background_map_the_reference_does_not_determine_is_not_made(monkeypat
     calibration = de.calibrate(skin.recording, background_map=True)
     assert calibration.background_map is None and "background_map" not in calibration.fitted["reference"]
     assert "no background map: the reference determines none of its terms" in calibration.warnings
+
+
+def test_a_background_map_option_other_than_none_true_or_false_is_refused():
+    skin = skin_session(5, gains_board, n_presses=0)
+    with pytest.raises(ValueError, match="background_map must be None"):
+        de.calibrate(skin.recording, background_map="yes")
