@@ -1946,7 +1946,12 @@ def _signs(weights: np.ndarray, potentials: np.ndarray, magnitude: bool) -> np.n
 
 
 def auto_hyperparameter(
-    model: ForwardModel, dv: np.ndarray, prior: Any, level: float | np.ndarray, rule: str = "auto"
+    model: ForwardModel,
+    dv: np.ndarray,
+    prior: Any,
+    level: float | np.ndarray,
+    rule: str = "auto",
+    problem: LinearisedProblem | None = None,
 ) -> tuple[float, dict[str, Any]]:
     """The one-step hyperparameter for differences `dv` (T, M), and how it was chosen.
 
@@ -1961,12 +1966,14 @@ def auto_hyperparameter(
         prior: The one-step prior (a name or a `diffeit.inverse` prior).
         level: The background conductivity the problem is linearised at, S/sq.
         rule: "auto" or a selection method's name.
+        problem: The `LinearisedProblem` of `model` at `prior` and `level` when already
+            built (the solver that images with the value can share it); None builds it.
 
     Returns:
         The value, and how it was chosen: the rule, and the value and code of each selection
         method evaluated (one linearisation shared between them).
     """
-    problem = LinearisedProblem(model, prior, level)
+    problem = LinearisedProblem(model, prior, level) if problem is None else problem
 
     def select(name: str) -> dict[str, Any]:
         selection = select_hyperparameter(model, dv, name, prior=prior, background=level, throw=False, problem=problem)
@@ -2043,9 +2050,10 @@ def _read_presses(
     frames = presses.frames(recording.times)
     dv = np.stack([calibration.signed(recording.frames[chosen]).mean(axis=0) for chosen in frames]) - signed_reference
     level = calibration.background
+    problem = LinearisedProblem(calibration.model, "noser", level)
     if hyperparameter is None:
-        hyperparameter, _ = auto_hyperparameter(calibration.model, dv, "noser", level)
-    solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
+        hyperparameter, _ = auto_hyperparameter(calibration.model, dv, "noser", level, problem=problem)
+    solver = OneStep(calibration.model, problem.prior, hyperparameter, level, problem=problem)
     images = np.asarray(solver.solve(dv, throw=True).value) / level
     if polarity is None:
         extremes = images[np.arange(len(images)), np.argmax(np.abs(images), axis=1)]

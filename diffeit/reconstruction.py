@@ -82,6 +82,7 @@ from .inverse import (
     AbsoluteGaussNewton,
     AbstractSolver,
     GaussNewton,
+    LinearisedProblem,
     OneStep,
     TotalVariation,
 )
@@ -283,9 +284,15 @@ def reconstruct(
     unsafe: list[int] = []
     if difference == "normalised":
         model, dv, unsafe = _normalised(model, dv, signed_reference, level, calibration)
-    value, choice = _hyperparameter_of(solver, model, dv, hyperparameter, "noser" if prior is None else prior, level)
+    # A one-step solver images with the linearisation the hyperparameter is chosen on: built once.
+    problem = LinearisedProblem(model, solver.prior, level) if isinstance(solver, OneStep) else None
+    value, choice = _hyperparameter_of(
+        solver, model, dv, hyperparameter, "noser" if prior is None else prior, level, problem
+    )
     if isinstance(solver, GREIT) and hyperparameter == "auto":
         solver = solver.bound(model, level, noise_figure=_GREIT_NOISE_FIGURE)
+    elif problem is not None:
+        solver = OneStep(model, solver.prior, solver.hyperparameter if value is None else value, level, problem=problem)
     else:
         solver = solver.bound(model, level, hyperparameter=value)
     images, codes = _images(solver, dv, progress)
@@ -400,11 +407,12 @@ def _normalised(model, dv, reference, level, calibration) -> tuple[ForwardModel,
     return model, (dv / gain)[:, safe], unsafe
 
 
-def _hyperparameter(model, dv, hyperparameter, prior, level) -> tuple[float, dict[str, Any]]:
-    """The value and how it was chosen (`diffeit.calibration.auto_hyperparameter`)."""
+def _hyperparameter(model, dv, hyperparameter, prior, level, problem) -> tuple[float, dict[str, Any]]:
+    """The value and how it was chosen (`diffeit.calibration.auto_hyperparameter`, on `problem`
+    when one is built)."""
     if not isinstance(hyperparameter, str):
         return float(hyperparameter), {"rule": "given"}
-    return auto_hyperparameter(model, dv, prior, level, hyperparameter)
+    return auto_hyperparameter(model, dv, prior, level, hyperparameter, problem=problem)
 
 
 def _unbound_solver(
@@ -464,15 +472,16 @@ def _maps_positions(calibration: Any) -> bool:
 
 
 def _hyperparameter_of(
-    solver: AbstractSolver, model, dv, hyperparameter, prior, level
+    solver: AbstractSolver, model, dv, hyperparameter, prior, level, problem: LinearisedProblem | None
 ) -> tuple[float | None, dict[str, Any]]:
     """The hyperparameter to bind `solver` with (None: the solver's own, or GREIT's design for a
-    noise figure) and how it was chosen (module docstring, "Hyperparameter")."""
+    noise figure) and how it was chosen (module docstring, "Hyperparameter"), a selection on
+    `problem` when one is built."""
     if hyperparameter is None:
         return None, {"rule": "the solver's own"}
     if isinstance(solver, GREIT) and hyperparameter == "auto":
         return None, {"rule": f"GREIT designed for noise figure {_GREIT_NOISE_FIGURE}", "method": "noise_figure"}
-    value, choice = _hyperparameter(model, dv, hyperparameter, prior, level)
+    value, choice = _hyperparameter(model, dv, hyperparameter, prior, level, problem)
     if isinstance(solver, GaussNewton) and hyperparameter == "auto":
         value, choice = _GAUSS_NEWTON_FACTOR * value, {**choice, "gauss_newton_factor": _GAUSS_NEWTON_FACTOR}
     return value, choice

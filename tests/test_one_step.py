@@ -220,3 +220,17 @@ def test_a_solver_without_a_model_is_bound_later_and_an_overflow_is_a_failed_fra
     with pytest.raises(de.results.SolverError, match=r"one-step reconstruction \(frames \[1\]\): a non-finite value"):
         direct.solve(frames)
     assert de.results.names(direct.solve(frames, throw=False).result) == ["successful", "nonfinite"]
+
+
+def test_a_linearisation_built_already_is_shared_and_one_of_another_problem_is_refused(small_model):
+    """A solver given the `LinearisedProblem` a hyperparameter selection built images exactly as
+    one that builds its own; a linearisation at another background or prior is refused."""
+    problem = de.inverse.LinearisedProblem(small_model, "noser", 2.0)
+    shared = de.inverse.OneStep(small_model, "noser", 0.1, 2.0, problem=problem)
+    own = de.inverse.OneStep(small_model, "noser", 0.1, 2.0)
+    assert shared.problem is problem
+    np.testing.assert_array_equal(np.asarray(shared.matrix), np.asarray(own.matrix))
+    with pytest.raises(ValueError, match="another model, prior, background"):
+        de.inverse.OneStep(small_model, "noser", 0.1, 1.0, problem=problem)
+    with pytest.raises(ValueError, match="another model, prior, background"):
+        de.inverse.OneStep(small_model, "tikhonov", 0.1, 2.0, problem=problem)

@@ -40,6 +40,9 @@ class OneStep(AbstractSolver):
             per-channel gain errors of an instrument; needs `reference`.
         reference: The measured reference voltages V_ref (M,), volts, that normalised
             differences divide by.
+        problem: The `LinearisedProblem` of `model` with this prior, background and
+            normalisation, when one is already built (choosing the hyperparameter builds it:
+            `diffeit.inverse.select_hyperparameter`): used rather than built again.
 
     Attributes:
         prior: The prior.
@@ -57,8 +60,9 @@ class OneStep(AbstractSolver):
             not a name or a prior, a `reference` without `normalised=True`, normalised
             differences on a model without a `reference`, a reference that is not one finite
             frame (M,) or is zero at some reading, a background that is not finite and
-            positive or of the wrong shape, or reference voltages of the model near zero
-            (normalised differences).
+            positive or of the wrong shape, reference voltages of the model near zero
+            (normalised differences), or a `problem` of another model, prior, background or
+            normalisation.
     """
 
     prior: AbstractPrior
@@ -78,6 +82,7 @@ class OneStep(AbstractSolver):
         *,
         normalised: bool = False,
         reference: jax.Array | np.ndarray | None = None,
+        problem: LinearisedProblem | None = None,
     ) -> None:
         if not (np.isfinite(hyperparameter) and hyperparameter > 0):
             raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
@@ -95,7 +100,11 @@ class OneStep(AbstractSolver):
             return
         if normalised and reference is None:
             raise ValueError("normalised differences divide by the measured reference: pass reference=V_ref (volts)")
-        self.problem = LinearisedProblem(model, self.prior, background, normalised=normalised)
+        if problem is None:
+            problem = LinearisedProblem(model, self.prior, background, normalised=normalised)
+        else:
+            _check_problem(problem, model, self.prior, background, normalised)
+        self.problem = problem
         matrix = self.problem.background[:, None] * regularised_inverse(self.problem, self.hyperparameter)
         if not normalised:
             matrix = matrix / self.problem.data_scale  # volts in
@@ -168,6 +177,29 @@ def _images(matrix: jax.Array, frames: jax.Array) -> tuple[jax.Array, RESULTS]:
     codes (`finite_codes`): one compiled call."""
     images = apply_matrix(matrix, frames)
     return images, finite_codes(images)
+
+
+def _check_problem(
+    problem: LinearisedProblem,
+    model: ForwardModel,
+    prior: AbstractPrior,
+    background: float | np.ndarray,
+    normalised: bool,
+) -> None:
+    """Refuse a linearisation built for another model, prior, background or normalisation
+    than the solver's: its matrix would reconstruct another problem."""
+    same_background = np.array_equal(
+        problem.background, np.broadcast_to(np.asarray(background, float), problem.background.shape)
+    )
+    if (
+        problem.model is not model
+        or problem.normalised != normalised
+        or not (problem.prior is prior or eqx.tree_equal(problem.prior, prior))
+        or not same_background
+    ):
+        raise ValueError(
+            "problem is the linearisation of another model, prior, background or normalisation than this solver's"
+        )
 
 
 def _checked_reference(reference: jax.Array | np.ndarray, model: ForwardModel) -> jax.Array:
