@@ -63,9 +63,13 @@ readings in use:
 - "electrode_positions": how far each electrode's centre lies from the mesh's, along the
   boundary, prior standard deviation 0.1 of the mean spacing between electrode centres
   (`diffeit.ForwardModel`'s `electrode_shift`: the electrode terms are integrals over the part
-  of each boundary edge an electrode covers, differentiable in its ends). A shift is bounded,
-  smoothly, by three prior standard deviations and 0.45 of the narrowest gap between
-  electrodes.
+  of each boundary edge an electrode covers, differentiable in its ends);
+- "electrode_widths": how much longer each electrode is than the mesh's, prior standard
+  deviation 0.2 of the mean electrode length. Each end of an electrode moves by its centre's
+  shift plus or minus half its width change, bounded, smoothly, by three prior standard
+  deviations of the positions and 0.45 of the narrowest gap between electrodes. Widths show
+  mostly in the readings of driven electrodes and near them, where they trade with the
+  contact impedance: the report names those the data do not determine.
 
 Each fitted parameter comes with a standard error from the posterior covariance (the misfit's
 scale estimated from the residual); one whose standard error is over 70% of its prior's is
@@ -667,6 +671,7 @@ PRIORS = {
     "drive_gains": 0.5,
     "channel_gains": 0.5,
     "electrode_positions": 0.1,
+    "electrode_widths": 0.2,
 }
 # Gauss-Newton rounds of the electrode positions on the presses, each followed by the mixing's.
 _POSITION_ROUNDS = 3
@@ -804,7 +809,8 @@ class SkinCalibration(eqx.Module):
         standard_errors: Group -> (n,) standard errors of the fitted parameters, as `values`.
         values: Group -> (n,) the fitted parameters: "level" (ln c), "contact_impedance"
             (ln z / z_first), "mixing" (source, sink, offsets), "drive_gains" and
-            "channel_gains" (ln g), "electrode_positions" (m along the boundary).
+            "channel_gains" (ln g), "electrode_positions" (the centres' shifts, m along the
+            boundary), "electrode_widths" (the change of each electrode's length, m).
         undetermined: Names of the fitted parameters the data did not determine.
         fitted: "reference" and "presses" -> the groups each determined.
         misfit: ||v - V|| / ||v|| of the refined model, and
@@ -952,14 +958,31 @@ class SkinCalibration(eqx.Module):
         lines.extend(f"warning: {note}" for note in self.warnings)
         return lines
 
+    @property
+    def electrode_lengths(self) -> np.ndarray:
+        """(L,) each electrode's length along the boundary, m: the mesh's, changed by the
+        fitted widths when "electrode_widths" was fitted."""
+        lengths = np.asarray(self.model.system.electrode_lengths)
+        shift = self.model.electrode_shift
+        return lengths if shift is None else lengths + np.asarray(shift[:, 1] - shift[:, 0])
+
     def _positions_line(self) -> str:
-        if not any("electrode_positions" in groups for groups in self.fitted.values()):
-            return "electrode positions: the mesh's (not fitted)"
-        shift, error = 1e3 * self.values["electrode_positions"], 1e3 * self.standard_errors["electrode_positions"]
-        return (
-            f"electrode positions: moved {shift.min():+.2f} to {shift.max():+.2f} mm along the boundary "
-            f"(standard errors {error.min():.2f} to {error.max():.2f} mm)"
-        )
+        fitted = set(itertools.chain(*self.fitted.values()))
+        if "electrode_positions" not in fitted:
+            line = "electrode positions: the mesh's (not fitted)"
+        else:
+            shift, error = 1e3 * self.values["electrode_positions"], 1e3 * self.standard_errors["electrode_positions"]
+            line = (
+                f"electrode positions: moved {shift.min():+.2f} to {shift.max():+.2f} mm along the boundary "
+                f"(standard errors {error.min():.2f} to {error.max():.2f} mm)"
+            )
+        if "electrode_widths" in fitted:
+            width, error = 1e3 * self.values["electrode_widths"], 1e3 * self.standard_errors["electrode_widths"]
+            line += (
+                f"; widths changed {width.min():+.2f} to {width.max():+.2f} mm "
+                f"(standard errors {error.min():.2f} to {error.max():.2f} mm)"
+            )
+        return line
 
     def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
         """Write the calibration to an HDF5 file (schema "diffeit.calibration"), atomically and
@@ -1296,8 +1319,10 @@ def _refine(
     data = first.signed(frames.mean(axis=0)) * (first.reading_sign[first.used] if magnitude else 1.0)
     n = protocol.n_electrodes
     position_prior, margin = _position_prior(model, priors["electrode_positions"])
-    prior = dict(priors, electrode_positions=position_prior)
-    if "electrode_positions" in groups:
+    width_prior = priors["electrode_widths"] * float(np.mean(model.system.electrode_lengths))
+    prior = dict(priors, electrode_positions=position_prior, electrode_widths=width_prior)
+    moves = "electrode_positions" in groups or "electrode_widths" in groups
+    if moves:
         model = _with(model, protocol, model.contact_impedance, margin)
     fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     sizes = {
@@ -1307,6 +1332,7 @@ def _refine(
         "drive_gains": protocol.n_drives,
         "channel_gains": len(protocol.measure_patterns),
         "electrode_positions": n,
+        "electrode_widths": n,
     }
     spread = np.concatenate([np.full(size, 1.0 if name == "level" else prior[name]) for name, size in sizes.items()])
     fixed = np.concatenate([np.full(size, name != "level" and name not in groups) for name, size in sizes.items()])
@@ -1330,10 +1356,12 @@ def _refine(
     covariance = np.zeros((len(theta), len(theta)))
     covariance[np.ix_(~fixed, ~fixed)] = np.linalg.inv(curvature[np.ix_(~fixed, ~fixed)])
     errors = dict(zip(sizes, np.split(np.sqrt(np.diag(covariance)), np.cumsum(list(sizes.values()))[:-1]), strict=True))
-    # Positions in metres: the shifts, and their errors through the bounding map's slope.
-    shift = margin * np.tanh(values["electrode_positions"] / margin)
-    values["electrode_positions"] = shift
-    errors["electrode_positions"] = errors["electrode_positions"] * (1 - (shift / margin) ** 2)
+    # Centres and widths in metres, through the bounding map of the electrodes' ends.
+    ends = _electrode_ends(values["electrode_positions"], values["electrode_widths"], margin)
+    values["electrode_positions"], values["electrode_widths"] = ends.mean(axis=1), ends[:, 1] - ends[:, 0]
+    errors["electrode_positions"], errors["electrode_widths"] = _electrode_end_errors(
+        covariance[-2 * n :, -2 * n :], ends, margin
+    )
     names = [f"{name}[{i}]" if size > 1 else name for name, size in sizes.items() for i in range(size)]
     undetermined = tuple(
         name
@@ -1358,15 +1386,15 @@ def _refine(
         offsets=values["mixing"][2:],
         gains=structured,
     )
-    if "electrode_positions" in groups:
-        model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.stack([jnp.asarray(shift)] * 2, axis=1))
+    if moves:
+        model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.asarray(ends))
     calibrated = _with(model, readout.folded(protocol), contact)
     return SkinCalibration(
         model=calibrated,
         conductivity=float(level),
         background_map=None,
         contact_impedance=np.asarray(contact),
-        electrode_centres=_electrode_centres(model.mesh, shift),
+        electrode_centres=_electrode_centres(model.mesh, values["electrode_positions"]),
         readout=readout,
         used=first.used,
         reading_sign=reading_sign,
@@ -1473,12 +1501,11 @@ def _readings(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
     log_c, log_z = theta[0], theta[1 : 1 + n]
     mixing = theta[1 + n : 3 + 2 * n]
     log_drive = theta[3 + 2 * n : 3 + 2 * n + drives]
-    log_channel = theta[3 + 2 * n + drives : -n]
+    log_channel = theta[3 + 2 * n + drives : -2 * n]
     model = fit.model
-    if model.electrode_shift is not None:  # positions fitted: bounded shifts, m
-        margin = model.system.electrode_margin
-        shift = margin * jnp.tanh(theta[-n:] / margin)
-        model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.stack([shift, shift], axis=1))
+    if model.electrode_shift is not None:  # positions or widths fitted: the ends' bounded shifts, m
+        ends = _electrode_ends(theta[-2 * n : -n], theta[-n:], model.system.electrode_margin)
+        model = eqx.tree_at(lambda m: m.electrode_shift, model, ends)
     electrode = model.potentials(fit.conductivity, fit.contact_impedance * jnp.exp(log_z)).electrode
     weights = (
         jnp.asarray(protocol.measure)
@@ -1532,6 +1559,33 @@ def _levenberg_marquardt(
         if damping > 1e8 or np.max(np.abs(step) / spread) < _REFINE_TOLERANCE:
             break
     return theta, design.T @ design + np.diag(precision)
+
+
+def _electrode_ends(centre: Any, width: Any, margin: float) -> Any:
+    """(L, 2) how far each electrode's start and end lie from the mesh's, m, for unbounded
+    centre shifts and width changes (L,), m: each end bounded smoothly by `margin`. The map is
+    1-Lipschitz, so an electrode keeps some length while its width change exceeds minus its
+    length (the width prior keeps it well above)."""
+    xp = jnp if isinstance(centre, jax.Array) or isinstance(width, jax.Array) else np
+    return margin * xp.tanh(xp.stack([centre - width / 2, centre + width / 2], axis=1) / margin)
+
+
+def _electrode_end_errors(covariance: np.ndarray, ends: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The standard errors of the electrodes' centre shifts and width changes, m, from the
+    covariance (2L, 2L) of the unbounded centres and widths, through the bounding map's slope
+    at the `ends` (L, 2) (first order)."""
+    n = len(ends)
+    slope = 1 - (ends / margin) ** 2  # d end / d (unbounded end)
+    # (centre, width) of the bounded ends per electrode, by the unbounded (centre, width).
+    to_ends = np.array([[1.0, -0.5], [1.0, 0.5]])
+    to_result = np.array([[0.5, 0.5], [-1.0, 1.0]])
+    centre_errors, width_errors = np.zeros(n), np.zeros(n)
+    for i in range(n):
+        jacobian = to_result @ np.diag(slope[i]) @ to_ends
+        block = covariance[np.ix_([i, n + i], [i, n + i])]
+        variance = np.diag(jacobian @ block @ jacobian.T)
+        centre_errors[i], width_errors[i] = np.sqrt(np.maximum(variance, 0.0))
+    return centre_errors, width_errors
 
 
 def _position_prior(model: ForwardModel, fraction: float) -> tuple[float, float]:
@@ -1710,20 +1764,19 @@ def _fit_presses(
         )
         if position_round == rounds - 1:
             break
-        # A Gauss-Newton step of the positions, the weights and depths held.
-        shift = every.electrode_shift[:, 0]
+        # A Gauss-Newton step of the positions (each electrode's ends moved together: its
+        # width stays the reference's), the weights and depths held.
+        ends = np.asarray(every.electrode_shift)
+        shift = ends.mean(axis=1)
         mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
-        along = np.asarray(_press_readings_jacobian(every, sigma, patterns, full_weights, mixed, drive_onehot, shift))[
-            keep
-        ]
+        along = np.asarray(_press_readings_jacobian(every, sigma, patterns, full_weights, mixed, drive_onehot))[keep]
         design_shift = (depth[:, None, None] * sign[None, :, None] * along).reshape(-1, len(shift))
         scale = _residual_scale(residual, differences)
         curvature_shift = design_shift.T @ design_shift / scale**2 + np.eye(len(shift)) / positions[0] ** 2
         gradient = design_shift.T @ residual.ravel() / scale**2 - np.asarray(shift) / positions[0] ** 2
-        moved = np.clip(
-            np.asarray(shift) + np.linalg.solve(curvature_shift, gradient), *(0.999 * np.array([-1, 1]) * positions[1])
-        )
-        every = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.asarray(np.stack([moved, moved], axis=1)))
+        moved = ends + np.linalg.solve(curvature_shift, gradient)[:, None]
+        moved = np.clip(moved, *(0.999 * np.array([-1, 1]) * positions[1]))
+        every = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.asarray(moved))
         position_errors = np.sqrt(np.diag(np.linalg.inv(curvature_shift)))
     errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
     values = np.zeros(2 + protocol.n_electrodes)
@@ -1751,7 +1804,7 @@ def _fit_presses(
     groups = ("mixing", "press depths")
     centres = calibration.electrode_centres
     if position_errors is not None:
-        shift = np.asarray(every.electrode_shift[:, 0])
+        shift = np.asarray(every.electrode_shift).mean(axis=1)
         values_by_group["electrode_positions"], errors_by_group["electrode_positions"] = shift, position_errors
         undetermined += tuple(
             f"electrode_positions[{i}]" for i in np.flatnonzero(position_errors > _UNDETERMINED * positions[0])
@@ -1918,9 +1971,8 @@ def _press_readings_jacobian(
     weights: jax.Array,
     mixing: jax.Array,
     drive_onehot: jax.Array,
-    shift: jax.Array,
 ) -> jax.Array:
-    """(K, M, L) the derivative in the electrode shifts `shift` (L,), m, of each press's
+    """(K, M, L) the derivative in a move of each electrode (both its ends), m, of each press's
     linearised readings at unit depth: sum_l W_ml dU_k[drive of m, l], W the reading weights
     `weights` (1 + p, M, L) combined by `mixing` (1 + p,), `drive_onehot` (M, drives) each
     reading's drive, `every` the model reading every electrode (`_every_electrode`).
@@ -1931,11 +1983,11 @@ def _press_readings_jacobian(
     combined = jnp.einsum("p,pml->ml", mixing, weights)
     spread = (drive_onehot[:, :, None] * combined[:, None, :]).reshape(len(combined), -1)  # (M, drives * L)
 
-    def readings(shift: jax.Array) -> jax.Array:
-        moved = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.stack([shift, shift], axis=1))
+    def readings(move: jax.Array) -> jax.Array:
+        moved = eqx.tree_at(lambda m: m.electrode_shift, every, every.electrode_shift + move[:, None])
         return patterns @ (spread @ moved.jacobian(sigma)).T
 
-    return jax.jacfwd(readings)(shift)
+    return jax.jacfwd(readings)(jnp.zeros(len(every.electrode_shift)))
 
 
 def _signs(weights: np.ndarray, potentials: np.ndarray, magnitude: bool) -> np.ndarray:
