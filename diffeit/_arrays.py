@@ -5,6 +5,7 @@ import hashlib
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -20,6 +21,12 @@ def fingerprint(*parts: np.ndarray | bytes) -> bytes:
         digest.update(f"{array.dtype.str}{array.shape}".encode())
         digest.update(array.tobytes())
     return digest.digest()
+
+
+def per_element(background: float | np.ndarray, n_elements: int) -> jax.Array:
+    """(E,) a background conductivity given as one level or per element (a calibration's
+    `background`), as a float array of one value per element."""
+    return jnp.broadcast_to(jnp.asarray(background, float), (n_elements,))
 
 
 class StaticData:

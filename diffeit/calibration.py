@@ -167,6 +167,7 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
+from ._arrays import per_element
 from ._messages import name_indices
 from .fit import memory_from_presses
 from .forward import ForwardModel
@@ -1956,7 +1957,7 @@ class _ElectrodeResponse:
         protocol = calibration.first_stage.model.protocol
         model = _with(calibration.model, protocol, calibration.contact_impedance, margin)
         every = _with(model, _every_electrode(protocol), calibration.contact_impedance)
-        return cls.of(every, jnp.broadcast_to(jnp.asarray(calibration.background, float), (model.n_elements,)))
+        return cls.of(every, per_element(calibration.background, model.n_elements))
 
     def changes(self, patterns: jax.Array) -> np.ndarray:
         """(K, drives, L) the electrode potentials' derivative along each conductivity change (K, E)."""

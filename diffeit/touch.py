@@ -94,6 +94,7 @@ import scipy.sparse
 from numpy.typing import ArrayLike
 from scipy.sparse.csgraph import breadth_first_order
 
+from ._arrays import per_element
 from .forward import ForwardModel
 from .io import Recording
 from .mesh import Mesh, onto_surface, require_flat
@@ -358,7 +359,7 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     about 45, medium noise) untouched frames reached F = 1.8 at most, pressed ones 2.4 at least.
     """
     model = calibration.model
-    background = jnp.broadcast_to(jnp.asarray(calibration.background, float), (model.n_elements,))
+    background = per_element(calibration.background, model.n_elements)
     jacobian = np.asarray(model.jacobian(background))
     # The left singular vectors from the M x M Gram matrix, cheaper than an SVD while the readings
     # are fewer than the elements: its eigenvalues are the squared singular values, and the cut at
@@ -532,7 +533,7 @@ class _DiscFit(eqx.Module):
 
     @classmethod
     def of(cls, model: ForwardModel, background: float | np.ndarray) -> _DiscFit:
-        sigma = jnp.broadcast_to(jnp.asarray(background, float), (model.n_elements,))
+        sigma = per_element(background, model.n_elements)
         return cls(model, sigma, model.measure(sigma))
 
 
