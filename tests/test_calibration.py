@@ -538,3 +538,25 @@ def test_a_background_map_option_other_than_none_true_or_false_is_refused():
     skin = skin_session(5, gains_board, n_presses=0)
     with pytest.raises(ValueError, match="background_map must be None"):
         de.calibrate(skin.recording, background_map="yes")
+
+
+@pytest.mark.parametrize("magnitude", [False, True], ids=["signed", "magnitude"])
+def test_the_refinements_closed_form_jacobian_equals_forward_differentiation(magnitude):
+    """The refinement's Jacobian (level, contacts, mixing and gains from the potentials and the
+    contact impedances' adjoint derivative; positions and widths by `jax.jacfwd`) equals
+    `jax.jacfwd` of its readings in every parameter, at a random point, electrodes moved."""
+    rng = np.random.default_rng(0)
+    protocol = de.protocol.opposite(16) if magnitude else de.protocol.adjacent(16)
+    nominal = de.ForwardModel(de.mesh.disc(16, h=0.2), protocol, 0.02)
+    model = calibration_module._with(nominal, protocol, np.full(16, 0.02), 0.03)
+    fit = calibration_module._ReadoutFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)), magnitude)
+    size = 1 + 16 + 2 + 16 + protocol.n_drives + len(protocol.measure_patterns) + 2 * 16
+    theta = jnp.asarray(rng.normal(0, 0.05, size))
+    free = np.ones(size, bool)
+    free[3 + 16 : 3 + 32][fit.pair_offsets] = False
+    closed = fit.jacobian(theta, free)
+    forward = np.zeros_like(closed)
+    index = np.flatnonzero(free)
+    forward[:, index] = np.asarray(calibration_module._readings_jacobian(fit, theta, jnp.asarray(index)))
+    np.testing.assert_allclose(closed, forward, rtol=0, atol=1e-12 * np.max(np.abs(forward)))
+    assert np.all(closed[:, ~free] == 0) and np.count_nonzero(closed[:, 1:17]) > 0
