@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/fit.py $(BENCH_FLAGS)
 	$(BIN)/python benchmarks/memory_bound.py
 	$(BIN)/python benchmarks/calibration.py
+	$(BIN)/python benchmarks/touches.py
 	$(BIN)/python benchmarks/surface.py
 
 # The documentation site, into site/ (tests/test_docs.py builds it with --strict in `make test`).

@@ -1,0 +1,125 @@
+"""Reading touches from a reconstructed session: the time `de.touches` takes a frame, from the
+images (`method="image"`) and by fitting discs to each frame's voltages (`method="fit"`).
+
+    python benchmarks/touches.py [--frames 60] [--repeats 3]
+
+The skin and board of benchmarks/calibration.py (a disc of radius 80 mm, 16 electrodes,
+opposition drive, magnitudes only, the artefacts real boards have, medium noise), its mesh at
+about 1,000 triangles; the calibration from 20 reference frames and 50 labelled presses; then a
+recording of the reference frames and `--frames` other presses, reconstructed once
+(`de.reconstruct(..., calibration=...)`). Times are medians of `--repeats` calls of
+`de.touches(images, calibration, method=...)` over the whole recording, after a warm-up call
+that compiles (not counted), divided by the number of frames (every frame is read, touched or
+not), and by the number of pressed frames (the fit's work is on them: an untouched frame costs
+the voltage test alone). The targets are 5 ms a frame from the images and 50 ms with the fit. The median position
+error on the pressed frames is printed beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+import warnings
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np
+from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, write_tables
+from calibration import REFERENCE_FRAMES, session
+
+CALIBRATION_PRESSES = 50
+TRIANGLES = 1000
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=60, help="test presses in the timed recording")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
+    options = parser.parse_args()
+    if options.describe:
+        print(json.dumps(describe()))
+        return
+    import diffeit as de
+
+    warnings.simplefilter("ignore", de.calibration.CalibrationWarning)
+    machine = describe_machine(__file__, None)
+    printed = record_output()
+    print(machine_line(machine, with_pyeit=False))
+    recording, presses, _ = session(0, CALIBRATION_PRESSES + options.frames)
+    used = REFERENCE_FRAMES + 2 * CALIBRATION_PRESSES
+    geometry = {**recording.geometry, "h": _h_for(recording.geometry, TRIANGLES)}
+    calibration = de.calibrate(
+        de.io.Recording(
+            frames=recording.frames[:used],
+            times=recording.times[:used],
+            protocol=recording.protocol,
+            geometry=geometry,
+            readings="magnitude",
+        ),
+        presses.select(np.arange(CALIBRATION_PRESSES)),
+    )
+    tested = np.r_[np.arange(REFERENCE_FRAMES), np.arange(used, recording.n_frames)]
+    test = de.io.Recording(
+        frames=recording.frames[tested],
+        times=recording.times[tested],
+        protocol=recording.protocol,
+        geometry=geometry,
+        readings="magnitude",
+    )
+    images = de.reconstruct(test, calibration=calibration, progress=False)
+    test_presses = presses.select(np.arange(CALIBRATION_PRESSES, CALIBRATION_PRESSES + options.frames))
+    pressed = np.array([frames[0] for frames in test_presses.frames(test.times)])
+    print(
+        f"\n`de.touches` on {test.n_frames} frames ({REFERENCE_FRAMES} reference frames, {options.frames} presses each "
+        "followed by an untouched frame), "
+        f"{calibration.model.n_elements} triangles, 16 electrodes, {test.n_measurements} magnitudes; "
+        f"medians of {options.repeats} calls after a warm-up\n"
+    )
+    table = MarkdownTable(
+        ["method", "per frame", "per pressed frame", "whole recording", "target per frame", "median error on presses"]
+    )
+    for method, target in (("image", 5e-3), ("fit", 50e-3)):
+        found = de.touches(images, calibration, method=method)  # compiles
+        seconds = []
+        for _ in range(options.repeats):
+            start = time.perf_counter()
+            found = de.touches(images, calibration, method=method)
+            seconds.append(time.perf_counter() - start)
+        whole = statistics.median(seconds)
+        error = np.linalg.norm(found.position[pressed, 0] - test_presses.centres, axis=1)
+        table.row(
+            [
+                method,
+                f"{1e3 * whole / test.n_frames:.2f} ms",
+                f"{1e3 * whole / options.frames:.2f} ms",
+                f"{whole:.2f} s",
+                f"{1e3 * target:.0f} ms",
+                f"{1e3 * np.nanmedian(error):.1f} mm ({int(np.isnan(error).sum())} missed)",
+            ]
+        )
+    print()
+    write_tables("touches", printed)
+
+
+def _h_for(geometry: dict, triangles: int) -> float:
+    """The mesh size, m, that gives the skin about `triangles` triangles (within 8%)."""
+    import diffeit as de
+
+    h = geometry["h"]
+    for _ in range(5):
+        mesh = de.mesh.disc(
+            geometry["n_electrodes"], electrode_width=geometry["electrode_width"], h=h, radius=geometry["radius"]
+        )
+        if abs(mesh.n_elements / triangles - 1) < 0.08:
+            break
+        h *= (mesh.n_elements / triangles) ** 0.5
+    return h
+
+
+if __name__ == "__main__":
+    main()
