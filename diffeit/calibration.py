@@ -97,6 +97,11 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   under the new mixing.
   A board whose readings mix in its source electrode's potential moves every image's touch;
   the presses determine the weights where the reference does not.
+- **Gains per reading** (with `press_groups=("mixing", "reading_gains")`): a gain of its own
+  for each reading, prior standard deviation 0.2 of its relative change, fitted in turn with
+  the weights and depths (closed form per reading given them; their geometric mean held at 1,
+  a common factor being the depths'), and multiplied into the readout's gains. A reference
+  cannot tell a reading's gain from the model's error there; the presses' differences can.
 - **Electrode positions** (with `press_groups=("mixing", "electrode_positions")`), in turn
   with the mixing: Gauss-Newton
   steps on the same differences, their derivative in the positions by `jax.jacfwd` through the
@@ -675,9 +680,13 @@ PRIORS = {
     "channel_gains": 0.5,
     "electrode_positions": 0.1,
     "electrode_widths": 0.2,
+    "reading_gains": 0.2,
 }
 # Gauss-Newton rounds of the electrode positions on the presses, each followed by the mixing's.
 _POSITION_ROUNDS = 3
+# Gains per reading from the presses: rounds in turn with the weights and depths, until no ln g
+# moves by the step.
+_GAIN_ROUNDS, _GAIN_STEP = 30, 1e-6
 # Electrodes may move this many prior standard deviations, and at most this fraction of the
 # narrowest gap between two electrodes (they never meet).
 _POSITION_REACH, _POSITION_GAP = 3.0, 0.45
@@ -687,7 +696,7 @@ REFERENCE_GROUPS = ("contact_impedance", "mixing")
 # simulated skin of docs/tutorials/calibration.md, positions fitted to 10-50 presses placed
 # touches worse on average (docs/tutorials/calibration.md).
 PRESS_GROUPS = ("mixing",)
-_PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions")
+_PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains")
 # The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
 _NOISE_FRAMES = 6
 # An L-curve corner within this factor of an end of the candidates counts as at the end.
@@ -1153,7 +1162,8 @@ def calibrate(
             reference the first stage's model correlates with under 0.5. The presses fit
             every mixing weight.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
-            and "electrode_positions" (not by default: measured in
+            "electrode_positions" and "reading_gains" (a gain per reading, prior standard
+            deviation 0.2 of its relative change), neither by default (measured in
             docs/tutorials/calibration.md).
         hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
             it from the presses' frames (`auto_hyperparameter`).
@@ -1200,7 +1210,10 @@ def calibrate(
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
     if "mixing" not in press_groups or not set(press_groups) <= set(_PRESS_GROUPS_POSSIBLE):
-        raise ValueError(f"press_groups must hold 'mixing' and may hold 'electrode_positions'; got {press_groups}")
+        raise ValueError(
+            "press_groups must hold 'mixing' and may hold 'electrode_positions' and 'reading_gains'; "
+            f"got {press_groups}"
+        )
     calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
@@ -1216,11 +1229,21 @@ def calibrate(
         if "electrode_positions" in press_groups
         else None
     )
+    gains_prior = priors["reading_gains"] if "reading_gains" in press_groups else None
     # The frame search's last fit and the held-out folds start from this model (reference_only's).
     response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
     read_positions = found.position[:, 0]
     fitted, frame = _fit_frame_and_mixing(
-        calibration, recording, presses, reference, priors["mixing"], polarity, read_positions, positions, response
+        calibration,
+        recording,
+        presses,
+        reference,
+        priors["mixing"],
+        polarity,
+        read_positions,
+        positions,
+        response,
+        gains_prior,
     )
     if fitted is None:
         note = f"{_not_kept((*press_groups, 'press depths'))}{_CONTRADICTS}"
@@ -1230,7 +1253,17 @@ def calibrate(
         fitted = _with_position_map(fitted, presses, found, chosen, polarity)
         prior = priors["mixing"]
         held_out = _held_out_errors(
-            reference_only, recording, presses, reference, prior, frame, positions, chosen, polarity, response
+            reference_only,
+            recording,
+            presses,
+            reference,
+            prior,
+            frame,
+            positions,
+            chosen,
+            polarity,
+            response,
+            gains_prior,
         )
         calibration = _kept_if_it_generalises(fitted, reference_only, held_out)
     if background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT):
@@ -1701,6 +1734,7 @@ def _fit_frame_and_mixing(
     read_positions: np.ndarray,
     positions: tuple[float, float] | None,
     response: _ElectrodeResponse,
+    gains_prior: float | None = None,
 ) -> tuple[SkinCalibration | None, np.ndarray | None]:
     """The readout's mixing fitted to the presses in the labels' frame that explains their
     differences best, and that frame (ln scale, angle, offset; module docstring, "Presses"),
@@ -1712,7 +1746,8 @@ def _fit_frame_and_mixing(
     onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
     at each step. On a curved skin the labels are in the mesh's frame: the frame is None.
     `response` is the calibration's model's, with the margin of `positions` when they are
-    fitted (`_fit_presses`)."""
+    fitted (`_fit_presses`). With `gains_prior`, the last fit (in the frame found) also fits a
+    gain per reading (`_fit_presses`); the frame search does not."""
     frame = None
     if calibration.model.mesh.nodes.shape[1] == 2:
         mesh = calibration.model.mesh
@@ -1738,7 +1773,9 @@ def _fit_frame_and_mixing(
             frame = best.x if best.fun < min(misfits) else frame
     moved = _moved(presses, frame)
     try:
-        fitted, _ = _fit_presses(calibration, recording, moved, reference, prior, polarity, response, positions)
+        fitted, _ = _fit_presses(
+            calibration, recording, moved, reference, prior, polarity, response, positions, gains_prior=gains_prior
+        )
     except _ContradictsReference:
         return None, frame
     if frame is None:
@@ -1764,6 +1801,7 @@ def _fit_presses(
     response: _ElectrodeResponse,
     positions: tuple[float, float] | None = None,
     train: np.ndarray | None = None,
+    gains_prior: float | None = None,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
     "Presses"), and the relative misfit of the presses' differences; with `positions` (the
@@ -1779,7 +1817,9 @@ def _fit_presses(
     with their prior, and the depths are solved together (`_mixing_and_depths`). The
     positions, given the weights and depths, take Gauss-Newton steps on the same differences
     (their derivative by `jax.jacfwd` through the forward model), with their prior, in turn
-    with the weights and depths."""
+    with the weights and depths. With `gains_prior` (the prior standard deviation of a gain's
+    relative change), each reading also gets a gain of its own, fitted with the weights and
+    depths (`_mixing_depths_and_gains`) and multiplied into the readout's gains."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
@@ -1808,6 +1848,7 @@ def _fit_presses(
     drive_onehot = jnp.asarray(np.eye(protocol.n_drives)[drive])  # (M, drives)
     rounds = 1 if positions is None else 1 + _POSITION_ROUNDS
     position_errors = None
+    log_gain, gain_errors = np.zeros(differences.shape[1]), np.zeros(differences.shape[1])
     for position_round in range(rounds):
         if position_round > 0:
             response = _ElectrodeResponse.of(every, sigma)
@@ -1817,9 +1858,11 @@ def _fit_presses(
         columns = np.einsum("pml,kml->kmp", basis, changes[:, drive])  # (K, M, p)
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
         # errors there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
-        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
-            differences, base, columns, basis, weights, unchanged[drive], magnitude, mixing, prior
+        potentials = unchanged[drive]
+        fit = _mixing_depths_and_gains(
+            differences, base, columns, basis, weights, potentials, magnitude, mixing, prior, gains_prior, log_gain
         )
+        mixing, depth, sign, curvature, residual, last_step, log_gain, gain_errors = fit
         if position_round == rounds - 1:
             break
         # A Gauss-Newton step of the positions (each electrode's ends moved together: its
@@ -1841,12 +1884,12 @@ def _fit_presses(
     spread = np.zeros_like(values)
     free = np.concatenate([[True, True], ~fixed])
     values[free], spread[free] = mixing, errors
-    readout = Readout(protocol, values[0], values[1], values[2:], gains)
+    readout = Readout(protocol, values[0], values[1], values[2:], gains * np.exp(log_gain))
     mixed = weights + np.asarray(readout.mixing(protocol))
     sign = _signs(mixed, unchanged[drive], magnitude)
-    # The mixing changes the reference's readings: the level (and unit) is fitted again.
+    # The mixing (and the gains) change the reference's readings: the level (and unit) is fitted again.
     readings = np.sum(mixed * unchanged[drive], axis=1)
-    data = data * sign
+    data = data * sign / np.exp(log_gain)
     if not readings @ data > 0:
         raise _ContradictsReference(_CONTRADICTS)
     factor = _scale(readings, data)
@@ -1860,6 +1903,10 @@ def _fit_presses(
     values_by_group = {**calibration.values, "mixing": values, "press_depths": depth}
     errors_by_group = {**calibration.standard_errors, "mixing": spread, "press_depths": np.full(len(depth), np.nan)}
     groups = ("mixing", "press depths")
+    if gains_prior is not None:
+        values_by_group["reading_gains"], errors_by_group["reading_gains"] = log_gain, gain_errors
+        undetermined += tuple(f"reading_gains[{i}]" for i in np.flatnonzero(gain_errors > _UNDETERMINED * gains_prior))
+        groups = ("mixing", "reading_gains", "press depths")
     centres = calibration.electrode_centres
     if position_errors is not None:
         shift = np.asarray(every.electrode_shift).mean(axis=1)
@@ -1867,7 +1914,7 @@ def _fit_presses(
         undetermined += tuple(
             f"electrode_positions[{i}]" for i in np.flatnonzero(position_errors > _UNDETERMINED * positions[0])
         )
-        groups = ("mixing", "electrode_positions", "press depths")
+        groups = (*groups[:-1], "electrode_positions", "press depths")
         centres = _electrode_centres(every.mesh, shift)
     fitted = eqx.tree_at(
         lambda c: (
@@ -1884,6 +1931,7 @@ def _fit_presses(
             c.misfit,
             c.correlation,
             c.warnings,
+            c.noise,
         ),
         calibration,
         (
@@ -1910,9 +1958,62 @@ def _fit_presses(
                 if last_step >= _PRESS_STEP
                 else ()
             ),
+            None if calibration.noise is None else calibration.noise / np.exp(log_gain),
         ),
+        is_leaf=lambda node: node is None,
     )
-    return fitted, _relative(residual.ravel(), differences.ravel())
+    return fitted, _relative(residual.ravel(), (differences / np.exp(log_gain)).ravel())
+
+
+def _mixing_depths_and_gains(
+    differences: np.ndarray,
+    base: np.ndarray,
+    columns: np.ndarray,
+    basis: np.ndarray,
+    weights: np.ndarray,
+    potentials: np.ndarray,
+    magnitude: bool,
+    mixing: np.ndarray,
+    prior: float,
+    gains_prior: float | None,
+    log_gain: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """`_mixing_and_depths` on the differences divided by each reading's gain exp(`log_gain`)
+    (M,), and with `gains_prior` (the prior standard deviation of a gain's relative change;
+    None: the gains as given) the gains fitted in turn: given the weights and depths, each
+    reading's gain g_m minimises sum_k (dv_km - g_m p_km)^2 / s^2 + (g_m - 1)^2 / prior^2 (p
+    the predicted differences, s the residual's RMS), in closed form; the gains' geometric mean
+    is held at 1 (a common factor is the depths'). Until no ln g moves by `_GAIN_STEP`, at most
+    `_GAIN_ROUNDS` rounds.
+
+    Returns:
+        As `_mixing_and_depths` (the residual that of the divided differences), then ln g (M,)
+        and its standard errors (zero for gains not fitted).
+    """
+    errors = np.zeros_like(log_gain)
+    for _ in range(_GAIN_ROUNDS if gains_prior is not None else 1):
+        scaled = differences / np.exp(log_gain)
+        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
+            scaled, base, columns, basis, weights, potentials, magnitude, mixing, prior
+        )
+        if gains_prior is None:
+            break
+        predicted = depth[:, None] * sign * (base + columns @ mixing)  # (K, M)
+        variance = _residual_scale(residual, scaled) ** 2
+        power = np.sum(predicted**2, axis=0) + variance / gains_prior**2
+        gain = (np.sum(predicted * differences, axis=0) + variance / gains_prior**2) / power
+        moved = np.log(np.maximum(gain, 1e-3))
+        moved -= moved.mean()
+        errors = np.sqrt(variance / power) / np.maximum(gain, 1e-3)
+        step, log_gain = float(np.max(np.abs(moved - log_gain))), moved
+        if step < _GAIN_STEP:
+            break
+    scaled = differences / np.exp(log_gain)
+    if gains_prior is not None:  # the weights and depths of the last gains
+        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
+            scaled, base, columns, basis, weights, potentials, magnitude, mixing, prior
+        )
+    return mixing, depth, sign, curvature, residual, last_step, log_gain, errors
 
 
 def _mixing_and_depths(
@@ -2262,9 +2363,11 @@ def _held_out_errors(
     hyperparameter: float,
     polarity: int,
     response: _ElectrodeResponse,
+    gains_prior: float | None = None,
 ) -> np.ndarray | None:
     """(K,) each press's distance, m, from where it is read when the presses' fit (mixing, and
-    positions when `positions` is given) and the position map are made without it: the presses
+    positions when `positions` is given, gains per reading with `gains_prior`) and the position
+    map are made without it: the presses
     in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted to the
     others, in the labels' frame `frame` found from all of them (`response`: as `_fit_presses`).
     NaN for a press no touch was read at; None with fewer than `_LEAST_HELD_OUT` presses."""
@@ -2277,7 +2380,7 @@ def _held_out_errors(
         test = np.flatnonzero(fold == k)
         try:
             fitted, _ = _fit_presses(
-                calibration, recording, moved, reference, prior, polarity, response, positions, fold != k
+                calibration, recording, moved, reference, prior, polarity, response, positions, fold != k, gains_prior
             )
         except _ContradictsReference:
             continue  # the fold's presses stay NaN: not read, the largest errors
