@@ -59,10 +59,11 @@ radius^2): for a small disc the data fix the strength (the change it makes far o
 than depth and radius apart, and depth = 0 is strength = 0.
 
 Levenberg-Marquardt on the residual weighted by the calibration's per-reading noise
-(unweighted when it knows none), the Jacobian by forward differentiation (`jax.jacfwd` of each
-footprint in its disc's geometry, the model linearised along the 4K conductivity changes that
-follow), compiled once per model and K. The centre and radius of a disc whose strength is not
-significant at the current step are held (they are not determined; free, they wander). It
+(unweighted when it knows none), the Jacobian by the chain rule: forward differentiation
+(`jax.jacfwd`) of each footprint in its disc's geometry, times the model's conductivity
+Jacobian (the adjoint path, whose cost does not grow with K), compiled once per model and K.
+The centre and radius of a disc whose strength is not significant at the current step are
+held (they are not determined; free, they wander). It
 stops when the Gauss-Newton step's predicted decrease of chi^2, or the last step's actual one,
 is below `_FIT_TOLERANCE` (in units of the noise variance: a step of a small fraction of a
 standard error), after `_FIT_STEPS` steps at most.
@@ -577,14 +578,16 @@ def _change(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[jax.Arr
 @eqx.filter_jit
 def _disc_readings(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The differences dv(theta) (M,) of discs `theta` (K, 4) in their `planes` (K, 3, D)
-    (`_change`) through the model, their (M, 4K) Jacobian (the model linearised once, along the
-    4K conductivity changes of `_change`), and the least relative conductivity min(1 + change).
+    (`_change`) through the model, their (M, 4K) Jacobian (the model's conductivity Jacobian,
+    by the adjoint path, times the 4K conductivity changes of `_change`: its cost does not grow
+    with K, as tangent solves would), and the least relative conductivity min(1 + change).
     Compiled once per model and K."""
     change, tangents = _change(fit, theta, planes)
-    # The conductivity is kept positive (the fit rejects steps where 1 + change < 0.02 anyway).
-    readings, along = jax.linearize(fit.model.measure, fit.level * jnp.maximum(1.0 + change, 1e-2))
-    jacobian = jax.vmap(along)(fit.level * tangents)  # (4K, M)
-    return readings - fit.base, jacobian.T, jnp.min(1.0 + change)
+    # The conductivity is kept positive (the fit rejects steps where 1 + change < 0.02 anyway,
+    # so the clamp never reaches an accepted step's Jacobian).
+    sigma = fit.level * jnp.maximum(1.0 + change, 1e-2)
+    jacobian = fit.model.jacobian(sigma) @ (fit.level * tangents).T  # (M, 4K)
+    return fit.model.measure(sigma) - fit.base, jacobian, jnp.min(1.0 + change)
 
 
 def _refined(recording: Recording, calibration: Any, found: Touches, mapping: Any, stack: FoamStack | None) -> Touches:

@@ -179,3 +179,26 @@ def test_the_fit_needs_a_calibration_and_a_known_method(single):
         de.touches(single, method="fit")
     with pytest.raises(ValueError, match="method must be one of"):
         de.touches(single, method="model")
+
+
+def test_the_disc_fits_jacobian_matches_finite_differences_of_its_readings():
+    """The disc fit's (M, 4K) Jacobian (the footprints' forward derivative times the model's
+    adjoint conductivity Jacobian) against central differences of its readings, two discs."""
+    from diffeit import touch as touch_module
+
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.15)
+    model = de.ForwardModel(mesh, de.protocol.adjacent(16), 0.01)
+    fit = touch_module._DiscFit.of(model, 2.0)
+    planes = jnp.asarray([[[0.3, 0.1], [1.0, 0.0], [0.0, 1.0]], [[-0.4, -0.2], [0.0, 1.0], [-1.0, 0.0]]])
+    theta = jnp.asarray([[0.02, -0.03, 0.25, -0.3 * 0.25**2], [0.0, 0.05, 0.3, -0.2 * 0.3**2]])
+    _, jacobian, _ = touch_module._disc_readings(fit, theta, planes)
+    step = 1e-6
+    columns = []
+    for index in range(theta.size):
+        unit = jnp.zeros(theta.size).at[index].set(step).reshape(theta.shape)
+        above = np.asarray(touch_module._disc_readings(fit, theta + unit, planes)[0])
+        below = np.asarray(touch_module._disc_readings(fit, theta - unit, planes)[0])
+        columns.append((above - below) / (2 * step))
+    np.testing.assert_allclose(
+        np.asarray(jacobian), np.stack(columns, axis=1), rtol=0, atol=1e-6 * np.abs(jacobian).max()
+    )
