@@ -1530,7 +1530,7 @@ class _ReadoutFit(eqx.Module):
         The level, contact impedances, mixing weights and gains in closed form from the
         electrode potentials and their adjoint derivative in the contact impedances
         (`_readout_jacobian`: one solve per electrode, against one per parameter and drive
-        by forward differentiation, 25 times slower on a 32-electrode tank); the electrode
+        by forward differentiation, 8 times slower on a 32-electrode tank); the electrode
         positions and widths by `jax.jacfwd`."""
         n = self.model.protocol.n_electrodes
         moves = free.copy()
@@ -1548,27 +1548,32 @@ class _ReadoutFit(eqx.Module):
 
 @eqx.filter_jit
 def _readings(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
+    model, z, weights, gain = _readout_at(fit, fit.model, theta)
+    electrode = model.potentials(fit.conductivity, z).electrode
+    readings = gain * jnp.sum(weights * electrode[model.protocol.drive_index], axis=-1)
+    # A magnitude board is fitted in magnitudes: a reading whose sign the nominal model had wrong still fits.
+    return jnp.abs(readings) if fit.magnitude else readings
+
+
+def _readout_at(
+    fit: _ReadoutFit, model: ForwardModel, theta: jax.Array
+) -> tuple[ForwardModel, jax.Array, jax.Array, jax.Array]:
+    """At the refined parameters `theta` (their layout: `_refine`'s groups in order): `model`
+    with the fitted electrode ends (when it lets them move), the contact impedances (L,), ohm m,
+    the reading weights with the mixing (M, L), and each reading's gain (M,)."""
     protocol = fit.model.protocol
     n, drives = protocol.n_electrodes, protocol.n_drives
     log_c, log_z = theta[0], theta[1 : 1 + n]
     mixing = theta[1 + n : 3 + 2 * n]
     log_drive = theta[3 + 2 * n : 3 + 2 * n + drives]
     log_channel = theta[3 + 2 * n + drives : -2 * n]
-    model = fit.model
     if model.electrode_shift is not None:  # positions or widths fitted: the ends' bounded shifts, m
         ends = _electrode_ends(theta[-2 * n : -n], theta[-n:], model.system.electrode_margin)
         model = eqx.tree_at(lambda m: m.electrode_shift, model, ends)
-    electrode = model.potentials(fit.conductivity, fit.contact_impedance * jnp.exp(log_z)).electrode
-    weights = (
-        jnp.asarray(protocol.measure)
-        + mixing[0] * fit.source
-        + mixing[1] * fit.sink
-        + jnp.einsum("j,jml->ml", mixing[2:], fit.offset)
-    )
+    placed = jnp.concatenate([fit.source[None], fit.sink[None], fit.offset])  # (2 + L, M, L)
+    weights = jnp.asarray(protocol.measure) + jnp.einsum("j,jml->ml", mixing, placed)
     gain = jnp.exp(log_c + log_drive[protocol.drive_index] + log_channel[protocol.pattern_index])
-    readings = gain * jnp.sum(weights * electrode[protocol.drive_index], axis=-1)
-    # A magnitude board is fitted in magnitudes: a reading whose sign the nominal model had wrong still fits.
-    return jnp.abs(readings) if fit.magnitude else readings
+    return model, fit.contact_impedance * jnp.exp(log_z), weights, gain
 
 
 @eqx.filter_jit
@@ -1582,21 +1587,11 @@ def _readout_jacobian(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
     board's |s| takes sign(s)."""
     protocol = fit.model.protocol
     n, drives = protocol.n_electrodes, protocol.n_drives
-    log_c, log_z = theta[0], theta[1 : 1 + n]
-    mixing = theta[1 + n : 3 + 2 * n]
-    log_drive = theta[3 + 2 * n : 3 + 2 * n + drives]
-    log_channel = theta[3 + 2 * n + drives : -2 * n]
-    every = fit.every
-    if every.electrode_shift is not None:  # at the fitted positions and widths
-        ends = _electrode_ends(theta[-2 * n : -n], theta[-n:], every.system.electrode_margin)
-        every = eqx.tree_at(lambda m: m.electrode_shift, every, ends)
-    z = fit.contact_impedance * jnp.exp(log_z)
+    every, z, weights, gain = _readout_at(fit, fit.every, theta)
     potentials = every.measure(fit.conductivity, z).reshape(drives, n)[protocol.drive_index]  # (M, L)
     # (M, L, L): dU_d(m)l / dz_k of every electrode l, by k.
     along_z = every.jacobian(fit.conductivity, z, wrt="contact_impedance").reshape(drives, n, n)[protocol.drive_index]
     placed = jnp.concatenate([fit.source[None], fit.sink[None], fit.offset])  # (2 + L, M, L)
-    weights = jnp.asarray(protocol.measure) + jnp.einsum("j,jml->ml", mixing, placed)
-    gain = jnp.exp(log_c + log_drive[protocol.drive_index] + log_channel[protocol.pattern_index])
     signed = gain * jnp.sum(weights * potentials, axis=-1)
     columns = [
         signed[:, None],
