@@ -814,8 +814,9 @@ class SkinCalibration(eqx.Module):
             counter-clockwise from the first node of the mesh's electrode 0: the mesh's, moved
             by the fitted shifts when "electrode_positions" was fitted.
         readout: The fitted `diffeit.readout.Readout` on the readings used (its gains: the
-            drive and channel gains that `signed` divides by; no gain per reading: a
-            reference cannot tell one from the model's error, and they barely move touches).
+            drive and channel gains that `signed` divides by, times a gain per reading when
+            the presses fitted "reading_gains"; a reference cannot tell a reading's gain from
+            the model's error there).
         used: (M,) bool, the recording's readings that are imaged.
         reading_sign: (M,) +-1, what a recorded reading is multiplied by to match the model.
         standard_errors: Group -> (n,) standard errors of the fitted parameters, as `values`.
@@ -1129,15 +1130,16 @@ def calibrate(
     of the session's first 200 that look untouched): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
-    readout's mixing, drive and channel gains, electrode positions (the groups
-    `reference_groups` names), with standard errors. No gain per reading is fitted: a reference
-    cannot tell one from the model's error at that reading.
+    readout's mixing, drive and channel gains, electrode positions and widths (the groups
+    `reference_groups` names), with standard errors. No gain per reading is fitted to the
+    reference: it cannot tell one from the model's error at that reading (presses can:
+    `press_groups`).
     With presses held over several frames, the skin's memory is fitted to the whole session's
     images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
-    With labelled `presses`: the readout's mixing (and the electrode positions when
-    `press_groups` names them) is fitted to the presses' differences, and kept only when it
-    reads presses it did not see better than the reference's calibration does (five folds,
-    at least 20 presses);
+    With labelled `presses`: the readout's mixing (and the electrode positions and gains per
+    reading when `press_groups` names them) is fitted to the presses' differences, and kept
+    only when it reads presses it did not see better than the reference's calibration does
+    (five folds, at least 20 presses);
     each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
     as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
     fitted, its degree chosen by cross-validation.

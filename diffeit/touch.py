@@ -63,10 +63,10 @@ Levenberg-Marquardt on the residual weighted by the calibration's per-reading no
 (`jax.jacfwd`) of each footprint in its disc's geometry, times the model's conductivity
 Jacobian (the adjoint path, whose cost does not grow with K), compiled once per model and K.
 The centre and radius of a disc whose strength is not significant at the current step are
-held (they are not determined; free, they wander). It
-stops when the Gauss-Newton step's predicted decrease of chi^2, or the last step's actual one,
-is below `_FIT_TOLERANCE` (in units of the noise variance: a step of a small fraction of a
-standard error), after `_FIT_STEPS` steps at most.
+held (they are not determined; free, they wander). It stops when the Gauss-Newton step's
+predicted decrease of chi^2, or the last step's actual one, is below `_FIT_TOLERANCE` (in
+units of the noise variance: a step of a small fraction of a standard error), after
+`_FIT_STEPS` steps at most.
 
 The covariance is (J^T W J)^-1 (W the inverse noise variances), scaled by the residual's chi^2
 per degree of freedom when it exceeds 1 (a model that does not explain the frame to its noise
