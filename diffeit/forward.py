@@ -264,6 +264,29 @@ class ForwardModel(IdentityModule):
             raise ValueError(f"wrt must be one of {JacobianVariable.__args__}; got {wrt!r}")
         return _jacobian(self, *self._checked_inputs(conductivity, contact_impedance), wrt)
 
+    def measure_and_jacobian(
+        self, conductivity: jax.Array, contact_impedance: jax.Array | None = None
+    ) -> tuple[jax.Array, jax.Array]:
+        """`measure` and `jacobian` (in the conductivity) together, from the Jacobian's solves.
+
+        The adjoint path's L-1 solves give every drive's field too, so the readings cost no
+        solve of their own: for fits that need both at every step (the disc fit of
+        `diffeit.touches`). Equal to `measure` and `jacobian` to rounding.
+
+        Arguments:
+            conductivity: (E,) sheet conductivity per element, S/sq, finite and positive.
+            contact_impedance: Scalar or (L,), ohm m, overriding the model's; None uses the
+                model's.
+
+        Returns:
+            (n_measurements,) voltages, volts, and (n_measurements, E) their derivative in the
+            conductivity, V/(S/sq).
+
+        Raises:
+            ValueError: As `potentials` for the inputs.
+        """
+        return _measure_and_jacobian(self, *self._checked_inputs(conductivity, contact_impedance))
+
     def _checked_inputs(self, conductivity, contact_impedance) -> tuple[jax.Array, jax.Array]:
         sigma = jnp.asarray(conductivity)
         # An explicit dtype also drops JAX's weak type (jnp.full(n, 1.0)), which would compile again.
@@ -440,8 +463,22 @@ def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) 
 
 @eqx.filter_jit
 def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable) -> jax.Array:
-    system, protocol = model.system, model.protocol
     sigma, z = _positive(sigma, z)
+    return _jacobian_of_fields(model, sigma, z, wrt, *_adjoint_fields(model, sigma, z))
+
+
+@eqx.filter_jit
+def _measure_and_jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    sigma, z = _positive(sigma, z)
+    drive_fields, measure_fields = _adjoint_fields(model, sigma, z)
+    readings = _readings(model, model.system.split(drive_fields)[1])
+    return readings, _jacobian_of_fields(model, sigma, z, "conductivity", drive_fields, measure_fields)
+
+
+def _adjoint_fields(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The system solutions (n, n_drives) of every drive and (n, n_patterns) of every
+    measurement pattern, from one factorisation and L-1 solves (docs/science.md#jacobian)."""
+    system, protocol = model.system, model.protocol
     n_free = system.n_electrodes - 1
     # Unit current into electrode l < L-1 and out of electrode L-1: every zero-sum pattern is
     # a combination of these with its first L-1 entries as weights.
@@ -453,6 +490,19 @@ def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: Jacobian
     patterns = jnp.asarray(patterns[:, :n_free], sigma.dtype)
     drive_fields = basis @ drives.T  # (n, n_drives) system solutions of every drive
     measure_fields = basis @ patterns.T  # (n, n_patterns) ... of every measurement pattern
+    return drive_fields, measure_fields
+
+
+def _jacobian_of_fields(
+    model: ForwardModel,
+    sigma: jax.Array,
+    z: jax.Array,
+    wrt: JacobianVariable,
+    drive_fields: jax.Array,
+    measure_fields: jax.Array,
+) -> jax.Array:
+    """The Jacobian by reciprocity from the drive and measurement fields (`_adjoint_fields`)."""
+    system, protocol = model.system, model.protocol
     if wrt == "contact_impedance":
         forms = system.contact_forms(
             drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index], *_ends(model, z.dtype)

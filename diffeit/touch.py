@@ -586,8 +586,8 @@ def _disc_readings(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[
     # The conductivity is kept positive (the fit rejects steps where 1 + change < 0.02 anyway,
     # so the clamp never reaches an accepted step's Jacobian).
     sigma = fit.level * jnp.maximum(1.0 + change, 1e-2)
-    jacobian = fit.model.jacobian(sigma) @ (fit.level * tangents).T  # (M, 4K)
-    return fit.model.measure(sigma) - fit.base, jacobian, jnp.min(1.0 + change)
+    readings, jacobian = fit.model.measure_and_jacobian(sigma)
+    return readings - fit.base, jacobian @ (fit.level * tangents).T, jnp.min(1.0 + change)
 
 
 def _refined(recording: Recording, calibration: Any, found: Touches, mapping: Any, stack: FoamStack | None) -> Touches:

@@ -142,3 +142,16 @@ def test_jacobian_in_contact_impedance_per_electrode(small_disc, rough_conductiv
 def test_wrt_is_checked(small_model, rough_conductivity):
     with pytest.raises(ValueError, match="wrt must be one of"):
         small_model.jacobian(rough_conductivity, wrt="sigma")
+
+
+@pytest.mark.parametrize("measure_driven", [False, True], ids=["adjacent", "driven"])
+def test_readings_and_jacobian_together_equal_measure_and_jacobian(small_disc, rough_conductivity, measure_driven):
+    """`measure_and_jacobian` takes the readings from the Jacobian's solves: the same readings
+    and Jacobian as `measure` and `jacobian`, to rounding, with per-electrode contacts."""
+    protocol = de.protocol.adjacent(16, measure_driven=measure_driven)
+    contact = 0.01 * np.exp(np.random.default_rng(2).normal(0, 0.3, 16))
+    model = de.ForwardModel(small_disc, protocol, contact_impedance=contact)
+    readings, jacobian = model.measure_and_jacobian(rough_conductivity)
+    expected = np.asarray(model.measure(rough_conductivity))
+    assert _relative(np.asarray(readings), expected) < 1e-12
+    assert _relative(np.asarray(jacobian), np.asarray(model.jacobian(rough_conductivity))) < 1e-12
