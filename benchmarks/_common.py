@@ -25,10 +25,15 @@ def disc_with_about(n_triangles: int):
     """A unit disc (16 electrodes of width 0.2) with about `n_triangles` triangles (within 8%)."""
     import diffeit as de
 
-    h = 2.7 / n_triangles**0.5
-    for _ in range(4):
-        mesh = de.mesh.disc(16, electrode_width=0.2, h=h)
-        if abs(mesh.n_elements / n_triangles - 1) < 0.08:
+    return with_about(lambda h: de.mesh.disc(16, electrode_width=0.2, h=h), n_triangles, 2.7 / n_triangles**0.5)
+
+
+def with_about(make: Callable[[float], object], n_triangles: int, h: float, tolerance: float = 0.08, tries: int = 4):
+    """`make(h)` with the mesh size h tuned from the guess `h` until the mesh has about
+    `n_triangles` triangles (within `tolerance`), in at most `tries` meshes."""
+    for _ in range(tries):
+        mesh = make(h)
+        if abs(mesh.n_elements / n_triangles - 1) < tolerance:
             break
         h *= (mesh.n_elements / n_triangles) ** 0.5
     return mesh

@@ -36,7 +36,6 @@ import json
 import statistics
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -51,20 +50,11 @@ from _common import (
     machine_line,
     record_output,
     relative,
+    with_about,
     write_tables,
 )
 
 N_ELECTRODES = 16
-
-
-def with_about(make: Callable[[float], object], n_triangles: int, h: float):
-    """`make(h)` with h tuned until the mesh has about `n_triangles` triangles (within 2%)."""
-    for _ in range(8):
-        mesh = make(h)
-        if abs(mesh.n_elements / n_triangles - 1) < 0.02:
-            break
-        h *= (mesh.n_elements / n_triangles) ** 0.5
-    return mesh
 
 
 def meshes(n_triangles: int) -> dict:
@@ -74,8 +64,11 @@ def meshes(n_triangles: int) -> dict:
 
     disc = disc_with_about(n_triangles)
     guess = 2.7 / disc.n_elements**0.5
-    cap = with_about(lambda h: de.mesh.sphere_cap(1.0, 1.2, N_ELECTRODES, h), disc.n_elements, guess)
-    patch = with_about(lambda h: de.mesh.cylinder_patch(1.0, 2.0, np.pi, N_ELECTRODES, h), disc.n_elements, guess)
+    # Within 2% of the disc's triangles, in at most 8 meshes each.
+    cap = with_about(lambda h: de.mesh.sphere_cap(1.0, 1.2, N_ELECTRODES, h), disc.n_elements, guess, 0.02, 8)
+    patch = with_about(
+        lambda h: de.mesh.cylinder_patch(1.0, 2.0, np.pi, N_ELECTRODES, h), disc.n_elements, guess, 0.02, 8
+    )
     # The flat twins: the surfaces mapped back to the plane they were meshed in (the azimuthal
     # equidistant map of the cap, the unrolling of the patch), same triangles and numbering.
     x, y, z = cap.nodes.T

@@ -28,7 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
-from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, write_tables
+from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, with_about, write_tables
 from calibration import REFERENCE_FRAMES, session
 
 CALIBRATION_PRESSES = 50
@@ -52,13 +52,18 @@ def main() -> None:
     print(machine_line(machine, with_pyeit=False))
     recording, presses, _ = session(0, CALIBRATION_PRESSES + options.frames)
     used = REFERENCE_FRAMES + 2 * CALIBRATION_PRESSES
-    geometry = {**recording.geometry, "h": _h_for(recording.geometry, TRIANGLES)}
+    skin = recording.geometry
+    mesh = with_about(
+        lambda h: de.mesh.disc(16, electrode_width=skin["electrode_width"], h=h, radius=skin["radius"]),
+        TRIANGLES,
+        skin["h"],
+    )
     calibration = de.calibrate(
         de.io.Recording(
             frames=recording.frames[:used],
             times=recording.times[:used],
             protocol=recording.protocol,
-            geometry=geometry,
+            mesh=mesh,
             readings="magnitude",
         ),
         presses.select(np.arange(CALIBRATION_PRESSES)),
@@ -68,7 +73,7 @@ def main() -> None:
         frames=recording.frames[tested],
         times=recording.times[tested],
         protocol=recording.protocol,
-        geometry=geometry,
+        mesh=mesh,
         readings="magnitude",
     )
     images = de.reconstruct(test, calibration=calibration, progress=False)
@@ -104,21 +109,6 @@ def main() -> None:
         )
     print()
     write_tables("touches", printed)
-
-
-def _h_for(geometry: dict, triangles: int) -> float:
-    """The mesh size, m, that gives the skin about `triangles` triangles (within 8%)."""
-    import diffeit as de
-
-    h = geometry["h"]
-    for _ in range(5):
-        mesh = de.mesh.disc(
-            geometry["n_electrodes"], electrode_width=geometry["electrode_width"], h=h, radius=geometry["radius"]
-        )
-        if abs(mesh.n_elements / triangles - 1) < 0.08:
-            break
-        h *= (mesh.n_elements / triangles) ** 0.5
-    return h
 
 
 if __name__ == "__main__":

@@ -1987,30 +1987,23 @@ def _mixing_depths_and_gains(
         As `_mixing_and_depths` (the residual that of the divided differences), then ln g (M,)
         and its standard errors (zero for gains not fitted).
     """
-    errors = np.zeros_like(log_gain)
-    for _ in range(_GAIN_ROUNDS if gains_prior is not None else 1):
+    errors, step = np.zeros_like(log_gain), math.inf
+    rounds = 0 if gains_prior is None else _GAIN_ROUNDS
+    for done in itertools.count():
         scaled = differences / np.exp(log_gain)
         mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
             scaled, base, columns, basis, weights, potentials, magnitude, mixing, prior
         )
-        if gains_prior is None:
-            break
+        # The weights and depths returned are those of the last gains.
+        if done == rounds or step < _GAIN_STEP:
+            return mixing, depth, sign, curvature, residual, last_step, log_gain, errors
         predicted = depth[:, None] * sign * (base + columns @ mixing)  # (K, M)
         variance = _residual_scale(residual, scaled) ** 2
         power = np.sum(predicted**2, axis=0) + variance / gains_prior**2
-        gain = (np.sum(predicted * differences, axis=0) + variance / gains_prior**2) / power
-        moved = np.log(np.maximum(gain, 1e-3))
-        moved -= moved.mean()
-        errors = np.sqrt(variance / power) / np.maximum(gain, 1e-3)
+        gain = np.maximum((np.sum(predicted * differences, axis=0) + variance / gains_prior**2) / power, 1e-3)
+        moved = np.log(gain) - np.log(gain).mean()
+        errors = np.sqrt(variance / power) / gain
         step, log_gain = float(np.max(np.abs(moved - log_gain))), moved
-        if step < _GAIN_STEP:
-            break
-    scaled = differences / np.exp(log_gain)
-    if gains_prior is not None:  # the weights and depths of the last gains
-        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
-            scaled, base, columns, basis, weights, potentials, magnitude, mixing, prior
-        )
-    return mixing, depth, sign, curvature, residual, last_step, log_gain, errors
 
 
 def _mixing_and_depths(
