@@ -195,7 +195,7 @@ from .mesh import Mesh, disc, disc_fractions
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import read
+from .touch import polarity_of, read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
@@ -840,8 +840,8 @@ class SkinCalibration(eqx.Module):
             the spread of the reference frames (None with fewer than 6): `diffeit.touches`
             tests each frame's differences against it.
         noise_frames: How many reference frames `noise` was estimated from.
-        polarity: -1 when a press lowers the conductivity (the default without presses), +1
-            when the presses raise it.
+        polarity: -1 when the presses lower the conductivity, +1 when they raise it; None
+            without presses (`diffeit.touches` then reads it from the images).
         memory: The skin's `diffeit.memory.MemoryParameters` fitted to presses held over
             several frames (each free field also in `values["memory.NAME"]`, its standard
             error in `standard_errors["memory.NAME"]`), or None.
@@ -873,7 +873,7 @@ class SkinCalibration(eqx.Module):
     hyperparameter: float | None
     noise: np.ndarray | None
     noise_frames: int
-    polarity: int
+    polarity: int | None
     memory: MemoryParameters | None
     first_stage: ReferenceCalibration
     warnings: tuple[str, ...]
@@ -1323,7 +1323,7 @@ def _refine_to_reference(
         groups: The groups of `PRIORS` fitted.
 
     Returns:
-        The `SkinCalibration` (no presses: no position map, polarity -1).
+        The `SkinCalibration` (no presses: no position map, no polarity).
     """
     priors = PRIORS if priors is None else priors
     if "mixing" in groups and first.correlation < _MIXING_LEAST_CORRELATION:
@@ -1448,7 +1448,7 @@ def _refine(
         hyperparameter=None,
         noise=np.abs(first.signed(frames.std(axis=0, ddof=1))) / structured if len(frames) >= _NOISE_FRAMES else None,
         noise_frames=len(frames),
-        polarity=-1,
+        polarity=None,
         memory=None,
         first_stage=first,
         warnings=tuple(notes),
@@ -2257,8 +2257,7 @@ def _read_presses(
     solver = OneStep(calibration.model, problem.prior, hyperparameter, level, problem=problem)
     images = np.asarray(solver.solve(dv, throw=True).value) / level
     if polarity is None:
-        extremes = images[np.arange(len(images)), np.argmax(np.abs(images), axis=1)]
-        polarity = 1 if np.median(extremes) > 0 else -1
+        polarity = polarity_of(images)
     found = read(calibration.model.mesh, images, max_touches=1, polarity=polarity, touched=np.ones(len(images), bool))
     return found, float(hyperparameter), polarity
 
@@ -2580,8 +2579,10 @@ def _not_kept(groups: tuple[str, ...]) -> str:
 
 SCHEMA = "diffeit.calibration"
 # Version 2: the electrodes' positions (model/electrode_shift, electrode_margin); version 3: the
-# background map (background_map), which a reader of version 2 would ignore. Versions 1 and 2 read.
-SCHEMA_VERSION = 3
+# background map (background_map), which a reader of version 2 would ignore; version 4: polarity 0
+# for a calibration without presses (none known), which a reader of version 3 would refuse to read
+# touches with. Versions 1 to 3 read (their -1 without presses stays -1).
+SCHEMA_VERSION = 4
 
 
 def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
@@ -2633,7 +2634,7 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         "correlation": calibration.correlation,
         "hyperparameter": -1.0 if calibration.hyperparameter is None else calibration.hyperparameter,
         "noise_frames": calibration.noise_frames,
-        "polarity": calibration.polarity,
+        "polarity": 0 if calibration.polarity is None else calibration.polarity,  # 0: none
         "json": json.dumps(
             {
                 "undetermined": list(calibration.undetermined),
@@ -2790,7 +2791,7 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         press_positions=arrays.get("press_positions"),
         noise=arrays.get("noise"),
         noise_frames=int(attributes["noise_frames"]),
-        polarity=int(attributes["polarity"]),
+        polarity=int(attributes["polarity"]) or None,
         memory=None if stored["memory"] is None else MemoryParameters(**stored["memory"]),
         hyperparameter=None if hyperparameter < 0 else hyperparameter,
         first_stage=first_stage,

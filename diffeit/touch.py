@@ -6,7 +6,11 @@
 ## The rule
 
 A touch lowers the sheet's conductivity (`polarity=-1`; +1 for a sheet whose conductivity a
-touch raises): in each image a = polarity * change, the touches are the hills of a.
+touch raises, or a conductive object in a tank): in each image a = polarity * change, the
+touches are the hills of a. Where no one says which (no `polarity`, no calibration from labelled
+presses), `touches` reads it from the images (`polarity_of`): the sign of the median, over the
+touched frames, of each image's largest change. A touch is a hill well above its image's
+ringing and noise, so a skin's touches vote for their own sign.
 
 1. **Is the frame touched?** With a calibration that knows the readings' noise (from its
    reference frames), a frame is touched when its differences dv (in the calibrated model's
@@ -214,7 +218,8 @@ def touches(
             standard deviations of its image.
         detection: With it, the voltage test's z above which a frame is touched.
         polarity: -1 when a touch lowers the conductivity, +1 when it raises it; None: the
-            calibration's (found from its presses), else -1.
+            calibration's (found from its presses), else read from the images (`polarity_of`
+            of the touched frames).
         stack: The skin's foam stack (`diffeit.scene.FoamStack`): pressures are then read
             from the depths.
         method: "image" reads the touches from the images; "fit" starts there and fits
@@ -252,10 +257,13 @@ def touches(
     mapping = None if calibration is None else calibration.position_map
     if mapping is not None and mapping.degree is None:
         mapping = None  # the identity (always on a curved skin): nothing to apply
-    if polarity is None:
-        polarity = -1 if calibration is None else calibration.polarity
     if method == "fit" and recording.reference is None:
         raise ValueError('method="fit" fits the differences from the recording\'s reference; it has none')
+    frames_touched = None if recording.reference is None else _touched_frames(recording, calibration, detection)
+    if polarity is None:
+        polarity = None if calibration is None else calibration.polarity
+    if polarity is None:
+        polarity = polarity_of(images if frames_touched is None else images[frames_touched])
     found = read(
         recording.mesh,
         images,
@@ -264,7 +272,7 @@ def touches(
         polarity=polarity,
         position_map=mapping if method == "image" else None,
         stack=stack if method == "image" else None,
-        touched=None if recording.reference is None else _touched_frames(recording, calibration, detection),
+        touched=frames_touched,
     )
     if method == "image":
         return found
@@ -445,6 +453,20 @@ def read(
         position = position_map(position)
     pressure = None if stack is None else _pressure(depth, stack)
     return Touches(count, position, radius, depth, pressure, noise)
+
+
+def polarity_of(images: ArrayLike) -> int:
+    """Whether the touches of `images` lower the conductivity (-1) or raise it (+1): the sign
+    of the median, over the images (T, E), of each image's value of largest magnitude; -1 for
+    no images or a median of zero.
+
+    Pass the touched frames' images: an untouched image's largest value is noise of either
+    sign."""
+    images = np.atleast_2d(np.asarray(images, np.float64))
+    if images.size == 0:
+        return -1
+    extremes = images[np.arange(len(images)), np.argmax(np.abs(images), axis=1)]
+    return 1 if np.median(extremes) > 0 else -1
 
 
 def _robust_std(values: np.ndarray) -> float:

@@ -99,7 +99,7 @@ def test_the_tanks_through_a_skin_calibration_follow_the_rod_round(name, frames,
     mixing_fitted = "mixing" in calibration.fitted["reference"]
     assert mixing_fitted == (difference == "calibrated")
     assert mixing_fitted or any("mixing was not fitted to the reference" in note for note in calibration.warnings)
-    found = de.touches(result, calibration, polarity=-1)  # the rod is non-conductive
-    assert np.all(found.count >= 1)  # the rod is in every frame
+    found = de.touches(result, calibration)  # the polarity from the images: the rod is non-conductive
+    assert np.all(found.count >= 1) and np.all(found.depth[:, 0] < 0)  # the rod is in every frame
     _, radius, spread = _circle(found.position[:, 0])
     assert spread < 0.06 and 0.3 < radius < 0.9  # measured spreads 0.006 (Montreal) and 0.052 (IIRC)

@@ -58,3 +58,14 @@ def test_bad_images_and_options_are_refused():
         de.touch.read(MESH, np.zeros(MESH.n_elements), polarity=0)
     with pytest.raises(ValueError, match="reconstructed recording"):
         de.touches(de.io.Recording(frames=np.ones((1, 208)), times=[0.0], protocol=de.protocol.adjacent(16)))
+
+
+def test_the_polarity_of_images_is_the_sign_their_touches_stand_out_with():
+    rng = np.random.default_rng(1)
+    centres = rng.uniform(-0.5, 0.5, (5, 2))
+    # Each press with ringing of the other sign, 40% of its depth, and noise; one frame untouched.
+    images = np.array([disc_image(c, 0.15, -0.3) + disc_image(-c, 0.3, 0.12) for c in centres])
+    images = np.concatenate([images, np.zeros((1, MESH.n_elements))]) + 0.01 * rng.standard_normal((6, MESH.n_elements))
+    assert de.touch.polarity_of(images) == -1
+    assert de.touch.polarity_of(-images) == 1
+    assert de.touch.polarity_of(np.zeros((0, MESH.n_elements))) == -1

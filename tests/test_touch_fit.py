@@ -202,3 +202,19 @@ def test_the_disc_fits_jacobian_matches_finite_differences_of_its_readings():
     np.testing.assert_allclose(
         np.asarray(jacobian), np.stack(columns, axis=1), rtol=0, atol=1e-6 * np.abs(jacobian).max()
     )
+
+
+def test_without_presses_the_touches_polarity_is_the_one_their_images_show(calibration, single):
+    """A calibration from the reference alone knows no polarity: raised and lowered presses
+    are both read where they are, with the sign of their change, by either method."""
+    assert calibration.polarity is None
+    raised = session(calibration, [[(centre, radius, -depth)] for centre, radius, depth in SINGLE], seed=4)
+    truth = np.array([centre for centre, _, _ in SINGLE])
+    for images, sign in ((raised, 1), (single, -1)):
+        for method in ("image", "fit"):
+            found = de.touches(images, calibration, method=method)
+            assert np.all(found.count >= 1) and np.all(np.sign(found.depth[:, 0]) == sign)
+            assert np.all(np.linalg.norm(found.position[:, 0] - truth, axis=1) < 0.1)
+    # Told the wrong sign, the image method reads the raised presses' ringing instead.
+    wrong = de.touches(raised, calibration, polarity=-1)
+    assert np.median(np.linalg.norm(wrong.position[:, 0] - truth, axis=1)) > 0.2

@@ -93,8 +93,9 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "--touches",
         action="store_true",
         help="print each frame's touches (diffeit.touch.read on its image): position in mm, radius in mm, depth "
-        "(the peak dsigma/sigma); with --calibration, through its position map and polarity, and a frame counts "
-        "as touched by the voltage test on its noise when it knows it",
+        "(the peak dsigma/sigma); with --calibration, through its position map and polarity (without labelled "
+        "presses, the polarity the batch's images show), and a frame counts as touched by the voltage test on its "
+        "noise when it knows it",
     )
     live.add_argument("--png", default="live.png", help="image written when there is no display (live.png)")
     live.set_defaults(run=_live)
@@ -379,7 +380,8 @@ class _LiveViewer:
     by its `signed`, at its hyperparameter when "auto" asks and it has one.
 
     With `touches`: each frame's touches are read from its image (`diffeit.touch.read`, one call
-    a batch; through the calibration's position map and polarity) and printed, a line a frame
+    a batch; through the calibration's position map and polarity, or where no presses gave it,
+    the polarity the batch's touched images show, `diffeit.touch.polarity_of`) and printed, a line a frame
     beside its image's peak. A calibration that knows its readings' noise decides which frames
     are touched by the voltage test of `diffeit.touch.touches`.
 
@@ -526,15 +528,18 @@ class _LiveViewer:
     def _print_touches(self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray) -> None:
         """Print a line per frame of the batch: its index among the frames imaged, its time, its
         image's peak and its touches (`diffeit.touch.read` on the finite images, one call)."""
-        from ..touch import read, touched
+        from ..touch import polarity_of, read, touched
 
         skin, found = self.skin, None
         if finite.any():
             frames_touched = touched(values[finite], self.raw_reference, skin, reference_frames=self.reference_frames)
+            polarity = None if skin is None else skin.polarity
+            if polarity is None:  # not known from labelled presses: the batch's touched images say
+                polarity = polarity_of(images[finite] if frames_touched is None else images[finite][frames_touched])
             found = read(
                 self.mesh,
                 images[finite],
-                polarity=-1 if skin is None else skin.polarity,
+                polarity=polarity,
                 position_map=None if skin is None else skin.position_map,
                 touched=frames_touched,
             )
