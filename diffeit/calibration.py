@@ -712,6 +712,8 @@ _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
 # Gauss-Newton steps of the presses' depths and the readout's mixing, and the step (largest
 # change of a weight) they stop at: 4 to 6 steps reach it.
 _PRESS_ROUNDS, _PRESS_STEP = 30, 1e-6
+# Halvings of a step that does not decrease the presses' objective before the fit stops there.
+_PRESS_HALVINGS = 20
 # A parameter whose standard error exceeds this fraction of its prior's is not determined by the data.
 _UNDETERMINED = 0.7
 # Levenberg-Marquardt steps of the refinement, and the rounds that re-estimate the misfit's scale.
@@ -2042,6 +2044,12 @@ def _mixing_and_depths(
         the depths unknown (its inverse their covariance), the residual (K, M) and the last
         step's largest change of a weight (converged below `_PRESS_STEP`).
     """
+
+    def objective(mixing: np.ndarray, depth: np.ndarray, scale: float) -> float:
+        sign = _signs(weights + np.einsum("p,pml->ml", mixing, basis), potentials, magnitude)
+        residual = differences - depth[:, None] * sign * (base + columns @ mixing)
+        return float(np.sum(residual**2) / scale**2 + np.sum(mixing**2) / prior**2)
+
     depth = None
     for _ in range(_PRESS_ROUNDS):
         sign = _signs(weights + np.einsum("p,pml->ml", mixing, basis), potentials, magnitude)
@@ -2058,8 +2066,20 @@ def _mixing_and_depths(
         curvature = schur / scale**2 + np.eye(len(mixing)) / prior**2
         gradient = (along.T @ residual.ravel() - coupling.T @ (on_depth / power)) / scale**2 - mixing / prior**2
         step = np.linalg.solve(curvature, gradient)
+        depth_step = (on_depth - coupling @ step) / power
+        # The model is bilinear and the signs of magnitudes follow the weights: a full step can
+        # overshoot into another basin (measured: 3 of 5 folds of 40 presses ended there, their
+        # misfit 0.9 against 0.6). Halved until the objective, at this step's scale, decreases;
+        # where no halving does (a sign's jump in the way), the full step is taken.
+        start, full = objective(mixing, depth, scale), (step, depth_step)
+        for _ in range(_PRESS_HALVINGS):
+            if objective(mixing + step, depth + depth_step, scale) <= start:
+                break
+            step, depth_step = step / 2, depth_step / 2
+        else:
+            step, depth_step = full
         mixing = mixing + step
-        depth = depth + (on_depth - coupling @ step) / power
+        depth = depth + depth_step
         if np.max(np.abs(step)) < _PRESS_STEP:
             break
     sign = _signs(weights + np.einsum("p,pml->ml", mixing, basis), potentials, magnitude)

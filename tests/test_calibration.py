@@ -472,6 +472,28 @@ def test_the_presses_mixing_and_depths_are_solved_together_and_an_unconverged_so
     assert step > 1e-6
 
 
+def test_the_presses_mixing_steps_are_halved_where_a_full_step_overshoots():
+    """Magnitudes: the readings' signs follow the weights, so the bilinear fit has other basins.
+    On 40 seeded noise-free problems (weights of 0.3, from zero), Gauss-Newton whose steps are
+    halved until the objective decreases finds the truth in 32 or more (measured 32; full steps
+    always: 28)."""
+    found = 0
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        presses, readings, electrodes, count = 12, 40, 6, 5
+        potentials, weights = rng.normal(size=(readings, electrodes)), rng.normal(size=(readings, electrodes))
+        basis = rng.normal(size=(count, readings, electrodes))
+        base, columns = rng.normal(size=(presses, readings)), rng.normal(size=(presses, readings, count))
+        truth, depths = rng.normal(scale=0.3, size=count), rng.uniform(0.5, 1.5, presses)
+        sign = calibration_module._signs(weights + np.einsum("p,pml->ml", truth, basis), potentials, True)
+        differences = depths[:, None] * sign * (base + columns @ truth)
+        mixing, *_ = calibration_module._mixing_and_depths(
+            differences, base, columns, basis, weights, potentials, True, np.zeros(count), 1.0
+        )
+        found += np.max(np.abs(mixing - truth)) < 1e-6
+    assert found >= 32
+
+
 def test_a_gain_per_reading_is_fitted_with_the_presses_mixing_and_depths():
     """The same bilinear presses read through a gain of their own per reading (+-20%),
     noise-free: fitted in turn with the weights and depths, the gains come back to 1e-6 up to
