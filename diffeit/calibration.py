@@ -88,7 +88,7 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
 - **The labels' frame** (scale, rotation, offset against the mesh's), the one whose discs
   explain the presses' differences best: Nelder-Mead on the presses' misfit (a mixing fit at
   each step) from the better of the mesh's own frame and the similarity that maps the labels
-  onto the positions read (`_fit_frame_and_mixing`). On a curved skin the labels are points on
+  onto the positions read (`_label_frame`). On a curved skin the labels are points on
   its surface in the mesh's frame, and no frame is fitted.
 - **The readout's mixing**, from the presses' differences: each press is a disc of the
   labelled centre and radius with an unknown depth, linearised at the calibrated level; the
@@ -102,10 +102,11 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   the weights and depths (closed form per reading given them; their geometric mean held at 1,
   a common factor being the depths'), and multiplied into the readout's gains. A reference
   cannot tell a reading's gain from the model's error there; the presses' differences can.
-- **Electrode positions** (with `press_groups=("mixing", "electrode_positions")`), in turn
-  with the mixing: Gauss-Newton
-  steps on the same differences, their derivative in the positions by `jax.jacfwd` through the
-  forward model, with the positions' prior.
+- **Electrode positions**, in turn with the mixing: Gauss-Newton steps on the same
+  differences, their derivative in the positions by `jax.jacfwd` through the forward model,
+  with the positions' prior. By default (`press_groups=None`) the mixing alone and the mixing
+  with the positions are both fitted, and the one whose held-out presses (below) read closest
+  goes on to be compared with the reference's calibration.
 - **Held-out presses decide** whether the presses' fit is kept: the presses in five folds, each
   fold read at the mixing (and positions) fitted to the other four, through a position map fitted
   on those (the labels' frame held at the one all the presses gave). When the median
@@ -164,7 +165,7 @@ import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, NamedTuple
 
 import equinox as eqx
 import h5py
@@ -692,10 +693,9 @@ _GAIN_ROUNDS, _GAIN_STEP = 30, 1e-6
 _POSITION_REACH, _POSITION_GAP = 3.0, 0.45
 # The groups a reference alone determines well enough to image with (docs/tutorials/calibration.md).
 REFERENCE_GROUPS = ("contact_impedance", "mixing")
-# The groups fitted to the presses' differences by default, and those that can be: on the
-# simulated skin of docs/tutorials/calibration.md, positions fitted to 10-50 presses placed
-# touches worse on average (docs/tutorials/calibration.md).
-PRESS_GROUPS = ("mixing",)
+# The groups fitted to the presses' differences by default, each set in turn, the one whose
+# held-out presses read closest kept (docs/tutorials/calibration.md), and those that can be.
+PRESS_GROUP_CHOICES = (("mixing",), ("mixing", "electrode_positions"))
 _PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains")
 # The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
 _NOISE_FRAMES = 6
@@ -724,6 +724,10 @@ _REFINE_TOLERANCE = 1e-3
 _MIXING_REACH, _MIXING_GRID = 0.5, 41
 # Mixing is fitted to a reference the first stage's model correlates with at least this well.
 _MIXING_LEAST_CORRELATION = 0.5
+# `diffeit.reconstruct` images a skin calibration's calibrated differences when its model
+# correlates with the reference at least this well (else normalised ones): a presses' fit that
+# takes a model below it is refused, its presses having been read at calibrated differences.
+_SKIN_LEAST_CORRELATION = 0.5
 # The prior standard deviation of each of the background map's coefficients (ln sigma, on
 # terms of unit size over the sheet: module docstring, "Background map").
 _SHEET_PRIOR = 0.3
@@ -1121,7 +1125,7 @@ def calibrate(
     driven_readings: DrivenReadings = "auto",
     priors: Mapping[str, float] | None = None,
     reference_groups: tuple[str, ...] = REFERENCE_GROUPS,
-    press_groups: tuple[str, ...] = PRESS_GROUPS,
+    press_groups: tuple[str, ...] | None = None,
     hyperparameter: float | None = None,
     memory: bool = True,
     background_map: bool | None = None,
@@ -1138,9 +1142,9 @@ def calibrate(
     `press_groups`).
     With presses held over several frames, the skin's memory is fitted to the whole session's
     images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
-    With labelled `presses`: the readout's mixing (and the electrode positions and gains per
-    reading when `press_groups` names them) is fitted to the presses' differences, and kept
-    only when it reads presses it did not see better than the reference's calibration does
+    With labelled `presses`: the readout's mixing, and the electrode positions (and gains per
+    reading when `press_groups` names them), are fitted to the presses' differences, and kept
+    only when they read presses they did not see better than the reference's calibration does
     (five folds, at least 20 presses);
     each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
     as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
@@ -1167,8 +1171,9 @@ def calibrate(
             every mixing weight.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
             "electrode_positions" and "reading_gains" (a gain per reading, prior standard
-            deviation 0.2 of its relative change), neither by default (measured in
-            docs/tutorials/calibration.md).
+            deviation 0.2 of its relative change). None: each set of `PRESS_GROUP_CHOICES`
+            (the mixing; the mixing and the positions) in turn, the one whose held-out presses
+            read closest kept (measured in docs/tutorials/calibration.md).
         hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
             it from the presses' frames (`auto_hyperparameter`).
         memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
@@ -1213,7 +1218,8 @@ def calibrate(
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
-    if "mixing" not in press_groups or not set(press_groups) <= set(_PRESS_GROUPS_POSSIBLE):
+    possible = press_groups is None or ("mixing" in press_groups and set(press_groups) <= set(_PRESS_GROUPS_POSSIBLE))
+    if not possible:
         raise ValueError(
             "press_groups must hold 'mixing' and may hold 'electrode_positions' and 'reading_gains'; "
             f"got {press_groups}"
@@ -1226,50 +1232,23 @@ def calibrate(
     with_memory = memory and _held(presses, recording.times)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
         # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
-        calibration = _too_few_to_hold_out(reference_only, (*press_groups, "press depths"))
+        calibration = _too_few_to_hold_out(reference_only, (*(press_groups or ("mixing",)), "press depths"))
         return _with_background_map(calibration, recording, presses, reference) if background_map else calibration
-    positions = (
-        _position_prior(calibration.model, priors["electrode_positions"])
-        if "electrode_positions" in press_groups
-        else None
-    )
-    gains_prior = priors["reading_gains"] if "reading_gains" in press_groups else None
-    # The frame search's last fit and the held-out folds start from this model (reference_only's).
-    response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
-    read_positions = found.position[:, 0]
-    fitted, frame = _fit_frame_and_mixing(
-        calibration,
-        recording,
-        presses,
-        reference,
-        priors["mixing"],
-        polarity,
-        read_positions,
-        positions,
-        response,
-        gains_prior,
-    )
-    if fitted is None:
-        note = f"{_not_kept((*press_groups, 'press depths'))}{_CONTRADICTS}"
-        calibration = eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+    frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
+    fits = [
+        _press_fit(calibration, recording, presses, reference, priors, polarity, frame, groups, hyperparameter, chosen)
+        for groups in ([press_groups] if press_groups is not None else PRESS_GROUP_CHOICES)
+    ]
+    made = [fit for fit in fits if fit.calibration is not None]
+    refused = tuple(f"{_not_kept((*fit.groups, 'press depths'))}{fit.refused}" for fit in fits if fit.refused)
+    if not made:
+        calibration = eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, *refused))
     else:
-        found, chosen, polarity = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
-        fitted = _with_position_map(fitted, presses, found, chosen, polarity)
-        prior = priors["mixing"]
-        held_out = _held_out_errors(
-            reference_only,
-            recording,
-            presses,
-            reference,
-            prior,
-            frame,
-            positions,
-            chosen,
-            polarity,
-            response,
-            gains_prior,
-        )
-        calibration = _kept_if_it_generalises(fitted, reference_only, held_out)
+        # The groups whose presses held out read closest (the first, without held-out presses).
+        best = min(made, key=lambda fit: 0.0 if fit.held_out is None else _median_read(fit.held_out))
+        chosen = best.hyperparameter
+        calibration = _kept_if_it_generalises(best.calibration, reference_only, best.held_out)
+        calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *refused))
     if background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT):
         calibration = _with_background_map(calibration, recording, presses, reference, required=bool(background_map))
     if with_memory:
@@ -1723,7 +1702,7 @@ def _electrode_centres(mesh: Mesh, shift: np.ndarray | None = None) -> np.ndarra
     return (np.array(centres) + (0.0 if shift is None else shift)) % arc
 
 
-def _fit_frame_and_mixing(
+def _label_frame(
     calibration: SkinCalibration,
     recording: Recording,
     presses: Presses,
@@ -1731,55 +1710,96 @@ def _fit_frame_and_mixing(
     prior: float,
     polarity: int,
     read_positions: np.ndarray,
-    positions: tuple[float, float] | None,
-    response: _ElectrodeResponse,
-    gains_prior: float | None = None,
-) -> tuple[SkinCalibration | None, np.ndarray | None]:
-    """The readout's mixing fitted to the presses in the labels' frame that explains their
-    differences best, and that frame (ln scale, angle, offset; module docstring, "Presses"),
-    the calibration None when that fit contradicts the reference (`_ContradictsReference`);
-    then, in that frame, the electrode positions with the mixing (`positions`: their prior
-    standard deviation and margin, m; None: not fitted).
+) -> np.ndarray | None:
+    """The labels' frame (ln scale, angle, offset; module docstring, "Presses") in which the
+    readout's mixing fitted to the presses explains their differences best; None on a curved
+    skin, whose labels are in the mesh's frame.
 
     The frame starts from the better of the mesh's own and the similarity that maps the labels
     onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
-    at each step. On a curved skin the labels are in the mesh's frame: the frame is None.
-    `response` is the calibration's model's, with the margin of `positions` when they are
-    fitted (`_fit_presses`). With `gains_prior`, the last fit (in the frame found) also fits a
-    gain per reading (`_fit_presses`); the frame search does not."""
-    frame = None
-    if calibration.model.mesh.nodes.shape[1] == 2:
-        mesh = calibration.model.mesh
-        unmoved = response if positions is None else _ElectrodeResponse.of_calibration(calibration, None)
-        size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
+    (`_fit_presses`, the reference's model) at each step."""
+    mesh = calibration.model.mesh
+    if mesh.nodes.shape[1] != 2:
+        return None
+    unmoved = _ElectrodeResponse.of_calibration(calibration, None)
+    size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
 
-        def misfit(frame: np.ndarray) -> float:
-            moved = _moved(presses, frame)
-            try:
-                return _fit_presses(calibration, recording, moved, reference, prior, polarity, unmoved)[1]
-            except _ContradictsReference:
-                return math.inf
+    def misfit(frame: np.ndarray) -> float:
+        moved = _moved(presses, frame)
+        try:
+            return _fit_presses(calibration, recording, moved, reference, prior, polarity, unmoved)[1]
+        except _ContradictsReference:
+            return math.inf
 
-        starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
-        misfits = [misfit(start) for start in starts]
-        frame = starts[int(np.argmin(misfits))]
-        if math.isfinite(min(misfits)):  # else no fit to refine: the last one says so
-            steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
-            simplex = np.vstack([frame, frame + np.diag(steps)])
-            best = scipy.optimize.minimize(
-                misfit, frame, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
-            )
-            frame = best.x if best.fun < min(misfits) else frame
+    starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
+    misfits = [misfit(start) for start in starts]
+    frame = starts[int(np.argmin(misfits))]
+    if math.isfinite(min(misfits)):  # else no fit to refine: the last one says so
+        steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
+        simplex = np.vstack([frame, frame + np.diag(steps)])
+        best = scipy.optimize.minimize(
+            misfit, frame, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
+        )
+        frame = best.x if best.fun < min(misfits) else frame
+    return frame
+
+
+class _PressFit(NamedTuple):
+    """One set of groups fitted to the presses: the calibration (with its position map; None
+    when it is refused), its held-out press errors (None with too few presses), the
+    hyperparameter the presses were read at, the groups, and why it was refused ("" if not)."""
+
+    calibration: SkinCalibration | None
+    held_out: np.ndarray | None
+    hyperparameter: float
+    groups: tuple[str, ...]
+    refused: str = ""
+
+
+def _press_fit(
+    calibration: SkinCalibration,
+    recording: Recording,
+    presses: Presses,
+    reference: np.ndarray,
+    priors: Mapping[str, float],
+    polarity: int,
+    frame: np.ndarray | None,
+    groups: tuple[str, ...],
+    hyperparameter: float | None,
+    chosen: float,
+) -> _PressFit:
+    """The presses' fit of `groups` in the labels' `frame` (`_fit_presses`), its presses read at
+    it and a position map fitted (`hyperparameter` None: chosen again from the presses, else
+    `chosen`, the reference's), and its held-out errors (`_held_out_errors`)."""
+    positions = (
+        _position_prior(calibration.model, priors["electrode_positions"]) if "electrode_positions" in groups else None
+    )
+    gains_prior = priors["reading_gains"] if "reading_gains" in groups else None
+    # The fit and the held-out folds start from this model (the reference's calibration's).
+    response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
     moved = _moved(presses, frame)
     try:
         fitted, _ = _fit_presses(
-            calibration, recording, moved, reference, prior, polarity, response, positions, gains_prior=gains_prior
+            calibration, recording, moved, reference, priors["mixing"], polarity, response, positions, None, gains_prior
         )
     except _ContradictsReference:
-        return None, frame
-    if frame is None:
-        return fitted, None
-    return eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame}), frame
+        return _PressFit(None, None, chosen, groups, _CONTRADICTS)
+    if fitted.correlation < _SKIN_LEAST_CORRELATION <= calibration.correlation:
+        refused = (
+            f"it takes the model's correlation with the reference from {calibration.correlation:.3f} to "
+            f"{fitted.correlation:.3f}, under the {_SKIN_LEAST_CORRELATION} at which the frames' calibrated "
+            "differences are imaged"
+        )
+        return _PressFit(None, None, chosen, groups, refused)
+    if frame is not None:
+        fitted = eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame})
+    found, chosen, polarity = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
+    fitted = _with_position_map(fitted, presses, found, chosen, polarity)
+    prior = priors["mixing"]
+    held_out = _held_out_errors(
+        calibration, recording, presses, reference, prior, frame, positions, chosen, polarity, response, gains_prior
+    )
+    return _PressFit(fitted, held_out, chosen, groups)
 
 
 class _ContradictsReference(Exception):
@@ -2070,14 +2090,15 @@ def _mixing_and_depths(
         # The model is bilinear and the signs of magnitudes follow the weights: a full step can
         # overshoot into another basin (measured: 3 of 5 folds of 40 presses ended there, their
         # misfit 0.9 against 0.6). Halved until the objective, at this step's scale, decreases;
-        # where no halving does (a sign's jump in the way), the full step is taken.
-        start, full = objective(mixing, depth, scale), (step, depth_step)
+        # where no halving does, the fit stops there (taking the full step instead placed
+        # held-out presses worse on a benchmark skin: 2.9 against 2.6 mm).
+        start = objective(mixing, depth, scale)
         for _ in range(_PRESS_HALVINGS):
             if objective(mixing + step, depth + depth_step, scale) <= start:
                 break
             step, depth_step = step / 2, depth_step / 2
         else:
-            step, depth_step = full
+            step, depth_step = np.zeros_like(step), np.zeros_like(depth_step)
         mixing = mixing + step
         depth = depth + depth_step
         if np.max(np.abs(step)) < _PRESS_STEP:

@@ -62,6 +62,7 @@ from ._messages import name_indices
 from .calibration import (
     _LEAST_CORRELATION,
     _NOISE_FRAMES,
+    _SKIN_LEAST_CORRELATION,
     _UNCERTAIN_SIGN,
     CalibrationWarning,
     DrivenReadings,
@@ -97,8 +98,6 @@ SELECTION_METHODS = ("auto", "gcv", "lcurve", "noise_figure")
 
 # Normalised differences mask readings whose gain V_ref / V_model is this many times off the median.
 _LARGEST_GAIN = 30.0
-# With a skin calibration, "auto" takes normalised differences only below this correlation.
-_SKIN_LEAST_CORRELATION = 0.5
 # Gauss-Newton's "auto" hyperparameter over the one-step's (module docstring, "Hyperparameter").
 _GAUSS_NEWTON_FACTOR = 4.0
 # The solver each method names, and GREIT's design when its hyperparameter is "auto".
