@@ -1232,19 +1232,20 @@ def calibrate(
     with_memory = memory and _held(presses, recording.times)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
         # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
-        calibration = _too_few_to_hold_out(reference_only, (*(press_groups or ("mixing",)), "press depths"))
+        calibration = _too_few_to_hold_out(reference_only, (*(press_groups or PRESS_GROUP_CHOICES[-1]), "press depths"))
         return _with_background_map(calibration, recording, presses, reference) if background_map else calibration
     frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
+    # Without held-out presses (the memory's fit needs the frame) nothing could choose: the first set.
+    choices = PRESS_GROUP_CHOICES if presses.n_presses >= _LEAST_HELD_OUT else PRESS_GROUP_CHOICES[:1]
     fits = [
         _press_fit(calibration, recording, presses, reference, priors, polarity, frame, groups, hyperparameter, chosen)
-        for groups in ([press_groups] if press_groups is not None else PRESS_GROUP_CHOICES)
+        for groups in ([press_groups] if press_groups is not None else choices)
     ]
     made = [fit for fit in fits if fit.calibration is not None]
     refused = tuple(f"{_not_kept((*fit.groups, 'press depths'))}{fit.refused}" for fit in fits if fit.refused)
     if not made:
         calibration = eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, *refused))
     else:
-        # The groups whose presses held out read closest (the first, without held-out presses).
         best = min(made, key=lambda fit: 0.0 if fit.held_out is None else _median_read(fit.held_out))
         chosen = best.hyperparameter
         calibration = _kept_if_it_generalises(best.calibration, reference_only, best.held_out)
