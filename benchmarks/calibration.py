@@ -16,7 +16,8 @@ calibration=...)`, `de.touches`) on `--test` other presses, against:
 - **nominal**: `de.reconstruct` and `de.touches` with their defaults (no calibration; the
   test recording starts with the session's untouched frames, its reference);
 - **true model**: the calibration's pipeline with the truth's electrode positions, readout,
-  gains, contact impedances and mean level put in its place (no position map).
+  gains, contact impedances and mean level put in its place (no position map), testing the
+  frames for touches against its reference frames' spread as a calibration does.
 
 Errors are medians over the test presses (a press without a touch read counts as missed and
 is left out of the median; the misses are counted). Times are `de.calibrate`'s, in this process.
@@ -115,8 +116,9 @@ def session(seed: int, n_presses: int):
     return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
 
 
-def true_calibration(fitted, truth):
-    """The calibration `fitted` with the truth's model in its place (module docstring)."""
+def true_calibration(fitted, truth, reference: np.ndarray):
+    """The calibration `fitted` with the truth's model in its place (module docstring), its
+    readings' noise the spread of the `reference` frames (N, M) in its units."""
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -133,9 +135,8 @@ def true_calibration(fitted, truth):
     model = de.ForwardModel(mesh, readout.folded(protocol), contact)
     level = float(np.mean(np.asarray(scene.background.values_on(mesh))))
     sign = np.where(np.asarray(model.measure(jnp.full(mesh.n_elements, level))) < 0, -1.0, 1.0)
-    # Every reading is used; the fitted noise is on the fitted calibration's readings, so none is
-    # kept: `de.touches` tests the frames against the reference frames' spread instead.
-    return eqx.tree_at(
+    # Every reading is used; the noise, in the truth's units, is set once they are in place.
+    true = eqx.tree_at(
         lambda c: (
             c.model,
             c.conductivity,
@@ -150,6 +151,8 @@ def true_calibration(fitted, truth):
         (model, level, readout, np.ones(protocol.n_measurements, bool), sign, None, None, None),
         is_leaf=lambda node: node is None,
     )
+    noise = np.std(true.signed(reference), axis=0, ddof=1)
+    return eqx.tree_at(lambda c: c.noise, true, noise, is_leaf=lambda node: node is None)
 
 
 def errors(recording, presses, calibration) -> np.ndarray:
@@ -268,7 +271,7 @@ def main() -> None:
             calibration = de.calibrate(session_recording, presses.select(np.arange(count)) if count else None)
             seconds = time.perf_counter() - start
             if true is None:
-                true = errors(test, test_presses, true_calibration(calibration, truth))
+                true = errors(test, test_presses, true_calibration(calibration, truth, reference))
                 true_by_seed.append(true)
             ours = errors(test, test_presses, calibration)
             ours_by_count[count].append(ours)
