@@ -106,7 +106,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   differences, their derivative in the positions by `jax.jacfwd` through the forward model,
   with the positions' prior. By default (`press_groups=None`) the mixing alone and the mixing
   with the positions are both fitted, and the one whose held-out presses (below) read closest
-  goes on to be compared with the reference's calibration.
+  goes on to be compared with the reference's calibration. A fit that takes the model's
+  correlation with the reference under 0.5, where `diffeit.reconstruct` would image normalised
+  differences rather than the calibrated ones the presses were read at, is refused by name.
 - **Held-out presses decide** whether the presses' fit is kept: the presses in five folds, each
   fold read at the mixing (and positions) fitted to the other four, through a position map fitted
   on those (the labels' frame held at the one all the presses gave). When the median
