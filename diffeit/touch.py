@@ -292,6 +292,7 @@ def touched(
     *,
     detection: float = DETECTION,
     reference_frames: int | None = None,
+    subspace: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Which frames stand out of the calibration's noise: the voltage test.
 
@@ -310,6 +311,8 @@ def touched(
         detection: The statistic z above which a frame is touched.
         reference_frames: How many frames the reference is the mean of; None: the
             calibration's own reference frames (`noise_frames`).
+        subspace: The calibration's `touch_subspace`, computed once by a caller that tests
+            many batches (`diffeit live`); None computes it.
 
     Returns:
         (T,) bool, or None without a calibration (or with too few readings for the subspace
@@ -325,7 +328,8 @@ def touched(
     # a reference of R frames has variance s^2 (1 + 1/R): (dv / s)^2 / (1 + 1/R) is F(1, n - 1).
     n = calibration.noise_frames
     averaged = n if reference_frames is None else reference_frames
-    return _noise_test(dv, noise, n, averaged, detection, _calibrated_jacobian(calibration))
+    subspace = touch_subspace(calibration) if subspace is None else subspace
+    return _noise_test(dv, noise, n, averaged, detection, subspace)
 
 
 def _touched_frames(recording: Recording, calibration: Any, detection: float) -> np.ndarray | None:
@@ -348,24 +352,39 @@ def _touched_frames(recording: Recording, calibration: Any, detection: float) ->
     return touched(recording.frames, recording.reference, calibration, detection=detection, reference_frames=averaged)
 
 
+def touch_subspace(calibration: Any) -> np.ndarray:
+    """(M', k) where a conductivity change puts a frame's whitened differences: the left
+    singular vectors of the calibrated model's Jacobian, each reading divided by its noise (the
+    calibration's; M' the readings whose noise is not zero), whose singular values exceed
+    `_SUBSPACE_CUT` of the largest. The voltage test (`touched`) sums the squared projections on
+    them.
+
+    Raises:
+        ValueError: For a calibration that knows no noise (fewer than 6 reference frames).
+    """
+    noise = getattr(calibration, "noise", None)
+    if noise is None:
+        raise ValueError("the calibration knows no readings' noise (fewer than 6 reference frames): no subspace")
+    kept = noise > 0
+    scaled = _calibrated_jacobian(calibration)[kept] / noise[kept, None]
+    # The left singular vectors from the M x M Gram matrix (as `_subspace_test`).
+    squared, basis = scipy.linalg.eigh(scaled @ scaled.T)
+    return basis[:, squared > _SUBSPACE_CUT**2 * squared[-1]]
+
+
 def _noise_test(
-    dv: np.ndarray, noise: np.ndarray, n: int, averaged: int, detection: float, jacobian: np.ndarray | None = None
+    dv: np.ndarray, noise: np.ndarray, n: int, averaged: int, detection: float, subspace: np.ndarray | None = None
 ) -> np.ndarray:
     """(T,) whether the standardised sum of the squared whitened differences w_m = dv_m / s_m /
     sqrt(1 + 1 / averaged) exceeds `detection`: each term F(1, n - 1) for an untouched frame,
-    `noise` s (M,) estimated from n frames and the reference the mean of `averaged`. With the
-    model's `jacobian` (M, E), the terms are w's projections on the leading left singular
-    vectors of the whitened Jacobian (`_SUBSPACE_CUT`; the F moments, a linear combination of
-    t variables being nearer the normal, are conservative); without, the w_m themselves. A
-    reading whose spread is zero (a constant channel) is left out."""
+    `noise` s (M,) estimated from n frames and the reference the mean of `averaged`. With a
+    `subspace` (`touch_subspace`), the terms are w's projections on it (the F moments, a linear
+    combination of t variables being nearer the normal, are conservative); without, the w_m
+    themselves. A reading whose spread is zero (a constant channel) is left out."""
     kept = noise > 0
     whitened = dv[:, kept] / noise[kept] / np.sqrt(1 + 1 / averaged)
-    if jacobian is not None:
-        scaled = jacobian[kept] / noise[kept, None]
-        # The left singular vectors from the M x M Gram matrix (as `_subspace_test`).
-        squared, basis = scipy.linalg.eigh(scaled @ scaled.T)
-        k = int(np.sum(squared > _SUBSPACE_CUT**2 * squared[-1]))
-        whitened = whitened @ basis[:, -k:]
+    if subspace is not None:
+        whitened = whitened @ subspace
     freedom = n - 1
     mean = freedom / (freedom - 2)
     variance = 2 * freedom**2 * (freedom - 1) / ((freedom - 2) ** 2 * (freedom - 4))

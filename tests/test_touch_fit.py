@@ -225,7 +225,7 @@ def test_the_voltage_test_looks_where_a_touch_puts_the_differences(calibration):
     frames: tested in the whitened Jacobian's leading subspace (31 of 208 readings' dimensions)
     every press is found and no untouched frame (measured z: presses 6.7 to 134, untouched under
     1.1); the sum over every reading misses presses (the centre's and another: z 0.8 and 2.6)."""
-    from diffeit.touch import _noise_test, touched
+    from diffeit.touch import _noise_test, touch_subspace, touched
 
     rng = np.random.default_rng(11)
     model, level = calibration.model, calibration.conductivity
@@ -243,6 +243,10 @@ def test_the_voltage_test_looks_where_a_touch_puts_the_differences(calibration):
     reference = recorded(calibration, base)
     found = touched(frames, reference, calibration, reference_frames=10**6)
     assert found[: len(centres)].all() and not found[len(centres) :].any()
+    subspace = touch_subspace(calibration)  # what `diffeit live` computes once for every batch
+    assert subspace.shape == (208, 31) and np.allclose(subspace.T @ subspace, np.eye(31))
+    again = touched(frames, reference, calibration, reference_frames=10**6, subspace=subspace)
+    np.testing.assert_array_equal(again, found)
     dv = calibration.signed(frames) - calibration.signed(reference)
     everywhere = _noise_test(dv, calibration.noise, calibration.noise_frames, 10**6, de.touch.DETECTION)
     assert not everywhere[: len(centres)].all() and not everywhere[len(centres) :].any()

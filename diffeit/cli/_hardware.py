@@ -416,6 +416,12 @@ class _LiveViewer:
         self.skin = calibration
         self.raw_reference = reference.mean(axis=0)
         self.reference_frames = len(reference)  # the touches' voltage test needs how many
+        # The voltage test's subspace, once for every batch (a Jacobian and an eigendecomposition).
+        self.subspace = None
+        if touches and calibration is not None and calibration.noise is not None:
+            from ..touch import touch_subspace
+
+            self.subspace = touch_subspace(calibration)
         self.start_time: float | None = None  # the host time of the first frame imaged
         if fit is None:
             self._calibrate(protocol, settings, reference, calibration)
@@ -532,7 +538,9 @@ class _LiveViewer:
 
         skin, found = self.skin, None
         if finite.any():
-            frames_touched = touched(values[finite], self.raw_reference, skin, reference_frames=self.reference_frames)
+            frames_touched = touched(
+                values[finite], self.raw_reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
+            )
             polarity = None if skin is None else skin.polarity
             if polarity is None:  # not known from labelled presses: the batch's touched images say
                 polarity = polarity_of(images[finite] if frames_touched is None else images[finite][frames_touched])
