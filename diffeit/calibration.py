@@ -1772,8 +1772,9 @@ def _press_fit(
     chosen: float,
 ) -> _PressFit:
     """The presses' fit of `groups` in the labels' `frame` (`_fit_presses`), its presses read at
-    it and a position map fitted (`hyperparameter` None: chosen again from the presses, else
-    `chosen`, the reference's), and its held-out errors (`_held_out_errors`)."""
+    it (at `hyperparameter`, or None: one chosen again from them) and a position map fitted, and
+    its held-out errors (`_held_out_errors`); a refused fit carries `chosen`, the hyperparameter
+    the reference's calibration read the presses at."""
     positions = (
         _position_prior(calibration.model, priors["electrode_positions"]) if "electrode_positions" in groups else None
     )
