@@ -366,9 +366,15 @@ def touch_subspace(calibration: Any) -> np.ndarray:
     if noise is None:
         raise ValueError("the calibration knows no readings' noise (fewer than 6 reference frames): no subspace")
     kept = noise > 0
-    scaled = _calibrated_jacobian(calibration)[kept] / noise[kept, None]
-    # The left singular vectors from the M x M Gram matrix (as `_subspace_test`).
-    squared, basis = scipy.linalg.eigh(scaled @ scaled.T)
+    return _leading_subspace(_calibrated_jacobian(calibration)[kept] / noise[kept, None])
+
+
+def _leading_subspace(jacobian: np.ndarray) -> np.ndarray:
+    """(M, k) the left singular vectors of `jacobian` (M, E) whose singular values exceed
+    `_SUBSPACE_CUT` of the largest. From the M x M Gram matrix, cheaper than an SVD while the
+    readings are fewer than the elements: its eigenvalues are the squared singular values, and
+    the cut at 0.1 of the largest is far above their rounding."""
+    squared, basis = scipy.linalg.eigh(jacobian @ jacobian.T)
     return basis[:, squared > _SUBSPACE_CUT**2 * squared[-1]]
 
 
@@ -411,17 +417,12 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     when F exceeds 1 by `detection` of those. On simulated magnitude skins (192 readings, k
     about 45, medium noise) untouched frames reached F = 1.8 at most, pressed ones 2.4 at least.
     """
-    jacobian = _calibrated_jacobian(calibration)
-    # The left singular vectors from the M x M Gram matrix, cheaper than an SVD while the readings
-    # are fewer than the elements: its eigenvalues are the squared singular values, and the cut at
-    # 0.1 of the largest is far above their rounding.
-    squared, basis = scipy.linalg.eigh(jacobian @ jacobian.T)
-    basis = basis[:, ::-1]
-    k = int(np.sum(squared > _SUBSPACE_CUT**2 * squared[-1]))
+    basis = _leading_subspace(_calibrated_jacobian(calibration))
+    k = basis.shape[1]
     rest = dv.shape[1] - k
     if rest < _LEAST_REST:
         return None
-    inside = np.sum((dv @ basis[:, :k]) ** 2, axis=1)
+    inside = np.sum((dv @ basis) ** 2, axis=1)
     outside = np.maximum(np.sum(dv**2, axis=1) - inside, np.finfo(float).tiny)
     ratio = (inside / k) / (outside / rest)
     return (ratio - 1) / np.sqrt(2 / k + 2 / rest) > detection
