@@ -1500,6 +1500,12 @@ class _ReadoutFit(eqx.Module):
             magnitude,
         )
 
+    @property
+    def placed(self) -> jax.Array:
+        """(2 + L, M, L) the reading weights each mixing weight places: the source's, the
+        sink's, then each electrode's offset."""
+        return jnp.concatenate([self.source[None], self.sink[None], self.offset])
+
     def readings(self, theta: jax.Array) -> jax.Array:
         """(M,) the readings at `theta`: signed, or magnitudes for a board that reports them."""
         return _readings(self, theta)
@@ -1556,8 +1562,7 @@ def _readout_at(
     if model.electrode_shift is not None:  # positions or widths fitted: the ends' bounded shifts, m
         ends = _electrode_ends(theta[-2 * n : -n], theta[-n:], model.system.electrode_margin)
         model = eqx.tree_at(lambda m: m.electrode_shift, model, ends)
-    placed = jnp.concatenate([fit.source[None], fit.sink[None], fit.offset])  # (2 + L, M, L)
-    weights = jnp.asarray(protocol.measure) + jnp.einsum("j,jml->ml", mixing, placed)
+    weights = jnp.asarray(protocol.measure) + jnp.einsum("j,jml->ml", mixing, fit.placed)
     gain = jnp.exp(log_c + log_drive[protocol.drive_index] + log_channel[protocol.pattern_index])
     return model, fit.contact_impedance * jnp.exp(log_z), weights, gain
 
@@ -1577,12 +1582,11 @@ def _readout_jacobian(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
     potentials = every.measure(fit.conductivity, z).reshape(drives, n)[protocol.drive_index]  # (M, L)
     # (M, L, L): dU_d(m)l / dz_k of every electrode l, by k.
     along_z = every.jacobian(fit.conductivity, z, wrt="contact_impedance").reshape(drives, n, n)[protocol.drive_index]
-    placed = jnp.concatenate([fit.source[None], fit.sink[None], fit.offset])  # (2 + L, M, L)
     signed = gain * jnp.sum(weights * potentials, axis=-1)
     columns = [
         signed[:, None],
         gain[:, None] * jnp.einsum("ml,mlk->mk", weights, along_z) * z,
-        gain[:, None] * jnp.einsum("jml,ml->mj", placed, potentials),
+        gain[:, None] * jnp.einsum("jml,ml->mj", fit.placed, potentials),
         signed[:, None] * jax.nn.one_hot(protocol.drive_index, drives, dtype=signed.dtype),
         signed[:, None] * jax.nn.one_hot(protocol.pattern_index, len(protocol.measure_patterns), dtype=signed.dtype),
         jnp.zeros((len(signed), 2 * n), signed.dtype),
