@@ -504,8 +504,16 @@ def polarity_of(images: ArrayLike) -> int:
     no images or a median of zero.
 
     Pass the touched frames' images: an untouched image's largest value is noise of either
-    sign."""
+    sign.
+
+    Raises:
+        ValueError: For images that are not (T, E) or (E,), or not finite.
+    """
     images = np.atleast_2d(np.asarray(images, np.float64))
+    if images.ndim != 2:
+        raise ValueError(f"images have shape {images.shape}; expected (T, E) or (E,), one value per element")
+    if not np.all(np.isfinite(images)):
+        raise ValueError("images hold non-finite values (NaN or inf): no polarity can be read")
     if images.size == 0:
         return -1
     extremes = images[np.arange(len(images)), np.argmax(np.abs(images), axis=1)]

@@ -69,3 +69,7 @@ def test_the_polarity_of_images_is_the_sign_their_touches_stand_out_with():
     assert de.touch.polarity_of(images) == -1
     assert de.touch.polarity_of(-images) == 1
     assert de.touch.polarity_of(np.zeros((0, MESH.n_elements))) == -1
+    with pytest.raises(ValueError, match="non-finite"):
+        de.touch.polarity_of(np.where(images < -0.2, np.nan, images))
+    with pytest.raises(ValueError, match="expected \\(T, E\\)"):
+        de.touch.polarity_of(images[None])
