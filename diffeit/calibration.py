@@ -85,11 +85,13 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
 
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
   the presses' images.
-- **The labels' frame** (scale, rotation, offset against the mesh's), the one whose discs
-  explain the presses' differences best: Nelder-Mead on the presses' misfit (a mixing fit at
-  each step) from the better of the mesh's own frame and the similarity that maps the labels
-  onto the positions read (`_label_frame`). On a curved skin the labels are points on
-  its surface in the mesh's frame, and no frame is fitted.
+- **The labels' frame** (scale, rotation, offset against the mesh's, and whether it is
+  mirrored), the one whose discs explain the presses' differences best: Nelder-Mead on the
+  presses' misfit (a mixing fit at each step) from the best of the mesh's own frame and the
+  similarities, turning and mirrored, that map the labels onto the positions read
+  (`_label_frame`). A mirrored frame is a skin whose electrodes are numbered clockwise in the
+  labels' axes (an indenter's or an image's y axis pointing the other way). On a curved skin
+  the labels are points on its surface in the mesh's frame, and no frame is fitted.
 - **The readout's mixing**, from the presses' differences: each press is a disc of the
   labelled centre and radius with an unknown depth, linearised at the calibrated level; the
   mixing enters linearly, and the depths and the mixing weights (with their prior) are solved
@@ -707,6 +709,8 @@ _CORNER_MARGIN = 10.0
 _HELD_FRAMES = 3
 # The most misfits evaluated in the search for the labels' frame.
 _FRAME_EVALUATIONS = 80
+# The labels' frame: ln scale, angle (rad), offset x and y (m), handedness (+1, or -1: mirrored).
+_IDENTITY_FRAME = np.array([0.0, 0.0, 0.0, 0.0, 1.0])
 # The presses' fit is judged on presses it did not see: every fifth press held out in turn, with
 # at least this many presses (fewer cannot show it: the reference's calibration is kept). With
 # 10, folds of two passed fits that read the benchmark's test presses worse in both such cases.
@@ -957,10 +961,11 @@ class SkinCalibration(eqx.Module):
         if self.undetermined:
             lines.append(f"not determined by the data ({len(self.undetermined)}): " + ", ".join(self.undetermined))
         if "label_frame" in self.values:
-            scale, angle, x, y = self.values["label_frame"]
+            scale, angle, x, y, *handedness = self.values["label_frame"]  # files of versions 1 to 4: 4 values
+            mirrored = ", mirrored (y -> -y first)" if handedness and handedness[0] < 0 else ""
             lines.append(
                 f"labels' frame onto the mesh's: scale {math.exp(scale):.4g}, rotation {math.degrees(angle):+.1f} deg, "
-                f"offset ({x:+.4g}, {y:+.4g}) m"
+                f"offset ({x:+.4g}, {y:+.4g}) m{mirrored}"
             )
         memory = [name.split(".", 1)[1] for name in self.values if name.startswith("memory.")]
         if memory:
@@ -1718,13 +1723,14 @@ def _label_frame(
     polarity: int,
     read_positions: np.ndarray,
 ) -> np.ndarray | None:
-    """The labels' frame (ln scale, angle, offset; module docstring, "Presses") in which the
-    readout's mixing fitted to the presses explains their differences best; None on a curved
-    skin, whose labels are in the mesh's frame.
+    """The labels' frame (ln scale, angle, offset, handedness; `_moved`; module docstring,
+    "Presses") in which the readout's mixing fitted to the presses explains their differences
+    best; None on a curved skin, whose labels are in the mesh's frame.
 
-    The frame starts from the better of the mesh's own and the similarity that maps the labels
-    onto the positions read, and is refined by Nelder-Mead on the presses' misfit, a mixing fit
-    (`_fit_presses`, the reference's model) at each step."""
+    The frame starts from the best of the mesh's own and the similarities, turning and
+    mirrored, that map the labels onto the positions read, and its scale, angle and offset are
+    refined by Nelder-Mead on the presses' misfit, a mixing fit (`_fit_presses`, the
+    reference's model) at each step, its handedness held."""
     mesh = calibration.model.mesh
     if mesh.nodes.shape[1] != 2:
         return None
@@ -1738,16 +1744,20 @@ def _label_frame(
         except _ContradictsReference:
             return math.inf
 
-    starts = [np.zeros(4), _frame_from_reads(read_positions, presses)]
+    starts = [_IDENTITY_FRAME, *(_frame_from_reads(read_positions, presses, mirror) for mirror in (False, True))]
     misfits = [misfit(start) for start in starts]
     frame = starts[int(np.argmin(misfits))]
     if math.isfinite(min(misfits)):  # else no fit to refine: the last one says so
+        handedness = frame[4]
         steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
-        simplex = np.vstack([frame, frame + np.diag(steps)])
+        simplex = np.vstack([frame[:4], frame[:4] + np.diag(steps)])
         best = scipy.optimize.minimize(
-            misfit, frame, method="Nelder-Mead", options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS}
+            lambda turned: misfit(np.append(turned, handedness)),
+            frame[:4],
+            method="Nelder-Mead",
+            options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS},
         )
-        frame = best.x if best.fun < min(misfits) else frame
+        frame = np.append(best.x, handedness) if best.fun < min(misfits) else frame
     return frame
 
 
@@ -2311,34 +2321,38 @@ def _read_presses(
     return found, float(hyperparameter), polarity
 
 
-def _frame_from_reads(read_positions: np.ndarray, presses: Presses) -> np.ndarray:
-    """(4,) ln scale, angle (rad) and offset (m) of the similarity that best maps the presses'
-    labelled centres onto the positions read (Umeyama's least squares, once more without the
-    presses read more than three robust deviations off; NaN reads left out); the identity with
-    fewer than 3 reads."""
+def _frame_from_reads(read_positions: np.ndarray, presses: Presses, mirror: bool) -> np.ndarray:
+    """(5,) the frame (`_moved`) of the similarity, mirrored (y -> -y first) when `mirror`, that
+    best maps the presses' labelled centres onto the positions read (Umeyama's least squares,
+    once more without the presses read more than three robust deviations off; NaN reads left
+    out); the identity with fewer than 3 reads."""
     seen = np.all(np.isfinite(read_positions), axis=1)
     if seen.sum() < 3:
-        return np.zeros(4)
+        return _IDENTITY_FRAME
+    handedness = -1.0 if mirror else 1.0
+    labelled = presses.centres * [1.0, handedness]
     keep = seen.copy()
     for _ in range(2):
-        scale, rotation, offset = _similarity(presses.centres[keep], read_positions[keep])
-        moved = scale * presses.centres @ rotation.T + offset
+        scale, rotation, offset = _similarity(labelled[keep], read_positions[keep])
+        moved = scale * labelled @ rotation.T + offset
         miss = np.linalg.norm(moved - read_positions, axis=1)
         deviation = 1.4826 * np.median(np.abs(miss[seen] - np.median(miss[seen])))
         keep = seen & (miss <= np.median(miss[seen]) + 3 * deviation)
         if keep.sum() < 3:
             keep = seen
-    return np.array([math.log(scale), math.atan2(rotation[1, 0], rotation[0, 0]), *offset])
+    return np.array([math.log(scale), math.atan2(rotation[1, 0], rotation[0, 0]), *offset, handedness])
 
 
 def _moved(presses: Presses, frame: np.ndarray | None) -> Presses:
-    """The presses in the mesh's frame under `frame` (ln scale, angle, offset; `_frame_from_reads`);
-    None: they are in it (a curved skin's)."""
+    """The presses in the mesh's frame under `frame` (ln scale, angle, offset, handedness: the
+    labels' y negated when it is -1, then scaled, turned by the angle and offset); None: they
+    are in it (a curved skin's)."""
     if frame is None:
         return presses
     scale, angle = math.exp(frame[0]), frame[1]
     rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
-    return Presses(scale * presses.centres @ rotation.T + frame[2:], presses.radius * scale, presses.times)
+    labelled = presses.centres * [1.0, frame[4]]
+    return Presses(scale * labelled @ rotation.T + frame[2:4], presses.radius * scale, presses.times)
 
 
 def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -2630,8 +2644,9 @@ SCHEMA = "diffeit.calibration"
 # Version 2: the electrodes' positions (model/electrode_shift, electrode_margin); version 3: the
 # background map (background_map), which a reader of version 2 would ignore; version 4: polarity 0
 # for a calibration without presses (none known), which a reader of version 3 would refuse to read
-# touches with. Versions 1 to 3 read (their -1 without presses stays -1).
-SCHEMA_VERSION = 4
+# touches with; version 5: the labels' frame's handedness (values/label_frame's fifth value), which
+# a reader of version 4 would fail on. Versions 1 to 4 read (their -1 without presses stays -1).
+SCHEMA_VERSION = 5
 
 
 def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
