@@ -128,8 +128,8 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
   orientation, scale and offset against the labels' frame), 2 or 3, or none, chosen by
   leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
-  On a curved skin the map is the identity (a polynomial in space would move touches off the
-  surface); the presses' errors are still measured.
+  On a curved skin the polynomial is in x, y and z and the displaced touches are taken back
+  onto the surface.
 - **Memory**, when every press is held over several frames: the skin's memory parameters
   fitted to the session's images with the presses' footprints and holds known
   (`diffeit.fit.memory_from_presses`).
@@ -196,7 +196,7 @@ from .io import (
     write_attributes,
 )
 from .memory import MemoryParameters
-from .mesh import Mesh, disc, disc_fractions
+from .mesh import Mesh, disc, disc_fractions, onto_surface
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
@@ -742,72 +742,96 @@ _SHEET_PRIOR = 0.3
 _SHEET_SIGNIFICANCE = 0.05
 # Degrees of the position map tried by cross-validation (None: no map).
 _MAP_DEGREES = (None, 0, 1, 2, 3)
+# On a curved skin the monomials in x, y and z are nearly dependent (x^2 + y^2 + z^2 is constant
+# on a sphere, to the mesh's flatness): the least squares drop directions this much weaker.
+_MAP_RCOND = 1e-8
 
 
 class PositionMap(eqx.Module):
     """A smooth map from touch positions read from images (the mesh's frame) to the labels'.
 
-    The read position plus a displacement polynomial in x and y of total degree `degree`,
-    fitted by least squares on labelled presses, the degree chosen by leave-one-out
+    The read position plus a displacement polynomial in the coordinates of total degree
+    `degree`, fitted by least squares on labelled presses, the degree chosen by leave-one-out
     cross-validation (degree 0 shifts, 1 is affine: the labels' orientation, scale and offset;
-    `degree=None` is the identity).
+    `degree=None` is the identity). On a curved skin the polynomial is in x, y and z and each
+    displaced point is taken back onto the surface (`diffeit.mesh.onto_surface`): an affine
+    map then turns, stretches and shifts touches along it.
 
     Attributes:
         degree: The polynomial's degree, or None for the identity.
-        coefficients: (n_terms, 2) the displacement polynomial's coefficients, on positions
+        coefficients: (n_terms, D) the displacement polynomial's coefficients, on positions
             and displacements divided by `length`.
         length: The length, m, positions are divided by (the presses' spread).
         errors: Degree (str; "none" for the identity) -> the median leave-one-out distance, m,
-            between mapped and labelled positions.
+            between mapped and labelled positions (on a curved skin the 3D chord, within a
+            fraction (distance / radius of curvature)^2 / 24 of the geodesic).
+        surface: The curved skin's mesh the mapped points are taken onto; None on a flat one.
     """
 
     degree: int | None = eqx.field(static=True)
     coefficients: np.ndarray
     length: float
     errors: dict[str, float]
+    surface: Mesh | None = None
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
-        """(..., d) the labels'-frame positions, m, of positions `points` (..., d) read in the
+        """(..., D) the labels'-frame positions, m, of positions `points` (..., D) read in the
         mesh's frame; NaN stays NaN."""
         points = np.asarray(points, np.float64)
         if self.degree is None:
             return points.copy()
-        return points + _terms(points / self.length, self.degree) @ self.coefficients * self.length
+        moved = points + _terms(points / self.length, self.degree) @ self.coefficients * self.length
+        return moved if self.surface is None else onto_surface(self.surface, moved)
 
     @classmethod
-    def fit(cls, read: np.ndarray, labelled: np.ndarray) -> PositionMap:
-        """The map from `read` (K, 2) to `labelled` (K, 2) positions, m; the identity for points
-        on a curved skin (K, 3), which a polynomial in space would move off the surface.
+    def fit(cls, read: np.ndarray, labelled: np.ndarray, mesh: Mesh | None = None) -> PositionMap:
+        """The map from `read` (K, D) to `labelled` (K, D) positions, m, on the sheet `mesh`
+        (needed for points on a curved skin, D = 3, which the map takes back onto it).
 
         Its degree is chosen by leave-one-out cross-validation among those that K presses
         determine with two to spare: a degree replaces a lower one when its median distance is
-        lower."""
+        lower.
+
+        Raises:
+            ValueError: For points on a curved skin without its `mesh`.
+        """
         read, labelled = np.asarray(read, np.float64), np.asarray(labelled, np.float64)
+        surface = None
+        if read.shape[1] == 3:
+            if mesh is None or mesh.nodes.shape[1] != 3:
+                raise ValueError("a position map of points on a curved skin needs the skin's (surface) mesh")
+            surface = mesh
         errors = {"none": float(np.median(_leave_one_out_errors(read, labelled, None)))}
         degree = None
-        for candidate in _MAP_DEGREES[1:] if read.shape[1] == 2 else ():
+        for candidate in _MAP_DEGREES[1:]:
             if len(read) < _terms(read[:1], candidate).shape[1] + 2:
                 break
-            errors[str(candidate)] = float(np.median(_leave_one_out_errors(read, labelled, candidate)))
+            errors[str(candidate)] = float(np.median(_leave_one_out_errors(read, labelled, candidate, surface)))
             if errors[str(candidate)] < errors["none" if degree is None else str(degree)]:
                 degree = candidate
         length = _spread(labelled)
-        coefficients = np.zeros((0, 2))
+        coefficients = np.zeros((0, read.shape[1]))
         if degree is not None:
             shift = (labelled - read) / length
-            coefficients, *_ = np.linalg.lstsq(_terms(read / length, degree), shift, rcond=None)
-        return cls(degree, coefficients, length, errors)
+            coefficients, *_ = np.linalg.lstsq(_terms(read / length, degree), shift, rcond=_MAP_RCOND)
+        return cls(degree, coefficients, length, errors, surface)
 
 
 def _spread(points: np.ndarray) -> float:
-    """The RMS distance, m, of `points` (K, 2) from their mean (at least 1 um)."""
+    """The RMS distance, m, of `points` (K, D) from their mean (at least 1 um)."""
     return float(max(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))), 1e-6))
 
 
 def _terms(points: np.ndarray, degree: int) -> np.ndarray:
-    """(..., n_terms) the monomials x^i y^j, i + j <= degree, of positions (..., 2)."""
-    x, y = points[..., 0], points[..., 1]
-    return np.stack([x**i * y ** (total - i) for total in range(degree + 1) for i in range(total + 1)], axis=-1)
+    """(..., n_terms) the monomials of total degree at most `degree` in the coordinates of
+    positions (..., 2) (x^i y^j) or (..., 3) (x^i y^j z^k), by total degree."""
+    if points.shape[-1] == 2:
+        powers = [(i, total - i) for total in range(degree + 1) for i in range(total + 1)]
+    else:
+        powers = [
+            (i, j, total - i - j) for total in range(degree + 1) for i in range(total + 1) for j in range(total - i + 1)
+        ]
+    return np.stack([np.prod(points ** np.array(power), axis=-1) for power in powers], axis=-1)
 
 
 class SkinCalibration(eqx.Module):
@@ -2379,9 +2403,9 @@ def _with_position_map(
         notes.append("fewer than 3 presses read: no position map")
         return eqx.tree_at(lambda c: (c.warnings, c.polarity), calibration, (tuple(notes), polarity))
     read_positions, labelled = found.position[seen, 0], presses.centres[seen]
-    mapping = PositionMap.fit(read_positions, labelled)
+    mapping = PositionMap.fit(read_positions, labelled, calibration.model.mesh)
     errors = np.full(presses.n_presses, np.nan)
-    errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree)
+    errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree, mapping.surface)
     return eqx.tree_at(
         lambda c: (c.position_map, c.press_errors, c.press_positions, c.warnings, c.hyperparameter, c.polarity),
         calibration,
@@ -2390,14 +2414,24 @@ def _with_position_map(
     )
 
 
-def _leave_one_out_errors(read: np.ndarray, labelled: np.ndarray, degree: int | None) -> np.ndarray:
+def _leave_one_out_errors(
+    read: np.ndarray, labelled: np.ndarray, degree: int | None, surface: Mesh | None = None
+) -> np.ndarray:
     """(K,) the distance, m, between each labelled position and the map of degree `degree`
-    fitted without it."""
+    fitted without it (on a curved skin's `surface`, refitted without each in turn and taken
+    onto it; on a flat sheet through the fit's hat matrix)."""
     if degree is None:
         return np.linalg.norm(read - labelled, axis=1)
     length = _spread(labelled)
     terms = _terms(read / length, degree)
     shift = (labelled - read) / length
+    if surface is not None:
+        mapped = np.empty_like(read)
+        for k in range(len(read)):
+            others = np.arange(len(read)) != k
+            coefficients, *_ = np.linalg.lstsq(terms[others], shift[others], rcond=_MAP_RCOND)
+            mapped[k] = read[k] + terms[k] @ coefficients * length
+        return np.linalg.norm(onto_surface(surface, mapped) - labelled, axis=1)
     coefficients, *_ = np.linalg.lstsq(terms, shift, rcond=None)
     hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
     residual = (shift - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
@@ -2443,7 +2477,7 @@ def _held_out_errors(
         trained = seen & (fold != k)
         if trained.sum() < 3:
             continue
-        mapping = PositionMap.fit(read[trained], presses.centres[trained])
+        mapping = PositionMap.fit(read[trained], presses.centres[trained], calibration.model.mesh)
         errors[test] = np.linalg.norm(mapping(read[test]) - presses.centres[test], axis=1)
     return errors
 
@@ -2645,7 +2679,9 @@ SCHEMA = "diffeit.calibration"
 # background map (background_map), which a reader of version 2 would ignore; version 4: polarity 0
 # for a calibration without presses (none known), which a reader of version 3 would refuse to read
 # touches with; version 5: the labels' frame's handedness (values/label_frame's fifth value), which
-# a reader of version 4 would fail on. Versions 1 to 4 read (their -1 without presses stays -1).
+# a reader of version 4 would fail on, and a curved skin's position maps (coefficients (n_terms, 3)),
+# which it would apply without taking the touches back onto the surface. Versions 1 to 4 read
+# (their -1 without presses stays -1).
 SCHEMA_VERSION = 5
 
 
@@ -2810,9 +2846,10 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
     if mapping is not None:
         position_map = PositionMap(
             mapping["degree"],
-            arrays.get("position_map/coefficients", np.zeros((0, 2))),
+            arrays.get("position_map/coefficients", np.zeros((0, mesh.nodes.shape[1]))),
             mapping["length"],
             mapping["errors"],
+            mesh if mesh.nodes.shape[1] == 3 else None,  # a curved skin's map takes touches onto it
         )
     values = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("values/")}
     errors = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("standard_errors/")}

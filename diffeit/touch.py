@@ -108,7 +108,7 @@ from scipy.sparse.csgraph import breadth_first_order
 from ._arrays import per_element
 from .forward import ForwardModel
 from .io import Recording
-from .mesh import Mesh, onto_surface, require_flat
+from .mesh import Mesh, onto_surface
 from .scene import Disc, FoamStack, shape_fraction
 
 # A hill counts when its peak exceeds this many robust standard deviations of the image; in a
@@ -148,7 +148,8 @@ class Touches(eqx.Module):
         noise: (T,) the robust standard deviation of each image, in relative change.
         standard_errors: With `method="fit"`, (T, K, 4) the standard errors of the centre's
             two coordinates (m: x, y in the frame of `position` on a flat sheet; on a curved
-            skin along two orthonormal directions of the surface at the image's touch), radius
+            skin along two orthonormal directions of the surface at the image's touch, at the
+            mapped touch where a position map moved it), radius
             (m) and depth (relative change) of each fitted disc, NaN where there is none; None
             for the image method.
         misfit: With `method="fit"`, (T,) ||dv - dv(theta)|| / ||dv|| of each fitted frame's
@@ -262,7 +263,7 @@ def touches(
         images = images / level
     mapping = None if calibration is None else calibration.position_map
     if mapping is not None and mapping.degree is None:
-        mapping = None  # the identity (always on a curved skin): nothing to apply
+        mapping = None  # the identity: nothing to apply
     if method == "fit" and recording.reference is None:
         raise ValueError('method="fit" fits the differences from the recording\'s reference; it has none')
     frames_touched = None if recording.reference is None else _touched_frames(recording, calibration, detection)
@@ -447,7 +448,7 @@ def read(
         max_touches: The most touches reported per frame.
         threshold: A touch's peak must exceed this many robust standard deviations of its image.
         polarity: -1 when a touch lowers the conductivity, +1 when it raises it.
-        position_map: A callable from (..., 2) read positions to the labels' frame
+        position_map: A callable from (..., D) read positions to the labels' frame
             (`diffeit.calibration.PositionMap`), or None.
         stack: A foam stack whose map gives pressures from depths, or None.
         touched: (T,) bool, which frames are touched (a test on the voltages, module
@@ -473,8 +474,6 @@ def read(
         raise ValueError(f"polarity must be -1 (a touch lowers the conductivity) or +1; got {polarity}")
     if not (np.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be a positive number of standard deviations; got {threshold}")
-    if position_map is not None:
-        require_flat(mesh, "a position map (fitted in the plane)")
     count = np.zeros(len(images), int)
     position = np.full((len(images), max_touches, mesh.nodes.shape[1]), np.nan)
     radius = np.full((len(images), max_touches), np.nan)
@@ -686,6 +685,7 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
     radius, depth = np.full_like(found.radius, np.nan), np.full_like(found.depth, np.nan)
     errors = np.full((*found.radius.shape, 4), np.nan)
     covariances = np.full((*found.radius.shape, 2, 2), np.nan)
+    axes = np.full((*found.radius.shape, 2, nodes.shape[1]), np.nan)  # the directions the centres' errors are along
     misfit = np.full(len(dv), np.nan)
     for t in np.flatnonzero(found.count > 0):
         k = int(found.count[t])
@@ -709,8 +709,9 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
         with np.errstate(invalid="ignore"):
             errors[t, :n] = np.sqrt(np.einsum("kii->ki", blocks))
         covariances[t, :n] = blocks[:, :2, :2]
+        axes[t, :n] = planes[order, 1:]
     if mapping is not None:
-        errors[..., :2] = _mapped_errors(mapping, position, covariances)
+        errors[..., :2] = _mapped_errors(mapping, model.mesh, position, covariances, axes)
         position = mapping(position)
     pressure = None if stack is None else _pressure(depth, stack)
     return Touches(count, position, radius, depth, pressure, found.noise, errors, misfit)
@@ -865,12 +866,24 @@ def _levenberg_marquardt(
     return theta, design.T @ design, residual
 
 
-def _mapped_errors(mapping: Any, position: np.ndarray, covariances: np.ndarray) -> np.ndarray:
-    """(..., 2) the standard errors of the positions (..., 2) (mesh frame, m) after the map,
-    from their covariances (..., 2, 2) through its local Jacobian (central differences)."""
+def _mapped_errors(
+    mapping: Any, mesh: Mesh, position: np.ndarray, covariances: np.ndarray, axes: np.ndarray
+) -> np.ndarray:
+    """(..., 2) the standard errors of the positions (..., D) (mesh frame, m) after the map,
+    along the sheet's directions at the mapped point (`_tangent_plane`: the axes on a flat
+    sheet), from their covariances (..., 2, 2) along `axes` (..., 2, D) through the map's local
+    Jacobian (central differences)."""
     step = 1e-6
-    columns = [(mapping(position + step * unit) - mapping(position - step * unit)) / (2 * step) for unit in np.eye(2)]
-    jacobian = np.stack(columns, axis=-1)  # (..., 2, 2)
-    mapped = jacobian @ covariances @ np.swapaxes(jacobian, -1, -2)
+    columns = [
+        (mapping(position + step * unit) - mapping(position - step * unit)) / (2 * step)
+        for unit in np.eye(position.shape[-1])
+    ]
+    jacobian = np.stack(columns, axis=-1) @ np.swapaxes(axes, -1, -2)  # (..., D, 2): along the axes
+    mapped = mapping(position)
+    after = np.full_like(axes, np.nan)
+    placed = np.all(np.isfinite(mapped), axis=-1)
+    after[placed] = [_tangent_plane(mesh, point)[1:] for point in mapped[placed]]
+    along = after @ jacobian  # (..., 2, 2)
+    covariance = along @ covariances @ np.swapaxes(along, -1, -2)
     with np.errstate(invalid="ignore"):
-        return np.sqrt(np.diagonal(mapped, axis1=-2, axis2=-1))
+        return np.sqrt(np.diagonal(covariance, axis1=-2, axis2=-1))

@@ -121,6 +121,21 @@ def test_on_a_forearm_the_fitted_discs_are_points_on_its_surface_near_the_simula
     assert np.all(distance < 3 * np.linalg.norm(errors[:, :2], axis=1)), (distance, errors)
     np.testing.assert_allclose(fitted.radius[:, 0], 0.012, rtol=0.3)
     np.testing.assert_allclose(fitted.depth[:, 0], -0.3, rtol=0.3)
+    # A position map that turns the forearm about its axis by 0.2 rad (fitted on points of the
+    # surface): the centres turn with it and stay on the surface (to its chords, 0.2 mm), and
+    # their errors' size (the trace of their covariance, whatever the axes) is kept.
+    turn = np.array([[np.cos(0.2), -np.sin(0.2), 0.0], [np.sin(0.2), np.cos(0.2), 0.0], [0.0, 0.0, 1.0]])
+    on = calibration.model.mesh.element_centroids[::25]
+    with pytest.raises(ValueError, match="needs the skin's"):
+        PositionMap.fit(on, on @ turn.T)
+    mapping = PositionMap.fit(on, on @ turn.T, calibration.model.mesh)
+    assert mapping.degree is not None and mapping.errors[str(mapping.degree)] < 5e-4
+    mapped = eqx.tree_at(lambda c: c.position_map, calibration, mapping, is_leaf=lambda x: x is None)
+    moved = de.touches(images, mapped, method="fit")
+    np.testing.assert_allclose(moved.position[:, 0], points @ turn.T, atol=5e-4)
+    np.testing.assert_allclose(np.hypot(moved.position[:, 0, 0], moved.position[:, 0, 1]), rho, rtol=0.01)
+    sizes = [np.linalg.norm(e[:, 0, :2], axis=1) for e in (moved.standard_errors, fitted.standard_errors)]
+    np.testing.assert_allclose(*sizes, rtol=0.05)
 
 
 def test_two_separated_discs_are_both_recovered(calibration):

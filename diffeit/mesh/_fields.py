@@ -37,36 +37,40 @@ def locate(mesh: Mesh, points: ArrayLike) -> np.ndarray:
 
 
 def onto_surface(mesh: Mesh, point: ArrayLike, elements: ArrayLike | None = None) -> np.ndarray:
-    """A point near a curved skin taken onto it: projected onto the plane of the element
+    """Points near a curved skin taken onto it: each projected onto the plane of the element
     (among `elements`) whose centroid is nearest.
 
     A weighted mean of element centroids (a touch's or an image's centroid) lies inside the
     surface's chord; its projection lies on the surface to within that element's own flatness.
-    On a flat sheet the point is returned as it is.
+    On a flat sheet the points are returned as they are.
 
     Arguments:
         mesh: The sheet.
-        point: (D,) a point, m, D the mesh's dimension.
+        point: (..., D) points, m, D the mesh's dimension; a point with a NaN stays NaN.
         elements: The elements to project onto (indices); None for all.
 
     Returns:
-        (D,) the point on the surface, m.
+        (..., D) the points on the surface, m.
 
     Raises:
-        ValueError: For a point of another dimension than the mesh's.
+        ValueError: For points of another dimension than the mesh's.
     """
     point = np.asarray(point, dtype=float)
-    if point.shape != (mesh.nodes.shape[1],):
+    if point.ndim == 0 or point.shape[-1] != mesh.nodes.shape[1]:
         raise ValueError(f"a point of this mesh has {mesh.nodes.shape[1]} coordinates; got shape {point.shape}")
     if mesh.nodes.shape[1] == 2:
         return point
     elements = np.arange(mesh.n_elements) if elements is None else np.asarray(elements)
-    centroids = mesh.element_centroids[elements]
-    nearest = elements[int(np.argmin(np.linalg.norm(centroids - point, axis=1)))]
-    a, b, c = mesh.nodes[mesh.triangles[nearest]]
+    points = point.reshape(-1, 3)
+    finite = np.all(np.isfinite(points), axis=1)
+    nearest = elements[scipy.spatial.cKDTree(mesh.element_centroids[elements]).query(points[finite])[1]]
+    a, b, c = (mesh.nodes[mesh.triangles[nearest, corner]] for corner in range(3))
     normal = np.cross(b - a, c - a)
-    normal /= np.linalg.norm(normal)
-    return point - ((point - mesh.element_centroids[nearest]) @ normal) * normal
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    height = np.einsum("pd,pd->p", points[finite] - mesh.element_centroids[nearest], normal)
+    projected = np.full_like(points, np.nan)
+    projected[finite] = points[finite] - height[:, None] * normal
+    return projected.reshape(point.shape)
 
 
 @functools.lru_cache(maxsize=16)
