@@ -196,7 +196,7 @@ from .io import (
     write_attributes,
 )
 from .memory import MemoryParameters
-from .mesh import Mesh, disc, disc_fractions, onto_surface
+from .mesh import Mesh, disc, disc_fractions, onto_surface, surface_distance
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
@@ -763,8 +763,8 @@ class PositionMap(eqx.Module):
             and displacements divided by `length`.
         length: The length, m, positions are divided by (the presses' spread).
         errors: Degree (str; "none" for the identity) -> the median leave-one-out distance, m,
-            between mapped and labelled positions (on a curved skin the 3D chord, within a
-            fraction (distance / radius of curvature)^2 / 24 of the geodesic).
+            between mapped and labelled positions (on a curved skin along it:
+            `diffeit.mesh.surface_distance`).
         surface: The curved skin's mesh the mapped points are taken onto; None on a flat one.
     """
 
@@ -801,7 +801,7 @@ class PositionMap(eqx.Module):
             if mesh is None or mesh.nodes.shape[1] != 3:
                 raise ValueError("a position map of points on a curved skin needs the skin's (surface) mesh")
             surface = mesh
-        errors = {"none": float(np.median(_leave_one_out_errors(read, labelled, None)))}
+        errors = {"none": float(np.median(_leave_one_out_errors(read, labelled, None, surface)))}
         degree = None
         for candidate in _MAP_DEGREES[1:]:
             if len(read) < _terms(read[:1], candidate).shape[1] + 2:
@@ -2418,10 +2418,11 @@ def _leave_one_out_errors(
     read: np.ndarray, labelled: np.ndarray, degree: int | None, surface: Mesh | None = None
 ) -> np.ndarray:
     """(K,) the distance, m, between each labelled position and the map of degree `degree`
-    fitted without it (on a curved skin's `surface`, refitted without each in turn and taken
-    onto it; on a flat sheet through the fit's hat matrix)."""
+    fitted without it (on a curved skin's `surface`, refitted without each in turn, taken onto
+    it, and the distance along it: `diffeit.mesh.surface_distance`; on a flat sheet through the
+    fit's hat matrix)."""
     if degree is None:
-        return np.linalg.norm(read - labelled, axis=1)
+        return np.linalg.norm(read - labelled, axis=1) if surface is None else surface_distance(surface, read, labelled)
     length = _spread(labelled)
     terms = _terms(read / length, degree)
     shift = (labelled - read) / length
@@ -2431,7 +2432,7 @@ def _leave_one_out_errors(
             others = np.arange(len(read)) != k
             coefficients, *_ = np.linalg.lstsq(terms[others], shift[others], rcond=_MAP_RCOND)
             mapped[k] = read[k] + terms[k] @ coefficients * length
-        return np.linalg.norm(onto_surface(surface, mapped) - labelled, axis=1)
+        return surface_distance(surface, onto_surface(surface, mapped), labelled)
     coefficients, *_ = np.linalg.lstsq(terms, shift, rcond=None)
     hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
     residual = (shift - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
@@ -2478,7 +2479,7 @@ def _held_out_errors(
         if trained.sum() < 3:
             continue
         mapping = PositionMap.fit(read[trained], presses.centres[trained], calibration.model.mesh)
-        errors[test] = np.linalg.norm(mapping(read[test]) - presses.centres[test], axis=1)
+        errors[test] = surface_distance(calibration.model.mesh, mapping(read[test]), presses.centres[test])
     return errors
 
 
