@@ -39,7 +39,7 @@ from tqdm.auto import tqdm
 from . import metrics
 from .forward import ForwardModel
 from .inverse import OneStep
-from .mesh import Mesh, element_sample_points, locate
+from .mesh import Mesh, element_sample_points, locate, require_flat
 from .scene import Disc, Noise, Touch, add_noise, touch_field
 
 SCHEMA = "diffeit.calibration"
@@ -360,7 +360,11 @@ def default_positions(mesh: Mesh) -> np.ndarray:
 
     Returns:
         (P, 2) positions, metres: the area-weighted centroid first, then ring by ring.
+
+    Raises:
+        ValueError: For a curved skin's mesh: the correction works in the plane.
     """
+    require_flat(mesh, "the spatial correction")
     centre = mesh.element_areas @ mesh.element_centroids / mesh.element_areas.sum()
     size = 0.5 * float(np.max(mesh.nodes.max(axis=0) - mesh.nodes.min(axis=0)))
     points = [centre]
@@ -414,10 +418,10 @@ def calibrate(
 
     Raises:
         ValueError: For empty or invalid backgrounds, intensities or radii, a negative noise,
-            noise draws that are not a positive integer, models of different protocols, invalid
-            positions, and a setting whose targets are lost (a peak of the wrong sign on average,
-            so no positive factor: raise the intensity or the hyperparameter, or lower the
-            noise).
+            noise draws that are not a positive integer, models of different protocols or on a
+            curved skin (the correction works in the plane), invalid positions, and a setting
+            whose targets are lost (a peak of the wrong sign on average, so no positive factor:
+            raise the intensity or the hyperparameter, or lower the noise).
     """
     backgrounds, intensities, radii = (tuple(float(v) for v in values) for values in (backgrounds, intensities, radii))
     for name, values, valid in (
@@ -433,6 +437,8 @@ def calibrate(
         raise ValueError(f"noise_draws must be a positive integer; got {noise_draws!r}")
     if model.protocol.n_measurements != data_model.protocol.n_measurements:
         raise ValueError("model and data_model must share the protocol (the same number of measurements)")
+    require_flat(model.mesh, "the spatial correction")
+    require_flat(data_model.mesh, "the spatial correction")
     positions = default_positions(model.mesh) if positions is None else _checked_positions(positions)
 
     mesh, data_mesh = model.mesh, data_model.mesh
@@ -511,8 +517,10 @@ def correct(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarr
         The corrected image(s), same shape and unit.
 
     Raises:
-        ValueError: For an image that is not (E,) or (T, E) on `mesh`.
+        ValueError: For an image that is not (E,) or (T, E) on `mesh`, or a curved skin's
+            mesh (the correction works in the plane).
     """
+    require_flat(mesh, "the spatial correction")
     images = np.asarray(image, dtype=float)
     if images.ndim not in (1, 2) or images.shape[-1] != mesh.n_elements:
         raise ValueError(f"image has shape {images.shape}; expected ({mesh.n_elements},) or (T, {mesh.n_elements})")

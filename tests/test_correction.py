@@ -211,6 +211,13 @@ def test_bad_input_is_refused(models, calibration):
         dataclasses.replace(calibration, size_factor=-calibration.size_factor)
     with pytest.raises(ValueError, match=r"points must be finite \(x, y\) pairs"):
         calibration.factors(np.array([[np.nan, 0.0]]))
+    # A curved skin: the correction works in the plane, and says so rather than reading (x, y).
+    cap = de.mesh.sphere_cap(1.0, 1.0, 16, h=0.3)
+    curved = de.ForwardModel(cap, model.protocol)
+    with pytest.raises(ValueError, match="the spatial correction works on flat meshes"):
+        correction.calibrate(curved, curved)
+    with pytest.raises(ValueError, match="the spatial correction works on flat meshes"):
+        correction.correct(calibration, cap, np.ones(cap.n_elements))
 
 
 # -- damaged calibration files ----------------------------------------------------------------
