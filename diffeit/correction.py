@@ -34,12 +34,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.interpolate
+import scipy.spatial
 from tqdm.auto import tqdm
 
 from . import metrics
 from .forward import ForwardModel
 from .inverse import OneStep
-from .mesh import Mesh, element_sample_points, locate, require_flat
+from .mesh import Mesh, element_sample_points, locate, onto_surface
 from .scene import Disc, Noise, Touch, add_noise, touch_field
 
 SCHEMA = "diffeit.calibration"
@@ -90,20 +91,20 @@ class Calibration(eqx.Module):
     (docs/science.md#spatial-correction).
 
     Attributes:
-        positions: (P, 2) m, the calibration positions (true touch centres); row 0 the
-            reference.
+        positions: (P, D) m, the calibration positions (true touch centres; D = 3, points on
+            the surface, on a curved skin); row 0 the reference.
         intensity_factor: (P,) g_I there (1 at the reference).
         size_factor: (P,) g_S there (1 at the reference).
         intensity_table: (B, I, R, P) the intensity ratios of each setting (backgrounds x
             intensities x radii of `settings`) whose geometric mean `intensity_factor` is.
         size_table: (B, I, R, P) likewise for `size_factor`.
         settings: `CalibrationSettings` (static).
-        image_positions: (P, 2) m, where the touches at `positions` appear, the mean
+        image_positions: (P, D) m, where the touches at `positions` appear, the mean
             half-amplitude centroid of their images (default: `positions`). `factors` is looked
             up by a reconstructed centroid, so it interpolates over these.
 
     Raises:
-        ValueError: For positions that are not finite (P, 2), P >= 3, spanning the plane, and
+        ValueError: For positions that are not finite (P, 2) or (P, 3), P >= 3, spanning a plane, and
             factors or tables of the wrong shape or not finite and positive.
     """
 
@@ -157,23 +158,30 @@ class Calibration(eqx.Module):
         """The correction factors for targets imaged at `points`.
 
         Linear between the calibration's `image_positions`, the nearest one's outside their
-        hull.
+        hull; on a curved skin in the plane of their two principal directions (`_chart`),
+        where a dome of up to 90 degrees or a cylinder patch of up to 180 lies one to one.
 
         Arguments:
-            points: (N, 2) or one (x, y), metres.
+            points: (N, D) or one point, metres, D the positions' dimension.
 
         Returns:
             (intensity g_I (N,), size g_S (N,)).
 
         Raises:
-            ValueError: For points that are not finite (x, y) pairs.
+            ValueError: For points that are not finite points of the positions' dimension.
         """
         points = np.atleast_2d(np.asarray(points, dtype=float))
-        if points.ndim != 2 or points.shape[1] != 2 or not np.all(np.isfinite(points)):
-            raise ValueError(f"points must be finite (x, y) pairs, shape (N, 2); got shape {np.shape(points)}")
+        dimension = np.shape(self.image_positions)[1]
+        if points.ndim != 2 or points.shape[1] != dimension or not np.all(np.isfinite(points)):
+            pairs = "(x, y) pairs" if dimension == 2 else "(x, y, z) points"
+            raise ValueError(f"points must be finite {pairs}, shape (N, {dimension}); got shape {np.shape(points)}")
         values = np.column_stack([self.intensity_factor, self.size_factor])
-        linear = scipy.interpolate.LinearNDInterpolator(self.image_positions, values)(points)
-        nearest = scipy.interpolate.NearestNDInterpolator(self.image_positions, values)(points)
+        known = np.asarray(self.image_positions, dtype=float)
+        if dimension == 3:
+            origin, axes = _chart(known)
+            known, points = (known - origin) @ axes.T, (points - origin) @ axes.T
+        linear = scipy.interpolate.LinearNDInterpolator(known, values)(points)
+        nearest = scipy.interpolate.NearestNDInterpolator(known, values)(points)
         result = np.where(np.isnan(linear), nearest, linear)
         return result[:, 0], result[:, 1]
 
@@ -338,14 +346,26 @@ def _is_number(value: object) -> bool:
 
 
 def _checked_positions(positions: np.ndarray) -> np.ndarray:
-    """(P, 2) finite calibration positions, P >= 3, not all on one line (the factors are
-    interpolated on their Delaunay triangles)."""
+    """(P, 2) finite calibration positions, or (P, 3) on a curved skin, P >= 3, not all on one
+    line (the factors are interpolated on their Delaunay triangles)."""
     positions = np.asarray(positions, dtype=float)
-    if positions.ndim != 2 or positions.shape[1] != 2 or len(positions) < 3 or not np.all(np.isfinite(positions)):
-        raise ValueError(f"positions must be finite, shape (P, 2) with P >= 3 (metres); got shape {positions.shape}")
+    shaped = positions.ndim == 2 and positions.shape[1] in (2, 3) and len(positions) >= 3
+    if not shaped or not np.all(np.isfinite(positions)):
+        raise ValueError(
+            f"positions must be finite, shape (P, 2) (or (P, 3) on a curved skin) with P >= 3 (metres); "
+            f"got shape {positions.shape}"
+        )
     if np.linalg.matrix_rank(positions[1:] - positions[0]) < 2:
         raise ValueError("positions all lie on one line: the factors need positions spanning the plane")
     return positions
+
+
+def _chart(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean (D,) of points (P, D) on a curved skin and their two principal directions
+    (2, D), orthonormal: the plane the skin is seen in from above."""
+    origin = points.mean(axis=0)
+    _, _, directions = np.linalg.svd(points - origin, full_matrices=False)
+    return origin, directions[:2]
 
 
 def default_positions(mesh: Mesh) -> np.ndarray:
@@ -358,21 +378,22 @@ def default_positions(mesh: Mesh) -> np.ndarray:
     Arguments:
         mesh: The mesh of the domain.
 
-    Returns:
-        (P, 2) positions, metres: the area-weighted centroid first, then ring by ring.
+    On a curved skin the rings are drawn in the plane of the nodes' two principal directions
+    (`_chart`) through the centroid and taken onto the surface (`diffeit.mesh.onto_surface`).
 
-    Raises:
-        ValueError: For a curved skin's mesh: the correction works in the plane.
+    Returns:
+        (P, D) positions, metres (D = 3 on a curved skin): the area-weighted centroid first,
+        then ring by ring.
     """
-    require_flat(mesh, "the spatial correction")
     centre = mesh.element_areas @ mesh.element_centroids / mesh.element_areas.sum()
     size = 0.5 * float(np.max(mesh.nodes.max(axis=0) - mesh.nodes.min(axis=0)))
+    axes = np.eye(2) if mesh.nodes.shape[1] == 2 else _chart(mesh.nodes)[1]
     points = [centre]
     for ring, fraction in enumerate(_DEFAULT_RING_FRACTIONS[1:]):
         count = max(6, math.ceil(2 * np.pi * fraction / 0.45))
         angles = 2 * np.pi * (np.arange(count) + 0.5 * (ring % 2)) / count
-        points.extend(centre + fraction * size * np.column_stack([np.cos(angles), np.sin(angles)]))
-    return np.array(points)
+        points.extend(centre + fraction * size * np.column_stack([np.cos(angles), np.sin(angles)]) @ axes)
+    return onto_surface(mesh, np.array(points))
 
 
 def calibrate(
@@ -406,7 +427,8 @@ def calibrate(
         backgrounds: Background conductivities, S/sq, > 0.
         intensities: Touch intensities dsigma/sigma, in (-1, 0) or > 0.
         radii: Touch radii, m, > 0.
-        positions: (P, 2) m, row 0 the reference; default `default_positions(model.mesh)`.
+        positions: (P, D) m (D the mesh's dimension: points on the surface of a curved skin),
+            row 0 the reference; default `default_positions(model.mesh)`.
         noise_percent: Gaussian noise, percent of RMS(V_ref), >= 0 (0.5 is "medium").
         noise_draws: Noise draws per touch (>= 1): the reference is the noisiest position and
             its error enters every factor; 8 draws keep it to a few percent at medium noise.
@@ -418,8 +440,8 @@ def calibrate(
 
     Raises:
         ValueError: For empty or invalid backgrounds, intensities or radii, a negative noise,
-            noise draws that are not a positive integer, models of different protocols or on a
-            curved skin (the correction works in the plane), invalid positions, and a setting
+            noise draws that are not a positive integer, models of different protocols, invalid
+            positions (or of another dimension than the mesh's), and a setting
             whose targets are lost (a peak of the wrong sign on average, so no positive factor:
             raise the intensity or the hyperparameter, or lower the noise).
     """
@@ -437,15 +459,17 @@ def calibrate(
         raise ValueError(f"noise_draws must be a positive integer; got {noise_draws!r}")
     if model.protocol.n_measurements != data_model.protocol.n_measurements:
         raise ValueError("model and data_model must share the protocol (the same number of measurements)")
-    require_flat(model.mesh, "the spatial correction")
-    require_flat(data_model.mesh, "the spatial correction")
     positions = default_positions(model.mesh) if positions is None else _checked_positions(positions)
+    if positions.shape[1] != model.mesh.nodes.shape[1]:
+        raise ValueError(
+            f"positions have {positions.shape[1]} coordinates; the mesh's nodes have {model.mesh.nodes.shape[1]}"
+        )
 
     mesh, data_mesh = model.mesh, data_model.mesh
     measure = jax.jit(jax.vmap(data_model.measure))
     shape = (len(backgrounds), len(intensities), len(radii), len(positions))
     intensity_table, size_table = np.empty(shape), np.empty(shape)
-    image_positions = np.zeros((len(positions), 2))
+    image_positions = np.zeros(positions.shape)
     settings = [(b, a, r) for b in range(len(backgrounds)) for a in range(len(intensities)) for r in range(len(radii))]
     key = jax.random.key(seed)
     reconstructions = {}
@@ -497,7 +521,7 @@ def calibrate(
 
 
 def _touch_fields(mesh: Mesh, centres: jax.Array, radius: float, intensity: float) -> jax.Array:
-    """(P, E) dsigma/sigma of smooth-edged disc touches at `centres` (P, 2), one vmapped field."""
+    """(P, E) dsigma/sigma of smooth-edged disc touches at `centres` (P, D), one vmapped field."""
     return jax.vmap(lambda centre: touch_field(mesh, Touch(Disc(centre, radius), intensity), 0.0))(centres)
 
 
@@ -517,10 +541,14 @@ def correct(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarr
         The corrected image(s), same shape and unit.
 
     Raises:
-        ValueError: For an image that is not (E,) or (T, E) on `mesh`, or a curved skin's
-            mesh (the correction works in the plane).
+        ValueError: For an image that is not (E,) or (T, E) on `mesh`, or a mesh of another
+            dimension than the calibration's positions.
     """
-    require_flat(mesh, "the spatial correction")
+    if mesh.nodes.shape[1] != np.shape(calibration.positions)[1]:
+        raise ValueError(
+            f"the calibration's positions have {np.shape(calibration.positions)[1]} coordinates; "
+            f"the mesh's nodes have {mesh.nodes.shape[1]}"
+        )
     images = np.asarray(image, dtype=float)
     if images.ndim not in (1, 2) or images.shape[-1] != mesh.n_elements:
         raise ValueError(f"image has shape {images.shape}; expected ({mesh.n_elements},) or (T, {mesh.n_elements})")
@@ -535,10 +563,20 @@ def _correct_one(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.
     intensity, size = calibration.factors(centroids)
     # The warped image averaged over each element: sample points on `_WARP_LEVEL`^2
     # sub-triangles, each pulled back to where its value comes from in the uncorrected image.
-    points = element_sample_points(mesh, _WARP_LEVEL)  # (E, S, 2)
+    points = element_sample_points(mesh, _WARP_LEVEL)  # (E, S, D)
     owner = np.argmin(np.linalg.norm(mesh.element_centroids[:, None, :] - centroids[None], axis=2), axis=1)
     centre = centroids[owner][:, None, :]
-    sources = (centre + (points - centre) / size[owner, None, None]).reshape(-1, 2)
-    element = locate(mesh, sources)
+    sources = (centre + (points - centre) / size[owner, None, None]).reshape(-1, points.shape[-1])
+    element = locate(mesh, sources) if mesh.nodes.shape[1] == 2 else _located_on_surface(mesh, sources)
     values = np.where(element >= 0, image[np.maximum(element, 0)], 0.0).reshape(points.shape[:2])
     return intensity[owner] * values.mean(axis=1)
+
+
+def _located_on_surface(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """(P,) the element of a curved skin holding each point (P, 3) once taken onto the surface:
+    the one whose centroid is nearest, -1 (off the mesh) where that is farther than any
+    element's corner from its own centroid."""
+    placed = onto_surface(mesh, points)
+    distance, element = scipy.spatial.cKDTree(mesh.element_centroids).query(placed)
+    reach = float(np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - mesh.element_centroids[:, None], axis=2)))
+    return np.where(distance <= reach, element, -1)

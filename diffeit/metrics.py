@@ -430,7 +430,8 @@ class Components:
         labels: The image's shape: the component of each cell, -1 outside the set (and off a
             pixel grid's mask).
         areas: (K,) the area of each component, m^2.
-        centroids: (K, 2) the area-weighted centroid of each component, m.
+        centroids: (K, D) the area-weighted centroid of each component, m ((x, y, z) inside
+            the surface's chord on a curved skin).
         peaks: (K,) the signed value of largest magnitude in each component (the image's
             unit).
     """
@@ -488,7 +489,8 @@ def _components(cells: _Cells, chosen: np.ndarray) -> tuple[np.ndarray, int]:
 def _summarise(geometry: Geometry, cells: _Cells, labels: np.ndarray) -> Components:
     members = [labels == j for j in range(labels.max() + 1)]
     areas = np.array([cells.areas[m].sum() for m in members])
-    centroids = np.array([cells.areas[m] @ cells.centres[m] for m in members]).reshape(-1, 2) / areas[:, None]
+    dimension = cells.centres.shape[1]
+    centroids = np.array([cells.areas[m] @ cells.centres[m] for m in members]).reshape(-1, dimension) / areas[:, None]
     peaks = np.array([cells.values[m][np.argmax(np.abs(cells.values[m]))] for m in members])
     return Components(labels=_to_image_shape(geometry, labels, -1), areas=areas, centroids=centroids, peaks=peaks)
 
