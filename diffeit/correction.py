@@ -375,11 +375,11 @@ def default_positions(mesh: Mesh) -> np.ndarray:
     bounding box), with about one position per 0.45 R of circumference (at least 6 a ring),
     each ring turned half a step against the previous.
 
-    Arguments:
-        mesh: The mesh of the domain.
-
     On a curved skin the rings are drawn in the plane of the nodes' two principal directions
     (`_chart`) through the centroid and taken onto the surface (`diffeit.mesh.onto_surface`).
+
+    Arguments:
+        mesh: The mesh of the domain.
 
     Returns:
         (P, D) positions, metres (D = 3 on a curved skin): the area-weighted centroid first,
@@ -441,9 +441,9 @@ def calibrate(
     Raises:
         ValueError: For empty or invalid backgrounds, intensities or radii, a negative noise,
             noise draws that are not a positive integer, models of different protocols, invalid
-            positions (or of another dimension than the mesh's), and a setting
-            whose targets are lost (a peak of the wrong sign on average, so no positive factor:
-            raise the intensity or the hyperparameter, or lower the noise).
+            positions (or of another dimension than the mesh's), and a setting whose targets
+            are lost (a peak of the wrong sign on average, so no positive factor: raise the
+            intensity or the hyperparameter, or lower the noise).
     """
     backgrounds, intensities, radii = (tuple(float(v) for v in values) for values in (backgrounds, intensities, radii))
     for name, values, valid in (
