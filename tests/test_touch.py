@@ -73,3 +73,24 @@ def test_the_polarity_of_images_is_the_sign_their_touches_stand_out_with():
         de.touch.polarity_of(np.where(images < -0.2, np.nan, images))
     with pytest.raises(ValueError, match="expected \\(T, E\\)"):
         de.touch.polarity_of(images[None])
+
+
+def test_a_clean_images_ringing_is_no_touch_but_a_light_touch_beside_a_hard_one_is():
+    """A further hill needs a tenth of the highest one's peak: one press imaged by one step at
+    0.01% noise rings near the rim at 6.5% of its peak (measured), which the noise floors alone
+    read as two more touches; a touch of 5 kPa beside one of 60 kPa (a sixth of its depth)
+    stays."""
+    model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.08), de.protocol.adjacent(16), 0.01)
+    mesh = model.mesh
+    sigma = np.ones(mesh.n_elements)
+    pressed = sigma * (1 - 0.3 * np.asarray(de.mesh.disc_fraction(mesh, (0.3, 0.2), 0.15)))
+    v0, v1 = (np.asarray(model.measure(np.asarray(s))) for s in (sigma, pressed))
+    noise = 1e-4 * np.sqrt(np.mean(v0**2)) * np.random.default_rng(0).standard_normal((9, len(v0)))
+    frames = np.vstack([np.tile(v0, (8, 1)), v1]) + noise
+    recording = de.io.Recording(frames=frames, times=np.arange(9.0), protocol=model.protocol, mesh=mesh)
+    found = de.touches(de.reconstruct(recording, progress=False))
+    assert found.count.tolist() == [0] * 8 + [1]
+    np.testing.assert_allclose(found.position[8, 0], (0.3, 0.2), atol=0.01)
+    depths = np.asarray(pressure_to_change(np.array([5.0, 60.0]), FoamStack()))
+    image = disc_image((0.5, 0.0), 0.15, depths[0]) + disc_image((-0.5, 0.0), 0.15, depths[1])
+    assert de.touch.read(MESH, image).count.tolist() == [2]
