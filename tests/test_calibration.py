@@ -304,6 +304,9 @@ def test_labels_in_another_frame_are_moved_onto_the_mesh_and_mapped_back(mixing_
     frame = moved.values["label_frame"]
     assert frame[4] == -1.0 and abs(np.exp(-frame[0]) - scale) < 0.1 * scale, frame
     assert any("mirrored" in line for line in moved.lines())
+    # A frame of schema versions 1 to 4 (four values, never mirrored) is still reported.
+    older = eqx.tree_at(lambda c: c.values, moved, {**moved.values, "label_frame": frame[:4]})
+    assert any(line.startswith("labels' frame") and "mirrored" not in line for line in older.lines())
     np.testing.assert_allclose(moved.values["mixing"][[0, 10]], calibrated.values["mixing"][[0, 10]], atol=0.03)
     # Leave-one-out errors in the labels' frame, as small (relative to its scale) as in the mesh's.
     assert np.nanmedian(moved.press_errors) < 1.5 * scale * np.nanmedian(calibrated.press_errors) + 1e-4
