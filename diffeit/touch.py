@@ -719,8 +719,9 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
         covariances[t, :n] = blocks[:, :2, :2]
         axes[t, :n] = planes[order, 1:]
     if mapping is not None:
-        errors[..., :2] = _mapped_errors(mapping, model.mesh, position, covariances, axes)
-        position = mapping(position)
+        mapped = mapping(position)
+        errors[..., :2] = _mapped_errors(mapping, model.mesh, position, mapped, covariances, axes)
+        position = mapped
     pressure = None if stack is None else _pressure(depth, stack)
     return Touches(count, position, radius, depth, pressure, found.noise, errors, misfit)
 
@@ -875,19 +876,18 @@ def _levenberg_marquardt(
 
 
 def _mapped_errors(
-    mapping: Any, mesh: Mesh, position: np.ndarray, covariances: np.ndarray, axes: np.ndarray
+    mapping: Any, mesh: Mesh, position: np.ndarray, mapped: np.ndarray, covariances: np.ndarray, axes: np.ndarray
 ) -> np.ndarray:
-    """(..., 2) the standard errors of the positions (..., D) (mesh frame, m) after the map,
-    along the sheet's directions at the mapped point (`_tangent_plane`: the axes on a flat
-    sheet), from their covariances (..., 2, 2) along `axes` (..., 2, D) through the map's local
-    Jacobian (central differences)."""
+    """(..., 2) the standard errors of the positions (..., D) (mesh frame, m) after the map
+    (`mapped`, the map of `position`), along the sheet's directions there (`_tangent_plane`:
+    the axes on a flat sheet), from their covariances (..., 2, 2) along `axes` (..., 2, D)
+    through the map's local Jacobian (central differences)."""
     step = 1e-6
     columns = [
         (mapping(position + step * unit) - mapping(position - step * unit)) / (2 * step)
         for unit in np.eye(position.shape[-1])
     ]
     jacobian = np.stack(columns, axis=-1) @ np.swapaxes(axes, -1, -2)  # (..., D, 2): along the axes
-    mapped = mapping(position)
     after = np.full_like(axes, np.nan)
     placed = np.all(np.isfinite(mapped), axis=-1)
     after[placed] = [_tangent_plane(mesh, point)[1:] for point in mapped[placed]]

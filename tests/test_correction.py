@@ -69,6 +69,15 @@ def _relative_to_centre(mesh, images: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return peaks / peaks[0], sizes / sizes[0]
 
 
+def _before_and_after(calibration, model, images: np.ndarray) -> tuple[tuple, tuple, str]:
+    """`_relative_to_centre` of the images (draws, P, E) and of their correction, and both in words."""
+    before = _relative_to_centre(model.mesh, images)
+    corrected = correction.correct(calibration, model.mesh, images.reshape(-1, model.n_elements))
+    after = _relative_to_centre(model.mesh, corrected.reshape(images.shape))
+    report = f"before {before[0].round(3)} {before[1].round(3)}, after {after[0].round(3)} {after[1].round(3)}"
+    return before, after, report
+
+
 @pytest.mark.slow
 def test_off_centre_targets_match_the_centre_after_correction(models, calibration):
     """Touches of radius 0.2 (calibrated: 0.15, 0.25) and dsigma/sigma -0.5 (calibrated: -0.4,
@@ -81,10 +90,7 @@ def test_off_centre_targets_match_the_centre_after_correction(models, calibratio
     intensity, the peaks come to 0.99-1.04."""
     model, data_model = models
     images = _touch_images(model, data_model, 0.2, -0.5, draws=64, seed=1234)
-    peak_before, size_before = _relative_to_centre(model.mesh, images)
-    corrected = correction.correct(calibration, model.mesh, images.reshape(-1, model.n_elements))
-    peak_after, size_after = _relative_to_centre(model.mesh, corrected.reshape(images.shape))
-    report = f"before {peak_before.round(3)} {size_before.round(3)}, after {peak_after.round(3)} {size_after.round(3)}"
+    (peak_before, size_before), (peak_after, size_after), report = _before_and_after(calibration, model, images)
     assert np.all(np.abs(peak_before[1:] - 1) > 0.15) and np.all(np.abs(size_before[1:] - 1) > 0.1), report
     assert np.all(np.abs(peak_after[1:] - 1) < 0.1) and np.all(np.abs(size_after[1:] - 1) < 0.1), report
 
@@ -114,10 +120,7 @@ def test_on_a_dome_off_centre_targets_match_the_centre_after_correction(tmp_path
 
     test = [on_dome(0.0, 0.0), on_dome(0.45, 0.3), on_dome(0.6, 2.0), on_dome(0.5, -2.3), on_dome(0.7, 4.5)]
     images = _touch_images(model, data_model, 0.2, -0.5, draws=32, seed=1234, positions=np.array(test))
-    peak_before, size_before = _relative_to_centre(model.mesh, images)
-    corrected = correction.correct(calibration, model.mesh, images.reshape(-1, model.n_elements))
-    peak_after, size_after = _relative_to_centre(model.mesh, corrected.reshape(images.shape))
-    report = f"before {peak_before.round(3)} {size_before.round(3)}, after {peak_after.round(3)} {size_after.round(3)}"
+    (peak_before, size_before), (peak_after, size_after), report = _before_and_after(calibration, model, images)
     assert np.all(np.abs(peak_before[1:] - 1) > 0.2) and np.all(np.abs(size_before[1:] - 1) > 0.1), report
     assert np.all(np.abs(peak_after[1:] - 1) < 0.08) and np.all(np.abs(size_after[1:] - 1) < 0.05), report
     again = correction.load(calibration.save(tmp_path / "dome.npz"))
