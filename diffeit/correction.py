@@ -34,13 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.interpolate
-import scipy.spatial
 from tqdm.auto import tqdm
 
 from . import metrics
 from .forward import ForwardModel
 from .inverse import OneStep
-from .mesh import Mesh, element_sample_points, locate, onto_surface
+from .mesh import Mesh, element_sample_points, locate, nearest_element, onto_surface
 from .scene import Disc, Noise, Touch, add_noise, touch_field
 
 SCHEMA = "diffeit.calibration"
@@ -576,7 +575,6 @@ def _located_on_surface(mesh: Mesh, points: np.ndarray) -> np.ndarray:
     """(P,) the element of a curved skin holding each point (P, 3) once taken onto the surface:
     the one whose centroid is nearest, -1 (off the mesh) where that is farther than any
     element's corner from its own centroid."""
-    placed = onto_surface(mesh, points)
-    distance, element = scipy.spatial.cKDTree(mesh.element_centroids).query(placed)
+    element, distance, _ = nearest_element(mesh, onto_surface(mesh, points))
     reach = float(np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - mesh.element_centroids[:, None], axis=2)))
     return np.where(distance <= reach, element, -1)

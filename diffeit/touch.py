@@ -110,7 +110,7 @@ from scipy.sparse.csgraph import breadth_first_order
 from ._arrays import per_element
 from .forward import ForwardModel
 from .io import Recording
-from .mesh import Mesh, onto_surface
+from .mesh import Mesh, nearest_element, onto_surface
 from .scene import Disc, FoamStack, shape_fraction
 
 # A hill counts when its peak exceeds this many robust standard deviations of the image; in a
@@ -731,12 +731,11 @@ def _tangent_plane(mesh: Mesh, point: np.ndarray) -> np.ndarray:
     element whose centroid is nearest on a curved skin, the axes on a flat one."""
     if mesh.nodes.shape[1] == 2:
         return np.vstack([point, np.eye(2)])
-    corners = mesh.nodes[mesh.triangles[np.argmin(np.linalg.norm(mesh.element_centroids - point, axis=1))]]
+    element, _, normal = nearest_element(mesh, point[None])
+    corners = mesh.nodes[mesh.triangles[element[0]]]
     first = corners[1] - corners[0]
     first /= np.linalg.norm(first)
-    normal = np.cross(first, corners[2] - corners[0])
-    second = np.cross(normal / np.linalg.norm(normal), first)
-    return np.vstack([point, first, second])
+    return np.vstack([point, first, np.cross(normal[0], first)])
 
 
 def _fit_discs(

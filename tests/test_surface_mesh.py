@@ -348,6 +348,29 @@ def test_onto_surface_projects_onto_the_nearest_elements_plane():
         de.mesh.onto_surface(surface, [0.3, 0.2])
 
 
+def test_nearest_element_gives_the_element_its_centroids_distance_and_its_normal():
+    """Against a brute-force search over the centroids: the element, the distance to its
+    centroid, and the unit normal of its winding; among a subset of the elements, one of them;
+    on a flat sheet no normal."""
+    cap = de.mesh.sphere_cap(1.0, 1.0, 16, h=0.2)
+    points = np.random.default_rng(0).normal(size=(20, 3)) * 0.5 + [0.0, 0.0, 0.8]
+    element, distance, normal = de.mesh.nearest_element(cap, points)
+    gaps = np.linalg.norm(points[:, None] - cap.element_centroids[None], axis=2)
+    np.testing.assert_array_equal(element, np.argmin(gaps, axis=1))
+    np.testing.assert_allclose(distance, np.min(gaps, axis=1))
+    a, b, c = (cap.nodes[cap.triangles[element, corner]] for corner in range(3))
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0)
+    np.testing.assert_allclose(np.einsum("pd,pd->p", normal, b - a), 0.0, atol=1e-12)
+    assert np.all(np.einsum("pd,pd->p", normal, np.cross(b - a, c - a)) > 0)
+    subset = np.arange(0, cap.n_elements, 3)
+    np.testing.assert_array_equal(
+        de.mesh.nearest_element(cap, points, subset)[0], subset[np.argmin(gaps[:, subset], axis=1)]
+    )
+    flat = de.mesh.disc(8, h=0.3)
+    found, _, none = de.mesh.nearest_element(flat, np.array([[0.1, 0.2]]))
+    assert none.shape == (1, 0) and found[0] == np.argmin(np.linalg.norm(flat.element_centroids - [0.1, 0.2], axis=1))
+
+
 def test_the_noise_figure_targets_the_middle_of_a_domes_surface():
     """The noise figure's small target sits at the area-weighted mean of the centroids, which on
     a dome lies inside it (0.25 m below the apex here): it is taken onto the surface, where its

@@ -56,21 +56,58 @@ def onto_surface(mesh: Mesh, point: ArrayLike, elements: ArrayLike | None = None
         ValueError: For points of another dimension than the mesh's.
     """
     point = np.asarray(point, dtype=float)
-    if point.ndim == 0 or point.shape[-1] != mesh.nodes.shape[1]:
-        raise ValueError(f"a point of this mesh has {mesh.nodes.shape[1]} coordinates; got shape {point.shape}")
+    _check_dimension(mesh, point)
     if mesh.nodes.shape[1] == 2:
         return point
-    elements = np.arange(mesh.n_elements) if elements is None else np.asarray(elements)
     points = point.reshape(-1, 3)
     finite = np.all(np.isfinite(points), axis=1)
-    nearest = elements[scipy.spatial.cKDTree(mesh.element_centroids[elements]).query(points[finite])[1]]
-    a, b, c = (mesh.nodes[mesh.triangles[nearest, corner]] for corner in range(3))
-    normal = np.cross(b - a, c - a)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    nearest, _, normal = nearest_element(mesh, points[finite], elements)
     height = np.einsum("pd,pd->p", points[finite] - mesh.element_centroids[nearest], normal)
     projected = np.full_like(points, np.nan)
     projected[finite] = points[finite] - height[:, None] * normal
     return projected.reshape(point.shape)
+
+
+def nearest_element(
+    mesh: Mesh, points: ArrayLike, elements: ArrayLike | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The element (among `elements`) whose centroid is nearest each point, how far that
+    centroid is, and the element's unit normal.
+
+    Arguments:
+        mesh: The sheet.
+        points: (P, D) finite points, m, D the mesh's dimension (built once per mesh, the
+            centroids' k-d tree of all its elements is shared by later calls).
+        elements: The elements to choose among (indices); None for all.
+
+    Returns:
+        (P,) int the elements, (P,) the distances to their centroids, m, and (P, 3) their unit
+        normals (b - a) x (c - a) / |...| (corners a, b, c as the mesh winds them; (P, 0) on a
+        flat sheet, which has no normal in its own coordinates).
+
+    Raises:
+        ValueError: For points of another dimension than the mesh's.
+    """
+    points = np.asarray(points, dtype=float)
+    _check_dimension(mesh, points)
+    if elements is None:
+        distance, nearest = _centroid_tree(mesh).query(points)
+    else:
+        elements = np.asarray(elements)
+        distance, index = scipy.spatial.cKDTree(mesh.element_centroids[elements]).query(points)
+        nearest = elements[index]
+    nearest = np.asarray(nearest, dtype=int)
+    if mesh.nodes.shape[1] == 2:
+        return nearest, np.asarray(distance), np.zeros((len(nearest), 0))
+    a, b, c = (mesh.nodes[mesh.triangles[nearest, corner]] for corner in range(3))
+    normal = np.cross(b - a, c - a)
+    return nearest, np.asarray(distance), normal / np.linalg.norm(normal, axis=1, keepdims=True)
+
+
+def _check_dimension(mesh: Mesh, point: np.ndarray) -> None:
+    """ValueError for points (..., D) of another dimension D than the mesh's."""
+    if point.ndim == 0 or point.shape[-1] != mesh.nodes.shape[1]:
+        raise ValueError(f"a point of this mesh has {mesh.nodes.shape[1]} coordinates; got shape {point.shape}")
 
 
 def surface_distance(mesh: Mesh, start: ArrayLike, stop: ArrayLike) -> np.ndarray:
@@ -97,21 +134,13 @@ def surface_distance(mesh: Mesh, start: ArrayLike, stop: ArrayLike) -> np.ndarra
         ValueError: For points of another dimension than the mesh's.
     """
     start, stop = np.broadcast_arrays(np.asarray(start, dtype=float), np.asarray(stop, dtype=float))
-    dimension = mesh.nodes.shape[1]
-    if start.ndim == 0 or start.shape[-1] != dimension:
-        raise ValueError(f"a point of this mesh has {dimension} coordinates; got shape {start.shape}")
+    _check_dimension(mesh, start)
     chord = stop - start
     length = np.linalg.norm(chord, axis=-1)
-    if dimension == 2:
+    if mesh.nodes.shape[1] == 2:
         return length
-    corners = mesh.nodes[mesh.triangles]
-    element_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    element_normals /= np.linalg.norm(element_normals, axis=1, keepdims=True)
-    tree = scipy.spatial.cKDTree(mesh.element_centroids)
     finite = np.all(np.isfinite(chord), axis=-1)
-    middle, first, last = (
-        element_normals[tree.query(points[finite])[1]] for points in (0.5 * (start + stop), start, stop)
-    )
+    middle, first, last = (nearest_element(mesh, points[finite])[2] for points in (0.5 * (start + stop), start, stop))
     first *= np.sign(np.sum(first * middle, axis=1, keepdims=True) + 1e-300)
     last *= np.sign(np.sum(last * middle, axis=1, keepdims=True) + 1e-300)
     along = length[finite]
