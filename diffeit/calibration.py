@@ -176,6 +176,7 @@ import h5py
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.ndimage
 import scipy.optimize
 import scipy.stats
 
@@ -200,13 +201,15 @@ from .mesh import Mesh, disc, disc_fractions, onto_surface, surface_distance
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import polarity_of, read
+from .touch import _noise_test, polarity_of, read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
 # A recording without a reference is calibrated on the mean of at most this many first frames;
 # a session without presses on those of its first _SESSION_FRAMES that look untouched.
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
+_DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift_corrected`)
+_DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
 # Adopt another orientation when it cuts the misfit as recorded by at least this factor.
 _ORIENTATION_GAIN = 2.0
 # A magnitude's sign is uncertain where the model's reading is under this fraction of its RMS.
@@ -1100,17 +1103,68 @@ def reference_frames(
 
 def _untouched(frames: np.ndarray) -> np.ndarray:
     """(T,) bool, the frames that look untouched. Noise alone puts a frame at a distance from
-    the untouched frames' median that varies by about 1 / sqrt(2 M) of itself (M readings); a
-    frame further than (1 + 5 / sqrt(2 M)) times the median distance is touched. Twice, from
-    all frames and then from those kept; the first `REFERENCE_FRAMES` when fewer pass."""
+    the untouched frames' trend that varies by about 1 / sqrt(2 M) of itself (M readings); a
+    frame further than (1 + 5 / sqrt(2 M)) times the median distance is touched. The trend is
+    each reading's straight line in time, least squares over the frames kept: a skin drifts (a
+    hydrogel dries, a board warms), and from their median a drift of 2% over a simulated
+    session put the first frames among the touched ones, leaving a reference of 5 frames and
+    no noise to test frames against. Three times, from all frames and then from those kept; the
+    first `REFERENCE_FRAMES` when fewer pass."""
     still = np.ones(len(frames), bool)
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
-    for _ in range(2):
-        distance = np.linalg.norm(frames - np.median(frames[still], axis=0), axis=1)
+    time = np.linspace(-1.0, 1.0, len(frames))
+    design = np.column_stack([np.ones_like(time), time])
+    for _ in range(3):
+        if still.sum() < 3:  # no line through fewer
+            break
+        trend = design @ np.linalg.lstsq(design[still], frames[still], rcond=None)[0]
+        distance = np.linalg.norm(frames - trend, axis=1)
         still = distance <= factor * np.median(distance[still])
     if still.sum() < REFERENCE_FRAMES:
         still = np.arange(len(frames)) < REFERENCE_FRAMES
     return still
+
+
+def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Recording, np.ndarray | None]:
+    """The recording with each frame divided by its common gain against the reference, and
+    the gains (T,); the recording as it is and None when `reference_set` holds fewer than
+    `_NOISE_FRAMES` frames (no noise to tell untouched frames by).
+
+    A skin drifts: a hydrogel dries, a sheet and a board warm, and every reading moves with a
+    common gain g(t). Untouched, the differences are then g(t) - 1 times the reference, far
+    above the noise over a session, and every frame looks touched. Each frame's gain c_t is its
+    least-squares multiple of the reference (the readings weighed by their noise); a frame is
+    untouched when what is left, frame - c_t reference, stands within the reference frames'
+    noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5). The
+    gains are the running median of the untouched frames' c_t over `_DRIFT_WINDOW` of them,
+    interpolated in time to the touched frames (the nearest one's beyond them): a touch moves
+    the readings' common part too, and one that moves little else passes for untouched (its
+    own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were then
+    missed). Without drift the gains are 1 to within the noise over the readings.
+
+    Arguments:
+        recording: The recording (frames as recorded).
+        reference_set: (N, M) the frames its reference is the mean of (`reference_frames`).
+
+    Returns:
+        The recording, its frames divided by the gains, and the gains; or the recording and None.
+    """
+    if len(reference_set) < _NOISE_FRAMES or recording.n_frames == 0:
+        return recording, None
+    reference = reference_set.mean(axis=0)
+    noise = reference_set.std(axis=0, ddof=1)
+    kept = noise > 0
+    weighed = reference[kept] / noise[kept] ** 2
+    common = recording.frames[:, kept] @ weighed / (reference[kept] @ weighed)
+    left = recording.frames - common[:, None] * reference
+    still = ~_noise_test(left, noise, len(reference_set), len(reference_set), _DRIFT_DETECTION)
+    if not still.any():
+        return recording, None
+    # A running median over the untouched frames: a touch that moves the readings' common part
+    # alone passes for untouched, and its own gain would take the touch out of its frame.
+    smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
+    gains = np.interp(recording.times, recording.times[still], smooth)
+    return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
 
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
@@ -1164,7 +1218,8 @@ def calibrate(
     """Calibrate the model of a real skin and board from a calibration session.
 
     From the reference frames (`reference_frames`: without a reference or presses, the frames
-    of the session's first 200 that look untouched): the first stage (`calibrate_to_reference`:
+    of the session's first 200 that look untouched; with 6 or more, every frame is first
+    divided by its common gain against them, `drift_corrected`): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, electrode positions and widths (the groups
@@ -1242,6 +1297,9 @@ def calibrate(
     if presses is not None:
         _check_presses(presses, recording, mesh)
     reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
+    recording, gains = drift_corrected(recording, reference)
+    if gains is not None:  # the reference frames, and their spread, without the drift
+        reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
     nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
     first = calibrate_to_reference(
         nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
@@ -1281,6 +1339,8 @@ def calibrate(
         chosen = best.hyperparameter
         calibration = _kept_if_it_generalises(best.calibration, reference_only, best.held_out)
         calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *refused))
+    if frame is not None:  # the presses found it, whether or not their fit is kept
+        calibration = eqx.tree_at(lambda c: c.values, calibration, {**calibration.values, "label_frame": frame})
     if background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT):
         calibration = _with_background_map(calibration, recording, presses, reference, required=bool(background_map))
     if with_memory:
@@ -1833,8 +1893,6 @@ def _press_fit(
             "differences are imaged"
         )
         return _PressFit(None, None, chosen, groups, refused)
-    if frame is not None:
-        fitted = eqx.tree_at(lambda c: c.values, fitted, {**fitted.values, "label_frame": frame})
     found, chosen, polarity = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
     fitted = _with_position_map(fitted, presses, found, chosen, polarity)
     prior = priors["mixing"]

@@ -73,6 +73,7 @@ from .calibration import (
     auto_hyperparameter,
     calibrate_to_reference,
     default_mesh,
+    drift_corrected,
     reference_frames,
 )
 from .fit import JointImaging
@@ -134,7 +135,9 @@ def reconstruct(
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
     mean of its first frames up to the first that looks touched (at least `REFERENCE_FRAMES`;
     their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
-    `diffeit.touches` tests frames against without a calibration). The model (the sheet `mesh`,
+    `diffeit.touches` tests frames against without a calibration, and every frame is divided
+    by its common gain against the reference, a drift's: `drift_corrected`, the gains kept as
+    "frame_gains" and the returned recording's frames the corrected ones). The model (the sheet `mesh`,
     else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
     `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
@@ -238,6 +241,9 @@ def reconstruct(
     # the recording's own frames: `diffeit.touches` tests frames against it without a calibration.
     from_frames = recording.reference is None and reference_frame is None
     spread = reference_set.std(axis=0, ddof=1) if from_frames and len(reference_set) >= _NOISE_FRAMES else None
+    frame_gains = None
+    if spread is not None:  # a drift's common gain out of every frame (`drift_corrected`)
+        recording, frame_gains = drift_corrected(recording, reference_set)
     if calibration is None:
         nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
         calibration = calibrate_to_reference(
@@ -319,6 +325,7 @@ def reconstruct(
         "reference_frames": None if recording.reference is not None and reference_frame is None else len(reference_set),
         "noise_frames": 0 if spread is None else len(reference_set),
         "reading_noise": None if spread is None else spread.tolist(),
+        "frame_gains": None if frame_gains is None else frame_gains.tolist(),
         "calibrated": bool(calibrate) or given,
         "calibration": calibration.summary(),
         "background_map": map_summary,

@@ -129,6 +129,37 @@ def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_a
         de.touches(damaged)
 
 
+def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixing_skin):
+    """A skin whose readings grow 2% over the session (a hydrogel drying, a board warming), many
+    times their noise: the frames are untouched up to the first press against their trend in
+    time, so the reference is still the first 10 frames and their spread is kept (from the
+    frames' median, the drift put the first frames among the touched: a reference of 5 frames
+    and no noise); the drift is taken out of every frame, and the touches are read as on the
+    skin without it."""
+    recording = mixing_skin.recording
+    times = recording.times - recording.times[0]
+    drifted = dataclasses.replace(recording, frames=recording.frames * (1 + 0.02 * times / times[-1])[:, None])
+    assert 0.02 * np.median(np.abs(recording.frames)) > 10 * mixing_skin.noise
+    frames, source = de.calibration.reference_frames(drifted)
+    assert source == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
+    np.testing.assert_array_equal(frames, drifted.frames[:UNTOUCHED])
+    images = de.reconstruct(drifted, progress=False)
+    metadata = images.provenance["metadata"]
+    assert metadata["noise_frames"] == UNTOUCHED
+    # Each frame's common gain is taken out (`drift_corrected`): the drift, to a small part of
+    # itself, on touched frames too (interpolated), and the touches read as without it.
+    drift = 1 + 0.02 * (times - times[:UNTOUCHED].mean()) / times[-1]
+    np.testing.assert_allclose(metadata["frame_gains"], drift, rtol=1e-3)
+    np.testing.assert_allclose(images.frames * np.asarray(metadata["frame_gains"])[:, None], drifted.frames)
+    presses = mixing_skin.presses
+    pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
+    untouched = np.setdiff1d(np.arange(recording.n_frames), pressed)
+    found = de.touches(images)
+    assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
+    plain = de.touches(de.reconstruct(recording, progress=False))
+    assert np.nanmax(np.linalg.norm(found.position[pressed, 0] - plain.position[pressed, 0], axis=1)) < 1e-3
+
+
 def test_presses_determine_the_readouts_mixing(calibrated):
     mixing = calibrated.values["mixing"]
     errors = calibrated.standard_errors["mixing"]
@@ -571,8 +602,11 @@ def test_presses_fit_a_boards_gains_per_reading_on_request(tmp_path):
     true = np.log(np.asarray(skin.readout.gains))
     assert np.corrcoef(log_gain, true - true.mean())[0, 1] > 0.6
     assert calibration.standard_errors["reading_gains"].shape == log_gain.shape
-    # The noise is the reference frames' spread in the units of `signed`, which divides by the gains.
+    # The noise is the reference frames' spread (each frame's common gain, a drift's, taken out)
+    # in the units of `signed`, which divides by the gains.
     reference, _ = de.calibration.reference_frames(skin.recording, presses=skin.presses)
+    steady, _ = de.calibration.drift_corrected(skin.recording, reference)
+    reference, _ = de.calibration.reference_frames(steady, presses=skin.presses)
     spread = np.abs(calibration.signed(reference.std(axis=0, ddof=1)))
     np.testing.assert_allclose(calibration.noise, spread, rtol=1e-9)
     again = de.calibration.load(calibration.save(tmp_path / "gains.cal.h5"), recording=skin.recording)
