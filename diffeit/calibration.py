@@ -210,6 +210,7 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
 _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift_corrected`)
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
+_DRIFT_CHANCE = 1e-6  # the chance that the reference's own jitter passes for a drift (`drift_corrected`)
 # Adopt another orientation when it cuts the misfit as recorded by at least this factor.
 _ORIENTATION_GAIN = 2.0
 # A magnitude's sign is uncertain where the model's reading is under this fraction of its RMS.
@@ -1140,14 +1141,18 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     interpolated in time to the touched frames (the nearest one's beyond them): a touch moves
     the readings' common part too, and one that moves little else passes for untouched (its
     own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were then
-    missed). Without drift the gains are 1 to within the noise over the readings.
+    missed). Gains are taken out only when the untouched frames' c_t spread beyond the
+    reference frames' own (an F test at chance `_DRIFT_CHANCE`): estimated from the frames,
+    each gain is as noisy as the readings' common part, and without drift dividing by them
+    only adds that noise.
 
     Arguments:
         recording: The recording (frames as recorded).
         reference_set: (N, M) the frames its reference is the mean of (`reference_frames`).
 
     Returns:
-        The recording, its frames divided by the gains, and the gains; or the recording and None.
+        The recording, its frames divided by the gains, and the gains; or the recording and
+        None (too few reference frames, or no drift beyond their jitter).
     """
     if len(reference_set) < _NOISE_FRAMES or recording.n_frames == 0:
         return recording, None
@@ -1158,7 +1163,12 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     common = recording.frames[:, kept] @ weighed / (reference[kept] @ weighed)
     left = recording.frames - common[:, None] * reference
     still = ~_noise_test(left, noise, len(reference_set), len(reference_set), _DRIFT_DETECTION)
-    if not still.any():
+    # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
+    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read. The spread is
+    # robust (the median square over 0.455, chi-square's median with one degree of freedom).
+    jitter = np.var(reference_set[:, kept] @ weighed / (reference[kept] @ weighed), ddof=1)
+    spread = np.median((common[still] - 1.0) ** 2) / 0.455 if still.any() else 0.0
+    if not spread > jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), len(reference_set) - 1):
         return recording, None
     # A running median over the untouched frames: a touch that moves the readings' common part
     # alone passes for untouched, and its own gain would take the touch out of its frame.
@@ -1218,8 +1228,8 @@ def calibrate(
     """Calibrate the model of a real skin and board from a calibration session.
 
     From the reference frames (`reference_frames`: without a reference or presses, the frames
-    of the session's first 200 that look untouched; with 6 or more, every frame is first
-    divided by its common gain against them, `drift_corrected`): the first stage (`calibrate_to_reference`:
+    of the session's first 200 that look untouched; with 6 or more, a drift of the frames'
+    common gain is first taken out, `drift_corrected`): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, electrode positions and widths (the groups

@@ -135,9 +135,10 @@ def reconstruct(
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
     mean of its first frames up to the first that looks touched (at least `REFERENCE_FRAMES`;
     their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
-    `diffeit.touches` tests frames against without a calibration, and every frame is divided
-    by its common gain against the reference, a drift's: `drift_corrected`, the gains kept as
-    "frame_gains" and the returned recording's frames the corrected ones). The model (the sheet `mesh`,
+    `diffeit.touches` tests frames against without a calibration; where the frames drift
+    beyond the reference's jitter, every frame is divided by its common gain against the
+    reference, `drift_corrected`, the gains kept as "frame_gains" and the returned recording's
+    frames the corrected ones). The model (the sheet `mesh`,
     else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
     `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as

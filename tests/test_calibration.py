@@ -156,8 +156,12 @@ def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixi
     untouched = np.setdiff1d(np.arange(recording.n_frames), pressed)
     found = de.touches(images)
     assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
-    plain = de.touches(de.reconstruct(recording, progress=False))
-    assert np.nanmax(np.linalg.norm(found.position[pressed, 0] - plain.position[pressed, 0], axis=1)) < 1e-3
+    # Without the drift no gain is taken out (none beyond the reference's jitter); with it, the
+    # gains' noise moves touches by under 1% of the skin's radius (measured 0.45%).
+    plain = de.reconstruct(recording, progress=False)
+    assert plain.provenance["metadata"]["frame_gains"] is None
+    moved = np.linalg.norm(found.position[pressed, 0] - de.touches(plain).position[pressed, 0], axis=1)
+    assert np.max(moved) < 0.01
 
 
 def test_presses_determine_the_readouts_mixing(calibrated):
