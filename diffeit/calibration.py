@@ -1129,7 +1129,7 @@ def _untouched(frames: np.ndarray) -> np.ndarray:
 def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Recording, np.ndarray | None]:
     """The recording with each frame divided by its common gain against the reference, and
     the gains (T,); the recording as it is and None when `reference_set` holds fewer than
-    `_NOISE_FRAMES` frames (no noise to tell untouched frames by).
+    `_NOISE_FRAMES` frames, or identical ones (no noise to tell untouched frames by).
 
     A skin drifts: a hydrogel dries, a sheet and a board warm, and every reading moves with a
     common gain g(t). Untouched, the differences are then g(t) - 1 times the reference, far
@@ -1159,6 +1159,8 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     reference = reference_set.mean(axis=0)
     noise = reference_set.std(axis=0, ddof=1)
     kept = noise > 0
+    if not kept.any():  # identical reference frames: no noise to weigh or test by
+        return recording, None
     weighed = reference[kept] / noise[kept] ** 2
     common = recording.frames[:, kept] @ weighed / (reference[kept] @ weighed)
     left = recording.frames - common[:, None] * reference
