@@ -1109,18 +1109,22 @@ def _untouched(frames: np.ndarray) -> np.ndarray:
     each reading's straight line in time, least squares over the frames kept: a skin drifts (a
     hydrogel dries, a board warms), and from their median a drift of 2% over a simulated
     session put the first frames among the touched ones, leaving a reference of 5 frames and
-    no noise to test frames against. Three times, from all frames and then from those kept; the
-    first `REFERENCE_FRAMES` when fewer pass."""
-    still = np.ones(len(frames), bool)
+    no noise to test frames against. Three times: first against the frames' median (robust to
+    the touched ones), then against the line through those kept; the first `REFERENCE_FRAMES`
+    when fewer pass."""
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
     time = np.linspace(-1.0, 1.0, len(frames))
     design = np.column_stack([np.ones_like(time), time])
-    for _ in range(3):
+
+    def near(trend: np.ndarray, still: np.ndarray) -> np.ndarray:
+        distance = np.linalg.norm(frames - trend, axis=1)
+        return distance <= factor * np.median(distance[still])
+
+    still = near(np.median(frames, axis=0), np.ones(len(frames), bool))
+    for _ in range(2):
         if still.sum() < 3:  # no line through fewer
             break
-        trend = design @ np.linalg.lstsq(design[still], frames[still], rcond=None)[0]
-        distance = np.linalg.norm(frames - trend, axis=1)
-        still = distance <= factor * np.median(distance[still])
+        still = near(design @ np.linalg.lstsq(design[still], frames[still], rcond=None)[0], still)
     if still.sum() < REFERENCE_FRAMES:
         still = np.arange(len(frames)) < REFERENCE_FRAMES
     return still
