@@ -1146,7 +1146,8 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     the readings' common part too, and one that moves little else passes for untouched (its
     own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were then
     missed). Gains are taken out only when the untouched frames' c_t spread beyond the
-    reference frames' own (an F test at chance `_DRIFT_CHANCE`): estimated from the frames,
+    reference frames' own jitter from one frame to the next (an F test at chance
+    `_DRIFT_CHANCE`): estimated from the frames,
     each gain is as noisy as the readings' common part, and without drift dividing by them
     only adds that noise.
 
@@ -1170,9 +1171,11 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     left = recording.frames - common[:, None] * reference
     still = ~_noise_test(left, noise, len(reference_set), len(reference_set), _DRIFT_DETECTION)
     # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
-    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read. The spread is
-    # robust (the median square over 0.455, chi-square's median with one degree of freedom).
-    jitter = np.var(reference_set[:, kept] @ weighed / (reference[kept] @ weighed), ddof=1)
+    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read. The jitter is
+    # half the mean square of successive gains' differences, blind to a slow drift among the
+    # reference frames themselves (a session's untouched frames span it); the spread is robust
+    # (the median square over 0.455, chi-square's median with one degree of freedom).
+    jitter = 0.5 * np.mean(np.diff(reference_set[:, kept] @ weighed / (reference[kept] @ weighed)) ** 2)
     spread = np.median((common[still] - 1.0) ** 2) / 0.455 if still.any() else 0.0
     if not spread > jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), len(reference_set) - 1):
         return recording, None
@@ -1181,6 +1184,15 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
     gains = np.interp(recording.times, recording.times[still], smooth)
     return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
+
+
+def drift_note(gains: np.ndarray) -> str:
+    """The warning that a recording's frames were divided by their drifting common gains (T,)."""
+    low, high = float(np.min(gains)), float(np.max(gains))
+    return (
+        f"the frames' common gain drifts over the recording, from {low:.4g} to {high:.4g} times the reference's "
+        f"({100 * (high - low):.2g}%): each frame is divided by it (diffeit.calibration.drift_corrected)"
+    )
 
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
@@ -1235,7 +1247,7 @@ def calibrate(
 
     From the reference frames (`reference_frames`: without a reference or presses, the frames
     of the session's first 200 that look untouched; with 6 or more, a drift of the frames'
-    common gain is first taken out, `drift_corrected`): the first stage (`calibrate_to_reference`:
+    common gain is first taken out, `drift_corrected`, and warned of): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
     channels), then the refinement (module docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, electrode positions and widths (the groups
@@ -1320,6 +1332,8 @@ def calibrate(
     first = calibrate_to_reference(
         nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
     )
+    if gains is not None:  # said with every later stage's warnings
+        first = eqx.tree_at(lambda c: c.warnings, first, (*first.warnings, drift_note(gains)))
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")

@@ -74,6 +74,7 @@ from .calibration import (
     calibrate_to_reference,
     default_mesh,
     drift_corrected,
+    drift_note,
     reference_frames,
 )
 from .fit import JointImaging
@@ -137,8 +138,8 @@ def reconstruct(
     their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
     `diffeit.touches` tests frames against without a calibration; where the frames drift
     beyond the reference's jitter, every frame is divided by its common gain against the
-    reference, `drift_corrected`, the gains kept as "frame_gains" and the returned recording's
-    frames the corrected ones). The model (the sheet `mesh`,
+    reference, `drift_corrected`, the gains kept as "frame_gains", their range warned of, and
+    the returned recording's frames the corrected ones). The model (the sheet `mesh`,
     else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
     `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
@@ -257,7 +258,7 @@ def reconstruct(
         )
         if calibrate and not background_map:  # the map fits the level and contacts its own way
             calibration = _refine_to_reference(calibration, reference_set, recording)
-    for note in calibration.warnings:
+    for note in (*calibration.warnings, *(() if frame_gains is None else (drift_note(frame_gains),))):
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     model = calibration.model
     level = calibration.background  # the level, or a calibration's background map (E,)

@@ -143,7 +143,8 @@ def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixi
     frames, source = de.calibration.reference_frames(drifted)
     assert source == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
     np.testing.assert_array_equal(frames, drifted.frames[:UNTOUCHED])
-    images = de.reconstruct(drifted, progress=False)
+    with pytest.warns(de.calibration.CalibrationWarning, match="common gain drifts over the recording"):
+        images = de.reconstruct(drifted, progress=False)
     metadata = images.provenance["metadata"]
     assert metadata["noise_frames"] == UNTOUCHED
     # Each frame's common gain is taken out (`drift_corrected`): the drift, to a small part of
@@ -160,6 +161,8 @@ def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixi
     # gains' noise moves touches by under 1% of the skin's radius (measured 0.45%).
     plain = de.reconstruct(recording, progress=False)
     assert plain.provenance["metadata"]["frame_gains"] is None
+    assert any("common gain drifts" in note for note in de.calibrate(drifted).warnings)
+    assert not any("drifts" in note for note in de.calibrate(recording).warnings)
     moved = np.linalg.norm(found.position[pressed, 0] - de.touches(plain).position[pressed, 0], axis=1)
     assert np.max(moved) < 0.01
 
