@@ -1147,9 +1147,8 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were then
     missed). Gains are taken out only when the untouched frames' c_t spread beyond the
     reference frames' own jitter from one frame to the next (an F test at chance
-    `_DRIFT_CHANCE`): estimated from the frames,
-    each gain is as noisy as the readings' common part, and without drift dividing by them
-    only adds that noise.
+    `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the readings' common
+    part, and without drift dividing by them only adds that noise.
 
     Arguments:
         recording: The recording (frames as recorded).
@@ -1186,7 +1185,7 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
 
 
-def drift_note(gains: np.ndarray) -> str:
+def _drift_note(gains: np.ndarray) -> str:
     """The warning that a recording's frames were divided by their drifting common gains (T,)."""
     low, high = float(np.min(gains)), float(np.max(gains))
     return (
@@ -1333,7 +1332,7 @@ def calibrate(
         nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
     )
     if gains is not None:  # said with every later stage's warnings
-        first = eqx.tree_at(lambda c: c.warnings, first, (*first.warnings, drift_note(gains)))
+        first = eqx.tree_at(lambda c: c.warnings, first, (*first.warnings, _drift_note(gains)))
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")

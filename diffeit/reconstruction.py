@@ -67,6 +67,7 @@ from .calibration import (
     CalibrationWarning,
     DrivenReadings,
     SkinCalibration,
+    _drift_note,
     _refine_to_reference,
     _rms,
     _with,
@@ -74,7 +75,6 @@ from .calibration import (
     calibrate_to_reference,
     default_mesh,
     drift_corrected,
-    drift_note,
     reference_frames,
 )
 from .fit import JointImaging
@@ -258,7 +258,7 @@ def reconstruct(
         )
         if calibrate and not background_map:  # the map fits the level and contacts its own way
             calibration = _refine_to_reference(calibration, reference_set, recording)
-    for note in (*calibration.warnings, *(() if frame_gains is None else (drift_note(frame_gains),))):
+    for note in (*calibration.warnings, *(() if frame_gains is None else (_drift_note(frame_gains),))):
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     model = calibration.model
     level = calibration.background  # the level, or a calibration's background map (E,)
