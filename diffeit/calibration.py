@@ -1166,7 +1166,11 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     if not kept.any():  # identical reference frames: no noise to weigh or test by
         return recording, None
     weighed = reference[kept] / noise[kept] ** 2
-    common = recording.frames[:, kept] @ weighed / (reference[kept] @ weighed)
+
+    def gains_of(frames: np.ndarray) -> np.ndarray:
+        return frames[:, kept] @ weighed / (reference[kept] @ weighed)
+
+    common = gains_of(recording.frames)
     left = recording.frames - common[:, None] * reference
     still = ~_noise_test(left, noise, len(reference_set), len(reference_set), _DRIFT_DETECTION)
     # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
@@ -1174,7 +1178,7 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     # half the mean square of successive gains' differences, blind to a slow drift among the
     # reference frames themselves (a session's untouched frames span it); the spread is robust
     # (the median square over 0.455, chi-square's median with one degree of freedom).
-    jitter = 0.5 * np.mean(np.diff(reference_set[:, kept] @ weighed / (reference[kept] @ weighed)) ** 2)
+    jitter = 0.5 * np.mean(np.diff(gains_of(reference_set)) ** 2)
     spread = np.median((common[still] - 1.0) ** 2) / 0.455 if still.any() else 0.0
     if not spread > jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), len(reference_set) - 1):
         return recording, None

@@ -258,7 +258,8 @@ def reconstruct(
         )
         if calibrate and not background_map:  # the map fits the level and contacts its own way
             calibration = _refine_to_reference(calibration, reference_set, recording)
-    for note in (*calibration.warnings, *(() if frame_gains is None else (_drift_note(frame_gains),))):
+    notes = calibration.warnings if frame_gains is None else (*calibration.warnings, _drift_note(frame_gains))
+    for note in notes:
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     model = calibration.model
     level = calibration.background  # the level, or a calibration's background map (E,)
