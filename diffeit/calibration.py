@@ -1157,7 +1157,19 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     Returns:
         The recording, its frames divided by the gains, and the gains; or the recording and
         None (too few reference frames, or no drift beyond their jitter).
+
+    Raises:
+        ValueError: For reference frames that are not (N, M) finite readings of the
+            recording's M, or, with a drift to take out, times that go backwards.
     """
+    reference_set = np.asarray(reference_set, np.float64)
+    if reference_set.ndim != 2 or reference_set.shape[1] != recording.frames.shape[1]:
+        raise ValueError(
+            f"reference_set must be (N, {recording.frames.shape[1]}) frames of the recording's readings; "
+            f"got shape {reference_set.shape}"
+        )
+    if not np.all(np.isfinite(reference_set)):
+        raise ValueError("reference_set holds non-finite values (NaN or inf)")
     if len(reference_set) < _NOISE_FRAMES or recording.n_frames == 0:
         return recording, None
     reference = reference_set.mean(axis=0)
@@ -1182,6 +1194,12 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     spread = np.median((common[still] - 1.0) ** 2) / 0.455 if still.any() else 0.0
     if not spread > jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), len(reference_set) - 1):
         return recording, None
+    backwards = np.flatnonzero(np.diff(recording.times) < 0)
+    if len(backwards):
+        raise ValueError(
+            f"the recording's times go backwards at frame {backwards[0] + 1}: its drift's gains cannot be "
+            "interpolated in time"
+        )
     # A running median over the untouched frames: a touch that moves the readings' common part
     # alone passes for untouched, and its own gain would take the touch out of its frame.
     smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")

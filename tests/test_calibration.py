@@ -163,6 +163,15 @@ def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixi
     assert plain.provenance["metadata"]["frame_gains"] is None
     moved = np.linalg.norm(found.position[pressed, 0] - de.touches(plain).position[pressed, 0], axis=1)
     assert np.max(moved) < 0.01
+    # Bad input is named: reference frames of another shape or with a NaN, and (with a drift to
+    # take out) times that go backwards.
+    with pytest.raises(ValueError, match="reference_set must be"):
+        de.calibration.drift_corrected(drifted, drifted.frames[:UNTOUCHED, :-1])
+    with pytest.raises(ValueError, match="non-finite"):
+        de.calibration.drift_corrected(drifted, np.where(np.eye(UNTOUCHED, drifted.frames.shape[1]), np.nan, 1.0))
+    shuffled = dataclasses.replace(drifted, times=drifted.times[::-1].copy())
+    with pytest.raises(ValueError, match="times go backwards at frame 1"):
+        de.calibration.drift_corrected(shuffled, drifted.frames[:UNTOUCHED])
     # A calibration on the session's untouched frames (they span the drift) says so too.
     assert any("common gain drifts" in note for note in de.calibrate(drifted).warnings)
     assert not any("drifts" in note for note in de.calibrate(recording).warnings)
