@@ -83,13 +83,35 @@ def _reconstruct(recording, angles=None, **options):
     return result, [str(w.message) for w in caught if issubclass(w.category, CalibrationWarning)]
 
 
+@pytest.fixture(scope="module")
+def adjacent_recording() -> de.io.Recording:
+    """`_recording` of the adjacent protocol with its defaults, which several tests read (each
+    copies what it changes): simulated once on the fine disc."""
+    return _recording(de.protocol.adjacent(16))
+
+
+@pytest.fixture(scope="module")
+def imaged_with_the_defaults(adjacent_recording):
+    """`adjacent_recording` imaged with every default, and its calibration warnings: the first
+    test's result, and the one-step image Gauss-Newton's automatic hyperparameter is compared with."""
+    return _reconstruct(adjacent_recording)
+
+
+@pytest.fixture(scope="module")
+def counts_and_one_step():
+    """A recording in arbitrary units (x250) and its one-step image at hyperparameter 0.05, which
+    each nonlinear method's image is compared with."""
+    recording = _recording(de.protocol.adjacent(16), unit=250.0)
+    return recording, _reconstruct(recording, hyperparameter=0.05)[0]
+
+
 def _position_error(result, frame: int = 1) -> float:
     image = result.images[frame]
     return float(np.linalg.norm(de.metrics.half_amplitude_centroid(result.mesh, -image) - CENTRE))
 
 
-def test_a_recording_in_volts_images_the_touch_at_its_place_and_says_what_it_chose():
-    result, caught = _reconstruct(_recording(de.protocol.adjacent(16)))
+def test_a_recording_in_volts_images_the_touch_at_its_place_and_says_what_it_chose(imaged_with_the_defaults):
+    result, caught = imaged_with_the_defaults
     metadata = result.provenance["metadata"]
     calibration = metadata["calibration"]
     assert caught == []
@@ -109,8 +131,8 @@ def test_a_recording_in_volts_images_the_touch_at_its_place_and_says_what_it_cho
     assert metadata["difference"] == "calibrated"
 
 
-def test_an_arbitrary_voltage_unit_gives_the_same_relative_image():
-    volts, _ = _reconstruct(_recording(de.protocol.adjacent(16)), hyperparameter=0.05)
+def test_an_arbitrary_voltage_unit_gives_the_same_relative_image(adjacent_recording):
+    volts, _ = _reconstruct(adjacent_recording, hyperparameter=0.05)
     counts, _ = _reconstruct(_recording(de.protocol.adjacent(16), unit=3.7e4), hyperparameter=0.05)
     assert counts.image_quantity == "relative conductivity change"
     level = volts.provenance["metadata"]["calibration"]["conductivity"]
@@ -215,9 +237,8 @@ def test_readings_on_driven_electrodes_are_kept_through_a_fitted_contact_impedan
     assert any("driven electrodes dropped" in message for message in caught)
 
 
-def test_broken_readings_and_a_broken_electrode_are_masked_and_reported():
-    protocol = de.protocol.adjacent(16)
-    recording = _recording(protocol)
+def test_broken_readings_and_a_broken_electrode_are_masked_and_reported(adjacent_recording):
+    protocol, recording = adjacent_recording.protocol, adjacent_recording
     frames, reference = np.array(recording.frames), np.array(recording.reference)
     largest = np.abs(reference).max()
     reference[10] = 0.0  # a dead channel
@@ -266,8 +287,8 @@ def test_reading_by_reading_ratios_blow_up_where_the_default_does_not():
     assert error > 0.3 > 0.12 > _position_error(calibrated)  # the ratios of near-zero readings lose the touch
 
 
-def test_bad_input_is_refused_or_warned_about():
-    recording = _recording(de.protocol.adjacent(16))
+def test_bad_input_is_refused_or_warned_about(adjacent_recording):
+    recording = adjacent_recording
     with pytest.raises(ValueError, match="method"):
         de.reconstruct(recording, method="magic")
     with pytest.raises(ValueError, match="hyperparameter"):
@@ -305,8 +326,8 @@ def test_bad_input_is_refused_or_warned_about():
     assert _position_error(result) < 0.12
 
 
-def test_a_recording_without_reference_is_calibrated_on_its_first_frames():
-    recording = _recording(de.protocol.adjacent(16))
+def test_a_recording_without_reference_is_calibrated_on_its_first_frames(adjacent_recording):
+    recording = adjacent_recording
     without = de.io.Recording(frames=recording.frames, times=recording.times, protocol=recording.protocol)
     result, _ = _reconstruct(without, hyperparameter=0.05)
     assert result.provenance["metadata"]["reference"] == "mean of the first 4 frames"
@@ -314,9 +335,8 @@ def test_a_recording_without_reference_is_calibrated_on_its_first_frames():
 
 
 @pytest.mark.parametrize("method", ["gauss_newton", "total_variation", "greit"])
-def test_the_nonlinear_methods_run_at_the_calibrated_state(method):
-    recording = _recording(de.protocol.adjacent(16), unit=250.0)
-    one_step, _ = _reconstruct(recording, hyperparameter=0.05)
+def test_the_nonlinear_methods_run_at_the_calibrated_state(counts_and_one_step, method):
+    recording, one_step = counts_and_one_step
     result, _ = _reconstruct(recording, hyperparameter=0.05, method=method)
     assert result.provenance["metadata"]["method"] == method
     assert result.provenance["metadata"]["results"] == ["successful"] * 4  # each frame's solver converged
@@ -390,10 +410,11 @@ def test_a_32_electrode_tank_with_its_own_patterns_is_imaged_with_the_defaults()
     assert -1.0 < result.images[1].min() < -0.1  # dsigma / sigma of a -50% target, blurred
 
 
-def test_gauss_newtons_automatic_hyperparameter_is_four_times_the_one_steps():
-    recording = _recording(de.protocol.adjacent(16))
-    one_step, _ = _reconstruct(recording)
-    nonlinear, _ = _reconstruct(recording, method="gauss_newton")
+def test_gauss_newtons_automatic_hyperparameter_is_four_times_the_one_steps(
+    adjacent_recording, imaged_with_the_defaults
+):
+    one_step, _ = imaged_with_the_defaults
+    nonlinear, _ = _reconstruct(adjacent_recording, method="gauss_newton")
     choice = nonlinear.provenance["metadata"]["hyperparameter_choice"]
     assert choice["gauss_newton_factor"] == 4.0
     assert nonlinear.provenance["metadata"]["hyperparameter"] == pytest.approx(
