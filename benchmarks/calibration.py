@@ -135,7 +135,8 @@ def true_calibration(fitted, truth, reference: np.ndarray):
     model = de.ForwardModel(mesh, readout.folded(protocol), contact)
     level = float(np.mean(np.asarray(scene.background.values_on(mesh))))
     sign = np.where(np.asarray(model.measure(jnp.full(mesh.n_elements, level))) < 0, -1.0, 1.0)
-    # Every reading is used; the noise, in the truth's units, is set once they are in place.
+    # Every reading is used, at the mean level (not the fitted calibration's background map, in
+    # its units); the noise, in the truth's units, is set once they are in place.
     true = eqx.tree_at(
         lambda c: (
             c.model,
@@ -143,12 +144,13 @@ def true_calibration(fitted, truth, reference: np.ndarray):
             c.readout,
             c.used,
             c.reading_sign,
+            c.background_map,
             c.position_map,
             c.hyperparameter,
             c.noise,
         ),
         fitted,
-        (model, level, readout, np.ones(protocol.n_measurements, bool), sign, None, None, None),
+        (model, level, readout, np.ones(protocol.n_measurements, bool), sign, None, None, None, None),
         is_leaf=lambda node: node is None,
     )
     noise = np.std(true.signed(reference), axis=0, ddof=1)
