@@ -37,6 +37,7 @@ import scipy.interpolate
 from tqdm.auto import tqdm
 
 from . import metrics
+from ._threads import host_algebra
 from .forward import ForwardModel
 from .inverse import OneStep
 from .mesh import Mesh, element_sample_points, locate, nearest_element, onto_surface
@@ -153,6 +154,7 @@ class Calibration(eqx.Module):
             if not np.all(np.isfinite(value) & (value > 0)):
                 raise ValueError(f"{name} must be finite and positive")
 
+    @host_algebra
     def factors(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The correction factors for targets imaged at `points`.
 
@@ -395,6 +397,7 @@ def default_positions(mesh: Mesh) -> np.ndarray:
     return onto_surface(mesh, np.array(points))
 
 
+@host_algebra
 def calibrate(
     model: ForwardModel,
     data_model: ForwardModel,
@@ -524,6 +527,7 @@ def _touch_fields(mesh: Mesh, centres: jax.Array, radius: float, intensity: floa
     return jax.vmap(lambda centre: touch_field(mesh, Touch(Disc(centre, radius), intensity), 0.0))(centres)
 
 
+@host_algebra
 def correct(calibration: Calibration, mesh: Mesh, image: np.ndarray) -> np.ndarray:
     """Correct an element image for the position dependence of the reconstruction.
 

@@ -59,6 +59,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ._messages import name_indices
+from ._threads import host_algebra
 from .calibration import (
     _LEAST_CORRELATION,
     _NOISE_FRAMES,
@@ -110,6 +111,7 @@ _GREIT_NOISE_FIGURE = 0.5
 _CHUNKS = {OneStep: 256, GREIT: 256, TotalVariation: 1}
 
 
+@host_algebra
 def reconstruct(
     recording: Recording,
     *,

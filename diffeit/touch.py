@@ -108,6 +108,7 @@ from numpy.typing import ArrayLike
 from scipy.sparse.csgraph import breadth_first_order
 
 from ._arrays import per_element
+from ._threads import host_algebra
 from .forward import ForwardModel
 from .io import Recording
 from .mesh import Mesh, nearest_element, onto_surface
@@ -202,6 +203,7 @@ class Touches(eqx.Module):
         return lines
 
 
+@host_algebra
 def touches(
     recording: Recording,
     calibration: Any = None,
@@ -435,6 +437,7 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     return (ratio - 1) / np.sqrt(2 / k + 2 / rest) > detection
 
 
+@host_algebra
 def read(
     mesh: Mesh,
     images: ArrayLike,
