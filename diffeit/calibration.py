@@ -2104,7 +2104,7 @@ def _fit_presses(
     values[free], spread[free] = mixing, errors
     readout = Readout(protocol, values[0], values[1], values[2:], gains * np.exp(log_gain))
     mixed = weights + np.asarray(readout.mixing(protocol))
-    # `sign`: the fit's, where the presses' differences decide them (`_signs`), the frames are signed with.
+    # The readings' signs are the fit's (`_signs`: the presses' where they decide them); the frames take them.
     # The mixing (and the gains) change the reference's readings: the level (and unit) is fitted again.
     readings = np.sum(mixed * unchanged[drive], axis=1)
     data = data * sign / np.exp(log_gain)
@@ -2316,7 +2316,7 @@ def _press_residual(
     depth: np.ndarray,
 ) -> np.ndarray:
     """(K, M) the presses' differences less the bilinear model's (`_mixing_and_depths`, its
-    arguments), the signs of magnitudes those of the mixed reference readings."""
+    arguments), the signs of magnitudes `_signs`' (the presses' where they decide them)."""
     unsigned = base + columns @ mixing
     mixed = weights + np.einsum("p,pml->ml", mixing, basis)
     sign = _signs(mixed, potentials, magnitude, depth[:, None] * unsigned, differences)
@@ -2327,7 +2327,7 @@ def _step_with_depths(
     predicted: np.ndarray,
     along: np.ndarray,
     residual: np.ndarray,
-    scale: float,
+    scale: np.ndarray,
     values: np.ndarray,
     precision: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

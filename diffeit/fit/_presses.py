@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._threads import host_algebra
 from ..memory import MemoryParameters, memory_response, over_foam
 from ..results import RESULTS, throw_if_failed
 from ._memory import (
@@ -121,6 +122,7 @@ def _chi_square(problem: _PressProblem, x: jax.Array) -> jax.Array:
     return jnp.sum(problem.residuals(x) ** 2)
 
 
+@host_algebra
 def memory_from_presses(
     images: jax.Array | np.ndarray,
     times: jax.Array | np.ndarray,

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..inverse.linearised import check_frames
 from ._joint import JointFit, JointProblem
@@ -87,6 +88,7 @@ class MemoryUncertainty(eqx.Module):
         return lines
 
 
+@host_algebra
 def memory_uncertainty(model: ForwardModel, frames: jax.Array | np.ndarray, fit: JointFit) -> MemoryUncertainty:
     """The standard errors and correlations of the memory parameters a joint fit fitted.
 
