@@ -2000,15 +2000,15 @@ def _fit_presses(
 
     Each press k is a disc of the labelled centre and radius and an unknown depth a_k; its
     differences are linearised at the calibrated level, dv_k = a_k s * ((W + X) dU_k), dU_k the
-    electrode potentials' change under the press's pattern, s the readings' signs (of the
-    mixed reference readings, for magnitudes). X is linear in the mixing weights: the weights,
-    with their prior, and the depths are solved together (`_mixing_and_depths`), from the
-    reference's weights. The positions take Gauss-Newton steps with the weights and depths on
-    the same differences (their derivative by `jax.jacfwd` through the forward model), with
-    their prior, each followed by the weights' and depths' own fit. With `gains_prior` (the
-    prior standard deviation of a gain's relative change), each reading also gets a gain of its
-    own, fitted with the weights and depths (`_mixing_depths_and_gains`) and multiplied into
-    the readout's gains."""
+    electrode potentials' change under the press's pattern, s the readings' signs (for
+    magnitudes, the presses' where they decide them, else the mixed reference readings';
+    `_signs`). X is linear in the mixing weights: the weights, with their prior, and the depths
+    are solved together (`_mixing_and_depths`), from the reference's weights. The positions
+    take Gauss-Newton steps with the weights and depths on the same differences (their
+    derivative by `jax.jacfwd` through the forward model), with their prior, each followed by
+    the weights' and depths' own fit. With `gains_prior` (the prior standard deviation of a
+    gain's relative change), each reading also gets a gain of its own, fitted with the weights
+    and depths (`_mixing_depths_and_gains`) and multiplied into the readout's gains."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
@@ -2048,7 +2048,7 @@ def _fit_presses(
         return base, np.einsum("pml,kml->kmp", basis, changes[:, drive]), response.potentials[drive]
 
     def objective(at: tuple, mixing: np.ndarray, depth: np.ndarray, shift: np.ndarray, scale: np.ndarray) -> float:
-        residual = _press_residual(scaled, *at[:2], basis, weights, at[2], magnitude, mixing, depth)
+        residual, _ = _press_residual(scaled, *at[:2], basis, weights, at[2], magnitude, mixing, depth)
         penalty = np.sum(mixing**2) / prior**2 + np.sum(shift**2) / positions[0] ** 2
         return float(np.sum((residual / scale) ** 2) + penalty)
 
@@ -2265,21 +2265,21 @@ def _mixing_and_depths(
     """
 
     def objective(mixing: np.ndarray, depth: np.ndarray, scale: np.ndarray) -> float:
-        residual = _press_residual(differences, base, columns, basis, weights, potentials, magnitude, mixing, depth)
+        residual, _ = _press_residual(differences, base, columns, basis, weights, potentials, magnitude, mixing, depth)
         return float(np.sum((residual / scale) ** 2) + np.sum(mixing**2) / prior**2)
 
     depth = None
     precision = np.full(len(mixing), prior**-2.0)
     for _ in range(_PRESS_ROUNDS):
         unsigned = base + columns @ mixing  # (K, M), at unit depth
-        mixed = weights + np.einsum("p,pml->ml", mixing, basis)
         if depth is None:
-            predicted = _signs(mixed, potentials, magnitude) * unsigned
+            predicted = _signs(weights + np.einsum("p,pml->ml", mixing, basis), potentials, magnitude) * unsigned
             depth = np.sum(predicted * differences, axis=1) / np.maximum(np.sum(predicted**2, axis=1), 1e-300)
-        sign = _signs(mixed, potentials, magnitude, depth[:, None] * unsigned, differences)
+        residual, sign = _press_residual(
+            differences, base, columns, basis, weights, potentials, magnitude, mixing, depth
+        )
         predicted = sign * unsigned
         along = depth[:, None, None] * sign[None, :, None] * columns  # d dv / d m
-        residual = differences - depth[:, None] * predicted
         scale = _residual_scale(residual, differences)
         step, depth_step, curvature = _step_with_depths(predicted, along, residual, scale, mixing, precision)
         # The model is bilinear and the signs of magnitudes follow the weights: a full step can
@@ -2298,9 +2298,7 @@ def _mixing_and_depths(
         depth = depth + depth_step
         if np.max(np.abs(step)) < _PRESS_STEP:
             break
-    mixed = weights + np.einsum("p,pml->ml", mixing, basis)
-    sign = _signs(mixed, potentials, magnitude, depth[:, None] * (base + columns @ mixing), differences)
-    residual = _press_residual(differences, base, columns, basis, weights, potentials, magnitude, mixing, depth)
+    residual, sign = _press_residual(differences, base, columns, basis, weights, potentials, magnitude, mixing, depth)
     return mixing, depth, sign, curvature, residual, float(np.max(np.abs(step)))
 
 
@@ -2314,13 +2312,14 @@ def _press_residual(
     magnitude: bool,
     mixing: np.ndarray,
     depth: np.ndarray,
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """(K, M) the presses' differences less the bilinear model's (`_mixing_and_depths`, its
-    arguments), the signs of magnitudes `_signs`' (the presses' where they decide them)."""
+    arguments), and the readings' signs (M,) it takes: for magnitudes `_signs`' (the presses'
+    where they decide them)."""
     unsigned = base + columns @ mixing
     mixed = weights + np.einsum("p,pml->ml", mixing, basis)
     sign = _signs(mixed, potentials, magnitude, depth[:, None] * unsigned, differences)
-    return differences - depth[:, None] * sign * unsigned
+    return differences - depth[:, None] * sign * unsigned, sign
 
 
 def _step_with_depths(
