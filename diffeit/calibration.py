@@ -107,12 +107,19 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   the weights and depths (closed form per reading given them; their geometric mean held at 1,
   a common factor being the depths'), and multiplied into the readout's gains. A reference
   cannot tell a reading's gain from the model's error there; the presses' differences can.
-- **Electrode positions**, with the mixing: Gauss-Newton steps of the positions, the weights
-  and the depths together on the same differences (the derivative in the positions by
-  `jax.jacfwd` through the forward model), with their priors, a step halved until the presses'
-  objective decreases, each followed by the mixing's own fit. By default (`press_groups=None`)
-  the mixing alone and the mixing with the positions are both fitted, and the one whose
-  held-out presses (below) read closest goes on to be compared with the reference's calibration. A
+- **Electrode positions and a background map**, with the mixing: Gauss-Newton steps of the
+  positions, of the coefficients of a smooth map of the sheet's ln sigma (the terms of the
+  background map below, prior standard deviation 0.3 each), the weights and the depths
+  together on the same differences (the derivative in the positions and the coefficients by
+  `jax.jacfwd` through the forward model; a press lowers the sheet by a fraction of its own
+  conductivity, so its pattern follows the map), with their priors, a step halved until the
+  presses' objective decreases, each followed by the mixing's own fit. A press's response
+  measures the sheet where it is: fitted with a uniform sheet, a sheet 30% more conductive on
+  one side moved the electrodes instead, up to 3 degrees off (docs/tutorials/calibration.md).
+  By default (`press_groups=None`) the mixing alone and the mixing with the positions are both
+  fitted (the map on request: with the labels' frame searched it read the benchmark's test
+  presses no closer), and the one whose held-out presses (below) read closest goes on to be
+  compared with the reference's calibration. A
   fit that takes the model's correlation with the reference under 0.5, where
   `diffeit.reconstruct` would image normalised differences rather than the calibrated ones the
   presses were read at, is refused by name.
@@ -154,11 +161,15 @@ readout the model misses: a few smooth terms are what a reference can carry.)
 
 A reference alone cannot tell a non-uniform sheet from the model's other errors (mixing,
 positions, gains), which a map absorbs as readily; so by default the map is fitted only with
-at least 20 labelled presses and kept only when the presses, read at it through a position map
-fitted again, land closer to their labels (leave-one-out) at significantly more presses than
-farther (a one-sided sign test at 5%: with 30 presses, at least 20 of them); its press errors
-are then those leave-one-out ones.
-`calibrate(..., background_map=True)` fits and keeps it in any case.
+at least 20 labelled presses, to the reference (or by the presses with the electrode
+positions, when `press_groups` names it and that fit is kept: above), and then kept only when
+the presses, read at it
+through a position map fitted again, land closer to their labels (leave-one-out) at
+significantly more presses than farther (a one-sided sign test at 5%: with 30 presses, at
+least 20 of them); its press errors are then those leave-one-out ones.
+`calibrate(..., background_map=True)` fits and keeps it in any case (the reference's map
+where the presses' fit kept has none); `background_map=False` fits none (and refuses a
+`press_groups` that names it).
 
 The calibrated `ForwardModel` folds the mixing into its protocol's reading weights and carries
 the fitted electrode positions (its `electrode_shift`); gains divide the recorded frames
@@ -715,7 +726,7 @@ REFERENCE_GROUPS = ("contact_impedance", "mixing")
 # The groups fitted to the presses' differences by default, each set in turn, the one whose
 # held-out presses read closest kept (docs/tutorials/calibration.md), and those that can be.
 PRESS_GROUP_CHOICES = (("mixing",), ("mixing", "electrode_positions"))
-_PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains")
+_PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains", "background_map")
 # The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
 _NOISE_FRAMES = 6
 # An L-curve corner within this factor of an end of the candidates counts as at the end.
@@ -1323,28 +1334,32 @@ def calibrate(
             reference the first stage's model correlates with under 0.5. The presses fit
             every mixing weight.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
-            "electrode_positions" and "reading_gains" (a gain per reading, prior standard
-            deviation 0.2 of its relative change). None: each set of `PRESS_GROUP_CHOICES`
-            (the mixing; the mixing and the positions) in turn, the one whose held-out presses
-            read closest kept (measured in docs/tutorials/calibration.md).
+            "electrode_positions", "background_map" (module docstring) and "reading_gains" (a
+            gain per reading, prior standard deviation 0.2 of its relative change). None: each
+            set of `PRESS_GROUP_CHOICES` (the mixing; the mixing and the positions) in turn,
+            the one whose held-out presses read closest kept (measured in
+            docs/tutorials/calibration.md).
         hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
             it from the presses' frames (`auto_hyperparameter`).
         memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
             memory to the session's images, the presses' footprints and holds known
             (`diffeit.fit.memory_from_presses`).
-        background_map: Fit a smooth map of the sheet's conductivity to the reference frames
-            (module docstring, "Background map"). None: with at least 20 labelled presses,
-            kept when it reads significantly more of them closer to their labels than farther
-            (leave-one-out), else not fitted (a reference alone cannot tell a non-uniform sheet
-            from the model's other errors); True: fitted and kept; False: not fitted.
+        background_map: Fit a smooth map of the sheet's conductivity (module docstring,
+            "Background map"). None: with at least 20 labelled presses, the presses' map when
+            `press_groups` names it and their fit is kept, else the reference's, kept when it
+            reads significantly more of them closer to their labels than farther
+            (leave-one-out); without, not fitted (a reference alone cannot tell a non-uniform
+            sheet from the model's other errors); True: fitted and kept; False: not fitted.
 
     Returns:
         The `SkinCalibration`.
 
     Raises:
         ValueError: For a recording without frames, presses outside the skin or outside the
-            recording's time, an unknown prior group, a `background_map` other than None, True
-            or False, or a reference the model cannot be calibrated on.
+            recording's time, an unknown prior group, `press_groups` without "mixing" or with
+            a group the presses cannot fit (or "background_map" with `background_map=False`),
+            a `background_map` other than None, True or False, or a reference the model
+            cannot be calibrated on.
     """
     if not isinstance(recording, Recording):
         raise ValueError(f"calibrate takes a diffeit.io.Recording; got {type(recording).__name__}")
@@ -1379,9 +1394,11 @@ def calibrate(
     possible = press_groups is None or ("mixing" in press_groups and set(press_groups) <= set(_PRESS_GROUPS_POSSIBLE))
     if not possible:
         raise ValueError(
-            "press_groups must hold 'mixing' and may hold 'electrode_positions' and 'reading_gains'; "
-            f"got {press_groups}"
+            "press_groups must hold 'mixing' and may hold 'electrode_positions', 'reading_gains' and "
+            f"'background_map'; got {press_groups}"
         )
+    if background_map is False and press_groups is not None and "background_map" in press_groups:
+        raise ValueError("press_groups names 'background_map' but background_map=False: fit the map or not")
     calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
@@ -1410,7 +1427,8 @@ def calibrate(
         calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *refused))
     if frame is not None:  # the presses found it, whether or not their fit is kept
         calibration = eqx.tree_at(lambda c: c.values, calibration, {**calibration.values, "label_frame": frame})
-    if background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT):
+    mapped_by_presses = "background_map" in calibration.fitted.get("presses", ())
+    if not mapped_by_presses and (background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT)):
         calibration = _with_background_map(calibration, recording, presses, reference, required=bool(background_map))
     if with_memory:
         calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
@@ -1942,17 +1960,12 @@ def _press_fit(
     it (at `hyperparameter`, or None: one chosen again from them) and a position map fitted, and
     its held-out errors (`_held_out_errors`); a refused fit carries `chosen`, the hyperparameter
     the reference's calibration read the presses at."""
-    positions = (
-        _position_prior(calibration.model, priors["electrode_positions"]) if "electrode_positions" in groups else None
-    )
-    gains_prior = priors["reading_gains"] if "reading_gains" in groups else None
+    free = _PressGroups.of(calibration.model, priors, groups)
     # The fit and the held-out folds start from this model (the reference's calibration's).
-    response = _ElectrodeResponse.of_calibration(calibration, None if positions is None else positions[1])
+    response = _ElectrodeResponse.of_calibration(calibration, None if free.positions is None else free.positions[1])
     moved = _moved(presses, frame)
     try:
-        fitted, _ = _fit_presses(
-            calibration, recording, moved, reference, priors["mixing"], polarity, response, positions, None, gains_prior
-        )
+        fitted, _ = _fit_presses(calibration, recording, moved, reference, priors["mixing"], polarity, response, free)
     except _ContradictsReference:
         return _PressFit(None, None, chosen, groups, _CONTRADICTS)
     if fitted.correlation < _SKIN_LEAST_CORRELATION <= calibration.correlation:
@@ -1966,9 +1979,28 @@ def _press_fit(
     fitted = _with_position_map(fitted, presses, found, chosen, polarity)
     prior = priors["mixing"]
     held_out = _held_out_errors(
-        calibration, recording, presses, reference, prior, frame, positions, chosen, polarity, response, gains_prior
+        calibration, recording, presses, reference, prior, frame, free, chosen, polarity, response
     )
     return _PressFit(fitted, held_out, chosen, groups)
+
+
+class _PressGroups(NamedTuple):
+    """What the presses fit besides the readout's mixing, by their priors: the electrode
+    positions' (prior standard deviation and margin, m), the gains per reading's (prior
+    standard deviation of a gain's relative change), the background map's (prior standard
+    deviation of each coefficient of ln sigma); None for a group not fitted."""
+
+    positions: tuple[float, float] | None = None
+    gains: float | None = None
+    sheet: float | None = None
+
+    @classmethod
+    def of(cls, model: ForwardModel, priors: Mapping[str, float], groups: tuple[str, ...]) -> _PressGroups:
+        return cls(
+            _position_prior(model, priors["electrode_positions"]) if "electrode_positions" in groups else None,
+            priors["reading_gains"] if "reading_gains" in groups else None,
+            _SHEET_PRIOR if "background_map" in groups else None,
+        )
 
 
 class _ContradictsReference(Exception):
@@ -1987,34 +2019,41 @@ def _fit_presses(
     prior: float,
     polarity: int,
     response: _ElectrodeResponse,
-    positions: tuple[float, float] | None = None,
+    free: _PressGroups | None = None,
     train: np.ndarray | None = None,
-    gains_prior: float | None = None,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
-    "Presses"), and the relative misfit of the presses' differences; with `positions` (the
-    prior standard deviation and margin, m), the electrode positions too; with `train` (K,)
-    bool, to those presses alone (the others' potentials are computed all the same: the
-    compiled programs are those of all K presses). `response` is the calibration's model's
-    (`_ElectrodeResponse.of_calibration`, with the margin of `positions` when they are fitted).
+    "Presses"), and the relative misfit of the presses' differences; with `free`, the groups
+    it names too (`_PressGroups`: electrode positions, gains per reading, background map; None:
+    the mixing alone); with
+    `train` (K,) bool, to those presses alone (the others' potentials are computed all the
+    same: the compiled programs are those of all K presses). `response` is the calibration's
+    model's (`_ElectrodeResponse.of_calibration`, with the margin of `free.positions` when they
+    are fitted).
 
-    Each press k is a disc of the labelled centre and radius and an unknown depth a_k; its
-    differences are linearised at the calibrated level, dv_k = a_k s * ((W + X) dU_k), dU_k the
-    electrode potentials' change under the press's pattern, s the readings' signs (for
-    magnitudes, the presses' where they decide them, else the mixed reference readings';
-    `_signs`). X is linear in the mixing weights: the weights, with their prior, and the depths
-    are solved together (`_mixing_and_depths`), from the reference's weights. The positions
-    take Gauss-Newton steps with the weights and depths on the same differences (their
-    derivative by `jax.jacfwd` through the forward model), with their prior, each followed by
-    the weights' and depths' own fit. With `gains_prior` (the prior standard deviation of a
-    gain's relative change), each reading also gets a gain of its own, fitted with the weights
-    and depths (`_mixing_depths_and_gains`) and multiplied into the readout's gains."""
+    Each press k is a disc of the labelled centre and radius and an unknown depth a_k, a
+    relative change of the sheet's conductivity sigma under it; its differences are linearised
+    at sigma, dv_k = a_k s * ((W + X) dU_k), dU_k the electrode potentials' change under the
+    press's pattern, s the readings' signs (for magnitudes, the presses' where they decide
+    them, else the mixed reference readings'; `_signs`). X is linear in the mixing weights:
+    the weights, with their prior, and the depths are solved together (`_mixing_and_depths`),
+    from the reference's weights. The positions, and the background map (sigma = sigma_0
+    exp(terms @ c), the terms of the reference's map, `_sheet_terms`, sigma_0 the
+    calibration's), take Gauss-Newton steps with the weights and depths on the same
+    differences (their derivative by `jax.jacfwd` through the forward model), with their
+    priors, each followed by the weights' and depths' own fit. With gains per reading, each
+    reading also gets a gain of its own, fitted with the weights and depths
+    (`_mixing_depths_and_gains`) and multiplied into the readout's gains."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
-    every, sigma = response.every, response.sigma
+    free = _PressGroups() if free is None else free
+    positions, gains_prior = free.positions, free.gains
+    every, sigma = response.every, np.asarray(response.sigma)
     level = calibration.conductivity
-    patterns = jnp.asarray(polarity * level * _press_patterns(every.mesh, presses))
+    fractions = polarity * _press_patterns(every.mesh, presses)  # (K, E) of the sheet's conductivity
+    terms = _sheet_terms(every.mesh) if free.sheet is not None else np.zeros((every.n_elements, 0))
+    coefficients = np.zeros(terms.shape[1])
     source, sink, offset = roles(protocol)
     fixed = _ReadoutFit.of(first.model, level, calibration.contact_impedance, False).pair_offsets
     basis = np.concatenate([source[None], sink[None], offset[~fixed]])  # (p, M, L)
@@ -2037,23 +2076,29 @@ def _fit_presses(
     mixing = np.concatenate([[float(readout.source), float(readout.sink)], np.asarray(readout.offsets)[~fixed]])
     full_weights = jnp.asarray(np.concatenate([weights[None], basis]))  # (1 + p, M, L)
     drive_onehot = jnp.asarray(np.eye(protocol.n_drives)[drive])  # (M, drives)
-    position_errors = None
+    moving = np.concatenate([np.full(protocol.n_electrodes, positions is not None), np.ones(len(coefficients), bool)])
+    precision = np.concatenate(
+        [
+            np.full(protocol.n_electrodes, 0.0 if positions is None else positions[0] ** -2.0),
+            np.full(len(coefficients), 0.0 if free.sheet is None else free.sheet**-2.0),
+        ]
+    )[moving]
+    joint_errors = None
     log_gain, gain_errors = np.zeros(differences.shape[1]), np.zeros(differences.shape[1])
 
     def linearised(response: _ElectrodeResponse) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each press's readings at unit depth without mixing (K, M), their derivative in the
         weights (K, M, p), and each reading's drive's reference potentials (M, L)."""
-        changes = response.changes(patterns)[keep]  # (K, drives, L)
+        changes = response.changes(np.asarray(response.sigma) * fractions[keep])  # (K, drives, L)
         base = np.einsum("ml,kml->km", weights, changes[:, drive])
         return base, np.einsum("pml,kml->kmp", basis, changes[:, drive]), response.potentials[drive]
 
-    def objective(at: tuple, mixing: np.ndarray, depth: np.ndarray, shift: np.ndarray, scale: np.ndarray) -> float:
+    def objective(at: tuple, mixing: np.ndarray, depth: np.ndarray, values: np.ndarray, scale: np.ndarray) -> float:
         residual, _ = _press_residual(scaled, *at[:2], basis, weights, at[2], magnitude, mixing, depth)
-        penalty = np.sum(mixing**2) / prior**2 + np.sum(shift**2) / positions[0] ** 2
-        return float(np.sum((residual / scale) ** 2) + penalty)
+        return float(np.sum((residual / scale) ** 2) + np.sum(mixing**2) / prior**2 + values**2 @ precision)
 
     at = linearised(response)
-    converged = positions is None
+    converged = not moving.any()
     for position_round in itertools.count():
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
         # errors there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
@@ -2064,44 +2109,58 @@ def _fit_presses(
         if converged or position_round == _POSITION_ROUNDS:
             break
         # A Gauss-Newton step of the positions (each electrode's ends moved together: its width
-        # stays the reference's) and the weights and depths together: in turn, the weights
-        # held, the steps traded one for the other and stopped degrees off (measured on the
-        # calibration benchmark's skins; docs/tutorials/calibration.md).
+        # stays the reference's), the map, and the weights and depths together: in turn, the
+        # weights held, the steps traded one for the other and stopped degrees off (measured on
+        # the calibration benchmark's skins; docs/tutorials/calibration.md).
         scaled = differences / np.exp(log_gain)
         ends = np.asarray(every.electrode_shift)
-        shift = ends.mean(axis=1)
+        values = np.concatenate([ends.mean(axis=1), coefficients])[moving]
         mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
-        along = np.asarray(_press_readings_jacobian(every, sigma, patterns, full_weights, mixed, drive_onehot))[keep]
+        along = _press_readings_jacobian(
+            every, jnp.asarray(sigma), jnp.asarray(fractions), jnp.asarray(terms), full_weights, mixed, drive_onehot
+        )
+        along = np.asarray(along)[keep][..., moving]
         design = depth[:, None, None] * sign[None, :, None] * np.concatenate([at[1], along], axis=2)
         predicted = sign * (at[0] + at[1] @ mixing)
         scale = _residual_scale(residual, scaled)
-        precision = np.concatenate([np.full(len(mixing), prior**-2.0), np.full(len(shift), positions[0] ** -2.0)])
         step, depth_step, joint = _step_with_depths(
-            predicted, design, residual, scale, np.concatenate([mixing, shift]), precision
+            predicted,
+            design,
+            residual,
+            scale,
+            np.concatenate([mixing, values]),
+            np.r_[np.full(len(mixing), prior**-2.0), precision],
         )
-        position_errors = np.sqrt(np.diag(np.linalg.inv(joint))[len(mixing) :])
-        start = objective(at, mixing, depth, shift, scale)
+        joint_errors = np.sqrt(np.diag(np.linalg.inv(joint))[len(mixing) :])
+        start = objective(at, mixing, depth, values, scale)
         converged = True
         for _ in range(_POSITION_HALVINGS):
-            moved = np.clip(ends + step[len(mixing) :, None], *(0.999 * np.array([-1, 1]) * positions[1]))
-            trial = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.asarray(moved))
-            trial_response = _ElectrodeResponse.of(trial, sigma)
+            change = np.zeros(len(moving))
+            change[moving] = step[len(mixing) :]
+            trial = every
+            if positions is not None:
+                moved = np.clip(ends + change[: len(ends), None], *(0.999 * np.array([-1, 1]) * positions[1]))
+                trial = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.asarray(moved))
+                change[: len(ends)] = moved.mean(axis=1) - ends.mean(axis=1)
+            trial_sigma = sigma * np.exp(terms @ change[len(ends) :])
+            trial_response = _ElectrodeResponse.of(trial, jnp.asarray(trial_sigma))
             trial_at = linearised(trial_response)
             if (
-                objective(trial_at, mixing + step[: len(mixing)], depth + depth_step, moved.mean(axis=1), scale)
+                objective(trial_at, mixing + step[: len(mixing)], depth + depth_step, values + change[moving], scale)
                 <= start
             ):
-                every, response, at = trial, trial_response, trial_at
+                every, sigma, response, at = trial, trial_sigma, trial_response, trial_at
                 mixing = mixing + step[: len(mixing)]
-                converged = np.max(np.abs(moved - ends)) < _POSITION_STEP * positions[0]
+                coefficients = coefficients + change[len(ends) :]
+                converged = np.all(np.abs(change[moving]) < _POSITION_STEP * np.sqrt(1.0 / precision))
                 break
             step, depth_step = step / 2, depth_step / 2
     unchanged = response.potentials
     errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
     values = np.zeros(2 + protocol.n_electrodes)
     spread = np.zeros_like(values)
-    free = np.concatenate([[True, True], ~fixed])
-    values[free], spread[free] = mixing, errors
+    weighed = np.concatenate([[True, True], ~fixed])
+    values[weighed], spread[weighed] = mixing, errors
     readout = Readout(protocol, values[0], values[1], values[2:], gains * np.exp(log_gain))
     mixed = weights + np.asarray(readout.mixing(protocol))
     # The readings' signs are the fit's (`_signs`: the presses' where they decide them); the frames take them.
@@ -2116,7 +2175,7 @@ def _fit_presses(
     reading_sign = first.reading_sign.copy()
     if magnitude:
         reading_sign[first.used] = sign
-    undetermined = tuple(f"mixing[{i}]" for i in np.flatnonzero(free) if spread[i] > _UNDETERMINED * prior)
+    undetermined = tuple(f"mixing[{i}]" for i in np.flatnonzero(weighed) if spread[i] > _UNDETERMINED * prior)
     misfit = _relative(data - factor * readings, data)
     values_by_group = {**calibration.values, "mixing": values, "press_depths": depth}
     errors_by_group = {**calibration.standard_errors, "mixing": spread, "press_depths": np.full(len(depth), np.nan)}
@@ -2125,19 +2184,27 @@ def _fit_presses(
         values_by_group["reading_gains"], errors_by_group["reading_gains"] = log_gain, gain_errors
         undetermined += tuple(f"reading_gains[{i}]" for i in np.flatnonzero(gain_errors > _UNDETERMINED * gains_prior))
         groups = ("mixing", "reading_gains", "press depths")
-    centres = calibration.electrode_centres
-    if position_errors is not None:
+    centres, background_map = calibration.electrode_centres, calibration.background_map
+    if positions is not None and joint_errors is not None:
         shift = np.asarray(every.electrode_shift).mean(axis=1)
+        position_errors = joint_errors[: protocol.n_electrodes]
         values_by_group["electrode_positions"], errors_by_group["electrode_positions"] = shift, position_errors
         undetermined += tuple(
             f"electrode_positions[{i}]" for i in np.flatnonzero(position_errors > _UNDETERMINED * positions[0])
         )
         groups = (*groups[:-1], "electrode_positions", "press depths")
         centres = _electrode_centres(every.mesh, shift)
+    if free.sheet is not None and joint_errors is not None:
+        sheet_errors = joint_errors[-len(coefficients) :]
+        values_by_group["background"], errors_by_group["background"] = coefficients, sheet_errors
+        undetermined += tuple(f"background[{i}]" for i in np.flatnonzero(sheet_errors > _UNDETERMINED * free.sheet))
+        groups = (*groups[:-1], "background_map", "press depths")
+        background_map = sigma / factor  # c V(sigma, z) = V(sigma / c, c z), as the level
     fitted = eqx.tree_at(
         lambda c: (
             c.model,
             c.conductivity,
+            c.background_map,
             c.contact_impedance,
             c.readout,
             c.reading_sign,
@@ -2155,6 +2222,7 @@ def _fit_presses(
         (
             fitted_model,
             level / factor,
+            background_map,
             contact,
             readout,
             reading_sign,
@@ -2164,7 +2232,9 @@ def _fit_presses(
             tuple(
                 name
                 for name in calibration.undetermined
-                if not name.startswith("mixing") and not (position_errors is not None and name.startswith("electrode"))
+                if not name.startswith("mixing")
+                and not (positions is not None and name.startswith("electrode"))
+                and not (free.sheet is not None and name.startswith("background"))
             )
             + undetermined,
             {**calibration.fitted, "presses": groups},
@@ -2413,27 +2483,34 @@ class _ElectrodeResponse:
 def _press_readings_jacobian(
     every: ForwardModel,
     sigma: jax.Array,
-    patterns: jax.Array,
+    fractions: jax.Array,
+    terms: jax.Array,
     weights: jax.Array,
     mixing: jax.Array,
     drive_onehot: jax.Array,
 ) -> jax.Array:
-    """(K, M, L) the derivative in a move of each electrode (both its ends), m, of each press's
-    linearised readings at unit depth: sum_l W_ml dU_k[drive of m, l], W the reading weights
-    `weights` (1 + p, M, L) combined by `mixing` (1 + p,), `drive_onehot` (M, drives) each
-    reading's drive, `every` the model reading every electrode (`_every_electrode`).
+    """(K, M, L + n) the derivative of each press's linearised readings at unit depth,
+    sum_l W_ml dU_k[drive of m, l], in a move of each electrode (both its ends), m, and in the
+    n coefficients c of the sheet's conductivity sigma exp(`terms` @ c), `terms` (E, n): W the
+    reading weights `weights` (1 + p, M, L) combined by `mixing` (1 + p,), `drive_onehot` (M,
+    drives) each reading's drive, `every` the model reading every electrode
+    (`_every_electrode`), each press's pattern its `fractions` (K, E) of the sheet's
+    conductivity (a press changes it by a fraction of its own).
 
     The readings' Jacobian in the conductivity is W spread over the drives times the electrode
     potentials' (a plain matrix product: gathering the potentials per reading is ten times
     slower under `jax.jacfwd`)."""
     combined = jnp.einsum("p,pml->ml", mixing, weights)
     spread = (drive_onehot[:, :, None] * combined[:, None, :]).reshape(len(combined), -1)  # (M, drives * L)
+    n_electrodes = len(every.electrode_shift)
 
-    def readings(move: jax.Array) -> jax.Array:
-        moved = eqx.tree_at(lambda m: m.electrode_shift, every, every.electrode_shift + move[:, None])
-        return patterns @ (spread @ moved.jacobian(sigma)).T
+    def readings(parameters: jax.Array) -> jax.Array:
+        move = parameters[:n_electrodes, None]
+        moved = eqx.tree_at(lambda m: m.electrode_shift, every, every.electrode_shift + move)
+        conductivity = sigma * jnp.exp(terms @ parameters[n_electrodes:])
+        return (fractions * conductivity) @ (spread @ moved.jacobian(conductivity)).T
 
-    return jax.jacfwd(readings)(jnp.zeros(len(every.electrode_shift)))
+    return jax.jacfwd(readings)(jnp.zeros(n_electrodes + terms.shape[1]))
 
 
 def _signs(
@@ -2679,15 +2756,13 @@ def _held_out_errors(
     reference: np.ndarray,
     prior: float,
     frame: np.ndarray | None,
-    positions: tuple[float, float] | None,
+    free: _PressGroups,
     hyperparameter: float,
     polarity: int,
     response: _ElectrodeResponse,
-    gains_prior: float | None = None,
 ) -> np.ndarray | None:
     """(K,) each press's distance, m, from where it is read when the presses' fit (mixing, and
-    positions when `positions` is given, gains per reading with `gains_prior`) and the position
-    map are made without it: the presses
+    what `free` names) and the position map are made without it: the presses
     in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted to the
     others, in the labels' frame `frame` found from all of them (`response`: as `_fit_presses`).
     NaN for a press no touch was read at; None with fewer than `_LEAST_HELD_OUT` presses."""
@@ -2700,7 +2775,7 @@ def _held_out_errors(
         test = np.flatnonzero(fold == k)
         try:
             fitted, _ = _fit_presses(
-                calibration, recording, moved, reference, prior, polarity, response, positions, fold != k, gains_prior
+                calibration, recording, moved, reference, prior, polarity, response, free, fold != k
             )
         except _ContradictsReference:
             continue  # the fold's presses stay NaN: not read, the largest errors
