@@ -140,6 +140,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
   orientation, scale and offset against the labels' frame), 2 or 3, or none, chosen by
   leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
+  How high the further hills of the presses' images stand beside each one's highest (95% of
+  the presses' below it) is the calibration's `ringing`, above which alone `diffeit.touches`
+  reads a further touch: a single press is one touch.
   On a curved skin the polynomial is in x, y and z and the displaced touches are taken back
   onto the surface.
 - **Memory**, when every press is held over several frames: the skin's memory parameters
@@ -769,6 +772,10 @@ _SHEET_PRIOR = 0.3
 # Kept by default when the presses are read closer with it at more presses than farther, at
 # this one-sided significance (a sign test).
 _SHEET_SIGNIFICANCE = 0.05
+# The ringing a further touch must rise above: this quantile of the relative heights of the
+# further hills in the presses' images (a press with none counts 0), at most the cap (a second
+# touch half as deep as the first is always read).
+_RINGING_QUANTILE, _RINGING_CAP = 0.95, 0.5
 # Degrees of the position map tried by cross-validation (None: no map).
 _MAP_DEGREES = (None, 0, 1, 2, 3)
 # On a curved skin the monomials in x, y and z are nearly dependent (x^2 + y^2 + z^2 is constant
@@ -871,8 +878,9 @@ class SkinCalibration(eqx.Module):
             the readout's mixing folded into its reading weights, the fitted contact
             impedances, in the recording's voltage unit at `conductivity`.
         conductivity: sigma_h, the fitted level, S/sq in the recording's voltage unit.
-        background_map: (E,) the sheet's conductivity fitted to the reference on the mesh's
-            elements, S/sq in the same unit (module docstring, "Background map"), or None: the
+        background_map: (E,) the sheet's conductivity fitted to the reference (or by the
+            presses) on the mesh's elements, S/sq in the same unit (module docstring,
+            "Background map"), or None: the
             sheet is taken uniform at `conductivity`. `background` is the one imaged at.
         contact_impedance: (L,) ohm m, in the same unit.
         electrode_centres: (L,) the electrodes' centres as arc length along the boundary, m,
@@ -888,7 +896,8 @@ class SkinCalibration(eqx.Module):
         values: Group -> (n,) the fitted parameters: "level" (ln c), "contact_impedance"
             (ln z / z_first), "mixing" (source, sink, offsets), "drive_gains" and
             "channel_gains" (ln g), "electrode_positions" (the centres' shifts, m along the
-            boundary), "electrode_widths" (the change of each electrode's length, m).
+            boundary), "electrode_widths" (the change of each electrode's length, m),
+            "background" (the background map's coefficients).
         undetermined: Names of the fitted parameters the data did not determine.
         fitted: "reference" and "presses" -> the groups each determined.
         misfit: ||v - V|| / ||v|| of the refined model, and
@@ -916,6 +925,10 @@ class SkinCalibration(eqx.Module):
             masked readings).
         warnings: What the calibration warns about, in words.
         protocol: The recording's protocol; `readings` its kind ("signed" or "magnitude").
+        ringing: How high the further hills of the presses' images stand beside each one's
+            highest, a fraction of its peak (the `_RINGING_QUANTILE` quantile over the
+            presses, at most `_RINGING_CAP`): `diffeit.touches` reports a further touch only
+            above it (a single press is one touch). None without a position map.
     """
 
     model: ForwardModel
@@ -944,6 +957,7 @@ class SkinCalibration(eqx.Module):
     warnings: tuple[str, ...]
     protocol: Protocol = eqx.field(static=True)
     readings: str = eqx.field(static=True)
+    ringing: float | None = None
 
     @property
     def driven_readings(self) -> str:
@@ -1034,6 +1048,8 @@ class SkinCalibration(eqx.Module):
             lines.append(
                 f"position map: degree {self.position_map.degree} (leave-one-out median error by degree: {errors})"
             )
+        if self.ringing is not None:
+            lines.append(f"ringing: a further touch stands above {self.ringing:.2f} of the highest's peak")
         lines.extend(f"warning: {note}" for note in self.warnings)
         return lines
 
@@ -2651,7 +2667,9 @@ def _read_presses(
     images = np.asarray(solver.solve(dv, throw=True).value) / level
     if polarity is None:
         polarity = polarity_of(images)
-    found = read(calibration.model.mesh, images, max_touches=1, polarity=polarity, touched=np.ones(len(images), bool))
+    # Its further hills too, however low, for the ringing (`_with_position_map`).
+    touched = np.ones(len(images), bool)
+    found = read(calibration.model.mesh, images, max_touches=2, polarity=polarity, touched=touched, relative=0.0)
     return found, float(hyperparameter), polarity
 
 
@@ -2716,10 +2734,20 @@ def _with_position_map(
     mapping = PositionMap.fit(read_positions, labelled, calibration.model.mesh)
     errors = np.full(presses.n_presses, np.nan)
     errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree, mapping.surface)
+    further = np.where(found.count[seen] > 1, found.depth[seen, 1] / found.depth[seen, 0], 0.0)
+    ringing = min(float(np.quantile(further, _RINGING_QUANTILE)), _RINGING_CAP)
     return eqx.tree_at(
-        lambda c: (c.position_map, c.press_errors, c.press_positions, c.warnings, c.hyperparameter, c.polarity),
+        lambda c: (
+            c.position_map,
+            c.press_errors,
+            c.press_positions,
+            c.warnings,
+            c.hyperparameter,
+            c.polarity,
+            c.ringing,
+        ),
         calibration,
-        (mapping, errors, mapping(found.position[:, 0]), tuple(notes), hyperparameter, polarity),
+        (mapping, errors, mapping(found.position[:, 0]), tuple(notes), hyperparameter, polarity, ringing),
         is_leaf=lambda node: node is None,
     )
 
@@ -3044,6 +3072,7 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         "hyperparameter": -1.0 if calibration.hyperparameter is None else calibration.hyperparameter,
         "noise_frames": calibration.noise_frames,
         "polarity": 0 if calibration.polarity is None else calibration.polarity,  # 0: none
+        "ringing": -1.0 if calibration.ringing is None else calibration.ringing,
         "json": json.dumps(
             {
                 "undetermined": list(calibration.undetermined),
@@ -3179,6 +3208,7 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         warnings=tuple(first["warnings"]),
     )
     hyperparameter = float(attributes["hyperparameter"])
+    ringing = float(attributes.get("ringing", -1.0))  # none before it was kept
     return SkinCalibration(
         model=model,
         conductivity=float(attributes["conductivity"]),
@@ -3208,4 +3238,5 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         warnings=tuple(stored["warnings"]),
         protocol=protocol,
         readings=str(attributes["readings"]),
+        ringing=None if ringing < 0 else ringing,
     )

@@ -37,7 +37,11 @@ ringing and noise, so a skin's touches vote for their own sign.
    image's noise and artefacts).
 2. **Hills.** The local maxima of a (at least every element sharing an edge), highest
    first, each further one at least `RELATIVE` (0.1) of the highest one's peak (a one-step
-   image rings at a fraction of its touch's peak whatever the noise). Each claims the
+   image rings at a fraction of its touch's peak whatever the noise), or, with a calibration
+   from labelled presses, at least its `ringing` when that is more: how high the further
+   hills of its own single presses' images stood (the model's errors ring too, and more than
+   the noise; on the calibration benchmark's skins single presses were read as two or more
+   touches at 11 of 120 test presses with 0.1 alone). Each claims the
    connected elements at or above half its peak (its half-amplitude set). A maximum whose
    half-amplitude set reaches a set already claimed is the same touch (two maxima whose valley
    stays above half the lower peak merge); otherwise it is a touch of its own, up to
@@ -227,7 +231,9 @@ def touches(
         recording: A recording with images (`diffeit.reconstruct`'s result), relative changes
             or conductivity changes (then divided by the calibrated level in its provenance).
         calibration: A `diffeit.calibration.SkinCalibration` whose position map (from labelled
-            presses) maps the positions into the labels' frame; None reads them in the mesh's.
+            presses) maps the positions into the labels' frame, and whose `ringing` (from
+            them too) a further touch's peak must reach beside the highest's; None reads them
+            in the mesh's.
         max_touches: The most touches reported per frame.
         threshold: Without the voltage test, a touch's peak must exceed this many robust
             standard deviations of its image.
@@ -288,6 +294,7 @@ def touches(
         position_map=mapping if method == "image" else None,
         stack=stack if method == "image" else None,
         touched=frames_touched,
+        relative=max(RELATIVE, getattr(calibration, "ringing", None) or 0.0),
     )
     if method == "image":
         return found
@@ -448,6 +455,7 @@ def read(
     position_map: Any = None,
     stack: FoamStack | None = None,
     touched: np.ndarray | None = None,
+    relative: float = RELATIVE,
 ) -> Touches:
     """The touches of relative-change images on a mesh (module docstring, "The rule").
 
@@ -463,6 +471,8 @@ def read(
         touched: (T,) bool, which frames are touched (a test on the voltages, module
             docstring): a touched frame reports its strongest hill and the others above `LOW`
             robust standard deviations, an untouched one none; None applies `threshold` alone.
+        relative: A further touch's peak must be at least this fraction of the highest's, in
+            [0, 1).
 
     Returns:
         The `Touches` (T = 1 for one image).
@@ -470,7 +480,7 @@ def read(
     Raises:
         ValueError: For images of the wrong shape or not finite, a `max_touches` that is not a
             positive integer, a `polarity` other than -1 and +1, a `threshold` that is not
-            positive, or `touched` not one per image.
+            positive, a `relative` outside [0, 1), or `touched` not one per image.
     """
     images = np.atleast_2d(np.asarray(images, np.float64))
     if images.ndim != 2 or images.shape[1] != mesh.n_elements:
@@ -483,6 +493,8 @@ def read(
         raise ValueError(f"polarity must be -1 (a touch lowers the conductivity) or +1; got {polarity}")
     if not (np.isfinite(threshold) and threshold > 0):
         raise ValueError(f"threshold must be a positive number of standard deviations; got {threshold}")
+    if not 0 <= relative < 1:
+        raise ValueError(f"relative must be a fraction of the highest peak in [0, 1); got {relative}")
     count = np.zeros(len(images), int)
     position = np.full((len(images), max_touches, mesh.nodes.shape[1]), np.nan)
     radius = np.full((len(images), max_touches), np.nan)
@@ -492,9 +504,9 @@ def read(
         raise ValueError(f"touched has shape {np.shape(touched)}; expected ({len(images)},), one per image")
     for t, image in enumerate(images):
         if touched is None:
-            hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold)
+            hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold, relative)
         elif touched[t]:
-            hills, noise[t] = _hills(mesh, polarity * image, max_touches, LOW, strongest=True)
+            hills, noise[t] = _hills(mesh, polarity * image, max_touches, LOW, relative, strongest=True)
         else:
             hills, noise[t] = [], _robust_std(polarity * image)
         count[t] = len(hills)
@@ -533,11 +545,12 @@ def _robust_std(values: np.ndarray) -> float:
 
 
 def _hills(
-    mesh: Mesh, values: np.ndarray, max_touches: int, threshold: float, strongest: bool = False
+    mesh: Mesh, values: np.ndarray, max_touches: int, threshold: float, relative: float, strongest: bool = False
 ) -> tuple[list, float]:
-    """The touches of one image `values` (a touch positive): (centre, radius, peak) each, and
-    the image's robust standard deviation; with `strongest`, the highest hill counts whatever
-    its height (when it is positive)."""
+    """The touches of one image `values` (a touch positive): (centre, radius, peak) each, a
+    further one at least `relative` of the highest's peak, and the image's robust standard
+    deviation; with `strongest`, the highest hill counts whatever its height (when it is
+    positive)."""
     noise = _robust_std(values)
     adjacency = _adjacency(mesh)
     neighbour_max = _neighbour_max(adjacency, values)
@@ -549,7 +562,7 @@ def _hills(
     areas, centroids = mesh.element_areas, mesh.element_centroids
     hills = []
     for element in maxima[np.argsort(-values[maxima])]:
-        if hills and values[element] < RELATIVE * hills[0][2]:
+        if hills and values[element] < relative * hills[0][2]:
             break  # ringing of the highest hill; every later maximum is lower still
         if claimed[element] or len(hills) == max_touches:
             continue

@@ -223,8 +223,12 @@ def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin
         found = de.touches(images, calibration)
         errors[name] = np.median(np.linalg.norm(found.position[pressed, 0] - test_presses.centres, axis=1))
         if calibration is not None:
-            # The voltage test against the reference's noise: every press read, no touch where none was.
-            assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
+            # The voltage test against the reference's noise: every press read, no touch where
+            # none was; and each press one touch, the further hills under the calibration's
+            # ringing (measured 0.21; at 0.1 alone, 5 of the 10 presses read as two touches).
+            assert np.all(found.count[pressed] == 1) and np.all(found.count[untouched] == 0)
+            unrung = eqx.tree_at(lambda c: c.ringing, calibration, None, is_leaf=lambda node: node is None)
+            assert np.sum(de.touches(images, unrung).count[pressed] > 1) >= 3
     assert errors["skin"] < 0.5 * errors["first stage"], errors
     assert errors["skin"] < 0.05, errors
 
@@ -307,6 +311,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     assert again.position_map.degree == calibrated.position_map.degree
     np.testing.assert_allclose(again.position_map(recording.mesh.nodes), calibrated.position_map(recording.mesh.nodes))
     assert again.lines() == calibrated.lines()
+    assert again.ringing == calibrated.ringing and 0.1 < again.ringing <= 0.5
     np.testing.assert_array_equal(again.noise, calibrated.noise)
     voltages = again.model.measure(jnp.full(again.model.n_elements, again.conductivity))
     np.testing.assert_allclose(voltages, calibrated.model.measure(jnp.full(again.model.n_elements, again.conductivity)))

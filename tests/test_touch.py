@@ -47,6 +47,10 @@ def test_pressures_invert_the_foam_stacks_map_and_the_count_is_capped():
     found = de.touch.read(MESH, image, stack=stack)
     np.testing.assert_allclose(np.sort(found.pressure[0, :2]), pressures, rtol=1e-6)
     assert de.touch.read(MESH, image, max_touches=1).count.tolist() == [1]
+    # A further touch counts only from `relative` of the highest's peak up (a calibration's ringing).
+    shallower = float(np.min(np.abs(depths)) / np.max(np.abs(depths)))
+    assert de.touch.read(MESH, image, relative=0.9 * shallower).count.tolist() == [2]
+    assert de.touch.read(MESH, image, relative=min(1.1 * shallower, 0.99)).count.tolist() == [1]
 
 
 def test_bad_images_and_options_are_refused():
@@ -56,6 +60,8 @@ def test_bad_images_and_options_are_refused():
         de.touch.read(MESH, np.full(MESH.n_elements, np.nan))
     with pytest.raises(ValueError, match="polarity"):
         de.touch.read(MESH, np.zeros(MESH.n_elements), polarity=0)
+    with pytest.raises(ValueError, match="relative must be"):
+        de.touch.read(MESH, np.zeros(MESH.n_elements), relative=1.0)
     with pytest.raises(ValueError, match="reconstructed recording"):
         de.touches(de.io.Recording(frames=np.ones((1, 208)), times=[0.0], protocol=de.protocol.adjacent(16)))
 
