@@ -89,9 +89,11 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   mirrored), the one whose discs explain the presses' differences best: Nelder-Mead on the
   presses' misfit (a mixing fit at each step) from the best of the mesh's own frame and the
   similarities, turning and mirrored, that map the labels onto the positions read
-  (`_label_frame`). A mirrored frame is a skin whose electrodes are numbered clockwise in the
-  labels' axes (an indenter's or an image's y axis pointing the other way). On a curved skin
-  the labels are points on its surface in the mesh's frame, and no frame is fitted.
+  (`_label_frame`), then refined with the electrode positions and a background map when the
+  presses fit them (below). A mirrored frame is a
+  skin whose electrodes are numbered clockwise in the labels' axes (an indenter's or an
+  image's y axis pointing the other way). On a curved skin the labels are points on its
+  surface in the mesh's frame, and no frame is fitted.
 - **The readout's mixing**, from the presses' differences: each press is a disc of the
   labelled centre and radius with an unknown depth, linearised at the calibrated level; the
   mixing enters linearly, and the depths and the mixing weights (with their prior) are solved
@@ -112,8 +114,12 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   background map below, prior standard deviation 0.3 each), the weights and the depths
   together on the same differences (the derivative in the positions and the coefficients by
   `jax.jacfwd` through the forward model; a press lowers the sheet by a fraction of its own
-  conductivity, so its pattern follows the map), with their priors, a step halved until the
-  presses' objective decreases, each followed by the mixing's own fit. A press's response
+  conductivity, so its pattern follows the map), and, with the map, of the labels' frame's
+  scale, angle and offset (their derivative by central differences of the presses'
+  footprints, prior standard deviations the search's first steps about the frame it found:
+  searched on mixing fits at the reference's electrodes and uniform sheet, the frame took up
+  the sheet's step), with their priors, a step halved until the presses' objective decreases,
+  each followed by the mixing's own fit. A press's response
   measures the sheet where it is: fitted with a uniform sheet, a sheet 30% more conductive on
   one side moved the electrodes instead, up to 3 degrees off (docs/tutorials/calibration.md).
   By default (`press_groups=None`) the mixing alone and the mixing with the positions are both
@@ -738,6 +744,8 @@ _CORNER_MARGIN = 10.0
 _HELD_FRAMES = 3
 # The most misfits evaluated in the search for the labels' frame.
 _FRAME_EVALUATIONS = 80
+# The central differences of the frame's refinement: this fraction of its `_frame_steps`.
+_FRAME_DELTA = 0.2
 # The labels' frame: ln scale, angle (rad), offset x and y (m), handedness (+1, or -1: mirrored).
 _IDENTITY_FRAME = np.array([0.0, 0.0, 0.0, 0.0, 1.0])
 # The presses' fit is judged on presses it did not see: every fifth press held out in turn, with
@@ -1292,6 +1300,14 @@ def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
 
 
 @host_algebra
+def _frame_steps(mesh: Mesh) -> np.ndarray:
+    """(4,) the scale of a change of the labels' frame (ln scale, angle, offset x and y): the
+    search's first steps, and the prior standard deviations of the frame's refinement about
+    it (`_fit_presses`)."""
+    size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
+    return np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
+
+
 def calibrate(
     recording: Recording,
     presses: Presses | None = None,
@@ -1441,12 +1457,13 @@ def calibrate(
         chosen = best.hyperparameter
         calibration = _kept_if_it_generalises(best.calibration, reference_only, best.held_out)
         calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *refused))
-    if frame is not None:  # the presses found it, whether or not their fit is kept
+    if frame is not None and "label_frame" not in calibration.values:  # the search's, where no fit kept refined it
         calibration = eqx.tree_at(lambda c: c.values, calibration, {**calibration.values, "label_frame": frame})
     mapped_by_presses = "background_map" in calibration.fitted.get("presses", ())
     if not mapped_by_presses and (background_map or (background_map is None and presses.n_presses >= _LEAST_HELD_OUT)):
         calibration = _with_background_map(calibration, recording, presses, reference, required=bool(background_map))
     if with_memory:
+        frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
         calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
     return calibration
 
@@ -1922,12 +1939,10 @@ def _label_frame(
     if mesh.nodes.shape[1] != 2:
         return None
     unmoved = _ElectrodeResponse.of_calibration(calibration, None)
-    size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
 
     def misfit(frame: np.ndarray) -> float:
-        moved = _moved(presses, frame)
         try:
-            return _fit_presses(calibration, recording, moved, reference, prior, polarity, unmoved)[1]
+            return _fit_presses(calibration, recording, presses, frame, reference, prior, polarity, unmoved)[1]
         except _ContradictsReference:
             return math.inf
 
@@ -1936,8 +1951,7 @@ def _label_frame(
     frame = starts[int(np.argmin(misfits))]
     if math.isfinite(min(misfits)):  # else no fit to refine: the last one says so
         handedness = frame[4]
-        steps = np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
-        simplex = np.vstack([frame[:4], frame[:4] + np.diag(steps)])
+        simplex = np.vstack([frame[:4], frame[:4] + np.diag(_frame_steps(mesh))])
         best = scipy.optimize.minimize(
             lambda turned: misfit(np.append(turned, handedness)),
             frame[:4],
@@ -1979,9 +1993,10 @@ def _press_fit(
     free = _PressGroups.of(calibration.model, priors, groups)
     # The fit and the held-out folds start from this model (the reference's calibration's).
     response = _ElectrodeResponse.of_calibration(calibration, None if free.positions is None else free.positions[1])
-    moved = _moved(presses, frame)
     try:
-        fitted, _ = _fit_presses(calibration, recording, moved, reference, priors["mixing"], polarity, response, free)
+        fitted, _ = _fit_presses(
+            calibration, recording, presses, frame, reference, priors["mixing"], polarity, response, free
+        )
     except _ContradictsReference:
         return _PressFit(None, None, chosen, groups, _CONTRADICTS)
     if fitted.correlation < _SKIN_LEAST_CORRELATION <= calibration.correlation:
@@ -2004,18 +2019,25 @@ class _PressGroups(NamedTuple):
     """What the presses fit besides the readout's mixing, by their priors: the electrode
     positions' (prior standard deviation and margin, m), the gains per reading's (prior
     standard deviation of a gain's relative change), the background map's (prior standard
-    deviation of each coefficient of ln sigma); None for a group not fitted."""
+    deviation of each coefficient of ln sigma); None for a group not fitted; and whether the
+    labels' frame is refined with them (`_FRAME_PRIOR` about the frame searched)."""
 
     positions: tuple[float, float] | None = None
     gains: float | None = None
     sheet: float | None = None
+    frame: bool = False
 
     @classmethod
     def of(cls, model: ForwardModel, priors: Mapping[str, float], groups: tuple[str, ...]) -> _PressGroups:
+        """The groups' priors; the labels' frame is refined with the positions and the map (on
+        a flat sheet: with the positions alone, it moved held-out presses of a test skin of 20
+        farther, 19.4 -> 20.7 mm, and the benchmark's alike)."""
+        sheet = "electrode_positions" in groups and "background_map" in groups
         return cls(
             _position_prior(model, priors["electrode_positions"]) if "electrode_positions" in groups else None,
             priors["reading_gains"] if "reading_gains" in groups else None,
             _SHEET_PRIOR if "background_map" in groups else None,
+            sheet and model.mesh.nodes.shape[1] == 2,
         )
 
 
@@ -2031,6 +2053,7 @@ def _fit_presses(
     calibration: SkinCalibration,
     recording: Recording,
     presses: Presses,
+    frame: np.ndarray | None,
     reference: np.ndarray,
     prior: float,
     polarity: int,
@@ -2039,9 +2062,10 @@ def _fit_presses(
     train: np.ndarray | None = None,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
-    "Presses"), and the relative misfit of the presses' differences; with `free`, the groups
-    it names too (`_PressGroups`: electrode positions, gains per reading, background map; None:
-    the mixing alone); with
+    "Presses"), and the relative misfit of the presses' differences, the labelled `presses` in
+    the labels' `frame` (`_moved`; None: the mesh's); with `free`, the groups it names too
+    (`_PressGroups`: electrode positions, gains per reading, background map, the frame itself;
+    None: the mixing alone); with
     `train` (K,) bool, to those presses alone (the others' potentials are computed all the
     same: the compiled programs are those of all K presses). `response` is the calibration's
     model's (`_ElectrodeResponse.of_calibration`, with the margin of `free.positions` when they
@@ -2059,7 +2083,12 @@ def _fit_presses(
     differences (their derivative by `jax.jacfwd` through the forward model), with their
     priors, each followed by the weights' and depths' own fit. With gains per reading, each
     reading also gets a gain of its own, fitted with the weights and depths
-    (`_mixing_depths_and_gains`) and multiplied into the readout's gains."""
+    (`_mixing_depths_and_gains`) and multiplied into the readout's gains. With `free.frame`,
+    the labels' frame (its scale, angle and offset; prior `_frame_steps` about `frame`) steps
+    with the positions and the map, its derivative by central differences of the presses'
+    footprints (`_FRAME_DELTA` of those steps): searched before them on a mixing fit alone, at
+    the reference's electrodes and uniform sheet, it settled degrees off
+    (docs/tutorials/calibration.md)."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
@@ -2067,9 +2096,16 @@ def _fit_presses(
     positions, gains_prior = free.positions, free.gains
     every, sigma = response.every, np.asarray(response.sigma)
     level = calibration.conductivity
-    fractions = polarity * _press_patterns(every.mesh, presses)  # (K, E) of the sheet's conductivity
+
+    def fractions_at(frame: np.ndarray | None) -> np.ndarray:
+        """(K, E) each press's footprint in the labels' `frame`, a fraction of the sheet's conductivity."""
+        return polarity * _press_patterns(every.mesh, _moved(presses, frame))
+
+    fractions = fractions_at(frame)
     terms = _sheet_terms(every.mesh) if free.sheet is not None else np.zeros((every.n_elements, 0))
     coefficients = np.zeros(terms.shape[1])
+    steps = _frame_steps(every.mesh) if free.frame and frame is not None else np.zeros(0)
+    turn = np.zeros(len(steps))  # the frame's move from `frame`
     source, sink, offset = roles(protocol)
     fixed = _ReadoutFit.of(first.model, level, calibration.contact_impedance, False).pair_offsets
     basis = np.concatenate([source[None], sink[None], offset[~fixed]])  # (p, M, L)
@@ -2092,19 +2128,23 @@ def _fit_presses(
     mixing = np.concatenate([[float(readout.source), float(readout.sink)], np.asarray(readout.offsets)[~fixed]])
     full_weights = jnp.asarray(np.concatenate([weights[None], basis]))  # (1 + p, M, L)
     drive_onehot = jnp.asarray(np.eye(protocol.n_drives)[drive])  # (M, drives)
-    moving = np.concatenate([np.full(protocol.n_electrodes, positions is not None), np.ones(len(coefficients), bool)])
+    moving = np.concatenate(
+        [np.full(protocol.n_electrodes, positions is not None), np.ones(len(coefficients) + len(steps), bool)]
+    )
     precision = np.concatenate(
         [
             np.full(protocol.n_electrodes, 0.0 if positions is None else positions[0] ** -2.0),
             np.full(len(coefficients), 0.0 if free.sheet is None else free.sheet**-2.0),
+            steps**-2.0,
         ]
     )[moving]
     joint_errors = None
     log_gain, gain_errors = np.zeros(differences.shape[1]), np.zeros(differences.shape[1])
 
-    def linearised(response: _ElectrodeResponse) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each press's readings at unit depth without mixing (K, M), their derivative in the
-        weights (K, M, p), and each reading's drive's reference potentials (M, L)."""
+    def linearised(response: _ElectrodeResponse, fractions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each press's readings at unit depth without mixing (K, M) under its footprint
+        `fractions` (K, E), their derivative in the weights (K, M, p), and each reading's
+        drive's reference potentials (M, L)."""
         changes = response.changes(np.asarray(response.sigma) * fractions[keep])  # (K, drives, L)
         base = np.einsum("ml,kml->km", weights, changes[:, drive])
         return base, np.einsum("pml,kml->kmp", basis, changes[:, drive]), response.potentials[drive]
@@ -2113,7 +2153,17 @@ def _fit_presses(
         residual, _ = _press_residual(scaled, *at[:2], basis, weights, at[2], magnitude, mixing, depth)
         return float(np.sum((residual / scale) ** 2) + np.sum(mixing**2) / prior**2 + values**2 @ precision)
 
-    at = linearised(response)
+    def along_frame(response: _ElectrodeResponse, turn: np.ndarray, mixing: np.ndarray) -> np.ndarray:
+        """(K, M, 4) the mixed readings' derivative at unit depth in the frame's scale, angle and offset."""
+        columns = []
+        for i, delta in enumerate(steps * _FRAME_DELTA):
+            ahead = np.r_[turn, 0.0] + frame + delta * np.eye(5)[i]
+            behind = ahead - 2 * delta * np.eye(5)[i]
+            base, per_weight, _ = linearised(response, (fractions_at(ahead) - fractions_at(behind)) / (2 * delta))
+            columns.append(base + per_weight @ mixing)
+        return np.stack(columns, axis=2)
+
+    at = linearised(response, fractions)
     converged = not moving.any()
     for position_round in itertools.count():
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
@@ -2130,12 +2180,15 @@ def _fit_presses(
         # the calibration benchmark's skins; docs/tutorials/calibration.md).
         scaled = differences / np.exp(log_gain)
         ends = np.asarray(every.electrode_shift)
-        values = np.concatenate([ends.mean(axis=1), coefficients])[moving]
+        values = np.concatenate([ends.mean(axis=1), coefficients, turn])[moving]
         mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
         along = _press_readings_jacobian(
             every, jnp.asarray(sigma), jnp.asarray(fractions), jnp.asarray(terms), full_weights, mixed, drive_onehot
         )
-        along = np.asarray(along)[keep][..., moving]
+        along = np.asarray(along)[keep]
+        if len(steps):
+            along = np.concatenate([along, along_frame(response, turn, mixing)], axis=2)
+        along = along[..., moving]
         design = depth[:, None, None] * sign[None, :, None] * np.concatenate([at[1], along], axis=2)
         predicted = sign * (at[0] + at[1] @ mixing)
         scale = _residual_scale(residual, scaled)
@@ -2158,16 +2211,19 @@ def _fit_presses(
                 moved = np.clip(ends + change[: len(ends), None], *(0.999 * np.array([-1, 1]) * positions[1]))
                 trial = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.asarray(moved))
                 change[: len(ends)] = moved.mean(axis=1) - ends.mean(axis=1)
-            trial_sigma = sigma * np.exp(terms @ change[len(ends) :])
+            trial_sigma = sigma * np.exp(terms @ change[len(ends) : len(ends) + len(coefficients)])
+            trial_turn = turn + change[len(ends) + len(coefficients) :]
+            trial_fractions = fractions_at(frame + np.r_[trial_turn, 0.0]) if len(steps) else fractions
             trial_response = _ElectrodeResponse.of(trial, jnp.asarray(trial_sigma))
-            trial_at = linearised(trial_response)
+            trial_at = linearised(trial_response, trial_fractions)
             if (
                 objective(trial_at, mixing + step[: len(mixing)], depth + depth_step, values + change[moving], scale)
                 <= start
             ):
                 every, sigma, response, at = trial, trial_sigma, trial_response, trial_at
+                fractions, turn = trial_fractions, trial_turn
                 mixing = mixing + step[: len(mixing)]
-                coefficients = coefficients + change[len(ends) :]
+                coefficients = coefficients + change[len(ends) : len(ends) + len(coefficients)]
                 converged = np.all(np.abs(change[moving]) < _POSITION_STEP * np.sqrt(1.0 / precision))
                 break
             step, depth_step = step / 2, depth_step / 2
@@ -2210,6 +2266,10 @@ def _fit_presses(
         )
         groups = (*groups[:-1], "electrode_positions", "press depths")
         centres = _electrode_centres(every.mesh, shift)
+    if len(steps) and joint_errors is not None:
+        values_by_group["label_frame"] = frame + np.r_[turn, 0.0]
+        errors_by_group["label_frame"] = np.r_[joint_errors[len(joint_errors) - len(steps) :], 0.0]
+        joint_errors = joint_errors[: len(joint_errors) - len(steps)]
     if free.sheet is not None and joint_errors is not None:
         sheet_errors = joint_errors[-len(coefficients) :]
         values_by_group["background"], errors_by_group["background"] = coefficients, sheet_errors
@@ -2798,12 +2858,11 @@ def _held_out_errors(
         return None
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
     errors = np.full(presses.n_presses, np.nan)
-    moved = _moved(presses, frame)
     for k in range(_HELD_OUT_FOLDS):
         test = np.flatnonzero(fold == k)
         try:
             fitted, _ = _fit_presses(
-                calibration, recording, moved, reference, prior, polarity, response, free, fold != k
+                calibration, recording, presses, frame, reference, prior, polarity, response, free, fold != k
             )
         except _ContradictsReference:
             continue  # the fold's presses stay NaN: not read, the largest errors
