@@ -90,10 +90,10 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   presses' misfit (a mixing fit at each step) from the best of the mesh's own frame and the
   similarities, turning and mirrored, that map the labels onto the positions read
   (`_label_frame`), then refined with the electrode positions and a background map when the
-  presses fit them (below). A mirrored frame is a
-  skin whose electrodes are numbered clockwise in the labels' axes (an indenter's or an
-  image's y axis pointing the other way). On a curved skin the labels are points on its
-  surface in the mesh's frame, and no frame is fitted.
+  presses fit them (below). A mirrored frame is a skin whose electrodes are numbered
+  clockwise in the labels' axes (an indenter's or an image's y axis pointing the other way).
+  On a curved skin the labels are points on its surface in the mesh's frame, and no frame is
+  fitted.
 - **The readout's mixing**, from the presses' differences: each press is a disc of the
   labelled centre and radius with an unknown depth, linearised at the calibrated level; the
   mixing enters linearly, and the depths and the mixing weights (with their prior) are solved
@@ -123,9 +123,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   measures the sheet where it is: fitted with a uniform sheet, a sheet 30% more conductive on
   one side moved the electrodes instead, up to 3 degrees off (docs/tutorials/calibration.md).
   By default (`press_groups=None`) the mixing alone and the mixing with the positions are both
-  fitted (the map on request: with the labels' frame searched it read the benchmark's test
-  presses no closer), and the one whose held-out presses (below) read closest goes on to be
-  compared with the reference's calibration. A
+  fitted (the map on request: on the benchmark's skins it placed the electrodes closer but
+  read the test presses no closer), and the one whose held-out presses (below) read closest
+  goes on to be compared with the reference's calibration. A
   fit that takes the model's correlation with the reference under 0.5, where
   `diffeit.reconstruct` would image normalised differences rather than the calibrated ones the
   presses were read at, is refused by name.
@@ -170,12 +170,12 @@ readout the model misses: a few smooth terms are what a reference can carry.)
 
 A reference alone cannot tell a non-uniform sheet from the model's other errors (mixing,
 positions, gains), which a map absorbs as readily; so by default the map is fitted only with
-at least 20 labelled presses, to the reference (or by the presses with the electrode
-positions, when `press_groups` names it and that fit is kept: above), and then kept only when
-the presses, read at it
+at least 20 labelled presses, to the reference, and kept only when the presses, read at it
 through a position map fitted again, land closer to their labels (leave-one-out) at
 significantly more presses than farther (a one-sided sign test at 5%: with 30 presses, at
-least 20 of them); its press errors are then those leave-one-out ones.
+least 20 of them); its press errors are then those leave-one-out ones. (A map the presses fit
+with the electrode positions, when `press_groups` names it, is judged with the rest of their
+fit, on held-out presses: above.)
 `calibrate(..., background_map=True)` fits and keeps it in any case (the reference's map
 where the presses' fit kept has none); `background_map=False` fits none (and refuses a
 `press_groups` that names it).
@@ -2020,7 +2020,7 @@ class _PressGroups(NamedTuple):
     positions' (prior standard deviation and margin, m), the gains per reading's (prior
     standard deviation of a gain's relative change), the background map's (prior standard
     deviation of each coefficient of ln sigma); None for a group not fitted; and whether the
-    labels' frame is refined with them (`_FRAME_PRIOR` about the frame searched)."""
+    labels' frame is refined with them (prior `_frame_steps` about the frame searched)."""
 
     positions: tuple[float, float] | None = None
     gains: float | None = None
@@ -2032,12 +2032,12 @@ class _PressGroups(NamedTuple):
         """The groups' priors; the labels' frame is refined with the positions and the map (on
         a flat sheet: with the positions alone, it moved held-out presses of a test skin of 20
         farther, 19.4 -> 20.7 mm, and the benchmark's alike)."""
-        sheet = "electrode_positions" in groups and "background_map" in groups
+        flat = model.mesh.nodes.shape[1] == 2
         return cls(
             _position_prior(model, priors["electrode_positions"]) if "electrode_positions" in groups else None,
             priors["reading_gains"] if "reading_gains" in groups else None,
             _SHEET_PRIOR if "background_map" in groups else None,
-            sheet and model.mesh.nodes.shape[1] == 2,
+            flat and "electrode_positions" in groups and "background_map" in groups,
         )
 
 
