@@ -41,7 +41,7 @@ ringing and noise, so a skin's touches vote for their own sign.
    from labelled presses, at least its `ringing` when that is more: how high the further
    hills of its own single presses' images stood (the model's errors ring too, and more than
    the noise; on the calibration benchmark's skins single presses were read as two or more
-   touches at 11 of 120 test presses with 0.1 alone). Each claims the
+   touches at 11 of 120 test presses with 0.1 alone, at 3 with the ringing). Each claims the
    connected elements at or above half its peak (its half-amplitude set). A maximum whose
    half-amplitude set reaches a set already claimed is the same touch (two maxima whose valley
    stays above half the lower peak merge); otherwise it is a touch of its own, up to
