@@ -1062,6 +1062,14 @@ class SkinCalibration(eqx.Module):
         return lines
 
     @property
+    def electrode_points(self) -> np.ndarray:
+        """(L, D) each electrode's centre, m: `electrode_centres` taken onto the boundary (NaN
+        for an electrode on another boundary loop)."""
+        loop, arcs = _boundary_loop(self.model.mesh)
+        points = self.model.mesh.nodes[loop]
+        return np.stack([np.interp(self.electrode_centres, arcs, axis) for axis in points.T], axis=1)
+
+    @property
     def electrode_lengths(self) -> np.ndarray:
         """(L,) each electrode's length along the boundary, m: the mesh's, changed by the
         fitted widths when "electrode_widths" was fitted."""
@@ -1894,19 +1902,26 @@ def _electrode_spacing(model: ForwardModel) -> tuple[float, float]:
     return float(np.mean(between)), float(np.min(gaps))
 
 
+def _boundary_loop(mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary loop through the first node of electrode 0, counter-clockwise from it: its
+    nodes, closed (n + 1,: the first again at the end), and their arc lengths from it (n + 1,), m."""
+    following = dict(mesh.boundary_edges.tolist())
+    start = int(mesh.electrodes[0][0])
+    loop = [start]
+    while loop[-1] != start or len(loop) == 1:
+        loop.append(following[loop[-1]])
+    loop = np.array(loop)
+    steps = np.linalg.norm(np.diff(mesh.nodes[loop], axis=0), axis=1)
+    return loop, np.concatenate([[0.0], np.cumsum(steps)])
+
+
 def _electrode_centres(mesh: Mesh, shift: np.ndarray | None = None) -> np.ndarray:
     """(L,) each electrode's midpoint as arc length along its boundary, m, counter-clockwise
     from the first node of electrode 0 (NaN for an electrode on another boundary loop), moved
     by `shift` (L,), m."""
-    following = dict(mesh.boundary_edges.tolist())
-    start = int(mesh.electrodes[0][0])
-    arc, node, position = 0.0, start, {start: 0.0}
-    while True:
-        step = following[node]
-        arc += float(np.linalg.norm(mesh.nodes[step] - mesh.nodes[node]))
-        if step == start:
-            break
-        node, position[step] = step, arc
+    loop, arcs = _boundary_loop(mesh)
+    arc = float(arcs[-1])
+    position = dict(zip(loop[:-1].tolist(), arcs[:-1].tolist(), strict=True))
     centres = []
     for nodes in mesh.electrodes:
         if int(nodes[0]) not in position:

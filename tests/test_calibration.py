@@ -198,6 +198,16 @@ def test_presses_determine_the_readouts_mixing(calibrated):
     assert np.max(np.abs(others)) < 0.15, others  # measured 0.108 (at the electrode two on): the linearisation
     assert np.all(errors[[0, 1, 10]] > 0) and np.all(errors[[0, 1, 10]] < 0.05)
     assert calibrated.fitted["presses"] == ("mixing", "electrode_positions", "press depths")
+    # The fitted centres on the boundary (a disc of radius 1 m): turned from the mesh's by their shifts.
+    points = calibrated.electrode_points
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=0.01)
+    nominal = dataclasses.replace(
+        calibrated, electrode_centres=calibration_module._electrode_centres(calibrated.model.mesh)
+    ).electrode_points
+    turn = np.angle(np.exp(1j * (np.arctan2(points[:, 1], points[:, 0]) - np.arctan2(nominal[:, 1], nominal[:, 0]))))
+    shift = calibrated.values["electrode_positions"]
+    assert np.max(np.abs(shift)) > 0.01
+    np.testing.assert_allclose(turn, shift, rtol=0.02, atol=1e-3)
     # The skin's electrodes are the mesh's: the presses' positions lie within 3 standard errors of
     # zero (measured: at most 2.0), the errors well under the prior's 39 mm (measured 4-7 mm).
     shift, error = calibrated.values["electrode_positions"], calibrated.standard_errors["electrode_positions"]

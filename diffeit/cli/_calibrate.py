@@ -26,9 +26,9 @@ def add_command(commands: argparse._SubParsersAction) -> None:
         "and its drive and channel gains, with standard errors; with --presses, the presses are imaged and read "
         "and a position map from read to labelled positions is fitted. Prints the calibration's report, writes "
         "the calibration file OUT (pass it to `diffeit reconstruct --calibration`) and a figure beside it "
-        "(OUT with .png for .h5): the mesh and its electrodes, the mixing weights and the gains with their "
-        "standard errors, and, with presses, each labelled position with an arrow to where it was read "
-        "(through the position map). Exit status 2 for bad input or options.",
+        "(OUT with .png for .h5): the mesh and its electrodes (and their fitted centres), the mixing weights and "
+        "the gains with their standard errors, and, with presses, each labelled position with an arrow to where it "
+        "was read (through the position map). Exit status 2 for bad input or options.",
     )
     calibrate.add_argument("session", help="the session: a diffeit frames file (.h5), untouched frames first")
     calibrate.add_argument(
@@ -80,7 +80,8 @@ def plot_calibration(
     presses: Presses | None = None,
 ) -> Path:
     """The figure of a calibration: its mesh with the electrodes (coloured by the background map
-    when it has one), the readout's mixing weights and
+    when it has one; the fitted electrode centres marked on it when the positions were fitted),
+    the readout's mixing weights and
     the drive and channel gains (with one-standard-error bars), and, with `presses`, every
     labelled position with an arrow to its read position (through the position map). A curved
     skin is drawn seen along z (its x and y).
@@ -112,9 +113,15 @@ def plot_calibration(
         xy = mesh.nodes[chain, :2]
         axes[0].plot(xy[:, 0], xy[:, 1], color="0.1", linewidth=4, solid_capstyle="butt")
         axes[0].annotate(str(index), 1.1 * xy[len(xy) // 2], ha="center", va="center", fontsize=7)
+    title = f"mesh: {mesh.n_elements} triangles, {len(mesh.electrodes)} electrodes"
+    if "electrode_positions" in values:  # the fitted centres against the mesh's electrodes
+        points = calibration.electrode_points
+        axes[0].plot(points[:, 0], points[:, 1], "o", color="C3", markersize=4, label="fitted centres")
+        axes[0].legend(fontsize=7, loc="lower left")
+        title += f"\nfitted centres moved by up to {1e3 * np.max(np.abs(values['electrode_positions'])):.2g} mm"
     axes[0].set_aspect("equal")
     axes[0].set_axis_off()
-    axes[0].set_title(f"mesh: {mesh.n_elements} triangles, {len(mesh.electrodes)} electrodes")
+    axes[0].set_title(title, fontsize=9)
 
     mixing = np.asarray(values["mixing"])
     axes[1].bar(np.arange(len(mixing)), mixing, yerr=np.asarray(errors["mixing"]), capsize=2, color="C0")
