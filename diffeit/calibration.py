@@ -2080,11 +2080,10 @@ def _fit_presses(
     "Presses"), and the relative misfit of the presses' differences, the labelled `presses` in
     the labels' `frame` (`_moved`; None: the mesh's); with `free`, the groups it names too
     (`_PressGroups`: electrode positions, gains per reading, background map, the frame itself;
-    None: the mixing alone); with
-    `train` (K,) bool, to those presses alone (the others' potentials are computed all the
-    same: the compiled programs are those of all K presses). `response` is the calibration's
-    model's (`_ElectrodeResponse.of_calibration`, with the margin of `free.positions` when they
-    are fitted).
+    None: the mixing alone); with `train` (K,) bool, to those presses alone (the others'
+    potentials are computed all the same: the compiled programs are those of all K presses).
+    `response` is the calibration's model's (`_ElectrodeResponse.of_calibration`, with the
+    margin of `free.positions` when they are fitted).
 
     Each press k is a disc of the labelled centre and radius and an unknown depth a_k, a
     relative change of the sheet's conductivity sigma under it; its differences are linearised
