@@ -3225,7 +3225,63 @@ def load(path: str | Path, *, recording: Recording | None = None) -> SkinCalibra
         raise ValueError(f"{path} is not a readable diffeit calibration: {error}") from error
 
 
+# What each stored number may be: a file edited by hand or written by a faulty program is
+# refused by name rather than read as other numbers (a NaN ringing had read as the default).
+# Name -> (smallest, largest, the value that stands for "none" or None).
+_STORED_NUMBERS = {
+    "conductivity": (0.0, math.inf, None),
+    "drive_current": (-math.inf, math.inf, None),  # A; not 0 either
+    "electrode_margin": (0.0, math.inf, None),
+    "misfit": (0.0, math.inf, None),
+    "correlation": (-1.0, 1.0, None),
+    "hyperparameter": (0.0, math.inf, -1.0),
+    "noise_frames": (0.0, math.inf, None),
+    "ringing": (0.0, _RINGING_CAP, -1.0),
+}
+# Arrays -> what their values must be besides finite: "positive", "non-negative", "nonzero" or
+# "" (anything).
+_STORED_ARRAYS = {
+    "contact_impedance": "positive",
+    "background_map": "positive",
+    "readout/gains": "nonzero",
+    "readout/weights": "",
+    "noise": "non-negative",
+    "model/electrode_shift": "",
+    "position_map/coefficients": "",
+}
+
+
+def _check_stored(arrays: dict, attributes: dict) -> None:
+    """ValueError naming a stored number or array out of its range (`_STORED_NUMBERS`,
+    `_STORED_ARRAYS`): NaN, infinite, of the wrong sign, a reading sign other than +-1, or a
+    polarity other than -1, 0 (none) or +1."""
+    for name, (low, high, none) in _STORED_NUMBERS.items():
+        if name not in attributes:
+            continue
+        value = float(attributes[name])
+        if value != none and not (math.isfinite(value) and low <= value <= high):
+            raise ValueError(f"its {name} is {value!r}, not a finite number in [{low:g}, {high:g}]")
+    for name in ("conductivity", "drive_current"):
+        if float(attributes[name]) == 0:
+            raise ValueError(f"its {name} is 0")
+    polarity = float(attributes.get("polarity", 0))
+    if polarity not in (-1, 0, 1):
+        raise ValueError(f"its polarity is {polarity:g}, not -1, +1 or 0 (none)")
+    for name, kind in _STORED_ARRAYS.items():
+        if name not in arrays:
+            continue
+        values = np.asarray(arrays[name], float)
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"its {name} holds values that are not finite")
+        wrong = {"positive": values <= 0, "non-negative": values < 0, "nonzero": values == 0}.get(kind, False)
+        if np.any(wrong):
+            raise ValueError(f"its {name} holds values that are not {kind}")
+    if not np.all(np.abs(np.asarray(arrays["reading_sign"], float)) == 1):
+        raise ValueError("its reading_sign holds values other than +-1")
+
+
 def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, path: Path) -> SkinCalibration:
+    _check_stored(arrays, attributes)
     offsets = arrays["mesh/electrode_offsets"]
     nodes = arrays["mesh/electrode_nodes"]
     mesh = Mesh(arrays["mesh/nodes"], arrays["mesh/triangles"], [nodes[a:b] for a, b in itertools.pairwise(offsets)])

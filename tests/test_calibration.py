@@ -339,6 +339,43 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
 
 
 @pytest.mark.parametrize(
+    ("where", "name", "value", "message"),
+    [
+        ("attribute", "ringing", np.nan, "ringing is nan"),
+        ("attribute", "ringing", 0.9, "ringing is 0.9"),
+        ("attribute", "conductivity", -1.0, "conductivity is -1.0"),
+        ("attribute", "conductivity", np.inf, "conductivity is inf"),
+        ("attribute", "correlation", 1.5, "correlation is 1.5"),
+        ("attribute", "hyperparameter", np.nan, "hyperparameter is nan"),
+        ("attribute", "polarity", 3, "polarity is 3"),
+        ("dataset", "contact_impedance", np.nan, "contact_impedance holds values that are not finite"),
+        ("dataset", "contact_impedance", -0.01, "contact_impedance holds values that are not positive"),
+        ("dataset", "readout/gains", 0.0, "readout/gains holds values that are not nonzero"),
+        ("dataset", "noise", -1.0, "noise holds values that are not non-negative"),
+        ("dataset", "reading_sign", 0.5, "reading_sign holds values other than"),
+    ],
+)
+def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
+    calibrated, tmp_path, where, name, value, message
+):
+    """A file edited by hand, or written by a faulty program, passes its checksums: each stored
+    number outside what it can be is refused by name, never read as another value (a NaN
+    ringing had read as the default)."""
+    path = calibrated.save(tmp_path / "skin.cal.h5")
+    with h5py.File(path, "r+") as file:
+        if where == "attribute":
+            file.attrs[name] = value
+        else:
+            data = file[name][()]
+            del file[name]
+            changed = np.array(data, float)
+            changed.flat[0] = value
+            file.create_dataset(name, data=changed.astype(data.dtype), fletcher32=True)
+    with pytest.raises(ValueError, match=f"{path} is not a readable diffeit calibration: its {message}"):
+        de.calibration.load(path)
+
+
+@pytest.mark.parametrize(
     ("change", "message"),
     [
         (lambda p: de.io.Presses(p.centres + 5.0, p.radius, p.times[:, 0]), "outside the skin"),
