@@ -2164,7 +2164,7 @@ def _fit_presses(
         return base, np.einsum("pml,kml->kmp", basis, changes[:, drive]), response.potentials[drive]
 
     def objective(at: tuple, mixing: np.ndarray, depth: np.ndarray, values: np.ndarray, scale: np.ndarray) -> float:
-        residual, _ = _press_residual(scaled, *at[:2], basis, weights, at[2], magnitude, mixing, depth)
+        residual, _ = _BilinearPresses(scaled, *at[:2], basis, weights, at[2], magnitude).residual(mixing, depth)
         return float(np.sum((residual / scale) ** 2) + np.sum(mixing**2) / prior**2 + values**2 @ precision)
 
     def along_frame(response: _ElectrodeResponse, turn: np.ndarray, mixing: np.ndarray) -> np.ndarray:
@@ -2182,9 +2182,8 @@ def _fit_presses(
     for position_round in itertools.count():
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
         # errors there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
-        fit = _mixing_depths_and_gains(
-            differences, *at[:2], basis, weights, at[2], magnitude, mixing, prior, gains_prior, log_gain
-        )
+        linear = _BilinearPresses(differences, *at[:2], basis, weights, at[2], magnitude)
+        fit = _mixing_depths_and_gains(linear, mixing, prior, gains_prior, log_gain)
         mixing, depth, sign, curvature, residual, last_step, log_gain, gain_errors = fit
         if converged or position_round == _POSITION_ROUNDS:
             break
@@ -2204,7 +2203,7 @@ def _fit_presses(
             along = np.concatenate([along, along_frame(response, turn, mixing)], axis=2)
         along = along[..., moving]
         design = depth[:, None, None] * sign[None, :, None] * np.concatenate([at[1], along], axis=2)
-        predicted = sign * (at[0] + at[1] @ mixing)
+        predicted = sign * linear.unsigned(mixing)
         scale = _residual_scale(residual, scaled)
         step, depth_step, joint = _step_with_depths(
             predicted,
@@ -2343,14 +2342,44 @@ def _fit_presses(
     return fitted, _relative(residual.ravel(), (differences / np.exp(log_gain)).ravel())
 
 
+class _BilinearPresses(NamedTuple):
+    """The presses' linearised model (`_fit_presses`), bilinear in the readout's p mixing
+    weights m and the presses' depths a_k: dv_k = a_k s * (base_k + columns_k m), s the
+    readings' signs (for magnitudes `_signs`': the presses' where they decide them, else the
+    mixed reference readings').
+
+    Attributes:
+        differences: (K, M) the presses' differences.
+        base: (K, M) each press's readings at unit depth without mixing.
+        columns: (K, M, p) their derivative in the p mixing weights.
+        basis: (p, M, L) the weights' reading weights; `weights` (M, L) the protocol's.
+        potentials: (M, L) the reference's electrode potentials of each reading's drive.
+        magnitude: Whether the readings are magnitudes.
+    """
+
+    differences: np.ndarray
+    base: np.ndarray
+    columns: np.ndarray
+    basis: np.ndarray
+    weights: np.ndarray
+    potentials: np.ndarray
+    magnitude: bool
+
+    def unsigned(self, mixing: np.ndarray) -> np.ndarray:
+        """(K, M) each press's readings at unit depth with the weights `mixing`, before their signs."""
+        return self.base + self.columns @ mixing
+
+    def residual(self, mixing: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K, M) the differences less the model's at `mixing` (p,) and `depth` (K,), and the
+        readings' signs (M,) it takes."""
+        unsigned = self.unsigned(mixing)
+        mixed = self.weights + np.einsum("p,pml->ml", mixing, self.basis)
+        sign = _signs(mixed, self.potentials, self.magnitude, depth[:, None] * unsigned, self.differences)
+        return self.differences - depth[:, None] * sign * unsigned, sign
+
+
 def _mixing_depths_and_gains(
-    differences: np.ndarray,
-    base: np.ndarray,
-    columns: np.ndarray,
-    basis: np.ndarray,
-    weights: np.ndarray,
-    potentials: np.ndarray,
-    magnitude: bool,
+    presses: _BilinearPresses,
     mixing: np.ndarray,
     prior: float,
     gains_prior: float | None,
@@ -2371,50 +2400,35 @@ def _mixing_depths_and_gains(
     errors, step = np.zeros_like(log_gain), math.inf
     rounds = 0 if gains_prior is None else _GAIN_ROUNDS
     for done in itertools.count():
-        scaled = differences / np.exp(log_gain)
-        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(
-            scaled, base, columns, basis, weights, potentials, magnitude, mixing, prior
-        )
+        scaled = presses._replace(differences=presses.differences / np.exp(log_gain))
+        mixing, depth, sign, curvature, residual, last_step = _mixing_and_depths(scaled, mixing, prior)
         # The weights and depths returned are those of the last gains.
         if done == rounds or step < _GAIN_STEP:
             return mixing, depth, sign, curvature, residual, last_step, log_gain, errors
-        predicted = depth[:, None] * sign * (base + columns @ mixing)  # (K, M)
-        variance = _residual_scale(residual, scaled) ** 2  # (K, 1)
+        predicted = depth[:, None] * sign * presses.unsigned(mixing)  # (K, M)
+        variance = _residual_scale(residual, scaled.differences) ** 2  # (K, 1)
         power = np.sum(predicted**2 / variance, axis=0) + gains_prior**-2.0
-        gain = np.maximum((np.sum(predicted * differences / variance, axis=0) + gains_prior**-2.0) / power, 1e-3)
+        weighed = np.sum(predicted * presses.differences / variance, axis=0)
+        gain = np.maximum((weighed + gains_prior**-2.0) / power, 1e-3)
         moved = np.log(gain) - np.log(gain).mean()
         errors = np.sqrt(1.0 / power) / gain
         step, log_gain = float(np.max(np.abs(moved - log_gain))), moved
 
 
 def _mixing_and_depths(
-    differences: np.ndarray,
-    base: np.ndarray,
-    columns: np.ndarray,
-    basis: np.ndarray,
-    weights: np.ndarray,
-    potentials: np.ndarray,
-    magnitude: bool,
-    mixing: np.ndarray,
-    prior: float,
+    presses: _BilinearPresses, mixing: np.ndarray, prior: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
     """The presses' mixing weights and depths (`_fit_presses`): Gauss-Newton on the bilinear
-    model dv_k = a_k s * (base_k + columns_k m), the weights m with their prior, from `mixing`
-    and each depth's projection there.
+    model of `presses`, the weights m with their prior, from `mixing` and each depth's
+    projection there.
 
     The depths are eliminated from each step (the Schur complement of their diagonal block),
     so a step costs what one of alternating the depths and the weights does; alternating
     converged linearly, its steps shrinking about 3% a round, and stopped far from the optimum.
-    The residual's RMS weighs the data, updated every step; on magnitudes the signs s are the
-    presses' where their differences decide them, else the mixed reference readings' (`_signs`).
+    The residual's RMS weighs the data, updated every step.
 
     Arguments:
-        differences: (K, M) the presses' differences.
-        base: (K, M) each press's readings at unit depth without mixing.
-        columns: (K, M, p) their derivative in the p mixing weights.
-        basis: (p, M, L) the weights' reading weights; `weights` (M, L) the protocol's.
-        potentials: (M, L) the reference's electrode potentials of each reading's drive.
-        magnitude: Whether the readings are magnitudes.
+        presses: The linearised presses.
         mixing: (p,) the start.
         prior: The weights' prior standard deviation.
 
@@ -2423,23 +2437,23 @@ def _mixing_and_depths(
         the depths unknown (its inverse their covariance), the residual (K, M) and the last
         step's largest change of a weight (converged below `_PRESS_STEP`).
     """
+    differences = presses.differences
 
     def objective(mixing: np.ndarray, depth: np.ndarray, scale: np.ndarray) -> float:
-        residual, _ = _press_residual(differences, base, columns, basis, weights, potentials, magnitude, mixing, depth)
+        residual, _ = presses.residual(mixing, depth)
         return float(np.sum((residual / scale) ** 2) + np.sum(mixing**2) / prior**2)
 
     depth = None
     precision = np.full(len(mixing), prior**-2.0)
     for _ in range(_PRESS_ROUNDS):
-        unsigned = base + columns @ mixing  # (K, M), at unit depth
+        unsigned = presses.unsigned(mixing)  # (K, M), at unit depth
         if depth is None:
-            predicted = _signs(weights + np.einsum("p,pml->ml", mixing, basis), potentials, magnitude) * unsigned
+            mixed = presses.weights + np.einsum("p,pml->ml", mixing, presses.basis)
+            predicted = _signs(mixed, presses.potentials, presses.magnitude) * unsigned
             depth = np.sum(predicted * differences, axis=1) / np.maximum(np.sum(predicted**2, axis=1), 1e-300)
-        residual, sign = _press_residual(
-            differences, base, columns, basis, weights, potentials, magnitude, mixing, depth
-        )
+        residual, sign = presses.residual(mixing, depth)
         predicted = sign * unsigned
-        along = depth[:, None, None] * sign[None, :, None] * columns  # d dv / d m
+        along = depth[:, None, None] * sign[None, :, None] * presses.columns  # d dv / d m
         scale = _residual_scale(residual, differences)
         step, depth_step, curvature = _step_with_depths(predicted, along, residual, scale, mixing, precision)
         # The model is bilinear and the signs of magnitudes follow the weights: a full step can
@@ -2458,28 +2472,8 @@ def _mixing_and_depths(
         depth = depth + depth_step
         if np.max(np.abs(step)) < _PRESS_STEP:
             break
-    residual, sign = _press_residual(differences, base, columns, basis, weights, potentials, magnitude, mixing, depth)
+    residual, sign = presses.residual(mixing, depth)
     return mixing, depth, sign, curvature, residual, float(np.max(np.abs(step)))
-
-
-def _press_residual(
-    differences: np.ndarray,
-    base: np.ndarray,
-    columns: np.ndarray,
-    basis: np.ndarray,
-    weights: np.ndarray,
-    potentials: np.ndarray,
-    magnitude: bool,
-    mixing: np.ndarray,
-    depth: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(K, M) the presses' differences less the bilinear model's (`_mixing_and_depths`, its
-    arguments), and the readings' signs (M,) it takes: for magnitudes `_signs`' (the presses'
-    where they decide them)."""
-    unsigned = base + columns @ mixing
-    mixed = weights + np.einsum("p,pml->ml", mixing, basis)
-    sign = _signs(mixed, potentials, magnitude, depth[:, None] * unsigned, differences)
-    return differences - depth[:, None] * sign * unsigned, sign
 
 
 def _step_with_depths(

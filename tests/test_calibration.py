@@ -595,18 +595,17 @@ def test_the_presses_mixing_and_depths_are_solved_together_and_an_unconverged_so
     truth, depths = rng.normal(scale=0.1, size=count), rng.uniform(0.5, 1.5, presses)
     differences = depths[:, None] * (base + columns @ truth)
     basis, weights = np.zeros((count, readings, electrodes)), np.zeros((readings, electrodes))
-    solve = calibration_module._mixing_and_depths
-    mixing, depth, sign, curvature, residual, step = solve(
-        differences, base, columns, basis, weights, np.ones((readings, electrodes)), False, np.zeros(count), 1e3
+    linear = calibration_module._BilinearPresses(
+        differences, base, columns, basis, weights, np.ones((readings, electrodes)), False
     )
+    solve = calibration_module._mixing_and_depths
+    mixing, depth, sign, curvature, residual, step = solve(linear, np.zeros(count), 1e3)
     np.testing.assert_allclose(mixing, truth, atol=1e-9)
     np.testing.assert_allclose(depth, depths, rtol=1e-9)
     assert np.all(sign == 1) and step < 1e-6 and np.max(np.abs(residual)) < 1e-9
     assert curvature.shape == (count, count) and np.all(np.linalg.eigvalsh(curvature) > 0)
     monkeypatch.setattr(calibration_module, "_PRESS_ROUNDS", 1)
-    *_, step = solve(
-        differences, base, columns, basis, weights, np.ones((readings, electrodes)), False, np.zeros(count), 1e3
-    )
+    *_, step = solve(linear, np.zeros(count), 1e3)
     assert step > 1e-6
 
 
@@ -625,9 +624,8 @@ def test_the_presses_mixing_steps_are_halved_where_a_full_step_overshoots():
         truth, depths = rng.normal(scale=0.3, size=count), rng.uniform(0.5, 1.5, presses)
         sign = calibration_module._signs(weights + np.einsum("p,pml->ml", truth, basis), potentials, True)
         differences = depths[:, None] * sign * (base + columns @ truth)
-        mixing, *_ = calibration_module._mixing_and_depths(
-            differences, base, columns, basis, weights, potentials, True, np.zeros(count), 1.0
-        )
+        linear = calibration_module._BilinearPresses(differences, base, columns, basis, weights, potentials, True)
+        mixing, *_ = calibration_module._mixing_and_depths(linear, np.zeros(count), 1.0)
         found += np.max(np.abs(mixing - truth)) < 1e-6
     assert found >= 32
 
@@ -645,15 +643,17 @@ def test_a_gain_per_reading_is_fitted_with_the_presses_mixing_and_depths():
     gains = np.exp(rng.uniform(-0.2, 0.2, readings))
     differences = gains * depths[:, None] * (base + columns @ truth)
     basis, weights = np.zeros((count, readings, electrodes)), np.zeros((readings, electrodes))
-    arguments = (differences, base, columns, basis, weights, np.ones((readings, electrodes)), False, np.zeros(count))
+    linear = calibration_module._BilinearPresses(
+        differences, base, columns, basis, weights, np.ones((readings, electrodes)), False
+    )
     solve = calibration_module._mixing_depths_and_gains
-    mixing, depth, _, _, residual, _, log_gain, errors = solve(*arguments, 1e3, 0.2, np.zeros(readings))
+    mixing, depth, _, _, residual, _, log_gain, errors = solve(linear, np.zeros(count), 1e3, 0.2, np.zeros(readings))
     true_log_gain = np.log(gains) - np.log(gains).mean()
     np.testing.assert_allclose(log_gain, true_log_gain, atol=1e-6)
     np.testing.assert_allclose(mixing, truth, atol=1e-6)
     np.testing.assert_allclose(depth, depths * np.exp(np.log(gains).mean()), rtol=1e-6)
     assert np.max(np.abs(residual)) < 1e-6 * np.max(np.abs(differences)) and np.all(errors > 0)
-    held, *_, held_log_gain, held_errors = solve(*arguments, 1e3, None, np.zeros(readings))
+    held, *_, held_log_gain, held_errors = solve(linear, np.zeros(count), 1e3, None, np.zeros(readings))
     assert np.all(held_log_gain == 0) and np.all(held_errors == 0)
     assert np.max(np.abs(held - truth)) > 1e-3
 
