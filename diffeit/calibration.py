@@ -1119,7 +1119,9 @@ def reference_frames(
     """The frames a recording's model is calibrated on, and where they come from.
 
     The recording's reference; else its frame `reference_frame`; else, with presses, the
-    frames before the first press (or, when there are none, those outside every hold); else
+    frames before the first press (or, when there are none, those outside every hold) that
+    look untouched (`_untouched`, when more than `REFERENCE_FRAMES`: the presses labelled may
+    be some of the session's, the others kept to test on); else
     the recording's first frames up to the first that looks touched (`_untouched`, among the
     first `_SESSION_FRAMES`), or the first `REFERENCE_FRAMES` when those are fewer
     (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched).
@@ -1138,14 +1140,16 @@ def reference_frames(
         source = "recording" if reference_frame is None else f"frame {reference_frame}"
         return np.atleast_2d(recording.reference_values(reference_frame)), source
     if presses is not None:
+        # The labelled presses may be some of the session's (the rest kept to test on): the
+        # frames outside them are the untouched ones among them.
         before = recording.times < presses.times[:, 0].min()
         if before.any():
-            return recording.frames[before], f"the {int(before.sum())} frames before the first press"
+            return _looking_untouched(recording.frames[before], "before the first press")
         pressed = np.zeros(recording.n_frames, bool)
         for frames in presses.frames(recording.times):
             pressed[frames] = True
         if (~pressed).any():
-            return recording.frames[~pressed], f"the {int((~pressed).sum())} frames outside the presses"
+            return _looking_untouched(recording.frames[~pressed], "outside the presses")
     if recording.n_frames > REFERENCE_FRAMES:
         still = _untouched(recording.frames[:_SESSION_FRAMES])
         if every_frame:
@@ -1157,6 +1161,17 @@ def reference_frames(
             return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
     count = min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"
+
+
+def _looking_untouched(frames: np.ndarray, where: str) -> tuple[np.ndarray, str]:
+    """Those of `frames` (T, M) that look untouched (`_untouched`, when there are more than
+    `REFERENCE_FRAMES`), and their description, the frames `where` they are."""
+    if len(frames) <= REFERENCE_FRAMES:
+        return frames, f"the {len(frames)} frames {where}"
+    still = _untouched(frames)
+    if still.all():
+        return frames, f"the {len(frames)} frames {where}"
+    return frames[still], f"the {int(still.sum())} frames {where} that look untouched (of {len(frames)})"
 
 
 def _untouched(frames: np.ndarray) -> np.ndarray:

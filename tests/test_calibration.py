@@ -129,6 +129,30 @@ def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_a
         de.touches(damaged)
 
 
+def test_presses_labelled_late_in_a_session_take_the_untouched_frames_before_them(mixing_skin):
+    """The labelled presses can be some of a session's, the others kept to test on: here the
+    last 10 of 30, the frames between the first 20 dropped, so that the 30 frames before the
+    first labelled press are 20 touched ones after the 10 untouched. The reference is those 10
+    alone (it was all 30), and the calibration's noise is their spread."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
+    kept = np.r_[np.arange(UNTOUCHED), pressed[:20], np.arange(pressed[20], recording.n_frames)]
+    session = de.io.Recording(
+        frames=recording.frames[kept],
+        times=recording.times[kept],
+        protocol=recording.protocol,
+        mesh=recording.mesh,
+        readings=recording.readings,
+        voltage_unit=recording.voltage_unit,
+    )
+    labelled = presses.select(np.arange(20, 30))
+    frames, source = de.calibration.reference_frames(session, presses=labelled)
+    assert source == f"the {UNTOUCHED} frames before the first press that look untouched (of {UNTOUCHED + 20})"
+    np.testing.assert_array_equal(frames, recording.frames[:UNTOUCHED])
+    calibration = de.calibrate(session, labelled)
+    assert calibration.noise_frames == UNTOUCHED
+
+
 def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixing_skin):
     """A skin whose readings grow 2% over the session (a hydrogel drying, a board warming), many
     times their noise: the frames are untouched up to the first press against their trend in
