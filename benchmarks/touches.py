@@ -12,7 +12,10 @@ recording of the reference frames and `--frames` other presses, reconstructed on
 that compiles (not counted), divided by the number of frames (every frame is read, touched or
 not), and by the number of pressed frames (the fit's work is on them: an untouched frame costs
 the voltage test alone). The targets are 5 ms a frame from the images and 50 ms with the fit. The median position
-error on the pressed frames is printed beside them.
+error on the pressed frames is printed beside them, and what they read of the presses' size and
+depth (each a disc of radius 10 mm where dsigma/sigma = -0.3): the medians, with their quartiles,
+of the strongest touch's radius and depth. An image is a blurred picture of a touch, its
+half-amplitude set wider than a small contact and its peak shallower; the fit reads the disc.
 """
 
 from __future__ import annotations
@@ -29,10 +32,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, with_about, write_tables
-from calibration import REFERENCE_FRAMES, session
+from calibration import PRESS_CHANGE, PRESS_RADIUS, REFERENCE_FRAMES, session
 
 CALIBRATION_PRESSES = 50
 TRIANGLES = 1000
+
+
+def quartiles(values: np.ndarray, form: str, unit: str) -> str:
+    """The median of `values` (NaN left out) and, in brackets, its quartiles."""
+    low, middle, high = (form.format(q) for q in np.nanpercentile(values, [25, 50, 75]))
+    return f"{middle}{unit} ({low} to {high})"
 
 
 def main() -> None:
@@ -86,7 +95,16 @@ def main() -> None:
         f"medians of {options.repeats} calls after a warm-up\n"
     )
     table = MarkdownTable(
-        ["method", "per frame", "per pressed frame", "whole recording", "target per frame", "median error on presses"]
+        [
+            "method",
+            "per frame",
+            "per pressed frame",
+            "whole recording",
+            "target per frame",
+            "median error on presses",
+            f"radius (true {1e3 * PRESS_RADIUS:.0f} mm)",
+            f"depth (true {PRESS_CHANGE:+.2f})",
+        ]
     )
     for method, target in (("image", 5e-3), ("fit", 50e-3)):
         found = de.touches(images, calibration, method=method)  # compiles
@@ -105,6 +123,8 @@ def main() -> None:
                 f"{whole:.2f} s",
                 f"{1e3 * target:.0f} ms",
                 f"{1e3 * np.nanmedian(error):.1f} mm ({int(np.isnan(error).sum())} missed)",
+                quartiles(1e3 * found.radius[pressed, 0], "{:.1f}", " mm"),
+                quartiles(found.depth[pressed, 0], "{:+.2f}", ""),
             ]
         )
     print()
