@@ -294,11 +294,18 @@ def touches(
         position_map=mapping if method == "image" else None,
         stack=stack if method == "image" else None,
         touched=frames_touched,
-        relative=max(RELATIVE, getattr(calibration, "ringing", None) or 0.0),
+        relative=relative_floor(calibration),
     )
     if method == "image":
         return found
     return _refined(recording, calibration, found, mapping, stack)
+
+
+def relative_floor(calibration: Any) -> float:
+    """The fraction of a frame's highest peak a further touch's must reach (module docstring,
+    "The rule", step 2): `RELATIVE`, or the `ringing` of `calibration` (a
+    `diffeit.calibration.SkinCalibration` from labelled presses, or None) where that is higher."""
+    return max(RELATIVE, getattr(calibration, "ringing", None) or 0.0)
 
 
 def touched(

@@ -381,9 +381,11 @@ class _LiveViewer:
 
     With `touches`: each frame's touches are read from its image (`diffeit.touch.read`, one call
     a batch; through the calibration's position map and polarity, or where no presses gave it,
-    the polarity the batch's touched images show, `diffeit.touch.polarity_of`) and printed, a line a frame
-    beside its image's peak. A calibration that knows its readings' noise decides which frames
-    are touched by the voltage test of `diffeit.touch.touches`.
+    the polarity the batch's touched images show, `diffeit.touch.polarity_of`; a further touch
+    above the calibration's ringing, `diffeit.touch.relative_floor`, as `diffeit.touches` reads
+    them) and printed, a line a frame beside its image's peak. A calibration that knows its
+    readings' noise decides which frames are touched by the voltage test of
+    `diffeit.touch.touches`.
 
     The solves are direct (a matrix product, a closed-form memory step): what fails is a
     non-finite image (overflowing readings, a degenerate memory). `nonfinite` lists those
@@ -534,7 +536,7 @@ class _LiveViewer:
     def _print_touches(self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray) -> None:
         """Print a line per frame of the batch: its index among the frames imaged, its time, its
         image's peak and its touches (`diffeit.touch.read` on the finite images, one call)."""
-        from ..touch import polarity_of, read, touched
+        from ..touch import polarity_of, read, relative_floor, touched
 
         skin, found = self.skin, None
         if finite.any():
@@ -550,6 +552,7 @@ class _LiveViewer:
                 polarity=polarity,
                 position_map=None if skin is None else skin.position_map,
                 touched=frames_touched,
+                relative=relative_floor(skin),
             )
         row = np.cumsum(finite) - 1  # each finite image's row in `found`
         for k, (frame, image) in enumerate(zip(batch, images, strict=True)):
