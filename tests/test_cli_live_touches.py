@@ -62,6 +62,7 @@ def test_live_prints_the_touches_at_the_calibrations_model(skin, tmp_path, capsy
             position = 1e-3 * np.array([float(found[1]), float(found[2])])
             assert np.linalg.norm(position - place) < 0.1, (lines[frame], place)
             assert float(found[3]) > 0 and float(found[4]) < 0  # a press lowers the conductivity
+            assert "touch 1" not in lines[frame], lines[frame]  # one press, one touch: above the ringing alone
 
 
 def test_live_refuses_a_calibration_for_another_protocol_or_readings(skin, tmp_path, capsys):
