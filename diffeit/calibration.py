@@ -204,6 +204,7 @@ import numpy as np
 import scipy.ndimage
 import scipy.optimize
 import scipy.stats
+from numpy.typing import ArrayLike
 
 from ._arrays import per_element
 from ._messages import name_indices
@@ -238,6 +239,7 @@ _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
 _DRIFT_CHANCE = 1e-6  # the chance that the reference's own jitter passes for a drift (`drift_corrected`)
 _ROUND_OFF = 1e-12  # a reading's spread under this fraction of its value is round-off, not noise (`drift_corrected`)
+_LIVE_DRIFT_ERRORS = 3.0  # a stream's running gain is taken out beyond this many standard errors from 1 (`LiveDrift`)
 # Adopt another orientation when it cuts the misfit as recorded by at least this factor.
 _ORIENTATION_GAIN = 2.0
 # A magnitude's sign is uncertain where the model's reading is under this fraction of its RMS.
@@ -1235,39 +1237,17 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
         ValueError: For reference frames that are not (N, M) finite readings of the
             recording's M, or, with a drift to take out, times that go backwards.
     """
-    reference_set = np.asarray(reference_set, np.float64)
-    if reference_set.ndim != 2 or reference_set.shape[1] != recording.frames.shape[1]:
-        raise ValueError(
-            f"reference_set must be (N, {recording.frames.shape[1]}) frames of the recording's readings; "
-            f"got shape {reference_set.shape}"
-        )
-    if not np.all(np.isfinite(reference_set)):
-        raise ValueError("reference_set holds non-finite values (NaN or inf)")
-    if len(reference_set) < _NOISE_FRAMES or recording.n_frames == 0:
+    reference_set = _checked_reference_set(reference_set, recording.frames.shape[1])
+    drift = _DriftReference.of(reference_set)
+    if drift is None or recording.n_frames == 0:
         return recording, None
-    reference = reference_set.mean(axis=0)
-    noise = reference_set.std(axis=0, ddof=1)
-    # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
-    # found a drift of 0% and divided the frames by it.
-    kept = noise > _ROUND_OFF * np.abs(reference)
-    if not kept.any():  # identical reference frames: no noise to weigh or test by
-        return recording, None
-    weighed = reference[kept] / noise[kept] ** 2
-
-    def gains_of(frames: np.ndarray) -> np.ndarray:
-        return frames[:, kept] @ weighed / (reference[kept] @ weighed)
-
-    common = gains_of(recording.frames)
-    left = recording.frames - common[:, None] * reference
-    still = ~_noise_test(left, noise, len(reference_set), len(reference_set), _DRIFT_DETECTION)
+    common = drift.gains(recording.frames)
+    still = drift.untouched(recording.frames, common)
     # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
-    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read. The jitter is
-    # half the mean square of successive gains' differences, blind to a slow drift among the
-    # reference frames themselves (a session's untouched frames span it); the spread is robust
-    # (the median square over 0.455, chi-square's median with one degree of freedom).
-    jitter = 0.5 * np.mean(np.diff(gains_of(reference_set)) ** 2)
+    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read. The spread is
+    # robust (the median square over 0.455, chi-square's median with one degree of freedom).
     spread = np.median((common[still] - 1.0) ** 2) / 0.455 if still.any() else 0.0
-    if not spread > jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), len(reference_set) - 1):
+    if not spread > drift.jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), drift.frames - 1):
         return recording, None
     backwards = np.flatnonzero(np.diff(recording.times) < 0)
     if len(backwards):
@@ -1280,6 +1260,139 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
     gains = np.interp(recording.times, recording.times[still], smooth)
     return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
+
+
+def _checked_reference_set(reference_set: ArrayLike, readings: int) -> np.ndarray:
+    """`reference_set` as (N, `readings`) finite float64 frames, or a ValueError naming the problem."""
+    reference_set = np.asarray(reference_set, np.float64)
+    if reference_set.ndim != 2 or reference_set.shape[1] != readings:
+        raise ValueError(
+            f"reference_set must be (N, {readings}) frames of the recording's readings; got shape {reference_set.shape}"
+        )
+    if not np.all(np.isfinite(reference_set)):
+        raise ValueError("reference_set holds non-finite values (NaN or inf)")
+    return reference_set
+
+
+class _DriftReference(NamedTuple):
+    """What tells a frame's common gain against a reference (`drift_corrected`, `LiveDrift`):
+    the reference (M,), the mean of `frames` frames, their noise (M,), the readings whose noise
+    is above round-off (`kept`) and their weights (the reference over the noise squared), and
+    `jitter`, the variance of one frame's gain (half the mean square of successive reference
+    frames' gains' differences: blind to a slow drift among the reference frames themselves)."""
+
+    reference: np.ndarray
+    noise: np.ndarray
+    frames: int
+    kept: np.ndarray
+    weighed: np.ndarray
+    jitter: float
+
+    @classmethod
+    def of(cls, reference_set: np.ndarray) -> _DriftReference | None:
+        """From the (N, M) reference frames; None for fewer than `_NOISE_FRAMES`, or frames
+        identical to round-off (no noise to weigh or test by)."""
+        if len(reference_set) < _NOISE_FRAMES:
+            return None
+        reference = reference_set.mean(axis=0)
+        noise = reference_set.std(axis=0, ddof=1)
+        # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
+        # found a drift of 0% and divided the frames by it.
+        kept = noise > _ROUND_OFF * np.abs(reference)
+        if not kept.any():
+            return None
+        weighed = reference[kept] / noise[kept] ** 2
+        gains = reference_set[:, kept] @ weighed / (reference[kept] @ weighed)
+        return cls(reference, noise, len(reference_set), kept, weighed, float(0.5 * np.mean(np.diff(gains) ** 2)))
+
+    def gains(self, frames: np.ndarray) -> np.ndarray:
+        """(T,) each frame's least-squares multiple of the reference, the readings weighed by their noise."""
+        return frames[:, self.kept] @ self.weighed / (self.reference[self.kept] @ self.weighed)
+
+    def untouched(self, frames: np.ndarray, gains: np.ndarray) -> np.ndarray:
+        """(T,) whether frame - gain * reference stands within the reference frames' noise
+        (`diffeit.touch`'s test of differences against it, at z = `_DRIFT_DETECTION`)."""
+        left = frames - gains[:, None] * self.reference
+        return ~_noise_test(left, self.noise, self.frames, self.frames, _DRIFT_DETECTION)
+
+
+class LiveDrift(eqx.Module):
+    """A stream's drift, followed frame by frame (`diffeit live`): `drift_corrected` for frames
+    that come one batch at a time, the future unknown.
+
+    Each frame's common gain against the reference and its test for a touch are
+    `drift_corrected`'s. The gain a frame is divided by comes from the latest `_DRIFT_WINDOW`
+    untouched frames' gains (itself included when it is untouched): their median, moved to the
+    frame's time along their Theil-Sen slope (the median of the slopes between pairs of them:
+    a median alone lags a steady drift by half the window, and the frames then looked touched);
+    robust, as the offline running median, to a touch that passes for untouched. It is taken
+    as 1 while the median stands within `_LIVE_DRIFT_ERRORS` of its standard errors of 1
+    (1.25 sqrt(jitter / n) for n gains), so that a steady skin's frames are not divided by
+    noise. A frame that looks touched gets the untouched frames' gain at its time.
+
+    Attributes:
+        reference: What tells a frame's gain and touch (the reference frames'; `of`).
+        times: (n,) the latest untouched frames' times, s, n at most `_DRIFT_WINDOW`.
+        recent: (n,) their gains.
+    """
+
+    reference: _DriftReference
+    times: np.ndarray
+    recent: np.ndarray
+
+    @classmethod
+    def of(cls, reference_set: ArrayLike) -> LiveDrift | None:
+        """The drift of a stream whose reference is the mean of `reference_set` (N, M), as
+        streamed; None for fewer than 6 frames (no noise to tell untouched frames by).
+
+        Raises:
+            ValueError: For reference frames that are not (N, M) finite values.
+        """
+        reference_set = np.asarray(reference_set, np.float64)
+        if reference_set.ndim != 2:
+            raise ValueError(f"reference_set must be (N, M) frames; got shape {reference_set.shape}")
+        reference = _DriftReference.of(_checked_reference_set(reference_set, reference_set.shape[1]))
+        return None if reference is None else cls(reference, np.zeros(0), np.zeros(0))
+
+    def step(self, frames: ArrayLike, times: ArrayLike) -> tuple[np.ndarray, np.ndarray, LiveDrift]:
+        """The frames (B, M), taken at `times` (B,) s, divided by their gains; the gains (B,);
+        and the drift after them.
+
+        Raises:
+            ValueError: For frames that are not (B, M) with the reference's M readings, or
+                times that are not (B,) finite.
+        """
+        frames = np.atleast_2d(np.asarray(frames, np.float64))
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        if frames.ndim != 2 or frames.shape[1] != len(self.reference.reference):
+            raise ValueError(
+                f"frames must be (B, {len(self.reference.reference)}), the reference's readings; got {frames.shape}"
+            )
+        if times.shape != (len(frames),) or not np.all(np.isfinite(times)):
+            raise ValueError(f"times must be {len(frames)} finite values, one per frame; got shape {times.shape}")
+        common = self.reference.gains(frames)
+        # A frame that is not finite (reported by its caller) must not poison the gains to come.
+        still = self.reference.untouched(frames, common) & np.all(np.isfinite(frames), axis=1)
+        kept_times, recent, gains = self.times, self.recent, np.ones(len(frames))
+        for t in range(len(frames)):
+            if still[t]:
+                kept_times = np.append(kept_times, times[t])[-_DRIFT_WINDOW:]
+                recent = np.append(recent, common[t])[-_DRIFT_WINDOW:]
+            gains[t] = self._gain_at(kept_times, recent, times[t])
+        return frames / gains[:, None], gains, eqx.tree_at(lambda d: (d.times, d.recent), self, (kept_times, recent))
+
+    def _gain_at(self, times: np.ndarray, gains: np.ndarray, time: float) -> float:
+        """The gain at `time` from untouched frames' `gains` at `times` (class docstring)."""
+        if not len(gains):
+            return 1.0
+        median = float(np.median(gains))
+        if abs(median - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(self.reference.jitter / len(gains)):
+            return 1.0
+        first, second = np.triu_indices(len(gains), k=1)
+        apart = times[second] - times[first]
+        slopes = (gains[second] - gains[first])[apart > 0] / apart[apart > 0]
+        slope = float(np.median(slopes)) if len(slopes) else 0.0
+        return median + slope * (time - float(np.median(times)))
 
 
 def _drift_note(gains: np.ndarray) -> str:

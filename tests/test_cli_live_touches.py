@@ -65,6 +65,40 @@ def test_live_prints_the_touches_at_the_calibrations_model(skin, tmp_path, capsy
             assert "touch 1" not in lines[frame], lines[frame]  # one press, one touch: above the ringing alone
 
 
+def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_path, capsys):
+    """A stream whose readings grow 2% (20 times the board's noise) from its first frame to its
+    last, 8 reference frames: the drift is taken out frame by frame, so the untouched frames
+    after them read no touch and each press one touch where it was; the summary gives the
+    gains taken out. (Against the fixed reference, every frame after the first few read as
+    touched.)"""
+    path, board, pressed, mesh = skin
+    untouched = np.ones(mesh.n_elements)
+    sigmas = [untouched] * 14 + [pressed(PLACES[0])] * 3 + [untouched] * 6 + [pressed(PLACES[1])] * 3 + [untouched] * 6
+    frames = board(sigmas, 3) * (1 + 0.02 * np.linspace(0, 1, len(sigmas)))[:, None]
+    emulator = hw.Emulator(frames, frame_rate=100.0).start()
+    options = ("--frames", str(len(sigmas)), "--reference-frames", "8", "--calibration", str(path), "--touches")
+    status = _live(emulator.port, *options, "--png", str(tmp_path / "live.png"))
+    emulator.stop()
+    assert status == 0
+    printed = capsys.readouterr().out
+    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    assert sorted(lines) == list(range(len(sigmas) - 8))
+    for frame in (*range(6), *range(9, 15), *range(18, 24)):
+        assert lines[frame].endswith("no touch"), (frame, lines[frame])
+    pattern = r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm"
+    for frames_pressed, place in ((range(6, 9), PLACES[0]), (range(15, 18), PLACES[1])):
+        for frame in frames_pressed:
+            found = re.search(pattern, lines[frame])
+            assert found and "touch 1" not in lines[frame], lines[frame]
+            assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
+    gains = re.search(r"the common gain drifted, taken out: ([\d.]+) to ([\d.]+)$", printed, re.M)
+    # Against the reference (the mean of the first 8 frames, its gain 1 + 0.02 * 3.5 / 31): the
+    # first imaged frame's gain, and the last's.
+    drift = (1 + 0.02 * np.array([8, 31]) / 31) / (1 + 0.02 * 3.5 / 31)
+    assert gains, printed[-300:]
+    np.testing.assert_allclose([float(gains[1]), float(gains[2])], drift, atol=5e-4)
+
+
 def test_live_refuses_a_calibration_for_another_protocol_or_readings(skin, tmp_path, capsys):
     path = skin[0]
     # Binary frames of the full 16 x 16 layout: the stream's protocol, known at its first frame, is not the

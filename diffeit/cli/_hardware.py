@@ -59,7 +59,12 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "on stderr and in the image's title); 2 for bad options or a device that cannot be opened.",
     )
     _source_arguments(live)
-    live.add_argument("--reference-frames", type=int, default=1, help="frames averaged into the reference (1)")
+    live.add_argument(
+        "--reference-frames",
+        type=int,
+        default=1,
+        help="frames averaged into the reference (1); with 6 or more the skin's drift is followed and taken out",
+    )
     live.add_argument("--batch", type=int, default=8, help="frames reconstructed together (8)")
     add_model_options(live, methods=_LIVE_METHODS, hyperparameter_default="auto")
     live.add_argument(
@@ -291,7 +296,8 @@ def _live(arguments: argparse.Namespace) -> int:
         shown += viewer.show(batch)
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
     corrected = " and corrected for memory" if fit is not None else ""
-    print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}")
+    drifted = "" if viewer is None else viewer.drift_note()
+    print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}{drifted}")
     nonfinite = viewer.nonfinite if viewer is not None else []
     if nonfinite:
         from .._messages import name_indices
@@ -387,6 +393,10 @@ class _LiveViewer:
     readings' noise decides which frames are touched by the voltage test of
     `diffeit.touch.touches`.
 
+    With 6 or more reference frames, the skin's drift (every reading moving with a common gain:
+    a hydrogel drying, a board warming) is followed and each frame divided by its gain before
+    it is imaged (`diffeit.calibration.LiveDrift`); `drift_note` gives the gains' range.
+
     The solves are direct (a matrix product, a closed-form memory step): what fails is a
     non-finite image (overflowing readings, a degenerate memory). `nonfinite` lists those
     frames (their index among the frames imaged, from 0); they are not drawn, their count is in
@@ -425,6 +435,10 @@ class _LiveViewer:
 
             self.subspace = touch_subspace(calibration)
         self.start_time: float | None = None  # the host time of the first frame imaged
+        from ..calibration import LiveDrift
+
+        self.drift = LiveDrift.of(reference)  # None for fewer than 6 reference frames
+        self.gains: list[float] = []  # every imaged frame's common gain, taken out
         if fit is None:
             self._calibrate(protocol, settings, reference, calibration)
         else:
@@ -493,6 +507,9 @@ class _LiveViewer:
         import matplotlib.pyplot as plt
 
         values = np.array([frame.values for frame in batch])
+        if self.drift is not None:
+            values, gains, self.drift = self.drift.step(values, [_drift_time(frame) for frame in batch])
+            self.gains += gains.tolist()
         if self.fit is None:
             differences = self.calibration.signed(values) - self.reference
             images = np.asarray(self.solver.solve(differences, throw=False).value) / self.calibration.background
@@ -532,6 +549,13 @@ class _LiveViewer:
         else:
             plt.pause(0.001)
         return len(batch)
+
+    def drift_note(self) -> str:
+        """What the drift's correction took out, in words ("" when it took out nothing)."""
+        gains = np.array(self.gains)
+        if not np.any(gains != 1.0):
+            return ""
+        return f"; the common gain drifted, taken out: {gains.min():.4f} to {gains.max():.4f}"
 
     def _print_touches(self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray) -> None:
         """Print a line per frame of the batch: its index among the frames imaged, its time, its
@@ -603,6 +627,13 @@ def _frame_time(frame: hw.Frame) -> float:
     if frame.device_time is not None:
         return frame.device_time
     raise ValueError("the memory correction needs frame times; the frames carry neither a host nor a device time")
+
+
+def _drift_time(frame: hw.Frame) -> float:
+    """A frame's time in seconds for the drift's trend: the device's clock, whose frames are
+    evenly spaced (the host's time stamps frames as they arrive, several at once), else the
+    host's."""
+    return frame.device_time if frame.device_time is not None else _frame_time(frame)
 
 
 def _emulate_scene(arguments: argparse.Namespace) -> int:
