@@ -701,8 +701,9 @@ def _refined(recording: Recording, calibration: Any, found: Touches, mapping: An
     dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
     noise = getattr(calibration, "noise", None)
     weights = None
-    # Most readings of no measured spread (a noise-free simulation's identical reference frames)
-    # is no noise to weigh by: unweighted, as without it (infinite weights had failed the solve).
+    # Where most readings have no measured spread (a noise-free simulation's identical reference
+    # frames) there is no noise to weigh by: unweighted, as without one (infinite weights had
+    # failed the solve).
     if noise is not None and np.median(noise) > 0:
         noise = np.asarray(noise, np.float64)
         # A reading of no measured spread would take all the weight: floored at 1e-3 of the median.

@@ -607,7 +607,7 @@ def test_the_reference_determines_electrode_widths_within_their_standard_errors(
     np.testing.assert_allclose(loaded.electrode_lengths, fitted.electrode_lengths, rtol=1e-12)
 
 
-def test_a_domes_presses_are_points_on_its_surface_and_mapped_along_it(tmp_path):
+def test_a_domes_presses_are_points_on_its_surface_and_mapped_along_it(tmp_path, monkeypatch):
     """A dome (a sphere cap of 60 degrees, its rim 1 m in radius) read by a board with gains,
     30 presses at known points on it: the calibration takes them in the mesh's frame (no
     labels' frame is searched), its position map (a polynomial in x, y and z, the touches taken
@@ -638,15 +638,24 @@ def test_a_domes_presses_are_points_on_its_surface_and_mapped_along_it(tmp_path)
     assert np.median(distances[25:]) < 0.02 and np.median(distances[25:]) < 0.75 * np.median(without[25:])
     # Its press errors (leave-one-out) tell what the touches then show.
     assert abs(np.median(calibration.press_errors) - np.median(distances[:25])) < 0.005
-    # The mixing's fit to the presses read those it did not see worse than the reference's
-    # calibration with this map (24.0 against 17.7 mm): not kept. The positions' fit is refused:
-    # it takes the model below the correlation at which the frames' calibrated differences are
-    # imaged (measured 1.000 -> 0.483; kept, its presses, read at the normalised differences
-    # `de.reconstruct` then took, were 140 mm off).
+    # The presses' fits read those they did not see worse than the reference's calibration with
+    # this map (the positions' 25.0 against 17.7 mm): not kept. (Before the contact impedances'
+    # factor was fitted again with the level, the positions' fit took the model's correlation
+    # with the reference from 1.000 to 0.483, and was refused for it.)
     assert calibration.fitted["presses"] == ()
     (note,) = [w for w in calibration.warnings if "electrode_positions" in w]
-    assert re.search(r"correlation with the reference from 1\.000 to 0\.4\d\d, under the 0\.5", note), note
+    read = re.search(r"not kept: presses it did not see were read ([\d.]+) mm off \(median\) against ([\d.]+)", note)
+    assert read and float(read[1]) > float(read[2]), note
     assert calibration.correlation > 0.5
+    # A fit that takes the model under the correlation at which the frames' calibrated differences
+    # are imaged is refused by name (kept, such a fit's presses, read at the normalised differences
+    # `de.reconstruct` then took, had been 140 mm off): here with that correlation raised to 0.9999.
+    monkeypatch.setattr(calibration_module, "_SKIN_LEAST_CORRELATION", 0.9999)
+    positions = ("mixing", "electrode_positions")
+    refused = de.calibrate(recording, presses.select(np.arange(25)), reference_groups=groups, press_groups=positions)
+    (note,) = [w for w in refused.warnings if "electrode_positions" in w]
+    assert re.search(r"correlation with the reference from 1\.000 to 0\.\d+, under the 0\.9999", note), note
+    assert refused.fitted["presses"] == ()
     again = de.calibration.load(calibration.save(tmp_path / "dome.cal.h5"))
     np.testing.assert_array_equal(again.press_positions, calibration.press_positions)
     points = np.vstack([presses.centres, np.full(3, np.nan)])
