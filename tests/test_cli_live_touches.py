@@ -69,7 +69,7 @@ def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_pat
     """A stream whose readings grow 2% (20 times the board's noise) from its first frame to its
     last, 8 reference frames: the drift is taken out frame by frame, so the untouched frames
     after them read no touch and each press one touch where it was; the summary gives the
-    gains taken out. (Against the fixed reference, every frame after the first few read as
+    gains taken out. (Against the fixed reference every one of those untouched frames read as
     touched.)"""
     path, board, pressed, mesh = skin
     untouched = np.ones(mesh.n_elements)
