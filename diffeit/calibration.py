@@ -1174,9 +1174,7 @@ def reference_frames(
 def _looking_untouched(frames: np.ndarray, where: str) -> tuple[np.ndarray, str]:
     """Those of `frames` (T, M) that look untouched (`_untouched`, when there are more than
     `REFERENCE_FRAMES`), and their description, the frames `where` they are."""
-    if len(frames) <= REFERENCE_FRAMES:
-        return frames, f"the {len(frames)} frames {where}"
-    still = _untouched(frames)
+    still = _untouched(frames) if len(frames) > REFERENCE_FRAMES else np.ones(len(frames), bool)
     if still.all():
         return frames, f"the {len(frames)} frames {where}"
     return frames[still], f"the {int(still.sum())} frames {where} that look untouched (of {len(frames)})"
@@ -1268,12 +1266,14 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
 
 
-def _checked_reference_set(reference_set: ArrayLike, readings: int) -> np.ndarray:
-    """`reference_set` as (N, `readings`) finite float64 frames, or a ValueError naming the problem."""
+def _checked_reference_set(reference_set: ArrayLike, readings: int | None = None) -> np.ndarray:
+    """`reference_set` as (N, `readings`) finite float64 frames (None: any number of readings),
+    or a ValueError naming the problem."""
     reference_set = np.asarray(reference_set, np.float64)
-    if reference_set.ndim != 2 or reference_set.shape[1] != readings:
+    if reference_set.ndim != 2 or readings not in (None, reference_set.shape[1]):
+        expected = "M" if readings is None else readings
         raise ValueError(
-            f"reference_set must be (N, {readings}) frames of the recording's readings; got shape {reference_set.shape}"
+            f"reference_set must be (N, {expected}) frames of the recording's readings; got shape {reference_set.shape}"
         )
     if not np.all(np.isfinite(reference_set)):
         raise ValueError("reference_set holds non-finite values (NaN or inf)")
@@ -1354,10 +1354,7 @@ class LiveDrift(eqx.Module):
         Raises:
             ValueError: For reference frames that are not (N, M) finite values.
         """
-        reference_set = np.asarray(reference_set, np.float64)
-        if reference_set.ndim != 2:
-            raise ValueError(f"reference_set must be (N, M) frames; got shape {reference_set.shape}")
-        reference = _DriftReference.of(_checked_reference_set(reference_set, reference_set.shape[1]))
+        reference = _DriftReference.of(_checked_reference_set(reference_set))
         return None if reference is None else cls(reference, np.zeros(0), np.zeros(0))
 
     def step(self, frames: ArrayLike, times: ArrayLike) -> tuple[np.ndarray, np.ndarray, LiveDrift]:
@@ -2515,6 +2512,10 @@ class _BilinearPresses(NamedTuple):
     potentials: np.ndarray
     magnitude: bool
 
+    def mixed(self, mixing: np.ndarray) -> np.ndarray:
+        """(M, L) the reading weights with the mixing weights `mixing` (p,)."""
+        return self.weights + np.einsum("p,pml->ml", mixing, self.basis)
+
     def unsigned(self, mixing: np.ndarray) -> np.ndarray:
         """(K, M) each press's readings at unit depth with the weights `mixing`, before their signs."""
         return self.base + self.columns @ mixing
@@ -2523,8 +2524,7 @@ class _BilinearPresses(NamedTuple):
         """(K, M) the differences less the model's at `mixing` (p,) and `depth` (K,), and the
         readings' signs (M,) it takes."""
         unsigned = self.unsigned(mixing)
-        mixed = self.weights + np.einsum("p,pml->ml", mixing, self.basis)
-        sign = _signs(mixed, self.potentials, self.magnitude, depth[:, None] * unsigned, self.differences)
+        sign = _signs(self.mixed(mixing), self.potentials, self.magnitude, depth[:, None] * unsigned, self.differences)
         return self.differences - depth[:, None] * sign * unsigned, sign
 
 
@@ -2598,8 +2598,7 @@ def _mixing_and_depths(
     for _ in range(_PRESS_ROUNDS):
         unsigned = presses.unsigned(mixing)  # (K, M), at unit depth
         if depth is None:
-            mixed = presses.weights + np.einsum("p,pml->ml", mixing, presses.basis)
-            predicted = _signs(mixed, presses.potentials, presses.magnitude) * unsigned
+            predicted = _signs(presses.mixed(mixing), presses.potentials, presses.magnitude) * unsigned
             depth = np.sum(predicted * differences, axis=1) / np.maximum(np.sum(predicted**2, axis=1), 1e-300)
         residual, sign = presses.residual(mixing, depth)
         predicted = sign * unsigned
