@@ -233,7 +233,7 @@ from .mesh import Mesh, disc, disc_fractions, onto_surface, surface_distance
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import _noise_test, polarity_of, read
+from .touch import _noise_test, image_noise, polarity_of, read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
@@ -1573,8 +1573,8 @@ def calibrate(
     calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
-    found, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
-    reference_only = _with_position_map(calibration, presses, found, chosen, polarity)
+    found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
+    reference_only = _with_position_map(calibration, presses, found, further, chosen, polarity)
     with_memory = memory and _held(presses, recording.times)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
         # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
@@ -2152,8 +2152,8 @@ def _press_fit(
             "differences are imaged"
         )
         return _PressFit(None, None, chosen, groups, refused)
-    found, chosen, polarity = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
-    fitted = _with_position_map(fitted, presses, found, chosen, polarity)
+    found, further, chosen, polarity = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
+    fitted = _with_position_map(fitted, presses, found, further, chosen, polarity)
     prior = priors["mixing"]
     held_out = _held_out_errors(
         calibration, recording, presses, reference, prior, frame, free, chosen, polarity, response
@@ -2868,11 +2868,12 @@ def _read_presses(
     reference: np.ndarray,
     hyperparameter: float | None,
     polarity: int | None,
-) -> tuple[Any, float, int]:
+) -> tuple[Any, np.ndarray, float, int]:
     """Each press's touch read from its one-step image at the calibrated model: the `Touches`
-    (its strongest hill, read however low: a press is known to be there), the hyperparameter
-    (None: `auto_hyperparameter` on the presses), and the touches' polarity (None: the sign of
-    the presses' median extreme change)."""
+    (its strongest hill, read however low: a press is known to be there), how high its image's
+    highest further hill stands beside it (K,; 0 for none), the hyperparameter (None:
+    `auto_hyperparameter` on the presses), and the touches' polarity (None: the sign of the
+    presses' median extreme change)."""
     signed_reference = calibration.signed(np.atleast_2d(reference).mean(axis=0))
     frames = presses.frames(recording.times)
     dv = np.stack([calibration.signed(recording.frames[chosen]).mean(axis=0) for chosen in frames]) - signed_reference
@@ -2884,10 +2885,16 @@ def _read_presses(
     images = np.asarray(solver.solve(dv, throw=True).value) / level
     if polarity is None:
         polarity = polarity_of(images)
-    # Its further hills too, however low, for the ringing (`_with_position_map`).
-    touched = np.ones(len(images), bool)
-    found = read(calibration.model.mesh, images, max_touches=2, polarity=polarity, touched=touched, relative=0.0)
-    return found, float(hyperparameter), polarity
+    # Each press's touch as `diffeit.touches` finds it: on the image divided by its noise, where known.
+    mesh, touched = calibration.model.mesh, np.ones(len(images), bool)
+    noise = None if calibration.noise is None else image_noise(solver.matrix, calibration.noise, level)
+    noise = noise if noise is not None and np.all(noise > 0) else None
+    found = read(mesh, images, max_touches=1, polarity=polarity, touched=touched, image_noise=noise)
+    # The ringing (`_with_position_map`): the further hills read on the image itself, however
+    # low beside the highest (the model's errors ring in proportion to a touch, whatever the noise).
+    rung = read(mesh, images, max_touches=2, polarity=polarity, touched=touched, relative=0.0)
+    further = np.where(rung.count > 1, rung.depth[:, 1] / rung.depth[:, 0], 0.0)
+    return found, further, float(hyperparameter), polarity
 
 
 def _frame_from_reads(read_positions: np.ndarray, presses: Presses, mirror: bool) -> np.ndarray:
@@ -2936,10 +2943,16 @@ def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarr
 
 
 def _with_position_map(
-    calibration: SkinCalibration, presses: Presses, found: Any, hyperparameter: float, polarity: int
+    calibration: SkinCalibration,
+    presses: Presses,
+    found: Any,
+    further: np.ndarray,
+    hyperparameter: float,
+    polarity: int,
 ) -> SkinCalibration:
-    """`calibration` with the position map fitted on the presses' touches `found` (module
-    docstring, "Presses")."""
+    """`calibration` with the position map fitted on the presses' touches `found`, and the
+    ringing from their images' further hills `further` (`_read_presses`; module docstring,
+    "Presses")."""
     seen = found.count > 0
     notes = list(calibration.warnings)
     if not seen.all():
@@ -2951,8 +2964,7 @@ def _with_position_map(
     mapping = PositionMap.fit(read_positions, labelled, calibration.model.mesh)
     errors = np.full(presses.n_presses, np.nan)
     errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree, mapping.surface)
-    further = np.where(found.count[seen] > 1, found.depth[seen, 1] / found.depth[seen, 0], 0.0)
-    ringing = min(float(np.quantile(further, _RINGING_QUANTILE)), _RINGING_CAP)
+    ringing = min(float(np.quantile(further[seen], _RINGING_QUANTILE)), _RINGING_CAP)
     return eqx.tree_at(
         lambda c: (
             c.position_map,
@@ -3024,7 +3036,7 @@ def _held_out_errors(
         except _ContradictsReference:
             continue  # the fold's presses stay NaN: not read, the largest errors
 
-        found, _, _ = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
+        found, _, _, _ = _read_presses(fitted, recording, presses, reference, hyperparameter, polarity)
         read = found.position[:, 0]
         seen = np.all(np.isfinite(read), axis=1)
         trained = seen & (fold != k)
@@ -3075,12 +3087,12 @@ def _with_background_map(
     if mapped.background_map is None or presses is None:
         return mapped
     hyperparameter, polarity = calibration.hyperparameter, calibration.polarity
-    found, chosen, polarity = _read_presses(mapped, recording, presses, reference, hyperparameter, polarity)
-    mapped = _with_position_map(mapped, presses, found, chosen, polarity)
+    found, further, chosen, polarity = _read_presses(mapped, recording, presses, reference, hyperparameter, polarity)
+    mapped = _with_position_map(mapped, presses, found, further, chosen, polarity)
     if required:
         return mapped
-    found, chosen, polarity = _read_presses(calibration, recording, presses, reference, chosen, polarity)
-    uniform = _with_position_map(calibration, presses, found, chosen, polarity)
+    found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, chosen, polarity)
+    uniform = _with_position_map(calibration, presses, found, further, chosen, polarity)
     ours, theirs = mapped.press_errors, uniform.press_errors
     closer, farther = int(np.sum(ours < theirs)), int(np.sum(ours > theirs))  # NaN (not read) compares False
     significance = scipy.stats.binomtest(closer, closer + farther, alternative="greater").pvalue if closer else 1.0

@@ -114,6 +114,8 @@ from scipy.sparse.csgraph import breadth_first_order
 from ._arrays import per_element
 from ._threads import host_algebra
 from .forward import ForwardModel
+from .inverse import OneStep
+from .inverse.priors import PRIOR_NAMES
 from .io import Recording
 from .mesh import Mesh, nearest_element, onto_surface
 from .scene import Disc, FoamStack, shape_fraction
@@ -295,6 +297,7 @@ def touches(
         stack=stack if method == "image" else None,
         touched=frames_touched,
         relative=relative_floor(calibration),
+        image_noise=_images_noise(recording, calibration),
     )
     if method == "image":
         return found
@@ -306,6 +309,63 @@ def relative_floor(calibration: Any) -> float:
     "The rule", step 2): `RELATIVE`, or the `ringing` of `calibration` (a
     `diffeit.calibration.SkinCalibration` from labelled presses, or None) where that is higher."""
     return max(RELATIVE, getattr(calibration, "ringing", None) or 0.0)
+
+
+def image_noise(matrix: ArrayLike, reading_noise: ArrayLike, background: float | ArrayLike) -> np.ndarray:
+    """(E,) each element's noise standard deviation in a one-step image, in relative change:
+    sqrt(sum_m (R_em s_m)^2) / sigma_e, R the reconstruction matrix (E, M; `OneStep.matrix`,
+    S/sq per unit of the readings), s the readings' independent noise (M,, their unit) and
+    sigma the background (S/sq, scalar or (E,)).
+
+    Near the electrodes a one-step image follows the readings most closely, and their noise and
+    the model's errors there stand in it as narrow hills at the rim: `read` with it finds the
+    hills on the image divided by it (module docstring, "The rule", step 2).
+
+    Raises:
+        ValueError: For a `reading_noise` that is not one finite value per column of `matrix`.
+    """
+    matrix = np.asarray(matrix, np.float64)
+    reading_noise = np.asarray(reading_noise, np.float64)
+    if reading_noise.shape != matrix.shape[1:] or not np.all(np.isfinite(reading_noise)):
+        raise ValueError(
+            f"reading_noise must hold {matrix.shape[1]} finite values, one per reading; got shape {reading_noise.shape}"
+        )
+    return np.sqrt(np.sum((matrix * reading_noise) ** 2, axis=1)) / np.asarray(background, np.float64)
+
+
+def _images_noise(recording: Recording, calibration: Any) -> np.ndarray | None:
+    """`image_noise` of a recording's one-step images made at `calibration` (its model, level
+    and readings' noise; the prior and hyperparameter of the recording's provenance), or None
+    where that is not how they were made (another method or prior, normalised differences, a
+    background map of `diffeit.reconstruct`'s own, another mesh) or the calibration knows no
+    noise (module docstring, "The rule", step 2)."""
+    noise = getattr(calibration, "noise", None)
+    if noise is None:
+        return None
+    metadata = recording.provenance.get("metadata", {})
+    prior = metadata.get("prior") or "noser"
+    made_so = (
+        metadata.get("method") == "one_step"
+        and metadata.get("difference") == "calibrated"
+        and metadata.get("background_map") is None
+        and prior in PRIOR_NAMES
+        and _same_mesh(recording.mesh, calibration.model.mesh)
+    )
+    if not made_so:
+        return None
+    level = calibration.background
+    solver = OneStep(calibration.model, prior, float(metadata["hyperparameter"]), level)
+    values = image_noise(solver.matrix, noise, level)
+    return values if np.all(np.isfinite(values) & (values > 0)) else None
+
+
+def _same_mesh(mesh: Mesh, other: Mesh) -> bool:
+    return mesh is other or (
+        mesh.nodes.shape == other.nodes.shape
+        and mesh.triangles.shape == other.triangles.shape
+        and np.array_equal(mesh.nodes, other.nodes)
+        and np.array_equal(mesh.triangles, other.triangles)
+    )
 
 
 def touched(
@@ -463,6 +523,7 @@ def read(
     stack: FoamStack | None = None,
     touched: np.ndarray | None = None,
     relative: float = RELATIVE,
+    image_noise: ArrayLike | None = None,
 ) -> Touches:
     """The touches of relative-change images on a mesh (module docstring, "The rule").
 
@@ -480,6 +541,10 @@ def read(
             robust standard deviations, an untouched one none; None applies `threshold` alone.
         relative: A further touch's peak must be at least this fraction of the highest's, in
             [0, 1).
+        image_noise: (E,) each element's noise standard deviation in relative change
+            (`image_noise`), or None: the hills are then found, ordered and thresholded on the
+            image divided by it (module docstring, "The rule", step 2), their sets, positions,
+            radii and depths read on the image itself.
 
     Returns:
         The `Touches` (T = 1 for one image).
@@ -487,7 +552,8 @@ def read(
     Raises:
         ValueError: For images of the wrong shape or not finite, a `max_touches` that is not a
             positive integer, a `polarity` other than -1 and +1, a `threshold` that is not
-            positive, a `relative` outside [0, 1), or `touched` not one per image.
+            positive, a `relative` outside [0, 1), `touched` not one per image, or an
+            `image_noise` that is not one finite positive value per element.
     """
     images = np.atleast_2d(np.asarray(images, np.float64))
     if images.ndim != 2 or images.shape[1] != mesh.n_elements:
@@ -502,6 +568,13 @@ def read(
         raise ValueError(f"threshold must be a positive number of standard deviations; got {threshold}")
     if not 0 <= relative < 1:
         raise ValueError(f"relative must be a fraction of the highest peak in [0, 1); got {relative}")
+    if image_noise is not None:
+        image_noise = np.asarray(image_noise, np.float64)
+        if image_noise.shape != (mesh.n_elements,) or not np.all(np.isfinite(image_noise) & (image_noise > 0)):
+            raise ValueError(
+                f"image_noise must hold {mesh.n_elements} finite positive values, one per element; "
+                f"got shape {image_noise.shape}"
+            )
     count = np.zeros(len(images), int)
     position = np.full((len(images), max_touches, mesh.nodes.shape[1]), np.nan)
     radius = np.full((len(images), max_touches), np.nan)
@@ -511,9 +584,9 @@ def read(
         raise ValueError(f"touched has shape {np.shape(touched)}; expected ({len(images)},), one per image")
     for t, image in enumerate(images):
         if touched is None:
-            hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold, relative)
+            hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold, relative, image_noise)
         elif touched[t]:
-            hills, noise[t] = _hills(mesh, polarity * image, max_touches, LOW, relative, strongest=True)
+            hills, noise[t] = _hills(mesh, polarity * image, max_touches, LOW, relative, image_noise, strongest=True)
         else:
             hills, noise[t] = [], _robust_std(polarity * image)
         count[t] = len(hills)
@@ -552,39 +625,56 @@ def _robust_std(values: np.ndarray) -> float:
 
 
 def _hills(
-    mesh: Mesh, values: np.ndarray, max_touches: int, threshold: float, relative: float, strongest: bool = False
+    mesh: Mesh,
+    values: np.ndarray,
+    max_touches: int,
+    threshold: float,
+    relative: float,
+    image_noise: np.ndarray | None = None,
+    strongest: bool = False,
 ) -> tuple[list, float]:
     """The touches of one image `values` (a touch positive): (centre, radius, peak) each, a
     further one at least `relative` of the highest's peak, and the image's robust standard
     deviation; with `strongest`, the highest hill counts whatever its height (when it is
-    positive)."""
+    positive). With `image_noise` (E,), the hills are those of values / image_noise (found,
+    ordered, thresholded and merged there), each read on `values` from its highest element."""
     noise = _robust_std(values)
+    scores = values if image_noise is None else values / image_noise
     adjacency = _adjacency(mesh)
-    neighbour_max = _neighbour_max(adjacency, values)
-    floor = threshold * noise
+    neighbour_max = _neighbour_max(adjacency, scores)
+    floor = threshold * (noise if image_noise is None else _robust_std(scores))
     if strongest:
-        floor = min(floor, float(np.max(values)))
-    maxima = np.flatnonzero((values >= neighbour_max) & (values > 0) & (values >= floor))
+        floor = min(floor, float(np.max(scores)))
+    maxima = np.flatnonzero((scores >= neighbour_max) & (scores > 0) & (values > 0) & (scores >= floor))
     claimed = np.zeros(len(values), bool)
     areas, centroids = mesh.element_areas, mesh.element_centroids
     hills = []
-    for element in maxima[np.argsort(-values[maxima])]:
-        if hills and values[element] < relative * hills[0][2]:
+    for element in maxima[np.argsort(-scores[maxima])]:
+        if image_noise is None and hills and values[element] < relative * hills[0][2]:
             break  # ringing of the highest hill; every later maximum is lower still
         if claimed[element] or len(hills) == max_touches:
             continue
-        peak = values[element]
-        above = values >= 0.5 * peak
-        order = breadth_first_order(_restricted(adjacency, above), element, directed=False, return_predecessors=False)
+        order = _connected(adjacency, scores >= 0.5 * scores[element], element)
         if claimed[order].any():
             claimed[order] = True
             continue
         claimed[order] = True
+        if image_noise is not None:  # the touch on the image, from its highest element
+            element = order[np.argmax(values[order])]
+            order = _connected(adjacency, values >= 0.5 * values[element], element)
+            if hills and values[element] < relative * hills[0][2]:
+                continue  # ringing of the highest hill
+        peak = values[element]
         weight = values[order] * areas[order]
         centre = weight @ centroids[order] / weight.sum()
         centre = onto_surface(mesh, centre, order)  # on a curved skin, onto it
         hills.append((centre, float(np.sqrt(areas[order].sum() / np.pi)), float(peak)))
     return hills, noise
+
+
+def _connected(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray, element: int) -> np.ndarray:
+    """The elements of `keep` connected to `element` through edges between elements of `keep`."""
+    return breadth_first_order(_restricted(adjacency, keep), element, directed=False, return_predecessors=False)
 
 
 def _restricted(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray) -> scipy.sparse.csr_matrix:

@@ -100,3 +100,40 @@ def test_a_clean_images_ringing_is_no_touch_but_a_light_touch_beside_a_hard_one_
     depths = np.asarray(pressure_to_change(np.array([5.0, 60.0]), FoamStack()))
     image = disc_image((0.5, 0.0), 0.15, depths[0]) + disc_image((-0.5, 0.0), 0.15, depths[1])
     assert de.touch.read(MESH, image).count.tolist() == [2]
+
+
+def test_hills_divided_by_the_images_noise_leave_a_noisy_rims_narrow_hill_out():
+    """A press's broad hill in the middle, and at the rim, where the image's noise is 50 times
+    the middle's (seeded), a narrow hill higher than the press's: on the image itself the rim's
+    hill is the first touch; on the image divided by its noise the press is the one touch, read
+    on the image (its centre and depth)."""
+    centroids = MESH.element_centroids
+    at_rim = np.linalg.norm(centroids, axis=1) > 0.9
+    noise = np.where(at_rim, 0.1, 0.002)
+    image = disc_image((0.2, 0.1), 0.25, -0.3) + noise * np.random.default_rng(0).standard_normal(MESH.n_elements)
+    rim = np.flatnonzero(at_rim)[0]
+    image[rim] = -0.4
+    plain = de.touch.read(MESH, image)
+    assert plain.count[0] >= 2
+    np.testing.assert_allclose(plain.position[0, 0], centroids[rim], atol=1e-12)
+    divided = de.touch.read(MESH, image, image_noise=noise)
+    assert divided.count.tolist() == [1]
+    np.testing.assert_allclose(divided.position[0, 0], (0.2, 0.1), atol=0.03)
+    assert -0.31 < divided.depth[0, 0] < -0.29
+    # A noise alike everywhere changes nothing.
+    same = de.touch.read(MESH, image, image_noise=np.full(MESH.n_elements, 0.02))
+    np.testing.assert_array_equal(same.position, plain.position)
+    for bad in (np.ones(3), np.zeros(MESH.n_elements), np.full(MESH.n_elements, np.nan)):
+        with pytest.raises(ValueError, match="image_noise must hold"):
+            de.touch.read(MESH, image, image_noise=bad)
+
+
+def test_an_images_noise_is_its_reconstruction_of_the_readings_noise():
+    """`image_noise` is the standard deviation of R n / sigma over noise draws n of the given
+    spread (checked on 20000 seeded draws, to their sampling error)."""
+    rng = np.random.default_rng(3)
+    matrix, spread, background = rng.standard_normal((7, 5)), rng.uniform(0.5, 2.0, 5), rng.uniform(1.0, 2.0, 7)
+    draws = (spread * rng.standard_normal((20000, 5))) @ matrix.T / background
+    np.testing.assert_allclose(de.touch.image_noise(matrix, spread, background), draws.std(axis=0), rtol=0.03)
+    with pytest.raises(ValueError, match="reading_noise must hold 5"):
+        de.touch.image_noise(matrix, spread[:4], background)

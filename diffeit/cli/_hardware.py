@@ -19,7 +19,6 @@ if TYPE_CHECKING:
 
     from ..calibration import SkinCalibration
     from ..fit import JointFit
-    from ..inverse import OneStep
     from ..protocol import Protocol
 
 _PROTOCOLS = ("adjacent", "opposite", "full")
@@ -379,7 +378,7 @@ class _LiveViewer:
     contact impedances, taken relative to the background, and corrected for the skin's memory
     frame by frame (`diffeit.fit.correct_memory_step`, from a rested skin at the first imaged
     frame, the state kept between batches, a dead band of `dead_band` standard deviations of the
-    image noise, `image_noise`); the viewer shows the memoryless stimulus dsigma/sigma.
+    image noise, `diffeit.touch.image_noise`); the viewer shows the memoryless stimulus dsigma/sigma.
 
     With a skin calibration (`calibration`, `diffeit calibrate`'s): no calibration to the
     reference; the images are made at the calibration's model and level, the reference mapped
@@ -439,8 +438,17 @@ class _LiveViewer:
 
         self.drift = LiveDrift.of(reference)  # None for fewer than 6 reference frames
         self.gains: list[float] = []  # every imaged frame's common gain, taken out
+        from ..touch import image_noise
+
+        # With a calibration that knows its readings' noise, the touches are found on the image
+        # divided by its own noise, as `diffeit.touches` finds them.
+        self.image_noise = None
         if fit is None:
             self._calibrate(protocol, settings, reference, calibration)
+            if touches and calibration is not None and calibration.noise is not None:
+                matrix = np.asarray(self.solver.matrix)
+                noise = image_noise(matrix, calibration.noise, calibration.background)
+                self.image_noise = noise if np.all(noise > 0) else None
         else:
             import equinox as eqx
 
@@ -449,7 +457,9 @@ class _LiveViewer:
 
             self.reference = reference.mean(axis=0)
             self.solver = fitted_one_step(fit, self.mesh, protocol, settings)
-            self.tolerance = dead_band * image_noise(fit, self.solver)
+            matrix = np.asarray(self.solver.matrix)  # white reading noise at the fit's data scale (volts)
+            scale = np.full(matrix.shape[1], fit.settings.data_scale)
+            self.tolerance = dead_band * image_noise(matrix, scale, fit.background)
             self.step = eqx.filter_jit(correct_memory_step)
             self.state = None
         # Agg is what matplotlib falls back to without a display: then write PNGs instead.
@@ -577,6 +587,7 @@ class _LiveViewer:
                 position_map=None if skin is None else skin.position_map,
                 touched=frames_touched,
                 relative=relative_floor(skin),
+                image_noise=self.image_noise,
             )
         row = np.cumsum(finite) - 1  # each finite image's row in `found`
         for k, (frame, image) in enumerate(zip(batch, images, strict=True)):
@@ -610,13 +621,6 @@ class _LiveViewer:
             stimulus, self.state = self.step(self.state, image, time, self.fit.memory, self.tolerance)
             stimuli.append(np.asarray(stimulus))
         return np.array(stimuli)
-
-
-def image_noise(fit: JointFit, solver: OneStep) -> np.ndarray:
-    """(E,) the standard deviation of each element's relative image (dsigma/sigma) that white
-    reading noise at the fit's data scale (volts) causes through `solver`."""
-    rows = np.linalg.norm(np.asarray(solver.matrix), axis=1)
-    return fit.settings.data_scale * rows / np.asarray(fit.background)
 
 
 def _frame_time(frame: hw.Frame) -> float:
