@@ -15,6 +15,7 @@ from skin_sessions import PROTOCOL, UNTOUCHED, gains_board, mixing_board, skin_s
 import diffeit as de
 from diffeit import calibration as calibration_module
 from diffeit.calibration import PositionMap
+from diffeit.inverse import OneStep
 
 
 @pytest.fixture(scope="module")
@@ -312,6 +313,20 @@ def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin
             # On the image itself at 0.1 alone, 5 of the 10 presses read as two touches.
             plain = de.touch.read(images.mesh, images.images, polarity=calibration.polarity, touched=found.count > 0)
             assert np.sum(plain.count[pressed] > 1) >= 3
+            # The noise divided by is that of the images' one-step matrix (their hyperparameter).
+            hyperparameter = images.provenance["metadata"]["hyperparameter"]
+            level = calibration.background
+            matrix = OneStep(calibration.model, "noser", hyperparameter, level).matrix
+            divided = de.touch.read(
+                images.mesh,
+                images.images,
+                polarity=calibration.polarity,
+                touched=found.count > 0,
+                relative=de.touch.relative_floor(calibration),
+                image_noise=de.touch.image_noise(matrix, calibration.noise, level),
+                position_map=calibration.position_map,
+            )
+            np.testing.assert_array_equal(divided.position, found.position)
     assert errors["skin"] < 0.5 * errors["first stage"], errors
     assert errors["skin"] < 0.05, errors
 
