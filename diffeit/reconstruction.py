@@ -93,6 +93,7 @@ from .inverse import (
 from .io import Recording
 from .mesh import Mesh
 from .results import RESULTS, failed, names, throw_if_failed
+from .touch import image_noise
 
 Method = Literal["one_step", "gauss_newton", "total_variation", "greit"]
 Difference = Literal["auto", "calibrated", "normalised"]
@@ -138,7 +139,9 @@ def reconstruct(
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
     mean of its first frames up to the first that looks touched (at least `REFERENCE_FRAMES`;
     their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
-    `diffeit.touches` tests frames against without a calibration; where the frames drift
+    `diffeit.touches` tests frames against without a calibration, and with it, or with a
+    calibration's noise, one-step images keep each element's noise as "image_noise"
+    (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the hills; where the frames drift
     beyond the reference's jitter, every frame is divided by its common gain against the
     reference, `drift_corrected`, the gains kept as "frame_gains", their range warned of, and
     the returned recording's frames the corrected ones). The model (the sheet `mesh`,
@@ -290,10 +293,14 @@ def reconstruct(
             "range": [float(level.min()), float(level.max())],
         }
     dv = frames - signed_reference
+    # The readings' noise in the calibration's units: its own, else the reference frames' spread.
+    noise = getattr(calibration, "noise", None)
+    if noise is None and spread is not None:
+        noise = np.std(calibration.signed(reference_set), axis=0, ddof=1)
     difference, difference_reason = _difference(difference, calibration, given)
     unsafe: list[int] = []
     if difference == "normalised":
-        model, dv, unsafe = _normalised(model, dv, signed_reference, level, calibration)
+        model, dv, unsafe, noise = _normalised(model, dv, signed_reference, level, calibration, noise)
     # A one-step solver images with the linearisation the hyperparameter is chosen on: built once.
     problem = LinearisedProblem(model, solver.prior, level) if isinstance(solver, OneStep) else None
     value, choice = _hyperparameter_of(
@@ -306,6 +313,11 @@ def reconstruct(
     else:
         solver = solver.bound(model, level, hyperparameter=value)
     images, codes = _images(solver, dv, progress)
+    # Each element's noise in the one-step images, for `diffeit.touches` (`diffeit.touch.image_noise`).
+    element_noise = None
+    if isinstance(solver, OneStep) and noise is not None:
+        element_noise = image_noise(np.asarray(solver.matrix), noise, level)
+        element_noise = element_noise if np.all(np.isfinite(element_noise) & (element_noise > 0)) else None
     value = solver.hyperparameter
     codes = _nonfinite_marked(codes, images)
     if throw:
@@ -330,6 +342,7 @@ def reconstruct(
         "reference_frames": None if recording.reference is not None and reference_frame is None else len(reference_set),
         "noise_frames": 0 if spread is None else len(reference_set),
         "reading_noise": None if spread is None else spread.tolist(),
+        "image_noise": None if element_noise is None else element_noise.tolist(),
         "frame_gains": None if frame_gains is None else frame_gains.tolist(),
         "calibrated": bool(calibrate) or given,
         "calibration": calibration.summary(),
@@ -389,12 +402,14 @@ def _difference(difference: str, calibration: Any, given: bool) -> tuple[str, st
     )
 
 
-def _normalised(model, dv, reference, level, calibration) -> tuple[ForwardModel, np.ndarray, list[int]]:
+def _normalised(
+    model, dv, reference, level, calibration, noise: np.ndarray | None
+) -> tuple[ForwardModel, np.ndarray, list[int], np.ndarray | None]:
     """The model and data of normalised differences: dV / V_ref times the calibrated model's
     voltages V_h, a gain g = V_ref / V_h per reading. Readings whose gain is not positive or is
     more than `_LARGEST_GAIN` times off the median gain, or where V_ref or V_h is under 5% of
     its RMS, are masked (their indices in the recording returned): there the ratio would blow
-    up, flip a sign or divide noise by noise."""
+    up, flip a sign or divide noise by noise. The readings' `noise` (or None) as the data's."""
     voltages = np.asarray(model.measure(jnp.broadcast_to(jnp.asarray(level), (model.n_elements,))))
     gain = reference / voltages
     positive = gain > 0
@@ -415,7 +430,7 @@ def _normalised(model, dv, reference, level, calibration) -> tuple[ForwardModel,
             stacklevel=3,
         )
         model = _with(model, model.protocol.select(safe), model.contact_impedance)
-    return model, (dv / gain)[:, safe], unsafe
+    return model, (dv / gain)[:, safe], unsafe, None if noise is None else (noise / gain)[safe]
 
 
 def _hyperparameter(model, dv, hyperparameter, prior, level, problem) -> tuple[float, dict[str, Any]]:

@@ -46,9 +46,10 @@ ringing and noise, so a skin's touches vote for their own sign.
    half-amplitude set reaches a set already claimed is the same touch (two maxima whose valley
    stays above half the lower peak merge); otherwise it is a touch of its own, up to
    `max_touches`.
-   **On the image divided by its noise**, where the calibration knows its readings' noise and
-   the images are its one-step images (`image_noise`: the noise's standard deviation in each
-   element, sqrt(sum_m (R_em s_m)^2) / sigma_e, R the one-step matrix): the maxima, their
+   **On the image divided by its noise**, where `diffeit.reconstruct` knew the readings' noise
+   (a calibration's, or the spread of 6 or more reference frames) and made one-step images: it
+   keeps each element's noise in the provenance ("image_noise", `image_noise`: its standard
+   deviation sqrt(sum_m (R_em s_m)^2) / sigma_e, R the one-step matrix), and the maxima, their
    order, the floors of step 1 and the merging are those of a / image_noise, and each hill is
    then read (step 3) on a itself, from its highest element. Near the electrodes a one-step
    image follows the readings closely, their noise and the model's errors with them: on the
@@ -120,13 +121,10 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 from numpy.typing import ArrayLike
-from scipy.sparse.csgraph import breadth_first_order
 
 from ._arrays import per_element
 from ._threads import host_algebra
 from .forward import ForwardModel
-from .inverse import OneStep
-from .inverse.priors import PRIOR_NAMES
 from .io import Recording
 from .mesh import Mesh, nearest_element, onto_surface
 from .scene import Disc, FoamStack, shape_fraction
@@ -271,7 +269,7 @@ def touches(
             `polarity` not -1 or +1); for `method="fit"` without a calibration, without the
             recording's reference; for a position map on a curved skin;
             for a "reading_noise" in the recording's provenance that is not one finite value
-            per reading.
+            per reading, or an "image_noise" that is not one finite positive value per element.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
@@ -308,7 +306,7 @@ def touches(
         stack=stack if method == "image" else None,
         touched=frames_touched,
         relative=relative_floor(calibration),
-        image_noise=_images_noise(recording, calibration),
+        image_noise=_images_noise(recording),
     )
     if method == "image":
         return found
@@ -344,39 +342,23 @@ def image_noise(matrix: ArrayLike, reading_noise: ArrayLike, background: float |
     return np.sqrt(np.sum((matrix * reading_noise) ** 2, axis=1)) / np.asarray(background, np.float64)
 
 
-def _images_noise(recording: Recording, calibration: Any) -> np.ndarray | None:
-    """`image_noise` of a recording's one-step images made at `calibration` (its model, level
-    and readings' noise; the prior and hyperparameter of the recording's provenance), or None
-    where that is not how they were made (another method or prior, normalised differences, a
-    background map of `diffeit.reconstruct`'s own, another mesh) or the calibration knows no
-    noise (module docstring, "The rule", step 2)."""
-    noise = getattr(calibration, "noise", None)
-    if noise is None:
-        return None
-    metadata = recording.provenance.get("metadata", {})
-    prior = metadata.get("prior") or "noser"
-    made_so = (
-        metadata.get("method") == "one_step"
-        and metadata.get("difference") == "calibrated"
-        and metadata.get("background_map") is None
-        and prior in PRIOR_NAMES
-        and _same_mesh(recording.mesh, calibration.model.mesh)
-    )
-    if not made_so:
-        return None
-    level = calibration.background
-    solver = OneStep(calibration.model, prior, float(metadata["hyperparameter"]), level)
-    values = image_noise(solver.matrix, noise, level)
-    return values if np.all(np.isfinite(values) & (values > 0)) else None
+def _images_noise(recording: Recording) -> np.ndarray | None:
+    """The "image_noise" `diffeit.reconstruct` kept in the recording's provenance (its one-step
+    images' `image_noise`, where it knew the readings' noise), or None.
 
-
-def _same_mesh(mesh: Mesh, other: Mesh) -> bool:
-    return mesh is other or (
-        mesh.nodes.shape == other.nodes.shape
-        and mesh.triangles.shape == other.triangles.shape
-        and np.array_equal(mesh.nodes, other.nodes)
-        and np.array_equal(mesh.triangles, other.triangles)
-    )
+    Raises:
+        ValueError: For one that is not one finite positive value per element.
+    """
+    values = recording.provenance.get("metadata", {}).get("image_noise")
+    if values is None:
+        return None
+    values = np.asarray(values, np.float64)
+    if values.shape != (recording.mesh.n_elements,) or not np.all(np.isfinite(values) & (values > 0)):
+        raise ValueError(
+            f"the recording's image_noise (provenance) must hold {recording.mesh.n_elements} finite positive values, "
+            f"one per element; got shape {values.shape}"
+        )
+    return values
 
 
 def touched(
@@ -663,7 +645,9 @@ def _hills(
     for element in maxima[np.argsort(-scores[maxima])]:
         if image_noise is None and hills and values[element] < relative * hills[0][2]:
             break  # ringing of the highest hill; every later maximum is lower still
-        if claimed[element] or len(hills) == max_touches:
+        if len(hills) == max_touches:
+            break
+        if claimed[element]:
             continue
         order = _connected(adjacency, scores >= 0.5 * scores[element], element)
         if claimed[order].any():
@@ -684,14 +668,16 @@ def _hills(
 
 
 def _connected(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray, element: int) -> np.ndarray:
-    """The elements of `keep` connected to `element` through edges between elements of `keep`."""
-    return breadth_first_order(_restricted(adjacency, keep), element, directed=False, return_predecessors=False)
-
-
-def _restricted(adjacency: scipy.sparse.csr_matrix, keep: np.ndarray) -> scipy.sparse.csr_matrix:
-    """The adjacency with the edges of elements outside `keep` removed."""
-    mask = scipy.sparse.diags(keep.astype(float))
-    return (mask @ adjacency @ mask).tocsr()
+    """The elements of `keep` connected to `element` through edges between elements of `keep`,
+    breadth first from it (a walk over the set alone: a hill's set is a few dozen elements)."""
+    starts, neighbours = adjacency.indptr, adjacency.indices
+    found, order = {element}, [element]
+    for current in order:
+        for neighbour in neighbours[starts[current] : starts[current + 1]].tolist():
+            if keep[neighbour] and neighbour not in found:
+                found.add(neighbour)
+                order.append(neighbour)
+    return np.array(order)
 
 
 def _neighbour_max(adjacency: scipy.sparse.csr_matrix, values: np.ndarray) -> np.ndarray:

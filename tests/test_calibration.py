@@ -107,7 +107,8 @@ def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_a
     """`de.reconstruct` with no calibration takes its reference from the recording's first frames
     up to the first touched one, and keeps their spread: `de.touches` tests the frames against it
     (on the raw readings, no model), so every press is read and no touch between them. With the
-    spread dropped, the image threshold alone reads touches on untouched frames."""
+    spread and the image's noise dropped, the image threshold alone reads touches on untouched
+    frames."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
     images = de.reconstruct(recording, progress=False)
     metadata = images.provenance["metadata"]
@@ -123,11 +124,20 @@ def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_a
     assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
     distance = np.linalg.norm(found.position[pressed, 0] - presses.centres, axis=1)
     assert np.median(distance) < 0.15, np.median(distance)
-    without = dataclasses.replace(images, provenance={"metadata": {**metadata, "reading_noise": None}})
-    assert np.sum(de.touches(without).count[untouched] > 0) >= 4  # measured 8 of the 40
-    damaged = dataclasses.replace(images, provenance={"metadata": {**metadata, "reading_noise": [1.0, 2.0]}})
-    with pytest.raises(ValueError, match="reading_noise"):
-        de.touches(damaged)
+    # Without either noise, the image threshold alone (measured 8 of the 40 untouched frames);
+    # with the image's noise kept, the hills are found on the image divided by it (measured none).
+    without = {**metadata, "reading_noise": None, "image_noise": None}
+    assert np.sum(de.touches(dataclasses.replace(images, provenance={"metadata": without})).count[untouched] > 0) >= 4
+    divided = {**metadata, "reading_noise": None}
+    assert np.sum(de.touches(dataclasses.replace(images, provenance={"metadata": divided})).count[untouched] > 0) <= 1
+    for key, values in (
+        ("reading_noise", [1.0, 2.0]),
+        ("image_noise", [1.0, 2.0]),
+        ("image_noise", [0.0] * images.mesh.n_elements),
+    ):
+        damaged = dataclasses.replace(images, provenance={"metadata": {**metadata, key: values}})
+        with pytest.raises(ValueError, match=key):
+            de.touches(damaged)
 
 
 def test_presses_labelled_late_in_a_session_take_the_untouched_frames_before_them(mixing_skin):

@@ -256,10 +256,6 @@ class Matern(AbstractPrior):
         return lambda jacobian: bound
 
 
-# The priors `prior_named` knows.
-PRIOR_NAMES = ("tikhonov", "noser", "laplace", "matern")
-
-
 def prior_named(name: str) -> AbstractPrior:
     """The prior called `name`, with its default parameters.
 
@@ -273,7 +269,7 @@ def prior_named(name: str) -> AbstractPrior:
     Raises:
         ValueError: For any other name.
     """
-    priors = dict(zip(PRIOR_NAMES, (Tikhonov, Noser, Laplace, Matern), strict=True))
+    priors = {"tikhonov": Tikhonov, "noser": Noser, "laplace": Laplace, "matern": Matern}
     if name not in priors:
         raise ValueError(f"unknown prior {name!r}; choose one of {sorted(priors)} or pass a prior instance")
     return priors[name]()
