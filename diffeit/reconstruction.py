@@ -294,9 +294,7 @@ def reconstruct(
         }
     dv = frames - signed_reference
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
-    noise = getattr(calibration, "noise", None)
-    if noise is None and spread is not None:
-        noise = np.std(calibration.signed(reference_set), axis=0, ddof=1)
+    noise = _reading_noise(calibration, reference_set if spread is not None else None)
     difference, difference_reason = _difference(difference, calibration, given)
     unsafe: list[int] = []
     if difference == "normalised":
@@ -314,10 +312,7 @@ def reconstruct(
         solver = solver.bound(model, level, hyperparameter=value)
     images, codes = _images(solver, dv, progress)
     # Each element's noise in the one-step images, for `diffeit.touches` (`diffeit.touch.image_noise`).
-    element_noise = None
-    if isinstance(solver, OneStep) and noise is not None:
-        element_noise = image_noise(np.asarray(solver.matrix), noise, level)
-        element_noise = element_noise if np.all(np.isfinite(element_noise) & (element_noise > 0)) else None
+    element_noise = _one_step_noise(solver, noise, level) if isinstance(solver, OneStep) else None
     value = solver.hyperparameter
     codes = _nonfinite_marked(codes, images)
     if throw:
@@ -361,6 +356,25 @@ def reconstruct(
         image_quantity="relative conductivity change" if relative else "conductivity change",
         provenance={"source": f"diffeit.reconstruct ({method})", "metadata": metadata},
     )
+
+
+def _reading_noise(calibration: Any, reference_set: np.ndarray | None) -> np.ndarray | None:
+    """The readings' noise in the units of `calibration.signed`: the calibration's own (a
+    `SkinCalibration` from 6 or more reference frames), else the spread of the
+    `reference_set` (R, M) when it holds 6 or more frames; None without either."""
+    noise = getattr(calibration, "noise", None)
+    if noise is None and reference_set is not None and len(reference_set) >= _NOISE_FRAMES:
+        noise = np.std(calibration.signed(reference_set), axis=0, ddof=1)
+    return noise
+
+
+def _one_step_noise(solver: OneStep, noise: np.ndarray | None, level: float | np.ndarray) -> np.ndarray | None:
+    """`diffeit.touch.image_noise` of `solver`'s images for the readings' `noise` at `level`
+    (S/sq), or None without a noise or where it is not finite and positive in every element."""
+    if noise is None:
+        return None
+    values = image_noise(np.asarray(solver.matrix), noise, level)
+    return values if np.all(np.isfinite(values) & (values > 0)) else None
 
 
 def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh: Mesh | None, h: float | None) -> None:

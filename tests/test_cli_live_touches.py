@@ -4,6 +4,7 @@ calibration's model, and each frame's touches printed through its position map."
 import dataclasses
 import re
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from skin_sessions import calibrated_session
@@ -124,3 +125,30 @@ def test_live_refuses_a_calibration_for_another_protocol_or_readings(skin, tmp_p
     assert "brings its model (mesh, level, contact impedances): give no --h" in capsys.readouterr().err
     assert main(["live", "--port", "/dev/null", "--calibration", str(path), "--memory", "fit.h5"]) == 2
     assert "--calibration and --memory each bring a model" in capsys.readouterr().err
+
+
+def test_live_without_a_calibration_reads_one_touch_a_press_against_its_reference_frames(tmp_path, capsys):
+    """Without a calibration, 8 reference frames give the readings' noise: untouched frames read
+    no touch, and a press one touch where it was (the hills found on the image divided by its
+    noise, as `diffeit.touches` finds them). A skin of its own: a unit disc at 0.1% noise."""
+    model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.06), de.protocol.adjacent(16), 0.01)
+    mesh = model.mesh
+    untouched = np.ones(mesh.n_elements)
+    pressed = 1 - 0.3 * np.asarray(de.mesh.disc_fraction(mesh, tuple(PLACES[0]), 0.15))
+    clean = [np.asarray(model.measure(jnp.asarray(sigma))) for sigma in (untouched, pressed)]
+    frames = np.array([clean[0]] * 11 + [clean[1]] * 3 + [clean[0]] * 3)
+    frames = frames + 1e-3 * np.sqrt(np.mean(clean[0] ** 2)) * np.random.default_rng(5).standard_normal(frames.shape)
+    emulator = hw.Emulator(frames, frame_rate=100.0).start()
+    options = ("--frames", str(len(frames)), "--reference-frames", "8", "--touches", "--png", str(tmp_path / "l.png"))
+    status = _live(emulator.port, *options)
+    emulator.stop()
+    assert status == 0
+    printed = capsys.readouterr().out
+    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    assert sorted(lines) == list(range(9))
+    for frame in (0, 1, 2, 6, 7, 8):
+        assert lines[frame].endswith("no touch"), (frame, lines[frame])
+    for frame in (3, 4, 5):
+        found = re.search(r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm", lines[frame])
+        assert found and "touch 1" not in lines[frame], lines[frame]
+        assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - PLACES[0]) < 0.1, lines[frame]

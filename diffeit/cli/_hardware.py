@@ -440,15 +440,16 @@ class _LiveViewer:
         self.gains: list[float] = []  # every imaged frame's common gain, taken out
         from ..touch import image_noise
 
-        # With a calibration that knows its readings' noise, the touches are found on the image
-        # divided by its own noise, as `diffeit.touches` finds them.
+        # Where the readings' noise is known (the calibration's, or 6 or more reference frames'),
+        # the touches are found on the image divided by its own noise, as `diffeit.touches` does.
         self.image_noise = None
         if fit is None:
+            from ..reconstruction import _one_step_noise, _reading_noise
+
             self._calibrate(protocol, settings, reference, calibration)
-            if touches and calibration is not None and calibration.noise is not None:
-                matrix = np.asarray(self.solver.matrix)
-                noise = image_noise(matrix, calibration.noise, calibration.background)
-                self.image_noise = noise if np.all(noise > 0) else None
+            if touches:
+                noise = _reading_noise(self.calibration, reference)
+                self.image_noise = _one_step_noise(self.solver, noise, self.calibration.background)
         else:
             import equinox as eqx
 
