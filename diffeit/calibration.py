@@ -233,7 +233,7 @@ from .mesh import Mesh, disc, disc_fractions, onto_surface, surface_distance
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import _noise_test, image_noise, polarity_of, read
+from .touch import _noise_test, _one_step_noise, polarity_of, read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
@@ -2887,8 +2887,7 @@ def _read_presses(
         polarity = polarity_of(images)
     # Each press's touch as `diffeit.touches` finds it: on the image divided by its noise, where known.
     mesh, touched = calibration.model.mesh, np.ones(len(images), bool)
-    noise = None if calibration.noise is None else image_noise(solver.matrix, calibration.noise, level)
-    noise = noise if noise is not None and np.all(noise > 0) else None
+    noise = _one_step_noise(solver, calibration.noise, level)
     found = read(mesh, images, max_touches=1, polarity=polarity, touched=touched, image_noise=noise)
     # The ringing (`_with_position_map`): the further hills read on the image itself, however
     # low beside the highest (the model's errors ring in proportion to a touch, whatever the noise).

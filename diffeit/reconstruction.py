@@ -93,7 +93,7 @@ from .inverse import (
 from .io import Recording
 from .mesh import Mesh
 from .results import RESULTS, failed, names, throw_if_failed
-from .touch import image_noise
+from .touch import _one_step_noise
 
 Method = Literal["one_step", "gauss_newton", "total_variation", "greit"]
 Difference = Literal["auto", "calibrated", "normalised"]
@@ -311,7 +311,7 @@ def reconstruct(
     else:
         solver = solver.bound(model, level, hyperparameter=value)
     images, codes = _images(solver, dv, progress)
-    # Each element's noise in the one-step images, for `diffeit.touches` (`diffeit.touch.image_noise`).
+    # Each element's noise in the one-step images, for `diffeit.touches`.
     element_noise = _one_step_noise(solver, noise, level) if isinstance(solver, OneStep) else None
     value = solver.hyperparameter
     codes = _nonfinite_marked(codes, images)
@@ -366,15 +366,6 @@ def _reading_noise(calibration: Any, reference_set: np.ndarray | None) -> np.nda
     if noise is None and reference_set is not None and len(reference_set) >= _NOISE_FRAMES:
         noise = np.std(calibration.signed(reference_set), axis=0, ddof=1)
     return noise
-
-
-def _one_step_noise(solver: OneStep, noise: np.ndarray | None, level: float | np.ndarray) -> np.ndarray | None:
-    """`diffeit.touch.image_noise` of `solver`'s images for the readings' `noise` at `level`
-    (S/sq), or None without a noise or where it is not finite and positive in every element."""
-    if noise is None:
-        return None
-    values = image_noise(np.asarray(solver.matrix), noise, level)
-    return values if np.all(np.isfinite(values) & (values > 0)) else None
 
 
 def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh: Mesh | None, h: float | None) -> None:

@@ -342,6 +342,16 @@ def image_noise(matrix: ArrayLike, reading_noise: ArrayLike, background: float |
     return np.sqrt(np.sum((matrix * reading_noise) ** 2, axis=1)) / np.asarray(background, np.float64)
 
 
+def _one_step_noise(solver: Any, noise: np.ndarray | None, level: float | np.ndarray) -> np.ndarray | None:
+    """`image_noise` of a one-step `solver`'s images (its `matrix`) for the readings' `noise` at
+    `level` (S/sq), or None without a noise or where it is not finite and positive in every
+    element."""
+    if noise is None:
+        return None
+    values = image_noise(np.asarray(solver.matrix), noise, level)
+    return values if np.all(np.isfinite(values) & (values > 0)) else None
+
+
 def _images_noise(recording: Recording) -> np.ndarray | None:
     """The "image_noise" `diffeit.reconstruct` kept in the recording's provenance (its one-step
     images' `image_noise`, where it knew the readings' noise), or None.

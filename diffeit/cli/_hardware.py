@@ -438,13 +438,13 @@ class _LiveViewer:
 
         self.drift = LiveDrift.of(reference)  # None for fewer than 6 reference frames
         self.gains: list[float] = []  # every imaged frame's common gain, taken out
-        from ..touch import image_noise
+        from ..touch import _one_step_noise, image_noise
 
         # Where the readings' noise is known (the calibration's, or 6 or more reference frames'),
         # the touches are found on the image divided by its own noise, as `diffeit.touches` does.
         self.image_noise = None
         if fit is None:
-            from ..reconstruction import _one_step_noise, _reading_noise
+            from ..reconstruction import _reading_noise
 
             self._calibrate(protocol, settings, reference, calibration)
             if touches:
