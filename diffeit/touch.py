@@ -362,11 +362,16 @@ def _images_noise(recording: Recording) -> np.ndarray | None:
     values = recording.provenance.get("metadata", {}).get("image_noise")
     if values is None:
         return None
+    return _checked_element_noise(values, recording.mesh, "the recording's image_noise (provenance)")
+
+
+def _checked_element_noise(values: ArrayLike, mesh: Mesh, name: str) -> np.ndarray:
+    """`values` as float64, or a ValueError naming them (`name`) when they are not one finite
+    positive value per element of `mesh`."""
     values = np.asarray(values, np.float64)
-    if values.shape != (recording.mesh.n_elements,) or not np.all(np.isfinite(values) & (values > 0)):
+    if values.shape != (mesh.n_elements,) or not np.all(np.isfinite(values) & (values > 0)):
         raise ValueError(
-            f"the recording's image_noise (provenance) must hold {recording.mesh.n_elements} finite positive values, "
-            f"one per element; got shape {values.shape}"
+            f"{name} must hold {mesh.n_elements} finite positive values, one per element; got shape {values.shape}"
         )
     return values
 
@@ -572,12 +577,7 @@ def read(
     if not 0 <= relative < 1:
         raise ValueError(f"relative must be a fraction of the highest peak in [0, 1); got {relative}")
     if image_noise is not None:
-        image_noise = np.asarray(image_noise, np.float64)
-        if image_noise.shape != (mesh.n_elements,) or not np.all(np.isfinite(image_noise) & (image_noise > 0)):
-            raise ValueError(
-                f"image_noise must hold {mesh.n_elements} finite positive values, one per element; "
-                f"got shape {image_noise.shape}"
-            )
+        image_noise = _checked_element_noise(image_noise, mesh, "image_noise")
     count = np.zeros(len(images), int)
     position = np.full((len(images), max_touches, mesh.nodes.shape[1]), np.nan)
     radius = np.full((len(images), max_touches), np.nan)
@@ -648,7 +648,7 @@ def _hills(
     floor = threshold * (noise if image_noise is None else _robust_std(scores))
     if strongest:
         floor = min(floor, float(np.max(scores)))
-    maxima = np.flatnonzero((scores >= neighbour_max) & (scores > 0) & (values > 0) & (scores >= floor))
+    maxima = np.flatnonzero((scores >= neighbour_max) & (scores > 0) & (scores >= floor))
     claimed = np.zeros(len(values), bool)
     areas, centroids = mesh.element_areas, mesh.element_centroids
     hills = []
