@@ -1152,14 +1152,14 @@ def reference_frames(
         # frames outside them are the untouched ones among them.
         before = recording.times < presses.times[:, 0].min()
         if before.any():
-            return _looking_untouched(recording.frames[before], "before the first press")
+            return _looking_untouched(recording.frames[before], recording.times[before], "before the first press")
         pressed = np.zeros(recording.n_frames, bool)
         for frames in presses.frames(recording.times):
             pressed[frames] = True
         if (~pressed).any():
-            return _looking_untouched(recording.frames[~pressed], "outside the presses")
+            return _looking_untouched(recording.frames[~pressed], recording.times[~pressed], "outside the presses")
     if recording.n_frames > REFERENCE_FRAMES:
-        still = _untouched(recording.frames[:_SESSION_FRAMES])
+        still = _untouched(recording.frames[:_SESSION_FRAMES], recording.times[:_SESSION_FRAMES])
         if every_frame:
             frames = recording.frames[:_SESSION_FRAMES][still]
             return frames, f"the {len(frames)} untouched frames of the first ones"
@@ -1171,31 +1171,40 @@ def reference_frames(
     return recording.frames[:count], f"mean of the first {count} frames"
 
 
-def _looking_untouched(frames: np.ndarray, where: str) -> tuple[np.ndarray, str]:
-    """Those of `frames` (T, M) that look untouched (`_untouched`, when there are more than
-    `REFERENCE_FRAMES`), and their description, the frames `where` they are."""
-    still = _untouched(frames) if len(frames) > REFERENCE_FRAMES else np.ones(len(frames), bool)
+def _looking_untouched(frames: np.ndarray, times: np.ndarray, where: str) -> tuple[np.ndarray, str]:
+    """Those of `frames` (T, M), recorded at `times` (T,), that look untouched (`_untouched`,
+    when there are more than `REFERENCE_FRAMES`), and their description, the frames `where`
+    they are."""
+    still = _untouched(frames, times) if len(frames) > REFERENCE_FRAMES else np.ones(len(frames), bool)
     if still.all():
         return frames, f"the {len(frames)} frames {where}"
     return frames[still], f"the {int(still.sum())} frames {where} that look untouched (of {len(frames)})"
 
 
-def _untouched(frames: np.ndarray) -> np.ndarray:
-    """(T,) bool, the frames that look untouched. Noise alone puts a frame at a distance from
-    the untouched frames' trend that varies by about 1 / sqrt(2 M) of itself (M readings); a
-    frame further than (1 + 5 / sqrt(2 M)) times the median distance is touched. The trend is
-    each reading's straight line in time, least squares over the frames kept: a skin drifts (a
-    hydrogel dries, a board warms), and from their median a drift of 2% over a simulated
-    session put the first frames among the touched ones, leaving a reference of 5 frames and
-    no noise to test frames against. Three times: first against the frames' median (robust to
-    the touched ones), then against the line through those kept; the first `REFERENCE_FRAMES`
-    when fewer pass."""
+def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames (T, M) recorded at `times` (T,) that look untouched. Noise alone
+    puts a frame at a distance from the untouched frames' trend that varies by about
+    1 / sqrt(2 M) of itself (M readings); a frame further than (1 + 5 / sqrt(2 M)) times the
+    median distance is touched. A skin drifts (a hydrogel dries, a board warms), so the
+    distance is measured after the frame's own common gain against the trend is taken out, and
+    the trend is each reading's straight line in time (seconds, not frame numbers: a test
+    recording joins a session's first frames to its later ones), least squares over the frames
+    kept. From the frames' median, a drift of 2% over a simulated session put the first frames
+    among the touched ones, leaving a reference of 5 frames and no noise to test frames
+    against; a line alone did so for a drift that levels off (5% with a 5 s time constant:
+    single presses on a benchmark skin then read 41 mm off from the reference alone, 5 mm with
+    the gain taken out). Three times: first against the frames' median (robust to the touched
+    ones), then against the line through those kept; the first `REFERENCE_FRAMES` when fewer
+    pass."""
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
-    time = np.linspace(-1.0, 1.0, len(frames))
+    time = np.asarray(times, np.float64) - np.mean(times)
+    time = time / max(float(np.max(np.abs(time))), 1e-300)
     design = np.column_stack([np.ones_like(time), time])
 
     def near(trend: np.ndarray, still: np.ndarray) -> np.ndarray:
-        distance = np.linalg.norm(frames - trend, axis=1)
+        trend = np.broadcast_to(trend, frames.shape)
+        gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
+        distance = np.linalg.norm(frames - gains[:, None] * trend, axis=1)
         return distance <= factor * np.median(distance[still])
 
     still = near(np.median(frames, axis=0), np.ones(len(frames), bool))
@@ -1300,8 +1309,12 @@ class _DriftReference(NamedTuple):
         identical to round-off (no noise to weigh or test by)."""
         if len(reference_set) < _NOISE_FRAMES:
             return None
+        # The noise with each frame's own gain taken out first: the reference frames may drift too.
+        mean = reference_set.mean(axis=0)
+        own = reference_set @ mean / (mean @ mean) if mean @ mean > 0 else np.ones(len(reference_set))
+        steady = reference_set / np.where(own > 0, own, 1.0)[:, None]
         reference = reference_set.mean(axis=0)
-        noise = reference_set.std(axis=0, ddof=1)
+        noise = steady.std(axis=0, ddof=1)
         # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
         # found a drift of 0% and divided the frames by it.
         kept = noise > _ROUND_OFF * np.abs(reference)

@@ -251,6 +251,10 @@ def reconstruct(
     frame_gains = None
     if spread is not None:  # a drift's common gain out of every frame (`drift_corrected`)
         recording, frame_gains = drift_corrected(recording, reference_set)
+        if frame_gains is not None:  # the reference frames, and their spread, without the drift
+            reference_set, reference_source = reference_frames(recording, reference_frame)
+            reference = reference_set.mean(axis=0)
+            spread = reference_set.std(axis=0, ddof=1) if len(reference_set) >= _NOISE_FRAMES else None
     if calibration is None:
         nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
         calibration = calibrate_to_reference(

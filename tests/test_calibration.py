@@ -269,6 +269,40 @@ def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixi
     assert not any("drifts" in note for note in de.calibrate(recording).warnings)
 
 
+def test_a_drifting_sessions_first_frames_joined_to_its_later_ones_still_give_the_reference(mixing_skin):
+    """A test recording made as benchmarks/calibration.py makes one: a session's untouched first
+    frames joined to its last presses, 3.1 s later, on a skin whose common gain rises 4% and
+    levels off (a time constant of 1 s: 2.4% over the first frames). The frames are untouched
+    up to the first press against their trend in seconds, their own gains taken out, so the
+    reference is still the first 10 frames (against a line in frame numbers, 5 frames: no
+    spread, no drift taken out, and presses read tens of millimetres off); the drift is taken
+    out, its spread too, and the touches are read as on the skin without it."""
+    recording = mixing_skin.recording
+    kept = np.r_[np.arange(UNTOUCHED), np.arange(40, recording.n_frames)]  # presses 15-29
+    plain = dataclasses.replace(recording, frames=recording.frames[kept], times=recording.times[kept])
+    gain = 1 + 0.04 * (1 - np.exp(-plain.times / 1.0))
+    drifted = dataclasses.replace(plain, frames=plain.frames * gain[:, None])
+    frames, source = de.calibration.reference_frames(drifted)
+    assert source == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
+    np.testing.assert_array_equal(frames, drifted.frames[:UNTOUCHED])
+    with pytest.warns(de.calibration.CalibrationWarning, match="common gain drifts over the recording"):
+        images = de.reconstruct(drifted, progress=False)
+    metadata = images.provenance["metadata"]
+    assert metadata["noise_frames"] == UNTOUCHED
+    pressed = np.arange(UNTOUCHED, len(kept), 2)
+    untouched = np.setdiff1d(np.arange(len(kept)), pressed)
+    # The gains of the untouched frames after the first ones, to 0.2% (their running median's noise).
+    relative = np.asarray(metadata["frame_gains"]) / (gain / gain[:UNTOUCHED].mean())
+    np.testing.assert_allclose(relative[untouched[UNTOUCHED:]], 1.0, atol=2e-3)
+    # The reference's spread is its noise, not the drift across its frames (0.7% of the readings).
+    noise = np.asarray(metadata["reading_noise"])
+    assert np.median(noise) < 2 * mixing_skin.noise
+    found, clean = de.touches(images), de.touches(de.reconstruct(plain, progress=False))
+    assert np.all(found.count[pressed] >= 1) and np.all(found.count[untouched] == 0)
+    moved = np.linalg.norm(found.position[pressed, 0] - clean.position[pressed, 0], axis=1)
+    assert np.max(moved) < 0.02  # of the skin's radius 1 m
+
+
 def test_presses_determine_the_readouts_mixing(calibrated):
     mixing = calibrated.values["mixing"]
     errors = calibrated.standard_errors["mixing"]
