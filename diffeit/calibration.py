@@ -242,6 +242,7 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
 _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift_corrected`)
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
+_LEAST_NEAR = 3  # touched frames near untouched ones that tell a press's part of the common gain (`drift_corrected`)
 _DRIFT_CHANCE = 1e-6  # the chance that the reference's own jitter passes for a drift (`drift_corrected`)
 _ROUND_OFF = 1e-12  # a reading's spread under this fraction of its value is round-off, not noise (`drift_corrected`)
 _LIVE_DRIFT_ERRORS = 3.0  # a stream's running gain is taken out beyond this many standard errors from 1 (`LiveDrift`)
@@ -1233,10 +1234,17 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     interpolated in time to the touched frames (the nearest one's beyond them): a touch moves
     the readings' common part too, and one that moves little else passes for untouched (its
     own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were then
-    missed). Gains are taken out only when the untouched frames' c_t spread beyond the
-    reference frames' own jitter from one frame to the next (an F test at chance
-    `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the readings' common
-    part, and without drift dividing by them only adds that noise.
+    missed). Touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
+    one (presses one after another, which the untouched frames' gains no longer follow) take
+    their own c_t instead, less a press's typical part of it (the median, over the touched
+    frames near untouched ones, of their c_t less the untouched frames' gain there), in a
+    running median over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under
+    60 presses one after another, the test presses were read 19.5 mm off with the nearest
+    untouched gain held, 4.6 mm so). Gains are taken out only when the untouched frames' c_t
+    spread beyond the reference frames' own jitter from one frame to the next, or the far
+    touched frames' gains beyond the uncertainty of their running median and typical part (F
+    tests at chance `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the
+    readings' common part, and without drift dividing by them only adds that noise.
 
     Arguments:
         recording: The recording (frames as recorded).
@@ -1256,23 +1264,62 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
         return recording, None
     common = drift.gains(recording.frames)
     still = drift.untouched(recording.frames, common)
+    ordered = not np.any(np.diff(recording.times) < 0)
+    gains = np.ones_like(common)
+    if still.any() and ordered:
+        # A running median over the untouched frames: a touch that moves the readings' common
+        # part alone passes for untouched, and its own gain would take the touch out of its frame.
+        smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
+        gains = np.interp(recording.times, recording.times[still], smooth)
     # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
-    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read. The spread is
-    # robust (the median square over 0.455, chi-square's median with one degree of freedom).
-    spread = np.median((common[still] - 1.0) ** 2) / 0.455 if still.any() else 0.0
-    if not spread > drift.jitter * scipy.stats.f.isf(_DRIFT_CHANCE, max(int(still.sum()), 1), drift.frames - 1):
+    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read.
+    drifts = still.any() and _departs(common[still] - 1.0, drift.jitter, 1, drift.frames - 1)
+    far = _beyond_untouched(recording.times, still) if ordered and still.any() else np.zeros_like(still)
+    near = ~still & ~far
+    if far.sum() > _DRIFT_WINDOW and near.sum() >= _LEAST_NEAR:
+        # Presses one after another: their own gains less a press's typical part of it (the
+        # median of the touched frames near untouched ones, less the untouched frames' gains
+        # there), in a running median over `_DRIFT_WINDOW` of them. A lowered conductivity raises
+        # a frame's common gain a little (a benchmark skin's presses of 10 mm at -30%: 0.39% +-
+        # 0.08%); the running median takes one press's departure from the typical out of it.
+        typical = float(np.median(common[near] - gains[near]))
+        gains[far] = scipy.ndimage.median_filter(common[far] - typical, size=_DRIFT_WINDOW, mode="nearest")
+        departure = common[far] - gains[far]
+        varying = (1.4826 * np.median(np.abs(departure - np.median(departure)))) ** 2
+        # Their level is as uncertain as the running median's and the typical part's medians.
+        uncertainty = varying * np.pi / 2 * (1 / _DRIFT_WINDOW + 1 / near.sum())
+        drifts = drifts or _departs(gains[far] - 1.0, uncertainty, far.sum(), far.sum() - 1)
+    if not drifts:
         return recording, None
-    backwards = np.flatnonzero(np.diff(recording.times) < 0)
-    if len(backwards):
+    if not ordered:
+        backwards = np.flatnonzero(np.diff(recording.times) < 0)
         raise ValueError(
             f"the recording's times go backwards at frame {backwards[0] + 1}: its drift's gains cannot be "
             "interpolated in time"
         )
-    # A running median over the untouched frames: a touch that moves the readings' common part
-    # alone passes for untouched, and its own gain would take the touch out of its frame.
-    smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
-    gains = np.interp(recording.times, recording.times[still], smooth)
     return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
+
+
+def _departs(deviations: np.ndarray, variance: float, run: int, freedom: int) -> bool:
+    """Whether gains' `deviations` from 1 (n,) stand beyond their noise `variance`, estimated
+    with `freedom` degrees: an F test at chance `_DRIFT_CHANCE` on their robust mean square (the
+    median square over 0.455, chi-square's median with one degree of freedom), `run` successive
+    deviations counted as one (a running median's)."""
+    spread = np.median(deviations**2) / 0.455
+    return bool(spread > variance * scipy.stats.f.isf(_DRIFT_CHANCE, max(len(deviations) // run, 1), max(freedom, 1)))
+
+
+def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
+    """(T,) the touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
+    frame (`still`, (T,) bool, some true): presses one after another with no untouched frame
+    between them, whose drift the untouched frames' gains no longer follow."""
+    step = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    untouched = times[still]
+    after = np.clip(np.searchsorted(untouched, times), 1, len(untouched)) - 1
+    nearest = np.minimum(
+        np.abs(times - untouched[after]), np.abs(times - untouched[np.minimum(after + 1, len(untouched) - 1)])
+    )
+    return ~still & (nearest > (_DRIFT_WINDOW // 2) * step * 1.000001)
 
 
 def _checked_reference_set(reference_set: ArrayLike, readings: int | None = None) -> np.ndarray:
