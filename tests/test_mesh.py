@@ -39,6 +39,24 @@ def test_disc_element_count_follows_h_and_refines_near_electrodes():
     assert all(len(chain) >= 9 for chain in refined.electrodes)  # width 0.2 at spacing 0.025
 
 
+@pytest.mark.parametrize(("n_electrodes", "radius", "width"), [(16, 0.08, 0.2 * 0.08), (32, 0.1, np.pi * 0.1 / 32)])
+def test_a_disc_in_metres_gets_the_unit_discs_defaults_scaled(n_electrodes, radius, width):
+    """A skin described by its radius alone ({"kind": "disc", "radius": 0.08}: 80 mm) gets
+    electrodes 0.2 of the radius wide (half the spacing for 32, where 0.2 leaves no gaps) and
+    elements 0.1 of it: with the unit disc's absolute defaults the 80 mm disc's electrodes did
+    not fit its rim, and h = 0.1 m made a sheet of a few dozen triangles."""
+    mesh = de.io.mesh_from_geometry({"kind": "disc", "radius": radius, "n_electrodes": n_electrodes})
+    unit = de.mesh.disc(n_electrodes, electrode_width=width / radius, h=0.1)
+    assert abs(mesh.n_elements - unit.n_elements) < 0.05 * unit.n_elements
+    for chain in mesh.electrodes:
+        ends = mesh.nodes[chain[[0, -1]]]
+        np.testing.assert_allclose(np.linalg.norm(ends, axis=1), radius, rtol=1e-12)
+        angle = np.angle(np.exp(1j * np.diff(np.arctan2(ends[:, 1], ends[:, 0]))))
+        np.testing.assert_allclose(radius * angle, width, rtol=1e-12)
+    edges = np.linalg.norm(np.diff(mesh.nodes[mesh.triangles[:, [0, 1, 2, 0]]], axis=1), axis=2)
+    assert 0.05 * radius < np.median(edges) < 0.15 * radius
+
+
 def test_disc_aligns_elements_to_interior_circles():
     mesh = de.mesh.disc(h=0.1, interior_circles=(0.5,))
     radius = np.linalg.norm(mesh.nodes[mesh.triangles], axis=2)  # (E, 3)

@@ -25,8 +25,8 @@ _CORNER_SNAP = 1e-9
 
 def disc(
     n_electrodes: int = 16,
-    electrode_width: float = 0.2,
-    h: float = 0.1,
+    electrode_width: float | None = None,
+    h: float | None = None,
     *,
     radius: float = 1.0,
     electrode_h: float | None = None,
@@ -44,8 +44,10 @@ def disc(
 
     Arguments:
         n_electrodes: The number of electrodes, at least 2.
-        electrode_width: The arc length of each electrode, m.
-        h: The target element edge length away from the electrodes, m.
+        electrode_width: The arc length of each electrode, m; default 0.2 times the radius,
+            or half the spacing between electrodes where that leaves no gaps (32 or more).
+        h: The target element edge length away from the electrodes, m; default 0.1 times
+            the radius (a skin of radius 80 mm gets about 900 triangles, as the unit disc does).
         radius: The disc's radius, m.
         electrode_h: The element edge length at the electrodes, m, in (0, h]; default `h / 2`.
         first_electrode_angle: The centre angle of electrode 0, radians.
@@ -67,6 +69,12 @@ def disc(
     """
     if n_electrodes < 2:
         raise ValueError(f"a disc needs at least 2 electrodes; got {n_electrodes}")
+    if radius <= 0:
+        raise ValueError(f"radius must be positive; got {radius}")
+    # Scaled with the radius: a skin described in metres gets the unit disc's mesh, scaled.
+    if electrode_width is None:
+        electrode_width = radius * (0.2 if 0.2 * n_electrodes < 2 * np.pi else np.pi / n_electrodes)
+    h = 0.1 * radius if h is None else h
     if not 0 < electrode_width * n_electrodes < 2 * np.pi * radius:
         raise ValueError(
             f"{n_electrodes} electrodes of width {electrode_width} do not fit on a rim of "
