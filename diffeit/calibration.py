@@ -1319,7 +1319,7 @@ def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
     nearest = np.minimum(
         np.abs(times - untouched[after]), np.abs(times - untouched[np.minimum(after + 1, len(untouched) - 1)])
     )
-    return ~still & (nearest > (_DRIFT_WINDOW // 2) * step * 1.000001)
+    return ~still & (nearest > (_DRIFT_WINDOW // 2 + 0.5) * step)
 
 
 def _checked_reference_set(reference_set: ArrayLike, readings: int | None = None) -> np.ndarray:
@@ -1357,11 +1357,10 @@ class _DriftReference(NamedTuple):
         if len(reference_set) < _NOISE_FRAMES:
             return None
         # The noise with each frame's own gain taken out first: the reference frames may drift too.
-        mean = reference_set.mean(axis=0)
-        own = reference_set @ mean / (mean @ mean) if mean @ mean > 0 else np.ones(len(reference_set))
-        steady = reference_set / np.where(own > 0, own, 1.0)[:, None]
         reference = reference_set.mean(axis=0)
-        noise = steady.std(axis=0, ddof=1)
+        norm = reference @ reference
+        own = reference_set @ reference / norm if norm > 0 else np.ones(len(reference_set))
+        noise = (reference_set / np.where(own > 0, own, 1.0)[:, None]).std(axis=0, ddof=1)
         # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
         # found a drift of 0% and divided the frames by it.
         kept = noise > _ROUND_OFF * np.abs(reference)
