@@ -210,6 +210,18 @@ def test_a_streams_drift_is_followed_frame_by_frame_and_a_steady_stream_is_left_
         de.calibration.LiveDrift.of(np.full((8, readings), np.nan))
 
 
+def _imaged_from_its_leading_frames(drifted: de.io.Recording) -> de.io.Recording:
+    """`de.reconstruct`'s images of a drifting recording of the tests' skin, asserting that its
+    reference is its first `UNTOUCHED` frames, their spread kept, and that the drift is warned of."""
+    frames, source = de.calibration.reference_frames(drifted)
+    assert source == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
+    np.testing.assert_array_equal(frames, drifted.frames[:UNTOUCHED])
+    with pytest.warns(de.calibration.CalibrationWarning, match="common gain drifts over the recording"):
+        images = de.reconstruct(drifted, progress=False)
+    assert images.provenance["metadata"]["noise_frames"] == UNTOUCHED
+    return images
+
+
 def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixing_skin):
     """A skin whose readings grow 2% over the session (a hydrogel drying, a board warming), many
     times their noise: the frames are untouched up to the first press against their trend in
@@ -221,13 +233,8 @@ def test_a_drifting_skins_leading_untouched_frames_still_give_the_reference(mixi
     times = recording.times - recording.times[0]
     drifted = dataclasses.replace(recording, frames=recording.frames * (1 + 0.02 * times / times[-1])[:, None])
     assert 0.02 * np.median(np.abs(recording.frames)) > 10 * mixing_skin.noise
-    frames, source = de.calibration.reference_frames(drifted)
-    assert source == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
-    np.testing.assert_array_equal(frames, drifted.frames[:UNTOUCHED])
-    with pytest.warns(de.calibration.CalibrationWarning, match="common gain drifts over the recording"):
-        images = de.reconstruct(drifted, progress=False)
+    images = _imaged_from_its_leading_frames(drifted)
     metadata = images.provenance["metadata"]
-    assert metadata["noise_frames"] == UNTOUCHED
     # Each frame's common gain is taken out (`drift_corrected`): the drift, to a small part of
     # itself, on touched frames too (interpolated), and the touches read as without it.
     drift = 1 + 0.02 * (times - times[:UNTOUCHED].mean()) / times[-1]
@@ -282,13 +289,8 @@ def test_a_drifting_sessions_first_frames_joined_to_its_later_ones_still_give_th
     plain = dataclasses.replace(recording, frames=recording.frames[kept], times=recording.times[kept])
     gain = 1 + 0.04 * (1 - np.exp(-plain.times / 1.0))
     drifted = dataclasses.replace(plain, frames=plain.frames * gain[:, None])
-    frames, source = de.calibration.reference_frames(drifted)
-    assert source == f"mean of the first {UNTOUCHED} frames (up to the first that looks touched)"
-    np.testing.assert_array_equal(frames, drifted.frames[:UNTOUCHED])
-    with pytest.warns(de.calibration.CalibrationWarning, match="common gain drifts over the recording"):
-        images = de.reconstruct(drifted, progress=False)
+    images = _imaged_from_its_leading_frames(drifted)
     metadata = images.provenance["metadata"]
-    assert metadata["noise_frames"] == UNTOUCHED
     pressed = np.arange(UNTOUCHED, len(kept), 2)
     untouched = np.setdiff1d(np.arange(len(kept)), pressed)
     # The gains of the untouched frames after the first ones, to 0.2% (their running median's noise).
