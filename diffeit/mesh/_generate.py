@@ -80,8 +80,8 @@ def disc(
             f"{n_electrodes} electrodes of width {electrode_width} do not fit on a rim of "
             f"length {2 * np.pi * radius:.4g} with gaps between them"
         )
-    if h <= 0 or radius <= 0:
-        raise ValueError(f"h and radius must be positive; got h={h}, radius={radius}")
+    if h <= 0:
+        raise ValueError(f"h must be positive; got h={h}")
     electrode_h, size = _element_size(h, electrode_h)
     for r in interior_circles:
         if not 0 < r < radius:
