@@ -2,9 +2,10 @@
 
 Sheet conductivity in S/sq, lengths in metres, currents in amperes, voltages in volts, contact
 impedance in ohm m. The forward model computes in float64: importing diffeit changes no JAX
-setting, and building the first model turns on `jax_enable_x64` with a `PrecisionWarning`
-unless the program did so first (`jax.config.update("jax_enable_x64", True)`). Pass float32
-arrays to opt into single precision.
+setting, and building the first model (or the first memory computation on images) turns on
+`jax_enable_x64` with a `PrecisionWarning` unless the program did so first
+(`jax.config.update("jax_enable_x64", True)`). Pass float32 arrays to opt into single
+precision.
 """
 
 from . import calibration as calibration

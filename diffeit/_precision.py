@@ -3,7 +3,9 @@
 JAX computes in float32 unless `jax_enable_x64` is on. EIT data are small differences of
 voltages that span orders of magnitude, so diffeit's models compute in float64 by default.
 `import diffeit` changes no setting. Building a forward model (which every simulation and
-reconstruction does) turns `jax_enable_x64` on if it is off, once, and says so with a
+reconstruction does), or computing with the memory model on images without one
+(`diffeit.memory.integrate_memory`, `diffeit.fit.memory`, `memory_from_presses`,
+`correct_memory`), turns `jax_enable_x64` on if it is off, once, and says so with a
 `PrecisionWarning`; a program that sets it first (`jax.config.update("jax_enable_x64", True)`,
 as diffeit's command line, tests and benchmarks do) sees no warning. Float32 stays available
 per call: pass float32 arrays.

@@ -73,6 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._arrays import concrete_floats, is_concrete
+from ._precision import ensure_float64
 
 ArrayLike = float | jax.Array | np.ndarray
 
@@ -384,6 +385,7 @@ def integrate_memory(
         ValueError: For `times` not of shape (T,); and, on concrete inputs, for a stimulus or
             times not finite, or times that decrease (or start before `state.time`).
     """
+    ensure_float64()
     stimulus = jnp.asarray(stimulus)
     if not jnp.issubdtype(stimulus.dtype, jnp.floating):
         stimulus = stimulus.astype(jnp.result_type(float))

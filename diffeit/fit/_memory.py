@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._arrays import concrete_floats, is_concrete
+from .._precision import ensure_float64
 from ..memory import (
     MemoryParameters,
     MemoryState,
@@ -189,14 +190,16 @@ def _correct(
     return jax.lax.scan(frame, state, (images, times))[1]
 
 
-def check_images(images, times) -> tuple[jax.Array, jax.Array]:
-    """Check a sequence of images and their times, and return them as float arrays.
+def check_images(images, times, what: str = "images") -> tuple[jax.Array, jax.Array]:
+    """Check a sequence of images (or other per-frame rows, named by `what`) and their times,
+    and return them as float arrays.
 
     Traced values (under jit) are checked for shape only.
 
     Arguments:
         images: (T, E) images, one row per frame, T >= 1.
         times: (T,) frame times, seconds, increasing.
+        what: What the rows are, for the error messages.
 
     Returns:
         (images, times): (T, E) and (T,) float JAX arrays.
@@ -205,18 +208,19 @@ def check_images(images, times) -> tuple[jax.Array, jax.Array]:
         ValueError: Naming the problem, for images that are not (T, E), hold no frame or are
             not finite, and for times as `check_times`.
     """
+    ensure_float64()  # the fits' tolerances and a 1e-3 change of a time constant need float64
     images = jnp.asarray(images)
     if not jnp.issubdtype(images.dtype, jnp.floating):
         images = images.astype(jnp.result_type(float))
     if images.ndim != 2:
-        raise ValueError(f"images must have shape (T, E), one row per frame; got shape {images.shape}")
+        raise ValueError(f"{what} must have shape (T, E), one row per frame; got shape {images.shape}")
     if images.shape[0] == 0:
-        raise ValueError("images must hold at least one frame")
+        raise ValueError(f"{what} must hold at least one frame")
     if is_concrete(images):
         finite = np.all(np.isfinite(np.asarray(images)), axis=1)
         if not finite.all():
-            raise ValueError(f"images must be finite; frame {int(np.flatnonzero(~finite)[0])} is not")
-    return images, check_times(times, images.shape[0], "images")
+            raise ValueError(f"{what} must be finite; frame {int(np.flatnonzero(~finite)[0])} is not")
+    return images, check_times(times, images.shape[0], what)
 
 
 def check_times(times, n_frames: int, what: str = "frames") -> jax.Array:
