@@ -157,8 +157,9 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   On a curved skin the polynomial is in x, y and z and the displaced touches are taken back
   onto the surface.
 - **Memory**, when every press is held over several frames: the skin's memory parameters
-  fitted to the session's images with the presses' footprints and holds known
-  (`diffeit.fit.memory_from_presses`).
+  fitted to the session's readings with the presses' holds known, each press's signature
+  learned from its own frames, and its depth and how its readings bend with it from the
+  calibrated model (`diffeit.fit.memory_from_press_readings`).
 
 ## Background map
 
@@ -214,7 +215,7 @@ from numpy.typing import ArrayLike
 from ._arrays import per_element
 from ._messages import name_indices
 from ._threads import host_algebra
-from .fit import memory_from_presses
+from .fit import memory_from_press_readings
 from .forward import ForwardModel
 from .inverse import LinearisedProblem, OneStep, select_hyperparameter
 from .inverse.hyperparameter import DEFAULT_CANDIDATES
@@ -751,6 +752,10 @@ _NOISE_FRAMES = 6
 _CORNER_MARGIN = 10.0
 # A memory fit needs every press held over at least this many frames.
 _HELD_FRAMES = 3
+# The memory fit's press depths: a press fainter than this (dsigma/sigma) keeps it, and a bend
+# takes the model's readings under a press to within this factor (and its inverse) of their
+# linear part (`_depths_and_bends`).
+_FAINTEST, _BEND_RATIO = 1e-3, 0.2
 # The most misfits evaluated in the search for the labels' frame.
 _FRAME_EVALUATIONS = 80
 # The central differences of the frame's refinement: this fraction of its `_frame_steps`.
@@ -1535,7 +1540,7 @@ def calibrate(
     reference: it cannot tell one from the model's error at that reading (presses can:
     `press_groups`).
     With presses held over several frames, the skin's memory is fitted to the whole session's
-    images with the presses' footprints and holds known (`diffeit.fit.memory_from_presses`).
+    readings with the presses' holds known (`diffeit.fit.memory_from_press_readings`).
     With labelled `presses`: the readout's mixing, and the electrode positions (and gains per
     reading when `press_groups` names them), are fitted to the presses' differences, and kept
     only when they read presses they did not see better than the reference's calibration does
@@ -1572,8 +1577,8 @@ def calibrate(
         hyperparameter: The one-step hyperparameter the presses are imaged at; None chooses
             it from the presses' frames (`auto_hyperparameter`).
         memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
-            memory to the session's images, the presses' footprints and holds known
-            (`diffeit.fit.memory_from_presses`).
+            memory to the session's readings, the presses' holds known
+            (`diffeit.fit.memory_from_press_readings`).
         background_map: Fit a smooth map of the sheet's conductivity (module docstring,
             "Background map"). None: with at least 20 labelled presses, the presses' map when
             `press_groups` names it and their fit is kept, else the reference's, kept when it
@@ -1609,6 +1614,7 @@ def calibrate(
     if presses is not None:
         _check_presses(presses, recording, mesh)
     reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
+    as_recorded = recording, reference  # the memory's fit takes any common gain out itself
     recording, gains = drift_corrected(recording, reference)
     if gains is not None:  # the reference frames, and their spread, without the drift
         reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
@@ -1662,7 +1668,7 @@ def calibrate(
         calibration = _with_background_map(calibration, recording, presses, reference, required=bool(background_map))
     if with_memory:
         frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
-        calibration = _with_memory(calibration, recording, _moved(presses, frame), reference, chosen)
+        calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
     return calibration
 
 
@@ -2890,23 +2896,29 @@ def _held(presses: Presses, times: np.ndarray) -> bool:
 
 
 def _with_memory(
-    calibration: SkinCalibration, recording: Recording, presses: Presses, reference: np.ndarray, hyperparameter: float
+    calibration: SkinCalibration, recording: Recording, reference: np.ndarray, presses: Presses
 ) -> SkinCalibration:
-    """`calibration` with the skin's memory fitted to the session's one-step images, the
-    presses (in the mesh's frame) known but for their depths."""
-    level = calibration.background
-    dv = calibration.signed(recording.frames) - calibration.signed(np.atleast_2d(reference).mean(axis=0))
-    solver = OneStep(prior="noser").bound(calibration.model, level, hyperparameter=hyperparameter)
-    images = np.asarray(solver.solve(dv, throw=True).value) / level
+    """`calibration` with the skin's memory fitted to the session's readings, the presses' holds
+    known (`diffeit.fit.memory_from_press_readings`); their depths and bends from the
+    calibrated model (`_depths_and_bends`)."""
+    at_rest = calibration.signed(np.atleast_2d(reference).mean(axis=0))
+    dv = calibration.signed(recording.frames) - at_rest
     patterns = _press_patterns(calibration.model.mesh, presses)
-    fit = memory_from_presses(images, recording.times, patterns, presses.times, throw=False)
+    held = np.stack([np.isin(np.arange(recording.n_frames), chosen) for chosen in presses.frames(recording.times)], 1)
+    depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held)
+    # Each frame's part along the reference is dropped: a common gain cannot move the fit, neither
+    # a drift nor the part of the skin's lasting changes that `drift_corrected` took for one (on a
+    # simulated skin with memory, a 1% drift found in every session biased the relaxation by 2
+    # standard errors).
+    direction = at_rest / np.linalg.norm(at_rest)
+    dv = dv - np.outer(dv @ direction, direction)
+    fit = memory_from_press_readings(dv, recording.times, presses.times, depths, bends=bends, throw=False)
     notes = list(calibration.warnings)
     if failed(fit.result).any():
         notes.append(f"the memory fit to the presses did not converge ({names(fit.result)[0]}): no memory")
         return eqx.tree_at(lambda c: c.warnings, calibration, tuple(notes))
-    fields = [name for name in fit.standard_errors if name != "depths"]
-    values = {f"memory.{name}": np.atleast_1d(float(getattr(fit.memory, name))) for name in fields}
-    errors = {f"memory.{name}": np.atleast_1d(float(fit.standard_errors[name])) for name in fields}
+    values = {f"memory.{name}": np.atleast_1d(float(getattr(fit.memory, name))) for name in fit.standard_errors}
+    errors = {f"memory.{name}": np.atleast_1d(float(error)) for name, error in fit.standard_errors.items()}
     return eqx.tree_at(
         lambda c: (c.memory, c.values, c.standard_errors, c.fitted),
         calibration,
@@ -2918,6 +2930,32 @@ def _with_memory(
         ),
         is_leaf=lambda node: node is None,
     )
+
+
+def _depths_and_bends(
+    model: ForwardModel, background: float | np.ndarray, patterns: np.ndarray, dv: np.ndarray, held: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each press's depth (K,) dsigma/sigma and bend (K,) b, from its held frames' mean readings
+    `dv` (T, M) at `model` (`held` (T, K)): with s = J p the linear readings of footprint p and
+    the model's readings under depth a, s.dv(a) / (a s.s) = 1 / (1 + b a). The held readings'
+    linear amplitude a_lin = d / (1 + b d) gives the depth, b taken at it (twice: b changes
+    slowly with the depth)."""
+    sigma = jnp.broadcast_to(jnp.asarray(background, float), (model.mesh.n_elements,))
+    at_rest = np.asarray(model.measure(sigma))
+    linear = np.asarray(model.jacobian(sigma, wrt="log_conductivity")) @ patterns.T  # (M, K)
+    norms = np.maximum(np.sum(linear**2, axis=0), np.finfo(float).tiny)
+    amplitude = np.sum(linear * ((held.T @ dv) / held.sum(axis=0)[:, None]).T, axis=0) / norms
+    # A press too faint to read keeps a small depth of the presses' sign: its column stays a time course.
+    sign = np.sign(np.median(amplitude)) or -1.0
+    amplitude = np.where(np.abs(amplitude) < _FAINTEST, sign * _FAINTEST, amplitude)
+    measure = jax.vmap(lambda change: model.measure(sigma * (1 + change)))
+    depths, bends = amplitude, np.zeros_like(amplitude)
+    for _ in range(2):
+        readings = np.asarray(measure(jnp.asarray(depths[:, None] * patterns))) - at_rest  # (K, M)
+        ratio = np.sum(linear.T * readings, axis=1) / (depths * norms)
+        bends = (1 / np.clip(ratio, _BEND_RATIO, 1 / _BEND_RATIO) - 1) / depths
+        depths = amplitude / np.maximum(1 - bends * amplitude, _BEND_RATIO)
+    return depths, bends
 
 
 def _read_presses(

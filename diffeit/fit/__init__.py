@@ -20,7 +20,9 @@ recorded frames:
 - `memory_uncertainty`: how well the frames determine a joint fit's memory parameters (standard
   errors and correlations, the Cramer-Rao bound at the fit);
 - `memory_from_presses`: the memory parameters from images of labelled presses (footprints and
-  holds known, depths fitted), with their standard errors: what `diffeit.calibrate` uses.
+  holds known, depths fitted), with their standard errors;
+- `memory_from_press_readings`: the same from the session's readings, each press's signature
+  learned from its own frames: what `diffeit.calibrate` uses.
 
 Every fit returns an `equinox.Module` with a `result` code (`diffeit.results.RESULTS`) and takes
 `throw=`.
@@ -42,6 +44,7 @@ from ._memory import correct_memory as correct_memory
 from ._memory import correct_memory_step as correct_memory_step
 from ._memory import memory as memory
 from ._memory import ordered_modes as ordered_modes
+from ._presses import memory_from_press_readings as memory_from_press_readings
 from ._presses import memory_from_presses as memory_from_presses
 from ._uncertainty import MemoryUncertainty as MemoryUncertainty
 from ._uncertainty import memory_uncertainty as memory_uncertainty

@@ -55,7 +55,8 @@ _SINGULAR = 1e-12
 
 
 class PressMemoryFit(eqx.Module):
-    """The result of `memory_from_presses`.
+    """The result of `memory_from_presses` (from images) and `memory_from_press_readings` (from
+    readings: `depths` as given, no depth errors, `response` and `noise` per reading).
 
     Attributes:
         memory: The fitted `diffeit.memory.MemoryParameters` (the free fields fitted, the others
@@ -112,13 +113,41 @@ class _PressProblem(eqx.Module):
         return ((self.images - response) / self.scale).ravel()
 
 
+class _ReadingsProblem(eqx.Module):
+    """The weighted residuals of a session's readings that no press signature explains, as a
+    function of the free memory fields x (unconstrained, in `names` order): variable projection,
+    the signatures (and the reference's offset) solved by least squares at every x."""
+
+    readings: jax.Array  # (T, M) over each reading's noise
+    times: jax.Array  # (T,)
+    stimulus: jax.Array  # (T, K) each press's depth while it is held, else 0
+    bends: jax.Array  # (K,)
+    base: MemoryParameters
+    names: tuple[str, ...] = eqx.field(static=True)
+
+    def memory(self, x: jax.Array) -> MemoryParameters:
+        return memory_from_unconstrained(dict(zip(self.names, x, strict=True)), self.base)
+
+    def columns(self, x: jax.Array) -> jax.Array:
+        """(T, 1 + 2K): a constant, each press's response r_k(t) as its readings bend,
+        r / (1 + b r), and a step at each press's start."""
+        response = memory_response(self.stimulus, self.times, self.memory(x))
+        bent = response / (1 + self.bends * response)
+        started = jnp.cumsum(self.stimulus != 0, axis=0) > 0
+        return jnp.concatenate([jnp.ones_like(bent[:, :1]), bent, started.astype(bent.dtype)], axis=1)
+
+    def residuals(self, x: jax.Array) -> jax.Array:
+        basis = jnp.linalg.qr(self.columns(x))[0]
+        return (self.readings - basis @ (basis.T @ self.readings)).ravel()
+
+
 @eqx.filter_jit
-def _linearise(problem: _PressProblem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _linearise(problem: _PressProblem | _ReadingsProblem, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     return problem.residuals(x), jax.jacfwd(problem.residuals)(x)
 
 
 @eqx.filter_jit
-def _chi_square(problem: _PressProblem, x: jax.Array) -> jax.Array:
+def _chi_square(problem: _PressProblem | _ReadingsProblem, x: jax.Array) -> jax.Array:
     return jnp.sum(problem.residuals(x) ** 2)
 
 
@@ -185,27 +214,7 @@ def memory_from_presses(
         raise ValueError("patterns must be fractions of each element covered, in [0, 1]")
     if not np.all(patterns.max(axis=1) > 0):
         raise ValueError(f"patterns {np.flatnonzero(patterns.max(axis=1) <= 0).tolist()} cover no element")
-    windows = np.asarray(windows, dtype=float)
-    if windows.shape != (n_presses, 2):
-        raise ValueError(
-            f"windows must have shape (K, 2) = ({n_presses}, 2), start and end seconds; got {windows.shape}"
-        )
-    frame_times = np.asarray(times)
-    if not np.all(np.isfinite(windows)):
-        raise ValueError("windows must be finite (seconds)")
-    if np.any(windows[:, 1] < windows[:, 0]):
-        raise ValueError(
-            f"windows end before they start: presses {np.flatnonzero(windows[:, 1] < windows[:, 0]).tolist()}"
-        )
-    outside = (windows[:, 0] < frame_times[0]) | (windows[:, 1] > frame_times[-1])
-    if outside.any():
-        raise ValueError(
-            f"windows of presses {np.flatnonzero(outside).tolist()} lie outside the times "
-            f"[{frame_times[0]}, {frame_times[-1]}] s"
-        )
-    held = (frame_times[:, None] >= windows[:, 0]) & (frame_times[:, None] <= windows[:, 1])
-    if not held.any(axis=0).all():
-        raise ValueError(f"windows of presses {np.flatnonzero(~held.any(axis=0)).tolist()} hold no frame")
+    held = _held_frames(windows, np.asarray(times), n_presses)
     if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
         raise ValueError(f"max_steps must be an integer >= 1; got {max_steps!r}")
     initial = over_foam() if initial is None else initial
@@ -264,8 +273,160 @@ def memory_from_presses(
     return throw_if_failed(fit, result, "press memory fit") if throw else fit
 
 
+@host_algebra
+def memory_from_press_readings(
+    readings: jax.Array | np.ndarray,
+    times: jax.Array | np.ndarray,
+    windows: jax.Array | np.ndarray,
+    depths: jax.Array | np.ndarray,
+    *,
+    bends: jax.Array | np.ndarray | None = None,
+    initial: MemoryParameters | None = None,
+    free: Collection[str] = DEFAULT_FREE,
+    max_steps: int = 200,
+    throw: bool = True,
+) -> PressMemoryFit:
+    """Fit the memory parameters to the readings of a labelled calibration session, each press's
+    signature learned from its own frames.
+
+    Press k (held over `windows[k]`, depth d_k) makes the response r_k(t) =
+    `memory_response`(d_k [start_k <= t <= end_k]) from a rested skin at times[0], and the
+    readings are modelled as
+
+        readings(t) = c + sum_k [s_k r_k(t) / (1 + b_k r_k(t)) + u_k [t >= start_k]] + noise,
+
+    with c (M,) the reference's offset, s_k (M,) press k's signature and u_k (M,) a lasting step
+    from its start, all free: for each memory x they are the least-squares solution (variable
+    projection), so the fit needs no forward model and no image, and what a model or an image
+    gets wrong of a press's pattern does not enter. The steps take up what a press leaves for
+    good: the first-cycle offset, which is the largest change an element has seen and so does
+    not add up where footprints overlap (without them 0.34-0.64 of the parameters lay within
+    two standard errors of the truth, docs/tutorials/calibration.md). b_k (`bends`) is how
+    press k's readings bend with its depth (a forward model's readings under the press,
+    projected on their linear part: a / (1 + b a) at relative change a). The free memory fields
+    are fitted by Levenberg-Marquardt on the exact Jacobian, weighted by each reading's noise,
+    which is estimated from the residuals (a first fit at equal weights, then one at the
+    estimated weights; T - 2K - 1 degrees of freedom per reading), and their standard errors
+    come from the Gauss-Newton covariance of the projected problem (Golub and Pereyra 2003),
+    scaled by the reduced chi-square where it exceeds 1.
+
+    What the images' fit (`memory_from_presses`) cannot give: its elements' residuals are those
+    of an image, correlated in space and shaped by the image's blur, and its standard errors
+    were several times too small through a one-step image (docs/tutorials/calibration.md).
+    The signatures add up, so the memory of presses whose footprints overlap is taken as the
+    sum of each press's own (as the model's modes are; its fatigue scales a later press's whole
+    response, which its signature takes up).
+
+    Arguments:
+        readings: (T, M) each frame's readings less the reference's (any unit; signed, or
+            magnitudes of readings that keep their sign), T > 2K + 2.
+        times: (T,) frame times, seconds, increasing.
+        windows: (K, 2) each press's hold start and end, seconds, as in `memory_from_presses`.
+        depths: (K,) each press's depth, dsigma/sigma (< 0 for a touch that lowers the
+            conductivity), nonzero: the memory's parts that do not scale with the depth
+            (first-cycle offset, fatigue) and the bends act on it.
+        bends: (K,) b_k, finite, with 1 + b_k d_k > 0; default 0 (readings linear in the change).
+        initial: The start and the fixed values; default `diffeit.memory.over_foam()`.
+        free: The fields fitted, as in `memory_from_presses`.
+        max_steps: The most Levenberg-Marquardt steps of each of the two fits.
+        throw: Raise for a fit that does not converge (True), or return it in `result` (False).
+
+    Returns:
+        The `PressMemoryFit`: `depths` as given, `standard_errors` of the free memory fields,
+        `response` (T, M) the readings as the fit explains them, `noise` (M,) each reading's
+        estimated noise (the readings' unit), `misfit` and `reduced_chi_square` of the readings.
+
+    Raises:
+        ValueError: For readings or times that are not finite or do not match, too few frames,
+            windows as in `memory_from_presses`, depths or bends that are not (K,), not finite,
+            depths of 0 or bends with 1 + b_k d_k <= 0, and invalid initial parameters or free
+            names.
+        diffeit.results.SolverError: With `throw=True`, for a fit that does not converge.
+    """
+    readings, times = check_images(readings, times, "readings")
+    n_frames, n_readings = readings.shape
+    depths = np.atleast_1d(np.asarray(depths, dtype=float))
+    n_presses = len(depths)
+    if depths.ndim != 1 or not np.all(np.isfinite(depths)) or np.any(depths == 0):
+        raise ValueError(f"depths must be (K,) finite, nonzero relative changes (dsigma/sigma); got {depths}")
+    if n_frames <= 2 * n_presses + 2:
+        raise ValueError(
+            f"the readings' memory fit of {n_presses} presses needs more than {2 * n_presses + 2} frames; "
+            f"got {n_frames}"
+        )
+    bends = np.zeros(n_presses) if bends is None else np.asarray(bends, dtype=float)
+    if bends.shape != (n_presses,) or not np.all(np.isfinite(bends)) or np.any(1 + bends * depths <= 0):
+        raise ValueError(f"bends must be (K,) = ({n_presses},), finite, with 1 + b d > 0 at each depth; got {bends}")
+    held = _held_frames(windows, np.asarray(times), n_presses)
+    if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
+        raise ValueError(f"max_steps must be an integer >= 1; got {max_steps!r}")
+    initial = over_foam() if initial is None else initial
+    initial, names = _checked_initial(initial, free)
+    base = jax.tree_util.tree_map(lambda value: jnp.asarray(value, float), initial)
+    start = memory_to_unconstrained(initial, names)
+    x = jnp.stack([start[n] for n in names])
+    values = np.asarray(readings)
+    problem = _ReadingsProblem(readings, times, jnp.asarray(held * depths), jnp.asarray(bends), base, names)
+    per_reading = n_frames - 2 * n_presses - 1
+    noise = np.ones(n_readings)
+    for _ in range(2):  # equal weights from the start, then each reading's noise at the first fit
+        left = np.asarray(problem.residuals(x)).reshape(n_frames, n_readings) * noise
+        noise = np.sqrt(np.sum(left**2, axis=0) / per_reading)
+        noise = np.maximum(noise, _NOISE_FLOOR * max(float(np.max(noise)), np.finfo(float).tiny))
+        problem = eqx.tree_at(lambda p: p.readings, problem, jnp.asarray(values / noise))
+        x, jacobian, chi_square, steps, result = _levenberg_marquardt(problem, x, max_steps)
+    degrees = max(per_reading * n_readings - len(names), 1)
+    reduced = chi_square / degrees
+    errors = _standard_errors(jacobian, x, names, initial, max(reduced, 1.0), with_depths=False)
+    fitted_full = memory_from_unconstrained(dict(zip(names, x, strict=True)), initial)
+    memory = reported_memory(fitted_full, names)
+    if memory is not fitted_full:
+        for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
+            errors[fast], errors[slow] = errors[slow], errors[fast]
+    response = values - np.asarray(problem.residuals(x)).reshape(n_frames, n_readings) * noise
+    size = float(np.linalg.norm(values))
+    fit = PressMemoryFit(
+        memory=memory,
+        depths=depths,
+        standard_errors=errors,
+        response=jnp.asarray(response),
+        misfit=float(np.linalg.norm(values - response)) / size if size > 0 else 0.0,
+        reduced_chi_square=reduced,
+        noise=noise,
+        steps=steps,
+        result=result,
+    )
+    return throw_if_failed(fit, result, "press readings' memory fit") if throw else fit
+
+
+def _held_frames(windows: np.ndarray, frame_times: np.ndarray, n_presses: int) -> np.ndarray:
+    """(T, K) whether press k is held at frame t, for hold `windows` (K, 2) seconds; ValueError
+    for windows not (K, 2), not finite, reversed, outside the times or holding no frame."""
+    windows = np.asarray(windows, dtype=float)
+    if windows.shape != (n_presses, 2):
+        raise ValueError(
+            f"windows must have shape (K, 2) = ({n_presses}, 2), start and end seconds; got {windows.shape}"
+        )
+    if not np.all(np.isfinite(windows)):
+        raise ValueError("windows must be finite (seconds)")
+    if np.any(windows[:, 1] < windows[:, 0]):
+        raise ValueError(
+            f"windows end before they start: presses {np.flatnonzero(windows[:, 1] < windows[:, 0]).tolist()}"
+        )
+    outside = (windows[:, 0] < frame_times[0]) | (windows[:, 1] > frame_times[-1])
+    if outside.any():
+        raise ValueError(
+            f"windows of presses {np.flatnonzero(outside).tolist()} lie outside the times "
+            f"[{frame_times[0]}, {frame_times[-1]}] s"
+        )
+    held = (frame_times[:, None] >= windows[:, 0]) & (frame_times[:, None] <= windows[:, 1])
+    if not held.any(axis=0).all():
+        raise ValueError(f"windows of presses {np.flatnonzero(~held.any(axis=0)).tolist()} hold no frame")
+    return held
+
+
 def _levenberg_marquardt(
-    problem: _PressProblem, x: jax.Array, max_steps: int
+    problem: _PressProblem | _ReadingsProblem, x: jax.Array, max_steps: int
 ) -> tuple[jax.Array, np.ndarray, float, int, RESULTS]:
     """Minimise the chi-square sum(residuals^2) from `x`: the minimiser, the Jacobian and the
     chi-square there, the steps taken and the result code."""
@@ -304,17 +465,24 @@ def _levenberg_marquardt(
 
 
 def _standard_errors(
-    jacobian: np.ndarray, x: jax.Array, names: tuple[str, ...], initial: MemoryParameters, factor: float
+    jacobian: np.ndarray,
+    x: jax.Array,
+    names: tuple[str, ...],
+    initial: MemoryParameters,
+    factor: float,
+    with_depths: bool = True,
 ) -> dict:
     """The standard errors, natural units: the covariance factor (J^T J)^-1 of the unknowns,
     times `factor`, carried from the unconstrained memory fields to the natural ones by their
-    derivatives (the delta method; the two mode fractions share both coordinates)."""
+    derivatives (the delta method; the two mode fractions share both coordinates); the unknowns
+    after the memory fields are the depths (`with_depths`), else there are none."""
     n_memory, n_unknowns = len(names), jacobian.shape[1]
     information = jacobian.T @ jacobian
     eigenvalues = np.linalg.eigvalsh(information)
     if not (np.all(np.isfinite(eigenvalues)) and eigenvalues.min() > _SINGULAR * eigenvalues.max()):
         errors: dict = {name: float("inf") for name in names}
-        errors["depths"] = np.full(n_unknowns - n_memory, np.inf)
+        if with_depths:
+            errors["depths"] = np.full(n_unknowns - n_memory, np.inf)
         return errors
     covariance = np.linalg.inv(information) * factor
 
@@ -325,5 +493,6 @@ def _standard_errors(
     derivative = np.asarray(jax.jacfwd(natural)(x[:n_memory]))
     memory_covariance = derivative @ covariance[:n_memory, :n_memory] @ derivative.T
     errors = {name: float(np.sqrt(memory_covariance[i, i])) for i, name in enumerate(names)}
-    errors["depths"] = np.sqrt(np.diag(covariance)[n_memory:])
+    if with_depths:
+        errors["depths"] = np.sqrt(np.diag(covariance)[n_memory:])
     return errors
