@@ -251,10 +251,7 @@ def memory_from_presses(
     degrees = max(jacobian.shape[0] - jacobian.shape[1], 1)
     reduced = chi_square / degrees
     errors = _standard_errors(jacobian, x, names, initial, max(reduced, 1.0))
-    memory = reported_memory(fitted_full, names)
-    if memory is not fitted_full:  # the modes were exchanged: so are their errors
-        for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
-            errors[fast], errors[slow] = errors[slow], errors[fast]
+    memory = _with_errors_ordered(fitted_full, names, errors)
     stimulus = (jnp.asarray(held, dtype=float) * jnp.asarray(depths)) @ jnp.asarray(patterns)
     response = memory_response(stimulus, times, fitted_full)
     size = float(jnp.linalg.norm(images))
@@ -379,10 +376,7 @@ def memory_from_press_readings(
     reduced = chi_square / degrees
     errors = _standard_errors(jacobian, x, names, initial, max(reduced, 1.0), with_depths=False)
     fitted_full = memory_from_unconstrained(dict(zip(names, x, strict=True)), initial)
-    memory = reported_memory(fitted_full, names)
-    if memory is not fitted_full:
-        for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
-            errors[fast], errors[slow] = errors[slow], errors[fast]
+    memory = _with_errors_ordered(fitted_full, names, errors)
     response = values - np.asarray(problem.residuals(x)).reshape(n_frames, n_readings) * noise
     size = float(np.linalg.norm(values))
     fit = PressMemoryFit(
@@ -397,6 +391,16 @@ def memory_from_press_readings(
         result=result,
     )
     return throw_if_failed(fit, result, "press readings' memory fit") if throw else fit
+
+
+def _with_errors_ordered(fitted: MemoryParameters, names: tuple[str, ...], errors: dict) -> MemoryParameters:
+    """The memory as reported (`reported_memory`: the quicker mode named fast); where the modes
+    were exchanged, so are their `errors` (in place)."""
+    memory = reported_memory(fitted, names)
+    if memory is not fitted:
+        for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
+            errors[fast], errors[slow] = errors[slow], errors[fast]
+    return memory
 
 
 def _held_frames(windows: np.ndarray, frame_times: np.ndarray, n_presses: int) -> np.ndarray:
