@@ -215,10 +215,7 @@ def memory_from_presses(
     if not np.all(patterns.max(axis=1) > 0):
         raise ValueError(f"patterns {np.flatnonzero(patterns.max(axis=1) <= 0).tolist()} cover no element")
     held = _held_frames(windows, np.asarray(times), n_presses)
-    if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
-        raise ValueError(f"max_steps must be an integer >= 1; got {max_steps!r}")
-    initial = over_foam() if initial is None else initial
-    initial, names = _checked_initial(initial, free)
+    initial, names = _checked_start(initial, free, max_steps)
 
     values = np.asarray(images)
     noise = noise_level(values) if noise is None else _checked_noise(noise, n_elements)
@@ -355,10 +352,7 @@ def memory_from_press_readings(
     if bends.shape != (n_presses,) or not np.all(np.isfinite(bends)) or np.any(1 + bends * depths <= 0):
         raise ValueError(f"bends must be (K,) = ({n_presses},), finite, with 1 + b d > 0 at each depth; got {bends}")
     held = _held_frames(windows, np.asarray(times), n_presses)
-    if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
-        raise ValueError(f"max_steps must be an integer >= 1; got {max_steps!r}")
-    initial = over_foam() if initial is None else initial
-    initial, names = _checked_initial(initial, free)
+    initial, names = _checked_start(initial, free, max_steps)
     base = jax.tree_util.tree_map(lambda value: jnp.asarray(value, float), initial)
     start = memory_to_unconstrained(initial, names)
     x = jnp.stack([start[n] for n in names])
@@ -401,6 +395,16 @@ def _with_errors_ordered(fitted: MemoryParameters, names: tuple[str, ...], error
         for fast, slow in (("fast_fraction", "slow_fraction"), ("fast_time", "slow_time")):
             errors[fast], errors[slow] = errors[slow], errors[fast]
     return memory
+
+
+def _checked_start(
+    initial: MemoryParameters | None, free: Collection[str], max_steps: int
+) -> tuple[MemoryParameters, tuple[str, ...]]:
+    """The press fits' start (default `over_foam`) and free names, checked (`_checked_initial`),
+    and a ValueError for `max_steps` that is not an integer >= 1."""
+    if isinstance(max_steps, bool) or not (isinstance(max_steps, int) and max_steps >= 1):
+        raise ValueError(f"max_steps must be an integer >= 1; got {max_steps!r}")
+    return _checked_initial(over_foam() if initial is None else initial, free)
 
 
 def _held_frames(windows: np.ndarray, frame_times: np.ndarray, n_presses: int) -> np.ndarray:
