@@ -147,6 +147,11 @@ def _linearise(problem: _PressProblem | _ReadingsProblem, x: jax.Array) -> tuple
 
 
 @eqx.filter_jit
+def _residuals(problem: _ReadingsProblem, x: jax.Array) -> jax.Array:
+    return problem.residuals(x)
+
+
+@eqx.filter_jit
 def _chi_square(problem: _PressProblem | _ReadingsProblem, x: jax.Array) -> jax.Array:
     return jnp.sum(problem.residuals(x) ** 2)
 
@@ -361,7 +366,7 @@ def memory_from_press_readings(
     per_reading = n_frames - 2 * n_presses - 1
     noise = np.ones(n_readings)
     for _ in range(2):  # equal weights from the start, then each reading's noise at the first fit
-        left = np.asarray(problem.residuals(x)).reshape(n_frames, n_readings) * noise
+        left = np.asarray(_residuals(problem, x)).reshape(n_frames, n_readings) * noise
         noise = np.sqrt(np.sum(left**2, axis=0) / per_reading)
         noise = np.maximum(noise, _NOISE_FLOOR * max(float(np.max(noise)), np.finfo(float).tiny))
         problem = eqx.tree_at(lambda p: p.readings, problem, jnp.asarray(values / noise))
@@ -371,7 +376,7 @@ def memory_from_press_readings(
     errors = _standard_errors(jacobian, x, names, initial, max(reduced, 1.0), with_depths=False)
     fitted_full = memory_from_unconstrained(dict(zip(names, x, strict=True)), initial)
     memory = _with_errors_ordered(fitted_full, names, errors)
-    response = values - np.asarray(problem.residuals(x)).reshape(n_frames, n_readings) * noise
+    response = values - np.asarray(_residuals(problem, x)).reshape(n_frames, n_readings) * noise
     size = float(np.linalg.norm(values))
     fit = PressMemoryFit(
         memory=memory,
