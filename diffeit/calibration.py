@@ -754,8 +754,9 @@ _CORNER_MARGIN = 10.0
 _HELD_FRAMES = 3
 # The memory fit's press depths: a press fainter than this (dsigma/sigma) keeps it, and a bend
 # takes the model's readings under a press to within this factor (and its inverse) of their
-# linear part (`_depths_and_bends`).
-_FAINTEST, _BEND_RATIO = 1e-3, 0.2
+# linear part, and no press lowers the conductivity by more than `_DEEPEST` of itself
+# (`_depths_and_bends`).
+_FAINTEST, _BEND_RATIO, _DEEPEST = 1e-3, 0.2, 0.9
 # The most misfits evaluated in the search for the labels' frame.
 _FRAME_EVALUATIONS = 80
 # The central differences of the frame's refinement: this fraction of its `_frame_steps`.
@@ -2905,7 +2906,7 @@ def _with_memory(
     dv = calibration.signed(recording.frames) - at_rest
     patterns = _press_patterns(calibration.model.mesh, presses)
     held = np.stack([np.isin(np.arange(recording.n_frames), chosen) for chosen in presses.frames(recording.times)], 1)
-    depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held)
+    depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held, _before(held))
     # Each frame's part along the reference is dropped: a common gain cannot move the fit, neither
     # a drift nor the part of the skin's lasting changes that `drift_corrected` took for one (on a
     # simulated skin with memory, a 1% drift found in every session biased the relaxation by 2
@@ -2932,29 +2933,52 @@ def _with_memory(
     )
 
 
+def _before(held: np.ndarray) -> np.ndarray:
+    """(T, K) the frames just before each press (`held` (T, K)): the run of frames that no press
+    holds up to its first held frame, its last `_HELD_FRAMES` at most (none for a press that
+    follows another's hold at once)."""
+    free = ~held.any(axis=1)
+    before = np.zeros_like(held)
+    for press, column in enumerate(held.T):
+        frame = int(np.argmax(column)) - 1
+        while frame >= 0 and free[frame] and before[:, press].sum() < _HELD_FRAMES:
+            before[frame, press] = True
+            frame -= 1
+    return before
+
+
 def _depths_and_bends(
-    model: ForwardModel, background: float | np.ndarray, patterns: np.ndarray, dv: np.ndarray, held: np.ndarray
+    model: ForwardModel,
+    background: float | np.ndarray,
+    patterns: np.ndarray,
+    dv: np.ndarray,
+    held: np.ndarray,
+    before: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each press's depth (K,) dsigma/sigma and bend (K,) b, from its held frames' mean readings
-    `dv` (T, M) at `model` (`held` (T, K)): with s = J p the linear readings of footprint p and
-    the model's readings under depth a, s.dv(a) / (a s.s) = 1 / (1 + b a). The held readings'
-    linear amplitude a_lin = d / (1 + b d) gives the depth, b taken at it (twice: b changes
-    slowly with the depth)."""
+    """Each press's depth (K,) dsigma/sigma and bend (K,) b, from the readings `dv` (T, M) at
+    `model`: its held frames' mean (`held` (T, K)) less that of the frames just before it
+    (`before` (T, K); the reference's, 0, where none), so that what earlier presses left of the
+    skin's memory is not read as this one's depth (on a skin pressed once a second, their
+    lasting changes had read the presses of -0.3 as -0.7 to -2.6). With s = J p the linear
+    readings of footprint p and the model's readings under depth a, s.dv(a) / (a s.s) =
+    1 / (1 + b a). The linear amplitude a_lin = d / (1 + b d) gives the depth, b taken at it
+    (twice: b changes slowly with the depth); no deeper than -`_DEEPEST` (a conductivity > 0)."""
     sigma = jnp.broadcast_to(jnp.asarray(background, float), (model.mesh.n_elements,))
     at_rest = np.asarray(model.measure(sigma))
     linear = np.asarray(model.jacobian(sigma, wrt="log_conductivity")) @ patterns.T  # (M, K)
     norms = np.maximum(np.sum(linear**2, axis=0), np.finfo(float).tiny)
-    amplitude = np.sum(linear * ((held.T @ dv) / held.sum(axis=0)[:, None]).T, axis=0) / norms
+    change = (held.T @ dv) / held.sum(axis=0)[:, None] - (before.T @ dv) / np.maximum(before.sum(axis=0), 1)[:, None]
+    amplitude = np.sum(linear * change.T, axis=0) / norms
     # A press too faint to read keeps a small depth of the presses' sign: its column stays a time course.
     sign = np.sign(np.median(amplitude)) or -1.0
     amplitude = np.where(np.abs(amplitude) < _FAINTEST, sign * _FAINTEST, amplitude)
     measure = jax.vmap(lambda change: model.measure(sigma * (1 + change)))
-    depths, bends = amplitude, np.zeros_like(amplitude)
+    depths, bends = np.maximum(amplitude, -_DEEPEST), np.zeros_like(amplitude)
     for _ in range(2):
         readings = np.asarray(measure(jnp.asarray(depths[:, None] * patterns))) - at_rest  # (K, M)
         ratio = np.sum(linear.T * readings, axis=1) / (depths * norms)
         bends = (1 / np.clip(ratio, _BEND_RATIO, 1 / _BEND_RATIO) - 1) / depths
-        depths = amplitude / np.maximum(1 - bends * amplitude, _BEND_RATIO)
+        depths = np.maximum(amplitude / np.maximum(1 - bends * amplitude, _BEND_RATIO), -_DEEPEST)
     return depths, bends
 
 

@@ -692,6 +692,32 @@ def test_a_skins_memory_lies_within_two_standard_errors_over_six_sessions():
     assert np.sqrt(np.mean(deviations**2)) < 1.5
 
 
+def test_press_depths_for_the_memory_fit_leave_out_what_earlier_presses_left():
+    """Presses of -0.3 held 0.5 s, one every 0.8 s, on a skin with the `over_foam` memory: each
+    press's depth (`_depths_and_bends`, for the memory fit) is its held frames less the frames
+    just before it, so what earlier presses left is not read as its own. Measured: -0.266 to
+    -0.312 (its own held response is about -0.30); against the session's first frame, -0.30 to
+    -0.54. Readings four times as strong stay above -0.9: a depth of -1 or below took the
+    model's conductivity to 0 or below, and `de.calibrate` raised from inside the forward model
+    on a benchmark skin pressed once a second."""
+    model = de.ForwardModel(de.mesh.disc(16, electrode_width=0.2, h=0.15), PROTOCOL)
+    rng = np.random.default_rng(0)
+    radii, angles = 0.6 * np.sqrt(rng.uniform(0, 1, 12)), rng.uniform(0, 2 * np.pi, 12)
+    centres = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
+    starts = 1.0 + 0.8 * np.arange(12)
+    times = 0.1 * np.arange(int((starts[-1] + 2.5) / 0.1))
+    held = (times[:, None] >= starts - 1e-9) & (times[:, None] <= starts + 0.5 + 1e-9)
+    patterns = np.stack([de.mesh.disc_fraction(model.mesh, tuple(centre), 0.15) for centre in centres])
+    response = de.memory.memory_response((held * -0.3) @ patterns, times, de.memory.over_foam())
+    clean = np.asarray(jax.vmap(model.measure)(1 + response))
+    before = calibration_module._before(held)
+    assert np.all(before.sum(axis=0) >= 2) and not np.any(before & held)
+    depths, _ = calibration_module._depths_and_bends(model, 1.0, patterns, clean - clean[0], held, before)
+    np.testing.assert_allclose(depths, -0.3, atol=0.05)
+    deep, bends = calibration_module._depths_and_bends(model, 1.0, patterns, 4 * (clean - clean[0]), held, before)
+    assert np.all(deep >= -0.9) and np.all(1 + bends * deep > 0), (deep, bends)
+
+
 def test_the_reference_determines_displaced_electrodes_and_their_positions_round_trip(tmp_path):
     """A skin whose electrodes lie up to 3 degrees from the mesh's (the sheet and contacts
     otherwise nominal): the refinement moves them most of the way back."""
