@@ -2920,14 +2920,24 @@ def _with_memory(
         return eqx.tree_at(lambda c: c.warnings, calibration, tuple(notes))
     values = {f"memory.{name}": np.atleast_1d(float(getattr(fit.memory, name))) for name in fit.standard_errors}
     errors = {f"memory.{name}": np.atleast_1d(float(error)) for name, error in fit.standard_errors.items()}
+    # A field at a bound of its range (a time constant of 0, a fraction of 0 or 1) has no finite error.
+    unsure = tuple(name for name, error in errors.items() if not np.isfinite(error[0]))
+    if unsure:
+        notes.append(
+            f"the presses did not determine the memory ({', '.join(unsure)} without a finite standard error, "
+            "a field at a bound of its range): presses held for longer than the memory's time constants, with rests "
+            "as long between them, determine it"
+        )
     return eqx.tree_at(
-        lambda c: (c.memory, c.values, c.standard_errors, c.fitted),
+        lambda c: (c.memory, c.values, c.standard_errors, c.fitted, c.undetermined, c.warnings),
         calibration,
         (
             fit.memory,
             {**calibration.values, **values},
             {**calibration.standard_errors, **errors},
             {**calibration.fitted, "presses": (*calibration.fitted["presses"], "memory")},
+            (*calibration.undetermined, *unsure),
+            tuple(notes),
         ),
         is_leaf=lambda node: node is None,
     )
