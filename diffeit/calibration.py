@@ -3089,7 +3089,9 @@ def _with_position_map(
         notes.append(f"no touch read at press(es) {name_indices(np.flatnonzero(~seen))}: left out of the position map")
     if seen.sum() < 3:
         notes.append("fewer than 3 presses read: no position map")
-        return eqx.tree_at(lambda c: (c.warnings, c.polarity), calibration, (tuple(notes), polarity))
+        return eqx.tree_at(
+            lambda c: (c.warnings, c.polarity), calibration, (tuple(notes), polarity), is_leaf=lambda node: node is None
+        )
     read_positions, labelled = found.position[seen, 0], presses.centres[seen]
     mapping = PositionMap.fit(read_positions, labelled, calibration.model.mesh)
     errors = np.full(presses.n_presses, np.nan)

@@ -460,6 +460,20 @@ def test_with_too_few_presses_to_hold_out_the_references_calibration_is_kept(mix
     assert few.press_errors.shape == (15,) and np.isfinite(np.nanmedian(few.press_errors))
 
 
+@pytest.mark.parametrize("count", [1, 2])
+def test_one_or_two_presses_calibrate_without_a_position_map(mixing_skin, count):
+    """Fewer than 3 presses make no position map, and say so; the calibration still takes their
+    polarity (before, setting it on the calibration without a map raised from inside equinox)."""
+    few = de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(count)))
+    assert few.position_map is None and few.polarity == -1
+    assert "fewer than 3 presses read: no position map" in few.warnings
+    images = de.reconstruct(mixing_skin.recording, calibration=few, progress=False)
+    found = de.touches(images, few)
+    pressed = [frames[0] for frames in mixing_skin.presses.frames(mixing_skin.recording.times)]
+    distance = np.linalg.norm(found.position[pressed, 0] - mixing_skin.presses.centres, axis=1)
+    assert np.median(distance) < 0.08, np.median(distance)  # measured 0.044 (the presses' radius: 0.15)
+
+
 def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
     rng = np.random.default_rng(0)
     read = rng.uniform(-0.7, 0.7, (25, 2))
