@@ -1138,7 +1138,8 @@ def reference_frames(
     look untouched (`_untouched`, when more than `REFERENCE_FRAMES`: the presses labelled may
     be some of the session's, the others kept to test on); else
     the recording's first frames up to the first that looks touched (`_untouched`, among the
-    first `_SESSION_FRAMES`), or the first `REFERENCE_FRAMES` when those are fewer
+    first `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames), or the first
+    `REFERENCE_FRAMES` when the first frame itself looks touched or the recording holds no more
     (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched).
 
     Arguments:
@@ -1170,9 +1171,12 @@ def reference_frames(
         if every_frame:
             frames = recording.frames[:_SESSION_FRAMES][still]
             return frames, f"the {len(frames)} untouched frames of the first ones"
-        # Only the leading run: a light press later on can pass for untouched.
+        # Only the leading run: a light press later on can pass for untouched. A run shorter than
+        # `REFERENCE_FRAMES` is kept as it is: the first frames beyond it had put a press into the
+        # reference of a session with one untouched frame before its presses, and every
+        # untouched frame after them then read as touched.
         count = len(still) if still.all() else int(np.argmin(still))
-        if count > REFERENCE_FRAMES:
+        if count:
             return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
     count = min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"

@@ -137,7 +137,8 @@ def reconstruct(
     """Image every frame of a recording against its reference: recorded frames to images in one call.
 
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
-    mean of its first frames up to the first that looks touched (at least `REFERENCE_FRAMES`;
+    mean of its first frames up to the first that looks touched (however few: the first
+    `REFERENCE_FRAMES` only when the first frame itself looks touched, `reference_frames`;
     their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
     `diffeit.touches` tests frames against without a calibration, and with it, or with a
     calibration's noise, one-step images keep each element's noise as "image_noise"
