@@ -1137,10 +1137,11 @@ def reference_frames(
     frames before the first press (or, when there are none, those outside every hold) that
     look untouched (`_untouched`, when more than `REFERENCE_FRAMES`: the presses labelled may
     be some of the session's, the others kept to test on); else
-    the recording's first frames up to the first that looks touched (`_untouched`, among the
-    first `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames), or the first
-    `REFERENCE_FRAMES` when the first frame itself looks touched or the recording holds no more
-    (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched).
+    the recording's first run of frames that look untouched (`_untouched`, among the first
+    `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames): its first frames up to the
+    first that looks touched, or, when the first frames look touched, the run after them; the
+    first `REFERENCE_FRAMES` when the recording holds no more (`every_frame`: every frame of
+    the first `_SESSION_FRAMES` that looks untouched).
 
     Arguments:
         recording: The recording.
@@ -1171,13 +1172,19 @@ def reference_frames(
         if every_frame:
             frames = recording.frames[:_SESSION_FRAMES][still]
             return frames, f"the {len(frames)} untouched frames of the first ones"
-        # Only the leading run: a light press later on can pass for untouched. A run shorter than
+        # Only the first run: a light press later on can pass for untouched. A run shorter than
         # `REFERENCE_FRAMES` is kept as it is: the first frames beyond it had put a press into the
         # reference of a session with one untouched frame before its presses, and every
-        # untouched frame after them then read as touched.
-        count = len(still) if still.all() else int(np.argmin(still))
-        if count:
-            return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
+        # untouched frame after them then read as touched. A first frame that looks touched (a
+        # board's first frame after it connects, a recording begun under a press) is left out.
+        first = int(np.argmax(still))
+        if still[first]:
+            end = first + (len(still[first:]) if still[first:].all() else int(np.argmin(still[first:])))
+            if first == 0:
+                return recording.frames[:end], f"mean of the first {end} frames (up to the first that looks touched)"
+            return recording.frames[first:end], (
+                f"mean of frames {first} to {end - 1} (the first that look untouched; those before them look touched)"
+            )
     count = min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"
 

@@ -137,15 +137,15 @@ def reconstruct(
     """Image every frame of a recording against its reference: recorded frames to images in one call.
 
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
-    mean of its first frames up to the first that looks touched (however few: the first
-    `REFERENCE_FRAMES` only when the first frame itself looks touched, `reference_frames`;
-    their spread, from 6 frames or more, is kept in the provenance as "reading_noise", the noise
-    `diffeit.touches` tests frames against without a calibration, and with it, or with a
-    calibration's noise, one-step images keep each element's noise as "image_noise"
-    (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the hills; where the frames drift
-    beyond the reference's jitter, every frame is divided by its common gain against the
-    reference, `drift_corrected`, the gains kept as "frame_gains", their range warned of, and
-    the returned recording's frames the corrected ones). The model (the sheet `mesh`,
+    mean of its first frames up to the first that looks touched, however few (where the first
+    frames look touched, as a board's first frame after it connects may, the untouched run
+    after them; `reference_frames`). Their spread, from 6 frames or more, is kept in the
+    provenance as "reading_noise", the noise `diffeit.touches` tests frames against without a
+    calibration; with it, or with a calibration's noise, one-step images keep each element's
+    noise as "image_noise" (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the
+    hills. Where the frames drift beyond the reference's jitter, every frame is divided by its
+    common gain against the reference (`drift_corrected`), the gains kept as "frame_gains",
+    their range warned of, and the returned recording's frames the corrected ones. The model (the sheet `mesh`,
     else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
     `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
