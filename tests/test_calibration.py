@@ -179,6 +179,27 @@ def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin):
     assert np.median(distance) < 0.1, np.median(distance)
 
 
+def test_damaged_frames_do_not_choose_the_hyperparameter(mixing_skin):
+    """Two frames a board damaged (one of zeros, one at three times the gain) are imaged, but
+    the "auto" hyperparameter is chosen without them: it is the clean recording's, and presses
+    read as well. Measured before: with the frame at three times the gain alone, the median
+    press error went from 0.044 to 0.147 (radius 0.15 on the unit disc)."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    frames = recording.frames.copy()
+    frames[41], frames[43] = 0.0, 3 * frames[43]
+    clean = de.reconstruct(recording, progress=False)
+    images = de.reconstruct(dataclasses.replace(recording, frames=frames), progress=False)
+    choice = images.provenance["metadata"]["hyperparameter_choice"]
+    assert choice["frames_left_out"] == [41, 43]
+    np.testing.assert_allclose(
+        images.provenance["metadata"]["hyperparameter"], clean.provenance["metadata"]["hyperparameter"], rtol=1e-6
+    )
+    assert np.all(images.images[41] != 0)  # imaged as it is
+    pressed = [chosen[0] for chosen in presses.frames(recording.times)]
+    distance = np.linalg.norm(de.touches(images).position[pressed, 0] - presses.centres, axis=1)
+    assert np.median(distance) < 0.06, np.median(distance)
+
+
 def test_presses_labelled_late_in_a_session_take_the_untouched_frames_before_them(mixing_skin):
     """The labelled presses can be some of a session's, the others kept to test on: here the
     last 10 of 30, the frames between the first 20 dropped, so that the 30 frames before the
