@@ -32,8 +32,9 @@ once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`) but damaged ones: 
 differences' norm exceeds half the reference's is a board's glitch (a frame of zeros, one at
 another gain), not a touch, and alone it would place the corner (one such frame among 70 of a
 simulated skin took the median press error from 0.04 to 0.15 of the radius); they are listed
-in the choice as "frames_left_out" and imaged as they are. When the corner sits within a
-decade of an end of the candidates, the noise figure 0.5 instead
+in the choice as "frames_left_out" and imaged as they are. A named selection method leaves
+them out too. When the corner sits within a decade of an end of the candidates, the noise
+figure 0.5 instead
 (`diffeit.calibration.auto_hyperparameter`). Gauss-Newton iterates to the regularised
 minimiser and fits more of the noise than one linear step: its "auto" is 4 times the
 one-step's value. Total variation keeps the one-step's value; GREIT is designed for noise
@@ -153,9 +154,9 @@ def reconstruct(
     noise as "image_noise" (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the
     hills. Where the frames drift beyond the reference's jitter, every frame is divided by its
     common gain against the reference (`drift_corrected`), the gains kept as "frame_gains",
-    their range warned of, and the returned recording's frames the corrected ones. The model (the sheet `mesh`,
-    else `default_mesh(recording, h)`; the recording's protocol; `contact_impedance` at
-    `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
+    their range warned of, and the returned recording's frames the corrected ones. The model
+    (the sheet `mesh`, else `default_mesh(recording, h)`; the recording's protocol;
+    `contact_impedance` at `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
     `CalibrationWarning`) and refined as `diffeit.calibrate` refines a session without presses
     (a contact impedance per electrode, the readout's source and far mixing weights), or instead
@@ -180,8 +181,9 @@ def reconstruct(
             brings its own.
         hyperparameter: Unit-free, or "auto" (module docstring), or a method of
             `diffeit.inverse.select_hyperparameter` ("gcv", "lcurve", "noise_figure"),
-            chosen from all frames at once. None: "auto" for a `method`, the solver's own
-            for a solver object (a value or rule given replaces it).
+            chosen from all frames at once but damaged ones (module docstring). None: "auto"
+            for a `method`, the solver's own for a solver object (a value or rule given
+            replaces it).
         calibrate: Calibrate and refine the model to the reference (`diffeit.calibrate`
             without presses); False keeps the nominal model, signing magnitudes only.
         calibration: A `diffeit.calibration.SkinCalibration` of this skin and board (from
@@ -320,7 +322,7 @@ def reconstruct(
     value, choice = _hyperparameter_of(
         solver, model, chosen_on, hyperparameter, "noser" if prior is None else prior, level, problem
     )
-    if damaged.any() and (~damaged).any() and choice.get("rule") == "auto":
+    if damaged.any() and (~damaged).any() and choice.get("rule") in ("auto", "given method"):
         choice = {**choice, "frames_left_out": np.flatnonzero(damaged).tolist()}
     if isinstance(solver, GREIT) and hyperparameter == "auto":
         solver = solver.bound(model, level, noise_figure=_GREIT_NOISE_FIGURE)
