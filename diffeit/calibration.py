@@ -241,6 +241,9 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 # A recording without a reference is calibrated on the mean of at most this many first frames;
 # a session without presses on those of its first _SESSION_FRAMES that look untouched.
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
+# A recording's first frames that look touched are left out of its reference when they are at
+# most this many (a board's first frames after it connects; `reference_frames`).
+_LEADING_DAMAGED = 2
 _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift_corrected`)
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
 _LEAST_NEAR = 3  # touched frames near untouched ones that tell a press's part of the common gain (`drift_corrected`)
@@ -1137,11 +1140,12 @@ def reference_frames(
     frames before the first press (or, when there are none, those outside every hold) that
     look untouched (`_untouched`, when more than `REFERENCE_FRAMES`: the presses labelled may
     be some of the session's, the others kept to test on); else
-    the recording's first run of frames that look untouched (`_untouched`, among the first
-    `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames): its first frames up to the
-    first that looks touched, or, when the first frames look touched, the run after them; the
-    first `REFERENCE_FRAMES` when the recording holds no more (`every_frame`: every frame of
-    the first `_SESSION_FRAMES` that looks untouched).
+    the recording's first frames up to the first that looks touched (`_untouched`, among the
+    first `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames), however few; when its
+    first `_LEADING_DAMAGED` frames or fewer look touched (damaged), the untouched run after
+    them; when more do, those (the untouched trend is the frames' median, and most of such a
+    recording is one long press); the first `REFERENCE_FRAMES` when the recording holds no
+    more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched).
 
     Arguments:
         recording: The recording.
@@ -1175,16 +1179,21 @@ def reference_frames(
         # Only the first run: a light press later on can pass for untouched. A run shorter than
         # `REFERENCE_FRAMES` is kept as it is: the first frames beyond it had put a press into the
         # reference of a session with one untouched frame before its presses, and every
-        # untouched frame after them then read as touched. A first frame that looks touched (a
-        # board's first frame after it connects, a recording begun under a press) is left out.
-        first = int(np.argmax(still))
-        if still[first]:
+        # untouched frame after them then read as touched.
+        first = int(np.argmax(still)) if still.any() else len(still)
+        if first == 0:
+            count = len(still) if still.all() else int(np.argmin(still))
+            return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
+        if first <= _LEADING_DAMAGED and first < len(still):
+            # A board's first frame or two after it connects can be damaged: left out.
             end = first + (len(still[first:]) if still[first:].all() else int(np.argmin(still[first:])))
-            if first == 0:
-                return recording.frames[:end], f"mean of the first {end} frames (up to the first that looks touched)"
             return recording.frames[first:end], (
                 f"mean of frames {first} to {end - 1} (the first that look untouched; those before them look touched)"
             )
+        # More leading frames than a glitch that look touched: the rest of the recording is most of
+        # it one long press (the untouched trend `_untouched` starts from is the frames' median),
+        # and the leading run is its reference.
+        return recording.frames[:first], f"mean of the first {first} frames (up to the first of a long press)"
     count = min(REFERENCE_FRAMES, recording.n_frames)
     return recording.frames[:count], f"mean of the first {count} frames"
 

@@ -146,9 +146,9 @@ def reconstruct(
     """Image every frame of a recording against its reference: recorded frames to images in one call.
 
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
-    mean of its first frames up to the first that looks touched, however few (where the first
-    frames look touched, as a board's first frame after it connects may, the untouched run
-    after them; `reference_frames`). Their spread, from 6 frames or more, is kept in the
+    mean of its first frames up to the first that looks touched, however few (where its first
+    frame or two look touched, as a board's first frames after it connects may, the untouched
+    run after them; `reference_frames`). Their spread, from 6 frames or more, is kept in the
     provenance as "reading_noise", the noise `diffeit.touches` tests frames against without a
     calibration; with it, or with a calibration's noise, one-step images keep each element's
     noise as "image_noise" (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the

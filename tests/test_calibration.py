@@ -179,6 +179,26 @@ def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin):
     assert np.median(distance) < 0.1, np.median(distance)
 
 
+@pytest.mark.parametrize("lead", [3, 10])
+def test_a_recording_mostly_of_one_long_press_takes_its_leading_frames_as_the_reference(lead):
+    """`lead` untouched frames, then one press held 40 frames: most frames are pressed, so the
+    untouched trend the frames are judged by (their median) is the press, and the leading
+    frames look touched. They are the reference all the same (more than a board's damaged
+    first frames). Measured: the press read 0.027-0.029 off on every held frame (radius 0.15 on
+    the unit disc), no touch on the leading frames; taking the untouched-looking run instead
+    imaged against the press and read none."""
+    session = skin_session(4, mixing_board, n_presses=0)
+    untouched = np.ones(session.mesh.n_elements)
+    frames = session.frames([untouched] * lead + [session.pressed((0.3, 0.2))] * 40 + [untouched] * 3, 1)
+    recording = de.io.Recording(frames=frames, times=0.1 * np.arange(len(frames)), protocol=PROTOCOL, mesh=session.mesh)
+    images = de.reconstruct(recording, progress=False)
+    assert images.provenance["metadata"]["reference"].startswith(f"mean of the first {lead} frames")
+    found = de.touches(images)
+    assert np.all(found.count[:lead] == 0) and np.all(found.count[lead : lead + 40] >= 1)
+    distance = np.linalg.norm(found.position[lead : lead + 40, 0] - np.array([0.3, 0.2]), axis=1)
+    assert np.median(distance) < 0.06, np.median(distance)
+
+
 def test_damaged_frames_do_not_choose_the_hyperparameter(mixing_skin):
     """Two frames a board damaged (one of zeros, one at three times the gain) are imaged, but
     the "auto" hyperparameter is chosen without them: it is the clean recording's, and presses
