@@ -1180,11 +1180,11 @@ def reference_frames(
         # `REFERENCE_FRAMES` is kept as it is: the first frames beyond it had put a press into the
         # reference of a session with one untouched frame before its presses, and every
         # untouched frame after them then read as touched.
-        first = int(np.argmax(still)) if still.any() else len(still)
+        first = int(np.argmax(still))  # `_untouched` passes some frames, the first ones when too few pass
         if first == 0:
             count = len(still) if still.all() else int(np.argmin(still))
             return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
-        if first <= _LEADING_DAMAGED and first < len(still):
+        if first <= _LEADING_DAMAGED:
             # A board's first frame or two after it connects can be damaged: left out.
             end = first + (len(still[first:]) if still[first:].all() else int(np.argmin(still[first:])))
             return recording.frames[first:end], (
