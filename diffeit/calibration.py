@@ -1181,12 +1181,12 @@ def reference_frames(
         # reference of a session with one untouched frame before its presses, and every
         # untouched frame after them then read as touched.
         first = int(np.argmax(still))  # `_untouched` passes some frames, the first ones when too few pass
+        run = still[first:]
+        end = first + (len(run) if run.all() else int(np.argmin(run)))
         if first == 0:
-            count = len(still) if still.all() else int(np.argmin(still))
-            return recording.frames[:count], f"mean of the first {count} frames (up to the first that looks touched)"
+            return recording.frames[:end], f"mean of the first {end} frames (up to the first that looks touched)"
         if first <= _LEADING_DAMAGED:
             # A board's first frame or two after it connects can be damaged: left out.
-            end = first + (len(still[first:]) if still[first:].all() else int(np.argmin(still[first:])))
             return recording.frames[first:end], (
                 f"mean of frames {first} to {end - 1} (the first that look untouched; those before them look touched)"
             )

@@ -308,6 +308,8 @@ def reconstruct(
             "range": [float(level.min()), float(level.max())],
         }
     dv = frames - signed_reference
+    # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
+    damaged = np.linalg.norm(dv, axis=1) > _LARGEST_CHANGE * np.linalg.norm(signed_reference)
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
     difference, difference_reason = _difference(difference, calibration, given)
@@ -316,8 +318,6 @@ def reconstruct(
         model, dv, unsafe, noise = _normalised(model, dv, signed_reference, level, calibration, noise)
     # A one-step solver images with the linearisation the hyperparameter is chosen on: built once.
     problem = LinearisedProblem(model, solver.prior, level) if isinstance(solver, OneStep) else None
-    # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
-    damaged = np.linalg.norm(frames - signed_reference, axis=1) > _LARGEST_CHANGE * np.linalg.norm(signed_reference)
     chosen_on = dv[~damaged] if (~damaged).any() else dv
     value, choice = _hyperparameter_of(
         solver, model, chosen_on, hyperparameter, "noser" if prior is None else prior, level, problem

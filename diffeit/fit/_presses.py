@@ -373,7 +373,7 @@ def memory_from_press_readings(
         x, jacobian, chi_square, steps, result = _levenberg_marquardt(problem, x, max_steps)
     degrees = max(per_reading * n_readings - len(names), 1)
     reduced = chi_square / degrees
-    errors = _standard_errors(jacobian, x, names, initial, max(reduced, 1.0), with_depths=False)
+    errors = _standard_errors(jacobian, x, names, initial, max(reduced, 1.0))
     fitted_full = memory_from_unconstrained(dict(zip(names, x, strict=True)), initial)
     memory = _with_errors_ordered(fitted_full, names, errors)
     response = values - np.asarray(_residuals(problem, x)).reshape(n_frames, n_readings) * noise
@@ -483,13 +483,13 @@ def _standard_errors(
     names: tuple[str, ...],
     initial: MemoryParameters,
     factor: float,
-    with_depths: bool = True,
 ) -> dict:
     """The standard errors, natural units: the covariance factor (J^T J)^-1 of the unknowns,
     times `factor`, carried from the unconstrained memory fields to the natural ones by their
     derivatives (the delta method; the two mode fractions share both coordinates); the unknowns
-    after the memory fields are the depths (`with_depths`), else there are none."""
+    after the memory fields, where there are any, are the depths ("depths")."""
     n_memory, n_unknowns = len(names), jacobian.shape[1]
+    with_depths = n_unknowns > n_memory
     information = jacobian.T @ jacobian
     eigenvalues = np.linalg.eigvalsh(information)
     if not (np.all(np.isfinite(eigenvalues)) and eigenvalues.min() > _SINGULAR * eigenvalues.max()):
