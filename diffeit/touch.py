@@ -64,6 +64,52 @@ ringing and noise, so a skin's touches vote for their own sign.
    pressure, kPa, from the depth through a foam stack's map
    (`diffeit.scene.pressure_to_change`) when one is given.
 
+## Rest anchors (`baseline="rest"`, the default)
+
+A skin with memory keeps part of each touch after its release (the `diffeit.memory` presets
+keep 46-49% of the peak just after it), and the parts add up over a session: against the
+recording's reference, every later frame holds the ghosts of the touches before it. On a
+simulated skin with the preset `over_foam` (80 mm radius, magnitudes, medium noise), pressed for
+0.5 s once a second, every frame between presses stood out of the noise from the first presses
+on, and 40 presses read 12.2 and 9.6 mm off (median, two seeds) from the reference alone, 5.1
+and 6.9 mm after 50 labelled presses. Where the readings' noise is known (the voltage test's),
+each touch is read against the rest just before it instead, frame by frame:
+
+1. **Onsets.** A step from one frame to the next brings a touch when it stands out of the
+   noise (the voltage test's z > `detection`, the step's variance 2 s^2) and grows a touch's
+   hill (its image's largest value, a touch positive, is positive), or when what is left of it
+   once the least-squares multiple of the touch held since the last onset is taken out stands
+   out of the noise and grows one (a touch moved, or one added beside a deeper one: the
+   voltages of nearby touches differ little, their images do). The touch pressed deeper,
+   relaxed or released, or another released, is no onset.
+2. **Held or left.** A touched frame (against its anchor) holds a touch unless it is the
+   highest frame since the last onset scaled down below `HELD` (0.7) by at least
+   `SIGNIFICANCE` (2) standard errors (the least-squares multiple of its whitened
+   differences, whose error the readings' noise gives: a weak touch's is large), with nothing
+   else in its image (the image less that multiple of the highest's has no value above
+   `THRESHOLD` robust standard deviations). That is what the touch left where it was. A held
+   touch that relaxes by less than 30% stays held (the presets lose 6% and 11% over a 5 s
+   hold).
+3. **Anchors.** At an onset, the frames since the last one that held a touch are at rest.
+   When they are at least 2 and the mean of the last 5 of them stands out of the noise
+   against the anchor in force (the rest level moved), that mean is the new anchor, for them
+   and the frames after; else the anchor stays (a skin back at its reference keeps the
+   reference, the mean of more frames; one frame between touches one after another is too
+   little to tell rest from a touch).
+4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
+   with the anchor's number of frames; the discs' fit) and its image (one-step images are
+   linear in the differences, and the anchor's image is the mean of its frames' images;
+   Gauss-Newton's nearly so).
+
+On the skin above, from the reference alone: 4.9 and 4.7 mm, 11 and 13 of 200 frames between
+presses touched where all 200 had been, 5 and 2 of 40 presses (weak, near the middle) not
+found where all had; after 50 labelled presses, 4.0 and 5.2 mm. Reading each press against
+the 3 frames before it, its start known, gave 5.5 and 4.0 mm on the first seed. On the same
+skin without memory no anchor moved: every frame read as against the reference. A touch whose
+start stays within the noise frame by frame brings no onset: it is read against the anchor in
+force. `baseline="reference"` reads every frame against the recording's reference, as
+`diffeit live` does (it sees a batch at a time).
+
 ## Refinement by the model (`method="fit"`)
 
 The image is a regularised, blurred picture of a touch: its half-amplitude set is wider and
@@ -112,7 +158,7 @@ radii stay in the mesh's frame (as the image method's). The discs are reported d
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -153,6 +199,12 @@ SIGNIFICANCE = 2.0
 _FIT_STEPS = 30
 _FIT_TOLERANCE = 1e-2
 METHODS = ("image", "fit")
+# baseline="rest" (module docstring, "Rest anchors"): a touched frame that is the highest one
+# since the last onset scaled below HELD, and nothing else, is what that touch left; an anchor is
+# the mean of at most _ANCHOR_FRAMES rest frames, of a run of at least _LEAST_REST_FRAMES.
+HELD = 0.7
+_ANCHOR_FRAMES, _LEAST_REST_FRAMES = 5, 2
+BASELINES = ("rest", "reference")
 
 
 class Touches(eqx.Module):
@@ -229,6 +281,7 @@ def touches(
     polarity: int | None = None,
     stack: FoamStack | None = None,
     method: str = "image",
+    baseline: str = "rest",
 ) -> Touches:
     """The touches of every image of a reconstructed recording.
 
@@ -258,12 +311,16 @@ def touches(
             discs (centre, radius, depth) to each touched frame's voltage differences through
             the calibration's model, with standard errors (it needs the calibration, and the
             recording's reference).
+        baseline: "rest" reads each touch against the rest frames before it where a skin's
+            rest level moved (module docstring, "Rest anchors"; it needs the readings' noise,
+            and reads against the reference without it); "reference" reads every frame
+            against the recording's reference.
 
     Returns:
         The `Touches`.
 
     Raises:
-        ValueError: For an unknown method, a recording without images (or with conductivity
+        ValueError: For an unknown method or baseline, a recording without images (or with conductivity
             changes but no calibrated level in its provenance), images that are not finite, a
             bad option (`max_touches` not a positive integer, `threshold` not positive,
             `polarity` not -1 or +1); for `method="fit"` without a calibration, without the
@@ -273,6 +330,8 @@ def touches(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    if baseline not in BASELINES:
+        raise ValueError(f"baseline must be one of {BASELINES}; got {baseline!r}")
     if method == "fit" and calibration is None:
         raise ValueError(
             'method="fit" needs a calibration (diffeit.calibrate): it fits discs to the voltages '
@@ -291,11 +350,26 @@ def touches(
         mapping = None  # the identity: nothing to apply
     if method == "fit" and recording.reference is None:
         raise ValueError('method="fit" fits the differences from the recording\'s reference; it has none')
-    frames_touched = None if recording.reference is None else _touched_frames(recording, calibration, detection)
+    test = None if recording.reference is None else _voltage_test(recording, calibration)
+    if test is not None:
+        frames_touched = test.statistic(test.frames - test.reference, 1 + 1 / test.reference_frames) > detection
+    elif recording.reference is not None:  # the calibration's subspace test where it knows no noise
+        frames_touched = touched(recording.frames, recording.reference, calibration, detection=detection)
+    else:
+        frames_touched = None
     if polarity is None:
         polarity = None if calibration is None else calibration.polarity
     if polarity is None:
         polarity = polarity_of(images if frames_touched is None else images[frames_touched])
+    element_noise = _images_noise(recording)
+    anchor_of, anchors = np.full(len(images), -1), []
+    if baseline == "rest" and test is not None:
+        scores = polarity * images if element_noise is None else polarity * images / element_noise
+        anchor_of, anchors = _rest_anchors(test, scores, detection)
+        images = _against_anchors(images, anchor_of, anchors)
+        averaged = np.array([test.reference_frames] + [len(frames) for frames in anchors])[anchor_of + 1]
+        dv = _against_anchors(test.frames - test.reference, anchor_of, anchors)
+        frames_touched = test.statistic(dv, (1 + 1 / averaged)[:, None]) > detection
     found = read(
         recording.mesh,
         images,
@@ -306,11 +380,12 @@ def touches(
         stack=stack if method == "image" else None,
         touched=frames_touched,
         relative=relative_floor(calibration),
-        image_noise=_images_noise(recording),
+        image_noise=element_noise,
     )
     if method == "image":
         return found
-    return _refined(recording, calibration, found, mapping, stack)
+    dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
+    return _refined(calibration, _against_anchors(dv, anchor_of, anchors), found, mapping, stack)
 
 
 def relative_floor(calibration: Any) -> float:
@@ -423,24 +498,146 @@ def touched(
     return _noise_test(dv, noise, n, averaged, detection, subspace)
 
 
-def _touched_frames(recording: Recording, calibration: Any, detection: float) -> np.ndarray | None:
-    """`touched` for a recording with a reference: against the calibration's noise when it
-    knows it, else against the reference frames' spread kept by `diffeit.reconstruct` (raw
-    readings: a difference of magnitudes is as noisy as the signed difference), else by the
-    calibration's subspace test; None when none of them applies."""
+class _VoltageTest(NamedTuple):
+    """A recording's frames and reference in the unit of their readings' noise, for the voltage
+    test (`touched`)."""
+
+    frames: np.ndarray  # (T, M)
+    reference: np.ndarray  # (M,)
+    noise: np.ndarray  # (M,) each reading's standard deviation
+    noise_frames: int  # the frames it is estimated from
+    reference_frames: int  # the frames the reference is the mean of
+    subspace: np.ndarray | None  # `touch_subspace`, or None: every reading
+
+    def whitened(self, dv: np.ndarray) -> np.ndarray:
+        """(T, k) differences `dv` (T, M) or (M,) whitened and projected (`_whitened`)."""
+        return _whitened(dv, self.noise, self.subspace)
+
+    def statistic(self, dv: np.ndarray, variance: float | np.ndarray) -> np.ndarray:
+        """(T,) `_statistic` of differences `dv` (T, M) of variance `variance` s^2 (a number, or
+        (T, 1): each difference's own)."""
+        return _statistic(dv, self.noise, self.noise_frames, variance, self.subspace)
+
+
+def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None:
+    """The voltage test of a recording with a reference: against the calibration's noise when it
+    knows it (its signed readings, in the touch subspace), else against the reference frames'
+    spread kept by `diffeit.reconstruct` (raw readings: a difference of magnitudes is as noisy
+    as the signed difference); None without either.
+
+    Raises:
+        ValueError: For a "reading_noise" in the provenance that is not one finite value per
+            reading.
+    """
     metadata = recording.provenance.get("metadata", {})
     spread = metadata.get("reading_noise")
-    if getattr(calibration, "noise", None) is None and spread is not None:
-        dv = np.atleast_2d(recording.frames) - recording.reference
+    if getattr(calibration, "noise", None) is None:
+        if spread is None:
+            return None
+        frames = np.atleast_2d(np.asarray(recording.frames, np.float64))
         spread = np.asarray(spread, np.float64)
-        if spread.shape != dv.shape[1:] or not np.all(np.isfinite(spread)):
+        if spread.shape != frames.shape[1:] or not np.all(np.isfinite(spread)):
             raise ValueError(
-                f"the recording's reading_noise (provenance) must hold {dv.shape[1]} finite values, one per reading; "
-                f"got shape {spread.shape}"
+                f"the recording's reading_noise (provenance) must hold {frames.shape[1]} finite values, one per "
+                f"reading; got shape {spread.shape}"
             )
-        return _noise_test(dv, spread, metadata["noise_frames"], metadata["reference_frames"], detection)
-    averaged = metadata.get("reference_frames")  # the reference's own frames, where known
-    return touched(recording.frames, recording.reference, calibration, detection=detection, reference_frames=averaged)
+        reference = np.asarray(recording.reference, np.float64)
+        return _VoltageTest(frames, reference, spread, metadata["noise_frames"], metadata["reference_frames"], None)
+    averaged = metadata.get("reference_frames") or calibration.noise_frames  # the reference's own frames, where known
+    return _VoltageTest(
+        calibration.signed(np.atleast_2d(recording.frames)),
+        calibration.signed(recording.reference),
+        calibration.noise,
+        calibration.noise_frames,
+        averaged,
+        touch_subspace(calibration),
+    )
+
+
+def _rest_anchors(test: _VoltageTest, scores: np.ndarray, detection: float) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Each frame's anchor (module docstring, "Rest anchors").
+
+    Arguments:
+        test: The recording's voltage test.
+        scores: (T, E) its images, a touch positive (divided by the images' noise where known):
+            linear in the frames, as the differences `test` reads.
+        detection: The voltage test's z above which a difference stands out of the noise.
+
+    Returns:
+        (T,) each frame's anchor, an index into the list of anchors (-1: the recording's
+        reference), and the anchors, each the frames (indices) whose mean it is.
+    """
+    dv = test.frames - test.reference
+    anchor_of = np.full(len(dv), -1)
+    anchors: list[np.ndarray] = []
+    base_dv, base_scores, base_variance = np.zeros(dv.shape[1]), np.zeros(scores.shape[1]), 1 / test.reference_frames
+    steps = test.statistic(np.diff(dv, axis=0), 2.0)  # a frame less the one before: variance 2 s^2
+    # The image (a touch positive) and the differences of the highest peak since the last onset.
+    peak, peak_dv = None, None
+    held = np.zeros(len(dv), bool)
+    for t in range(len(dv)):
+        step = (dv[t] - dv[t - 1], scores[t] - scores[t - 1]) if t else None
+        if t and steps[t - 1] > detection and _onset(test, *step, None if peak is None else (peak_dv, peak), detection):
+            rest = np.arange(np.flatnonzero(held[:t])[-1] + 1 if held[:t].any() else 0, t)
+            if len(rest) >= _LEAST_REST_FRAMES:
+                level = dv[rest[-_ANCHOR_FRAMES:]].mean(axis=0)
+                variance = 1 / min(len(rest), _ANCHOR_FRAMES) + base_variance
+                if test.statistic(level - base_dv, variance)[0] > detection:  # the rest level moved
+                    anchors.append(rest[-_ANCHOR_FRAMES:])
+                    anchor_of[rest] = len(anchors) - 1
+                    base_dv, base_scores = level, scores[anchors[-1]].mean(axis=0)
+                    base_variance = 1 / len(anchors[-1])
+            peak, peak_dv = None, None  # what is held is now measured against this onset's touches
+        anchor_of[t] = len(anchors) - 1
+        if test.statistic(dv[t] - base_dv, 1 + base_variance)[0] <= detection:
+            continue
+        here = scores[t] - base_scores
+        if peak is None or here.max() > peak.max():
+            peak, peak_dv = here, dv[t] - base_dv
+        # What a touch left where it was is it scaled down, significantly, and nothing else stands
+        # out. The scale's standard error from the readings' noise: a weak touch's is large.
+        along, touch = test.whitened(dv[t] - base_dv)[0], test.whitened(peak_dv)[0]
+        scale = (along @ touch) / (touch @ touch)
+        error = np.sqrt((1 + base_variance) / (touch @ touch))
+        left = here - scale * peak
+        other = left.max() > THRESHOLD * _robust_std(left)
+        held[t] = here.max() > 0 and (scale + SIGNIFICANCE * error >= HELD or other)
+    return anchor_of, anchors
+
+
+def _onset(
+    test: _VoltageTest,
+    step: np.ndarray,
+    step_image: np.ndarray,
+    peak: tuple[np.ndarray, np.ndarray] | None,
+    detection: float,
+) -> bool:
+    """Whether a step between two frames that stands out of the noise (differences `step`
+    (M,), image `step_image` (E,), a touch positive) brought a touch: when it grew a touch's
+    hill (its image's largest value is positive), or when what is left of it once the
+    least-squares multiple of the touch held since the last onset is taken out (`peak`, the
+    differences and image of its highest frame) stands out of the noise and grew one (a touch
+    moved, or one added beside a deeper one; not that touch pressed deeper, relaxed or
+    released, nor another released)."""
+    if step_image.max() > -step_image.min():
+        return True
+    if peak is None:
+        return False
+    differences, image = peak
+    along, touch = test.whitened(step)[0], test.whitened(differences)[0]
+    scale = (along @ touch) / (touch @ touch)
+    left = step_image - scale * image
+    return bool(test.statistic(step - scale * differences, 2.0)[0] > detection and left.max() > -left.min())
+
+
+def _against_anchors(values: np.ndarray, anchor_of: np.ndarray, anchors: list[np.ndarray]) -> np.ndarray:
+    """(T, X) each row of `values` (T, X; differences from the recording's reference, or images
+    of them) less the mean of its anchor's rows (`_rest_anchors`)."""
+    values = np.array(values, np.float64)
+    means = [values[frames].mean(axis=0) for frames in anchors]
+    for k, mean in enumerate(means):
+        values[anchor_of == k] -= mean
+    return values
 
 
 def touch_subspace(calibration: Any) -> np.ndarray:
@@ -473,21 +670,36 @@ def _noise_test(
     dv: np.ndarray, noise: np.ndarray, n: int, averaged: int, detection: float, subspace: np.ndarray | None = None
 ) -> np.ndarray:
     """(T,) whether the standardised sum of the squared whitened differences w_m = dv_m / s_m /
-    sqrt(1 + 1 / averaged) exceeds `detection`: each term F(1, n - 1) for an untouched frame,
-    `noise` s (M,) estimated from n frames and the reference the mean of `averaged`. With a
-    `subspace` (`touch_subspace`), the terms are w's projections on it (the F moments, a linear
+    sqrt(1 + 1 / averaged) exceeds `detection` (`_statistic` of a frame against a reference of
+    `averaged` frames)."""
+    return _statistic(dv, noise, n, 1 + 1 / averaged, subspace) > detection
+
+
+def _statistic(
+    dv: np.ndarray, noise: np.ndarray, n: int, variance: float | np.ndarray, subspace: np.ndarray | None = None
+) -> np.ndarray:
+    """(T,) the standardised sum of the squared whitened differences w_m = dv_m / s_m /
+    sqrt(variance): each term F(1, n - 1) for differences of untouched frames, `noise` s (M,)
+    estimated from n frames and each difference's variance `variance` s^2 (1 + 1/R for a frame
+    against the mean of R frames; a number, or (T, 1) one per difference). With a `subspace`
+    (`touch_subspace`), the terms are w's projections on it (the F moments, a linear
     combination of t variables being nearer the normal, are conservative); without, the w_m
-    themselves. A reading whose spread is zero (a constant channel) is left out."""
-    kept = noise > 0
-    whitened = dv[:, kept] / noise[kept] / np.sqrt(1 + 1 / averaged)
-    if subspace is not None:
-        whitened = whitened @ subspace
+    themselves. A reading whose spread is zero (a
+    constant channel) is left out."""
+    whitened = _whitened(dv, noise, subspace) / np.sqrt(variance)
     freedom = n - 1
     mean = freedom / (freedom - 2)
-    variance = 2 * freedom**2 * (freedom - 1) / ((freedom - 2) ** 2 * (freedom - 4))
+    spread = 2 * freedom**2 * (freedom - 1) / ((freedom - 2) ** 2 * (freedom - 4))
     terms = whitened.shape[1]
-    statistic = (np.sum(whitened**2, axis=1) - terms * mean) / np.sqrt(terms * variance)
-    return statistic > detection
+    return (np.sum(whitened**2, axis=1) - terms * mean) / np.sqrt(terms * spread)
+
+
+def _whitened(dv: ArrayLike, noise: np.ndarray, subspace: np.ndarray | None) -> np.ndarray:
+    """(T, k) differences `dv` (T, M) or (M,) divided by the readings' `noise` (M,; a reading
+    whose spread is zero left out), projected on `subspace` (M', k) when given."""
+    kept = noise > 0
+    whitened = np.atleast_2d(dv)[:, kept] / noise[kept]
+    return whitened if subspace is None else whitened @ subspace
 
 
 def _calibrated_jacobian(calibration: Any) -> np.ndarray:
@@ -790,12 +1002,11 @@ def _disc_readings(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[
     return readings - fit.base, jacobian @ (fit.level * tangents).T, jnp.min(1.0 + change)
 
 
-def _refined(recording: Recording, calibration: Any, found: Touches, mapping: Any, stack: FoamStack | None) -> Touches:
+def _refined(calibration: Any, dv: np.ndarray, found: Touches, mapping: Any, stack: FoamStack | None) -> Touches:
     """The image method's touches `found` (in the mesh's frame) refined by fitting discs to
-    each touched frame's differences (module docstring, "Refinement by the model")."""
+    each touched frame's differences `dv` (T, M; module docstring, "Refinement by the model")."""
     model = calibration.model
     fit = _DiscFit.of(model, calibration.background)
-    dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
     noise = getattr(calibration, "noise", None)
     weights = None
     # Where most readings have no measured spread (a noise-free simulation's identical reference
