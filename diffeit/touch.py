@@ -83,27 +83,29 @@ each touch is read against the rest just before it instead, frame by frame:
    voltages of nearby touches differ little, their images do). The touch pressed deeper,
    relaxed or released, or another released, is no onset.
 2. **Held or left.** A touched frame (against its anchor) holds a touch unless it is the
-   highest frame since the last onset scaled down below `HELD` (0.7) by at least
-   `SIGNIFICANCE` (2) standard errors (the least-squares multiple of its whitened
-   differences, whose error the readings' noise gives: a weak touch's is large), with nothing
-   else in its image (the image less that multiple of the highest's has no value above
-   `THRESHOLD` robust standard deviations). That is what the touch left where it was. A held
-   touch that relaxes by less than 30% stays held (the presets lose 6% and 11% over a 5 s
-   hold).
+   highest frame since the last onset scaled down, with nothing else in it: the least-squares
+   multiple of that frame's whitened differences in its own lies more than `SIGNIFICANCE` (2)
+   standard errors (the readings' noise gives them) above 0 and below `HELD` (0.7), and its
+   image less that multiple of the highest's has no value above `THRESHOLD` robust standard
+   deviations. That is what the touch left where it was. A held touch that relaxes by less
+   than 30% stays held (the presets lose 6% and 11% over a 5 s hold), and so does a weak touch
+   elsewhere (a multiple within its errors of 0, or a hill of its own).
 3. **Anchors.** At an onset, the frames since the last one that held a touch are at rest.
-   When they are at least 2 and the mean of the last 5 of them stands out of the noise
-   against the anchor in force (the rest level moved), that mean is the new anchor, for them
-   and the frames after; else the anchor stays (a skin back at its reference keeps the
-   reference, the mean of more frames; one frame between touches one after another is too
-   little to tell rest from a touch).
+   When they are at least 2 and each of the last 5 of them stands out of the noise against
+   the anchor in force, and so does their mean (the rest level moved), that mean is the new
+   anchor, for them and the frames after; else the anchor stays. A skin back at its reference
+   keeps the reference, the mean of more frames; a rest frame within the noise of the anchor
+   shows the level has not moved (a weak press between untouched frames, not held, would
+   otherwise move it); one frame between touches one after another is too little to tell rest
+   from a touch.
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
    Gauss-Newton's nearly so).
 
-On the skin above, from the reference alone: 4.9 and 4.7 mm, 11 and 13 of 200 frames between
-presses touched where all 200 had been, 5 and 2 of 40 presses (weak, near the middle) not
-found where all had; after 50 labelled presses, 4.0 and 5.2 mm. Reading each press against
+On the skin above, from the reference alone: 5.0 and 5.6 mm, 41 and 31 of 200 frames between
+presses touched where all 200 had been, 3 and 1 of 40 presses (weak, near the middle) not
+found where all had; after 50 labelled presses, 3.3 and 5.2 mm. Reading each press against
 the 3 frames before it, its start known, gave 5.5 and 4.0 mm on the first seed. On the same
 skin without memory no anchor moved: every frame read as against the reference. A touch whose
 start stays within the noise frame by frame brings no onset: it is read against the anchor in
@@ -201,7 +203,7 @@ _FIT_TOLERANCE = 1e-2
 METHODS = ("image", "fit")
 # baseline="rest" (module docstring, "Rest anchors"): a touched frame that is the highest one
 # since the last onset scaled below HELD, and nothing else, is what that touch left; an anchor is
-# the mean of at most _ANCHOR_FRAMES rest frames, of a run of at least _LEAST_REST_FRAMES.
+# the mean of the last _ANCHOR_FRAMES rest frames of a run of at least _LEAST_REST_FRAMES.
 HELD = 0.7
 _ANCHOR_FRAMES, _LEAST_REST_FRAMES = 5, 2
 BASELINES = ("rest", "reference")
@@ -574,34 +576,38 @@ def _rest_anchors(test: _VoltageTest, scores: np.ndarray, detection: float) -> t
     steps = test.statistic(np.diff(dv, axis=0), 2.0)  # a frame less the one before: variance 2 s^2
     # The image (a touch positive) and the differences of the highest peak since the last onset.
     peak, peak_dv = None, None
-    held = np.zeros(len(dv), bool)
+    held, touched = np.zeros(len(dv), bool), np.zeros(len(dv), bool)
     for t in range(len(dv)):
         step = (dv[t] - dv[t - 1], scores[t] - scores[t - 1]) if t else None
         if t and steps[t - 1] > detection and _onset(test, *step, None if peak is None else (peak_dv, peak), detection):
             rest = np.arange(np.flatnonzero(held[:t])[-1] + 1 if held[:t].any() else 0, t)
-            if len(rest) >= _LEAST_REST_FRAMES:
-                level = dv[rest[-_ANCHOR_FRAMES:]].mean(axis=0)
-                variance = 1 / min(len(rest), _ANCHOR_FRAMES) + base_variance
-                if test.statistic(level - base_dv, variance)[0] > detection:  # the rest level moved
-                    anchors.append(rest[-_ANCHOR_FRAMES:])
+            # The rest level moved when every frame of the window stands out of the anchor's
+            # noise, and their mean does; a frame that does not is at the anchor's level.
+            window = rest[-_ANCHOR_FRAMES:]
+            if len(rest) >= _LEAST_REST_FRAMES and touched[window].all():
+                level = dv[window].mean(axis=0)
+                variance = 1 / len(window) + base_variance
+                if test.statistic(level - base_dv, variance)[0] > detection:
+                    anchors.append(window)
                     anchor_of[rest] = len(anchors) - 1
                     base_dv, base_scores = level, scores[anchors[-1]].mean(axis=0)
                     base_variance = 1 / len(anchors[-1])
             peak, peak_dv = None, None  # what is held is now measured against this onset's touches
         anchor_of[t] = len(anchors) - 1
-        if test.statistic(dv[t] - base_dv, 1 + base_variance)[0] <= detection:
+        touched[t] = test.statistic(dv[t] - base_dv, 1 + base_variance)[0] > detection
+        if not touched[t]:
             continue
         here = scores[t] - base_scores
         if peak is None or here.max() > peak.max():
             peak, peak_dv = here, dv[t] - base_dv
-        # What a touch left where it was is it scaled down, significantly, and nothing else stands
-        # out. The scale's standard error from the readings' noise: a weak touch's is large.
+        # What a touch left where it was is it scaled down, significantly above 0 and below HELD,
+        # and nothing else stands out. The scale's standard error from the readings' noise.
         along, touch = test.whitened(dv[t] - base_dv)[0], test.whitened(peak_dv)[0]
         scale = (along @ touch) / (touch @ touch)
         error = np.sqrt((1 + base_variance) / (touch @ touch))
         left = here - scale * peak
-        other = left.max() > THRESHOLD * _robust_std(left)
-        held[t] = here.max() > 0 and (scale + SIGNIFICANCE * error >= HELD or other)
+        remains = SIGNIFICANCE * error < scale < HELD - SIGNIFICANCE * error
+        held[t] = here.max() > 0 and not (remains and left.max() <= THRESHOLD * _robust_std(left))
     return anchor_of, anchors
 
 

@@ -137,3 +137,49 @@ def test_an_images_noise_is_its_reconstruction_of_the_readings_noise():
     np.testing.assert_allclose(de.touch.image_noise(matrix, spread, background), draws.std(axis=0), rtol=0.03)
     with pytest.raises(ValueError, match="reading_noise must hold 5"):
         de.touch.image_noise(matrix, spread[:4], background)
+
+
+def _bump(centre: int, height: float, readings: int = 60) -> np.ndarray:
+    """A touch on a line of readings that are their own image: a bump of width 3 at `centre`."""
+    return height * np.exp(-0.5 * ((np.arange(readings) - centre) / 3.0) ** 2)
+
+
+def _anchors_of(clean: list[np.ndarray], seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """`_rest_anchors` of the frames `clean` (T, 60) with unit noise, after 20 reference frames at
+    0, each reading its own image (a touch positive)."""
+    from diffeit.touch import _rest_anchors, _VoltageTest
+
+    frames = np.array(clean) + np.random.default_rng(seed).standard_normal((len(clean), 60))
+    test = _VoltageTest(frames, np.zeros(60), np.ones(60), 20, 20, None)
+    return _rest_anchors(test, frames, de.touch.DETECTION)
+
+
+def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_not_move():
+    rest = np.zeros(60)
+    # Each press leaves 0.45 of itself: its touch is read against the rest just before it.
+    frames = [rest] * 3
+    for centre in (15, 40, 25):
+        frames += [rest + _bump(centre, 12.0)] * 3
+        rest = rest + 0.45 * _bump(centre, 12.0)
+        frames += [rest] * 4
+    anchor_of, anchors = _anchors_of(frames, seed=0)
+    assert [frames.tolist() for frames in anchors] == [[6, 7, 8, 9], [13, 14, 15, 16]]
+    np.testing.assert_array_equal(anchor_of, [-1] * 6 + [0] * 7 + [1] * 11)
+    # A press held while it relaxes by 20% stays held: the frames after it are no rest.
+    relaxing = [np.zeros(60)] * 3 + [_bump(20, 12.0) * (1 - 0.02 * k) for k in range(10)] + [_bump(45, 12.0)] * 2
+    anchor_of, anchors = _anchors_of(relaxing, seed=1)
+    assert anchors == [] and np.all(anchor_of == -1)
+    # Weak presses where a strong one was, an untouched frame among them: each stands out of the
+    # reference's noise but not its step, and is that press scaled down, yet the untouched frame
+    # shows the rest level did not move. (Taking them as rest anchored on frames 7 to 11.)
+    untouched = np.zeros(60)
+    weak = [untouched] * 3 + [_bump(20, 12.0), untouched] + [_bump(20, 4.0)] * 3 + [untouched]
+    weak += [_bump(20, 4.0)] * 3 + [_bump(45, 12.0)]
+    anchor_of, anchors = _anchors_of(weak, seed=2)
+    assert anchors == [] and np.all(anchor_of == -1)
+    # A weak press elsewhere right after a strong one, no step out of the noise: its multiple of
+    # the strong press is within its errors of 0, so it is no remains of it. (Taking it as
+    # such anchored on it.)
+    elsewhere = [untouched] * 3 + [_bump(20, 12.0)] * 2 + [_bump(45, 4.5)] * 5 + [_bump(30, 12.0)]
+    anchor_of, anchors = _anchors_of(elsewhere, seed=3)
+    assert anchors == [] and np.all(anchor_of == -1)
