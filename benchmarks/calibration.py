@@ -50,9 +50,11 @@ FRAME_RATE, REFERENCE_FRAMES = 10.0, 20
 ELECTRODE_ERROR = np.deg2rad(5.0)  # the largest electrode position error, rad
 
 
-def session(seed: int, n_presses: int):
+def session(seed: int, n_presses: int, *, hold: int = 1, period: int = 2, memory=None):
     """A simulated calibration session: the recording (magnitudes), the presses (labelled), and
-    the truth (the scene and its artefacts)."""
+    the truth (the scene and its artefacts). Each press is held `hold` frames, one every `period`
+    frames, labelled with their holds (start and end) when longer than a frame, else an instant;
+    with `memory` (a `diffeit.memory.MemoryParameters`), the skin has that memory."""
     import diffeit as de
     from diffeit.scene import (
         Background,
@@ -75,7 +77,7 @@ def session(seed: int, n_presses: int):
     distance = 0.8 * RADIUS * np.sqrt(rng.uniform(0, 1, n_presses))
     centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
     step = 1.0 / FRAME_RATE
-    starts = (REFERENCE_FRAMES + 2 * np.arange(n_presses)) * step - 0.5 * step
+    starts = (REFERENCE_FRAMES + period * np.arange(n_presses)) * step - 0.5 * step
     geometry = {"kind": "disc", "radius": RADIUS, "n_electrodes": 16, "electrode_width": 0.15 * RADIUS}
     contact = 0.01 * RADIUS * np.exp(rng.uniform(-0.55, 0.55, 16))  # spread 3x
     skin = Skin(geometry=geometry, h=0.1 * RADIUS, protocol="opposite", contact_impedance=contact)
@@ -86,9 +88,9 @@ def session(seed: int, n_presses: int):
         ReadoutMixing.random(16, 0.3, seed=seed),
         ReadingGains.random(measurements, 0.2, seed=seed),
         MeasurementNoise(Noise.level("medium"), seed=seed),
-    )
+    ) + (() if memory is None else (memory,))
     touches = tuple(
-        Touch(Disc(tuple(c), PRESS_RADIUS), PRESS_CHANGE, Press(start=s, hold=step))
+        Touch(Disc(tuple(c), PRESS_RADIUS), PRESS_CHANGE, Press(start=s, hold=hold * step))
         for c, s in zip(centres, starts, strict=True)
     )
     right = Polygon([[0, -2 * RADIUS], [2 * RADIUS, -2 * RADIUS], [2 * RADIUS, 2 * RADIUS], [0, 2 * RADIUS]])
@@ -98,7 +100,7 @@ def session(seed: int, n_presses: int):
         background=background,
         touches=touches,
         frame_rate=FRAME_RATE,
-        duration=(REFERENCE_FRAMES + 2 * n_presses) * step,
+        duration=(REFERENCE_FRAMES + period * n_presses) * step,
         effects=effects,
     )
     simulation = de.simulate(scene)
@@ -113,6 +115,8 @@ def session(seed: int, n_presses: int):
         voltage_unit="V",
     )
     held = starts + 0.5 * step
+    if hold > 1:  # the holds, from the first held frame's time to the last's
+        held = np.stack([held, held + (hold - 1) * step], axis=1)
     return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
 
 
