@@ -103,10 +103,11 @@ each touch is read against the rest just before it instead, frame by frame:
    linear in the differences, and the anchor's image is the mean of its frames' images;
    Gauss-Newton's nearly so).
 
-On the skin above, from the reference alone: 5.0 and 5.6 mm, 41 and 31 of 200 frames between
-presses touched where all 200 had been, 3 and 1 of 40 presses (weak, near the middle) not
-found where all had; after 50 labelled presses, 3.3 and 5.2 mm. Reading each press against
-the 3 frames before it, its start known, gave 5.5 and 4.0 mm on the first seed. On the same
+On the skin above (`benchmarks/rest_anchors.py`), from the reference alone: 5.0 and 5.6 mm, 41
+and 31 of 200 frames between presses touched where all 200 had been, 3 and 1 of 40 presses
+(weak, near the middle) not found where all had; after 50 labelled presses, 4.3 and 5.4 mm.
+Reading each press against the 3 frames before it, its start known, gave 5.5 mm from the
+reference alone and 4.0 mm after the presses on the first seed. On the same
 skin without memory no anchor moved: every frame read as against the reference. A touch whose
 start stays within the noise frame by frame brings no onset: it is read against the anchor in
 force. `baseline="reference"` reads every frame against the recording's reference, as
