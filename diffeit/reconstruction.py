@@ -218,7 +218,9 @@ def reconstruct(
         gives and its code's name), every option, and the outcome: "results", the name of
         each frame's `diffeit.results.RESULTS` code (the solver's; `nonfinite` for an image
         that is not finite, which is then zero), "frames_failed", how many are not
-        "successful", and the background map's code in `["background_map"]["result"]`.
+        "successful", "damaged_frames", the frames whose differences exceed half the
+        reference (imaged as they are; `diffeit.touches` reads no touch on them), and the
+        background map's code in `["background_map"]["result"]`.
 
     Raises:
         ValueError: For a recording without frames, a bad option, or a reference the model
@@ -349,6 +351,8 @@ def reconstruct(
         "max_iterations": max_iterations if shorthand else getattr(solver, "max_iterations", None),
         "results": names(codes),
         "frames_failed": int(failed(codes).sum()),
+        # Frames whose differences exceed half the reference: a glitch; `diffeit.touches` reads none.
+        "damaged_frames": np.flatnonzero(damaged).tolist(),
         "difference": difference,
         "difference_reason": difference_reason,
         "unsafe_ratio_readings": unsafe,

@@ -235,6 +235,9 @@ class Touches(eqx.Module):
         misfit: With `method="fit"`, (T,) ||dv - dv(theta)|| / ||dv|| of each fitted frame's
             differences (NaN for a frame not fitted, 1 where every disc was dropped); None for
             the image method.
+        damaged: (T,) bool, the frames `diffeit.reconstruct` found damaged (their differences
+            larger than half the reference: a board's glitch, not a touch), read as no touch;
+            None where the images' recording does not say.
     """
 
     count: np.ndarray
@@ -245,6 +248,7 @@ class Touches(eqx.Module):
     noise: np.ndarray
     standard_errors: np.ndarray | None = None
     misfit: np.ndarray | None = None
+    damaged: np.ndarray | None = None
 
     def lines(self, frame: int) -> list[str]:
         """One frame's touches as text, a line each.
@@ -256,8 +260,11 @@ class Touches(eqx.Module):
             frame: The frame's index.
 
         Returns:
-            One line per touch of the frame (none for an untouched frame).
+            One line per touch of the frame (none for an untouched frame; one saying so for a
+            damaged frame).
         """
+        if self.damaged is not None and self.damaged[frame]:
+            return ["damaged frame (its differences exceed half the reference): not read"]
         lines = []
         for k in range(int(self.count[frame])):
             x, y, *z = 1e3 * self.position[frame, k]
@@ -365,13 +372,15 @@ def touches(
         frames_touched = None
     if polarity is None:
         polarity = None if calibration is None else calibration.polarity
+    damaged = _damaged_frames(recording)
+    intact = np.ones(len(images), bool) if damaged is None else ~damaged
     if polarity is None:
-        polarity = polarity_of(images if frames_touched is None else images[frames_touched])
+        polarity = polarity_of(images[intact] if frames_touched is None else images[frames_touched & intact])
     element_noise = _images_noise(recording)
     anchor_of, anchors = np.full(len(images), -1), []
     if baseline == "rest" and test is not None:
         scores = polarity * images if element_noise is None else polarity * images / element_noise
-        anchor_of, anchors = _rest_anchors(test, scores, detection)
+        anchor_of, anchors = _rest_anchors(test, scores, detection, ~intact)
         images = _against_anchors(images, anchor_of, anchors)
         averaged = np.array([test.reference_frames] + [len(frames) for frames in anchors])[anchor_of + 1]
         dv = _against_anchors(test.frames - test.reference, anchor_of, anchors)
@@ -388,6 +397,16 @@ def touches(
         relative=relative_floor(calibration),
         image_noise=element_noise,
     )
+    if damaged is not None:  # read as no touch
+        found = Touches(
+            np.where(damaged, 0, found.count),
+            np.where(damaged[:, None, None], np.nan, found.position),
+            np.where(damaged[:, None], np.nan, found.radius),
+            np.where(damaged[:, None], np.nan, found.depth),
+            None if found.pressure is None else np.where(damaged[:, None], np.nan, found.pressure),
+            found.noise,
+            damaged=damaged,
+        )
     if method == "image":
         return found
     dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
@@ -444,6 +463,26 @@ def _images_noise(recording: Recording) -> np.ndarray | None:
     if values is None:
         return None
     return _checked_element_noise(values, recording.mesh, "the recording's image_noise (provenance)")
+
+
+def _damaged_frames(recording: Recording) -> np.ndarray | None:
+    """(T,) bool, the frames `diffeit.reconstruct` found damaged ("damaged_frames" in the
+    recording's provenance), or None where it does not say.
+
+    Raises:
+        ValueError: For "damaged_frames" that are not indices of the recording's frames.
+    """
+    listed = recording.provenance.get("metadata", {}).get("damaged_frames")
+    if listed is None:
+        return None
+    listed = np.asarray(listed)
+    n_frames = len(np.atleast_2d(recording.images))
+    indices = listed.ndim == 1 and (not listed.size or listed.dtype.kind in "iu")
+    if not indices or (listed.size and (listed.min() < 0 or listed.max() >= n_frames)):
+        raise ValueError(f"the recording's damaged_frames (provenance) must be indices of its {n_frames} frames")
+    damaged = np.zeros(n_frames, bool)
+    damaged[listed.astype(int)] = True
+    return damaged
 
 
 def _checked_element_noise(values: ArrayLike, mesh: Mesh, name: str) -> np.ndarray:
@@ -560,7 +599,9 @@ def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None
     )
 
 
-def _rest_anchors(test: _VoltageTest, scores: np.ndarray, detection: float) -> tuple[np.ndarray, list[np.ndarray]]:
+def _rest_anchors(
+    test: _VoltageTest, scores: np.ndarray, detection: float, damaged: np.ndarray
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """Each frame's anchor (module docstring, "Rest anchors").
 
     Arguments:
@@ -568,6 +609,8 @@ def _rest_anchors(test: _VoltageTest, scores: np.ndarray, detection: float) -> t
         scores: (T, E) its images, a touch positive (divided by the images' noise where known):
             linear in the frames, as the differences `test` reads.
         detection: The voltage test's z above which a difference stands out of the noise.
+        damaged: (T,) bool, damaged frames: passed over (each keeps the anchor in force, is
+            in no anchor, and no step to or from it is an onset).
 
     Returns:
         (T,) each frame's anchor, an index into the list of anchors (-1: the recording's
@@ -582,12 +625,16 @@ def _rest_anchors(test: _VoltageTest, scores: np.ndarray, detection: float) -> t
     peak, peak_dv = None, None
     held, standing = np.zeros(len(dv), bool), np.zeros(len(dv), bool)  # standing: out of the anchor's noise
     for t in range(len(dv)):
+        if damaged[t]:
+            anchor_of[t] = len(anchors) - 1
+            continue
         step = (dv[t] - dv[t - 1], scores[t] - scores[t - 1]) if t else None
-        if t and steps[t - 1] > detection and _onset(test, *step, None if peak is None else (peak_dv, peak), detection):
+        onset = t and not damaged[t - 1] and steps[t - 1] > detection
+        if onset and _onset(test, *step, None if peak is None else (peak_dv, peak), detection):
             rest = np.arange(np.flatnonzero(held[:t])[-1] + 1 if held[:t].any() else 0, t)
             # The rest level moved when every frame of the window stands out of the anchor's
             # noise, and their mean does; a frame that does not is at the anchor's level.
-            window = rest[-_ANCHOR_FRAMES:]
+            window = rest[~damaged[rest]][-_ANCHOR_FRAMES:]
             if len(window) >= _LEAST_REST_FRAMES and standing[window].all():
                 level = dv[window].mean(axis=0)
                 variance = 1 / len(window) + base_variance
@@ -1068,7 +1115,7 @@ def _refined(calibration: Any, dv: np.ndarray, found: Touches, mapping: Any, sta
         errors[..., :2] = _mapped_errors(mapping, model.mesh, position, mapped, covariances, axes)
         position = mapped
     pressure = None if stack is None else _pressure(depth, stack)
-    return Touches(count, position, radius, depth, pressure, found.noise, errors, misfit)
+    return Touches(count, position, radius, depth, pressure, found.noise, errors, misfit, found.damaged)
 
 
 def _tangent_plane(mesh: Mesh, point: np.ndarray) -> np.ndarray:

@@ -216,8 +216,23 @@ def test_damaged_frames_do_not_choose_the_hyperparameter(mixing_skin):
     )
     assert np.all(images.images[41] != 0)  # imaged as it is
     pressed = [chosen[0] for chosen in presses.frames(recording.times)]
-    distance = np.linalg.norm(de.touches(images).position[pressed, 0] - presses.centres, axis=1)
+    found = de.touches(images)
+    distance = np.linalg.norm(found.position[pressed, 0] - presses.centres, axis=1)
     assert np.median(distance) < 0.06, np.median(distance)
+    # The damaged frames read no touch (before, the one at three times the gain read 2), and say
+    # so; the others as before.
+    assert images.provenance["metadata"]["damaged_frames"] == [41, 43]
+    np.testing.assert_array_equal(np.flatnonzero(found.damaged), [41, 43])
+    assert np.all(found.count[[41, 43]] == 0) and np.all(np.isnan(found.position[[41, 43]]))
+    assert found.lines(41) == ["damaged frame (its differences exceed half the reference): not read"]
+    metadata = {**images.provenance["metadata"], "damaged_frames": []}
+    unread = dataclasses.replace(images, provenance={"metadata": metadata})
+    assert de.touches(unread).count[43] >= 1
+    intact = np.setdiff1d(np.arange(recording.n_frames), [41, 43])
+    np.testing.assert_array_equal(found.count[intact], de.touches(unread).count[intact])
+    assert not de.touches(clean).damaged.any()
+    with pytest.raises(ValueError, match="damaged_frames"):
+        de.touches(dataclasses.replace(images, provenance={"metadata": {"damaged_frames": [recording.n_frames]}}))
 
 
 def test_presses_labelled_late_in_a_session_take_the_untouched_frames_before_them(mixing_skin):

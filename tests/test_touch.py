@@ -144,14 +144,18 @@ def _bump(centre: int, height: float, readings: int = 60) -> np.ndarray:
     return height * np.exp(-0.5 * ((np.arange(readings) - centre) / 3.0) ** 2)
 
 
-def _anchors_of(clean: list[np.ndarray], seed: int) -> tuple[np.ndarray, list[np.ndarray]]:
+def _anchors_of(
+    clean: list[np.ndarray], seed: int, damaged: tuple[int, ...] = ()
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """`_rest_anchors` of the frames `clean` (T, 60) with unit noise, after 20 reference frames at
-    0, each reading its own image (a touch positive)."""
+    0, each reading its own image (a touch positive); the frames `damaged` replaced by a glitch
+    (every reading 50) and marked damaged."""
     from diffeit.touch import _rest_anchors, _VoltageTest
 
     frames = np.array(clean) + np.random.default_rng(seed).standard_normal((len(clean), 60))
+    frames[list(damaged)] = 50.0
     test = _VoltageTest(frames, np.zeros(60), np.ones(60), 20, 20, None)
-    return _rest_anchors(test, frames, de.touch.DETECTION)
+    return _rest_anchors(test, frames, de.touch.DETECTION, np.isin(np.arange(len(frames)), damaged))
 
 
 def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_not_move():
@@ -165,6 +169,9 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
     anchor_of, anchors = _anchors_of(frames, seed=0)
     assert [frames.tolist() for frames in anchors] == [[6, 7, 8, 9], [13, 14, 15, 16]]
     np.testing.assert_array_equal(anchor_of, [-1] * 6 + [0] * 7 + [1] * 11)
+    # Damaged frames in a press's hold and at rest are passed over: the same anchors, less them.
+    anchor_of, anchors = _anchors_of(frames, seed=0, damaged=(11, 14))
+    assert [frames.tolist() for frames in anchors] == [[6, 7, 8, 9], [13, 15, 16]]
     # A press held while it relaxes by 20% stays held: the frames after it are no rest.
     relaxing = [np.zeros(60)] * 3 + [_bump(20, 12.0) * (1 - 0.02 * k) for k in range(10)] + [_bump(45, 12.0)] * 2
     anchor_of, anchors = _anchors_of(relaxing, seed=1)
