@@ -15,8 +15,8 @@ presses (their holds labelled); the whole session is reconstructed at it
 those 50. A press's error is the median, over its held frames, of the distance from its centre
 to the strongest touch read; a press without a touch on any held frame is missed (left out of
 the median, counted). Beside it: the frames between the test presses that read a touch, and
-the time `de.touches` takes a frame (the image method). The last two rows read the same skin without
-memory, whose rest level does not move: the two baselines read the same touches.
+the time `de.touches` takes a frame (the image method). The last two rows read the same skin
+without memory, whose rest level does not move: the two baselines read the same touches.
 """
 
 from __future__ import annotations
