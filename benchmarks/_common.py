@@ -249,6 +249,28 @@ def record_output() -> _Tee:
     return tee
 
 
+def skin_benchmark(parser: argparse.ArgumentParser, script: str) -> tuple[argparse.Namespace, _Tee] | None:
+    """Start a benchmark of simulated skins (calibration, touches, rest anchors) run as `script`:
+    parse its options, with the internal `--describe`. In the child that describes the machine,
+    print the description and return None; else leave out diffeit's calibration warnings, start
+    keeping what it prints (`record_output`), print the machine line, and return the options and
+    what is kept, for `write_tables`."""
+    import warnings
+
+    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
+    options = parser.parse_args()
+    if options.describe:
+        print(json.dumps(describe()))
+        return None
+    import diffeit as de
+
+    warnings.simplefilter("ignore", de.calibration.CalibrationWarning)
+    machine = describe_machine(script, None)
+    printed = record_output()
+    print(machine_line(machine, with_pyeit=False))
+    return options, printed
+
+
 def write_tables(name: str, printed: _Tee | str, *, date: str | None = None, command: str | None = None) -> Path:
     """Write what a benchmark printed (its machine line, tables and notes) as the Markdown file
     docs/benchmarks/NAME.md, which the documentation's Benchmarks page includes; stops

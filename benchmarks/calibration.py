@@ -34,7 +34,6 @@ presses, with a bootstrap interval.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -42,7 +41,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
-from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, write_tables
+from _common import MarkdownTable, skin_benchmark, write_tables
 
 RADIUS = 0.08  # m
 PRESS_RADIUS, PRESS_CHANGE = 0.01, -0.3  # m, dsigma / sigma
@@ -216,19 +215,12 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5, help="simulated sessions")
     parser.add_argument("--presses", type=int, nargs="+", default=[0, 10, 25, 50, 100])
     parser.add_argument("--test", type=int, default=60, help="presses the errors are measured on")
-    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
-    options = parser.parse_args()
-    if options.describe:
-        print(json.dumps(describe()))
+    started = skin_benchmark(parser, __file__)
+    if started is None:
         return
-    import warnings
-
+    options, printed = started
     import diffeit as de
 
-    warnings.simplefilter("ignore", de.calibration.CalibrationWarning)
-    machine = describe_machine(__file__, None)
-    printed = record_output()
-    print(machine_line(machine, with_pyeit=False))
     print(
         f"\nmedian position error (mm) of touches on {options.test} test presses, misses in brackets; "
         f"{options.seeds} simulated sessions (seeds 0..{options.seeds - 1})\n"

@@ -22,16 +22,14 @@ without memory, whose rest level does not move: the two baselines read the same 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
-import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
-from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, write_tables
+from _common import MarkdownTable, skin_benchmark, write_tables
 from calibration import REFERENCE_FRAMES, session
 
 HOLD, PERIOD = 5, 10  # frames
@@ -57,18 +55,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--test", type=int, default=40, help="presses the errors are measured on")
-    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
-    options = parser.parse_args()
-    if options.describe:
-        print(json.dumps(describe()))
+    started = skin_benchmark(parser, __file__)
+    if started is None:
         return
+    options, printed = started
     import diffeit as de
     from diffeit.memory import over_foam
 
-    warnings.simplefilter("ignore", de.calibration.CalibrationWarning)
-    machine = describe_machine(__file__, None)
-    printed = record_output()
-    print(machine_line(machine, with_pyeit=False))
     print(
         f"\nmedian position error (mm) of the strongest touch on {options.test} test presses held {HOLD} frames, "
         f"one every {PERIOD} frames (10 frames a second), misses in brackets; the frames between test presses "

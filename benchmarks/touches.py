@@ -21,17 +21,15 @@ half-amplitude set wider than a small contact and its peak shallower; the fit re
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
-import warnings
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
-from _common import MarkdownTable, describe, describe_machine, machine_line, record_output, with_about, write_tables
+from _common import MarkdownTable, skin_benchmark, with_about, write_tables
 from calibration import PRESS_CHANGE, PRESS_RADIUS, REFERENCE_FRAMES, session
 
 CALIBRATION_PRESSES = 50
@@ -48,17 +46,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=60, help="test presses in the timed recording")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
-    options = parser.parse_args()
-    if options.describe:
-        print(json.dumps(describe()))
+    started = skin_benchmark(parser, __file__)
+    if started is None:
         return
+    options, printed = started
     import diffeit as de
 
-    warnings.simplefilter("ignore", de.calibration.CalibrationWarning)
-    machine = describe_machine(__file__, None)
-    printed = record_output()
-    print(machine_line(machine, with_pyeit=False))
     recording, presses, _ = session(0, CALIBRATION_PRESSES + options.frames)
     used = REFERENCE_FRAMES + 2 * CALIBRATION_PRESSES
     skin = recording.geometry
