@@ -104,7 +104,7 @@ each touch is read against the rest just before it instead, frame by frame:
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
-   Gauss-Newton's nearly so).
+   Gauss-Newton's nearly so). `Touches.anchor` says which frames each frame's anchor holds.
 
 On the skin above (`benchmarks/rest_anchors.py`), from the reference alone: 5.0 and 5.8 mm, 41
 and 36 of 200 frames between presses touched where all 200 had been, 3 and 0 of 40 presses
@@ -238,6 +238,11 @@ class Touches(eqx.Module):
         damaged: (T,) bool, the frames `diffeit.reconstruct` found damaged (their differences
             larger than half the reference: a board's glitch, not a touch), read as no touch;
             None where the images' recording does not say.
+        anchor: (T, 2) int, with `baseline="rest"`, the first and last frame of the rest
+            frames each frame was read against (module docstring, "Rest anchors": their mean;
+            a damaged frame among them is left out of it); -1, -1 where it was read against the
+            recording's reference. None where every frame was read against the reference
+            (`baseline="reference"`, or no readings' noise to find anchors with).
     """
 
     count: np.ndarray
@@ -249,6 +254,7 @@ class Touches(eqx.Module):
     standard_errors: np.ndarray | None = None
     misfit: np.ndarray | None = None
     damaged: np.ndarray | None = None
+    anchor: np.ndarray | None = None
 
     def lines(self, frame: int) -> list[str]:
         """One frame's touches as text, a line each.
@@ -407,10 +413,13 @@ def touches(
             found.noise,
             damaged=damaged,
         )
-    if method == "image":
-        return found
-    dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
-    return _refined(calibration, _against_anchors(dv, anchor_of, anchors), found, mapping, stack)
+    if method == "fit":
+        dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
+        found = _refined(calibration, _against_anchors(dv, anchor_of, anchors), found, mapping, stack)
+    if baseline == "rest" and test is not None:
+        spans = np.array([[-1, -1]] + [[frames[0], frames[-1]] for frames in anchors])[anchor_of + 1]
+        found = eqx.tree_at(lambda t: t.anchor, found, spans, is_leaf=lambda node: node is None)
+    return found
 
 
 def relative_floor(calibration: Any) -> float:
@@ -621,8 +630,9 @@ def _rest_anchors(
     anchors: list[np.ndarray] = []
     base_dv, base_scores, base_variance = np.zeros(dv.shape[1]), np.zeros(scores.shape[1]), 1 / test.reference_frames
     steps = test.statistic(np.diff(dv, axis=0), 2.0)  # a frame less the one before: variance 2 s^2
-    # The image (a touch positive) and the differences of the highest peak since the last onset.
-    peak, peak_dv = None, None
+    # The image (a touch positive), the differences and their whitened values of the highest
+    # peak since the last onset.
+    peak, peak_dv, touch = None, None, None
     held, standing = np.zeros(len(dv), bool), np.zeros(len(dv), bool)  # standing: out of the anchor's noise
     for t in range(len(dv)):
         if damaged[t]:
@@ -630,7 +640,7 @@ def _rest_anchors(
             continue
         step = (dv[t] - dv[t - 1], scores[t] - scores[t - 1]) if t else None
         onset = t and not damaged[t - 1] and steps[t - 1] > detection
-        if onset and _onset(test, *step, None if peak is None else (peak_dv, peak), detection):
+        if onset and _onset(test, *step, None if peak is None else (peak_dv, touch, peak), detection):
             rest = np.arange(np.flatnonzero(held[:t])[-1] + 1 if held[:t].any() else 0, t)
             # The rest level moved when every frame of the window stands out of the anchor's
             # noise, and their mean does; a frame that does not is at the anchor's level.
@@ -643,7 +653,7 @@ def _rest_anchors(
                     anchor_of[rest] = len(anchors) - 1
                     base_dv, base_scores = level, scores[anchors[-1]].mean(axis=0)
                     base_variance = 1 / len(anchors[-1])
-            peak, peak_dv = None, None  # what is held is now measured against this onset's touches
+            peak, peak_dv, touch = None, None, None  # what is held is now measured against this onset's touches
         anchor_of[t] = len(anchors) - 1
         standing[t] = test.statistic(dv[t] - base_dv, 1 + base_variance)[0] > detection
         if not standing[t]:
@@ -651,10 +661,11 @@ def _rest_anchors(
         here = scores[t] - base_scores
         if peak is None or here.max() > peak.max():
             peak, peak_dv = here, dv[t] - base_dv
+            touch = test.whitened(peak_dv)[0]
         # What a touch left where it was is it scaled down, significantly above 0 and below HELD
         # (the scale's standard error from the readings' noise), in its voltages and in its
         # image's peak, and nothing else stands out.
-        along, touch = test.whitened(dv[t] - base_dv)[0], test.whitened(peak_dv)[0]
+        along = test.whitened(dv[t] - base_dv)[0]
         scale = (along @ touch) / (touch @ touch)
         error = np.sqrt((1 + base_variance) / (touch @ touch))
         left = here - scale * peak
@@ -667,22 +678,22 @@ def _onset(
     test: _VoltageTest,
     step: np.ndarray,
     step_image: np.ndarray,
-    peak: tuple[np.ndarray, np.ndarray] | None,
+    peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     detection: float,
 ) -> bool:
     """Whether a step between two frames that stands out of the noise (differences `step`
     (M,), image `step_image` (E,), a touch positive) brought a touch: when it grew a touch's
     hill (its image's largest value is positive), or when what is left of it once the
     least-squares multiple of the touch held since the last onset is taken out (`peak`, the
-    differences and image of its highest frame) stands out of the noise and grew one (a touch
+    differences, their whitened values and the image of its highest frame) stands out of the noise and grew one (a touch
     moved, or one added beside a deeper one; not that touch pressed deeper, relaxed or
     released, nor another released)."""
     if step_image.max() > -step_image.min():
         return True
     if peak is None:
         return False
-    differences, image = peak
-    along, touch = test.whitened(step)[0], test.whitened(differences)[0]
+    differences, touch, image = peak
+    along = test.whitened(step)[0]
     scale = (along @ touch) / (touch @ touch)
     left = step_image - scale * image
     return bool(test.statistic(step - scale * differences, 2.0)[0] > detection and left.max() > -left.min())

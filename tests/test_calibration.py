@@ -552,6 +552,15 @@ def test_a_skin_that_keeps_part_of_each_press_has_each_press_read_against_the_re
     assert error < 0.035 and reference_error > 1.5 * error, (error, reference_error)
     assert np.all(found.count[pressed] == 1) and np.sum(found.count[released[:-3]] > 0) <= 2
     assert np.sum(against_reference.count[released] > 0) >= 12
+    # Each frame is read against rest frames (the rest frames themselves against those they are
+    # among); most presses after the first against the 3 just before them (measured: 5 of 7;
+    # the others keep an anchor their rest was within the noise of).
+    anchored = np.flatnonzero(found.anchor[:, 0] >= 0)
+    assert np.all(found.anchor[anchored, 0] <= anchored) and np.all(found.anchor[:13] == -1)
+    assert all(np.isin(np.arange(first, last + 1), released).all() for first, last in found.anchor[anchored])
+    starts = np.array(pressed[3::3])
+    assert np.sum(np.all(found.anchor[starts] == np.stack([starts - 3, starts - 1], axis=1), axis=1)) >= 4
+    assert against_reference.anchor is None
     with pytest.raises(ValueError, match="baseline"):
         de.touches(images, calibrated, baseline="previous")
 
@@ -586,6 +595,7 @@ def test_presses_one_after_another_and_a_skin_back_at_its_reference_keep_the_ref
     against_reference = de.touches(images, calibrated, baseline="reference")
     np.testing.assert_array_equal(found.count, against_reference.count)
     np.testing.assert_array_equal(found.position, against_reference.position)
+    assert np.all(found.anchor == -1)
     pressed = np.r_[10:15, 17:31:3]
     assert np.all(found.count[pressed] >= 1) and np.sum(found.count) == np.sum(found.count[pressed])
 
