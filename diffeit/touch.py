@@ -383,14 +383,21 @@ def touches(
     if polarity is None:
         polarity = polarity_of(images[intact] if frames_touched is None else images[frames_touched & intact])
     element_noise = _images_noise(recording)
-    anchor_of, anchors = np.full(len(images), -1), []
+    # The discs' fit reads the calibrated model's signed differences (the test's may be raw).
+    signed = ()
+    if method == "fit":
+        signed = (calibration.signed(recording.frames) - calibration.signed(recording.reference),)
+    spans = None
     if baseline == "rest" and test is not None:
         scores = polarity * images if element_noise is None else polarity * images / element_noise
-        anchor_of, anchors = _rest_anchors(test, scores, detection, ~intact)
-        images = _against_anchors(images, anchor_of, anchors)
-        averaged = np.array([test.reference_frames] + [len(frames) for frames in anchors])[anchor_of + 1]
-        dv = _against_anchors(test.frames - test.reference, anchor_of, anchors)
-        frames_touched = test.statistic(dv, (1 + 1 / averaged)[:, None]) > detection
+        start = _Anchoring.at_reference(test, images.shape[1], tuple(values.shape[1] for values in (images, *signed)))
+        anchor_of, anchors, _, _ = _rest_anchors(test, scores, (images, *signed), detection, ~intact, start)
+        images = _against(images, 2, anchor_of, anchors)
+        signed = tuple(_against(values, 3, anchor_of, anchors) for values in signed)
+        counts = np.array([anchor.count for anchor in anchors])[anchor_of]
+        dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
+        frames_touched = test.statistic(dv, (1 + 1 / counts)[:, None]) > detection
+        spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])[anchor_of]
     found = read(
         recording.mesh,
         images,
@@ -414,10 +421,8 @@ def touches(
             damaged=damaged,
         )
     if method == "fit":
-        dv = calibration.signed(recording.frames) - calibration.signed(recording.reference)
-        found = _refined(calibration, _against_anchors(dv, anchor_of, anchors), found, mapping, stack)
-    if baseline == "rest" and test is not None:
-        spans = np.array([[-1, -1]] + [[frames[0], frames[-1]] for frames in anchors])[anchor_of + 1]
+        found = _refined(calibration, signed[0], found, mapping, stack)
+    if spans is not None:
         found = eqx.tree_at(lambda t: t.anchor, found, spans, is_leaf=lambda node: node is None)
     return found
 
@@ -608,70 +613,141 @@ def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None
     )
 
 
+class _Anchor(NamedTuple):
+    """An anchor (module docstring, "Rest anchors"): the frames whose mean it is (none for the
+    recording's reference), how many frames its mean is of (the reference's for the reference),
+    and the means over them of the differences, the scores and each of the values read against
+    it (`_rest_anchors`; zeros for the reference)."""
+
+    frames: np.ndarray
+    count: int
+    means: tuple[np.ndarray, ...]
+
+
+class _Anchoring(NamedTuple):
+    """The rest anchors' state between two frames: the anchor in force and what the rule needs
+    of the frames before the next one. `diffeit.touches` carries it through a recording,
+    `diffeit live` from one batch to the next."""
+
+    frame: int  # the next frame's index
+    anchor: _Anchor
+    previous: tuple[np.ndarray, np.ndarray] | None  # the last frame's differences and scores; None after a damaged one
+    # The highest frame since the last onset, against the anchor: differences, whitened, scores.
+    peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    rest_start: int  # the first frame after the last that held a touch
+    # The last _ANCHOR_FRAMES intact frames since: index, differences, scores, values, and
+    # whether it stood out of the noise of the anchor then in force.
+    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool], ...]
+
+    @classmethod
+    def at_reference(cls, test: _VoltageTest, elements: int, widths: tuple[int, ...]) -> _Anchoring:
+        """Before the first frame: the recording's reference (its `test`'s), images of
+        `elements` elements, values of `widths` columns each."""
+        zeros = (np.zeros(test.frames.shape[1]), np.zeros(elements), *(np.zeros(width) for width in widths))
+        return cls(0, _Anchor(np.zeros(0, int), test.reference_frames, zeros), None, None, 0, ())
+
+
 def _rest_anchors(
-    test: _VoltageTest, scores: np.ndarray, detection: float, damaged: np.ndarray
-) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Each frame's anchor (module docstring, "Rest anchors").
+    test: _VoltageTest,
+    scores: np.ndarray,
+    values: tuple[np.ndarray, ...],
+    detection: float,
+    damaged: np.ndarray,
+    state: _Anchoring,
+) -> tuple[np.ndarray, list[_Anchor], np.ndarray, _Anchoring]:
+    """Each frame's anchor (module docstring, "Rest anchors"), from `state` on.
 
     Arguments:
-        test: The recording's voltage test.
-        scores: (T, E) its images, a touch positive (divided by the images' noise where known):
-            linear in the frames, as the differences `test` reads.
+        test: The frames' voltage test.
+        scores: (T, E) their images, a touch positive (divided by the images' noise where
+            known): linear in the frames, as the differences `test` reads.
+        values: Arrays (T, X) to be read against the anchors (each anchor keeps their mean over
+            its frames).
         detection: The voltage test's z above which a difference stands out of the noise.
         damaged: (T,) bool, damaged frames: passed over (each keeps the anchor in force, is
             in no anchor, and no step to or from it is an onset).
+        state: The state after the frames before these (`_Anchoring.at_reference` before the
+            first).
 
     Returns:
-        (T,) each frame's anchor, an index into the list of anchors (-1: the recording's
-        reference), and the anchors, each the frames (indices) whose mean it is.
+        (T,) each frame's anchor, an index into the anchors: the state's anchor first, then
+        those these frames set (a new anchor is also that of the frames since the last that
+        held a touch among these: `diffeit live`, which has shown the frames before, reads
+        only the frames after against it); (T,) bool, the frames that hold a touch (stand out
+        of their anchor's noise and are not what the last touch left); and the state after
+        them.
     """
     dv = test.frames - test.reference
-    anchor_of = np.full(len(dv), -1)
-    anchors: list[np.ndarray] = []
-    base_dv, base_scores, base_variance = np.zeros(dv.shape[1]), np.zeros(scores.shape[1]), 1 / test.reference_frames
-    steps = test.statistic(np.diff(dv, axis=0), 2.0)  # a frame less the one before: variance 2 s^2
-    # The image (a touch positive), the differences and their whitened values of the highest
-    # peak since the last onset.
-    peak, peak_dv, touch = None, None, None
-    held, standing = np.zeros(len(dv), bool), np.zeros(len(dv), bool)  # standing: out of the anchor's noise
-    for t in range(len(dv)):
-        if damaged[t]:
-            anchor_of[t] = len(anchors) - 1
+    first, anchor, previous, peak, rest_start, rest = state
+    anchors = [anchor]
+    anchor_of = np.zeros(len(dv), int)
+    held = np.zeros(len(dv), bool)
+    # A frame less the one before (variance 2 s^2); the first against the state's last frame.
+    before = dv[:1] if previous is None else previous[0][None]
+    steps = test.statistic(np.diff(np.concatenate([before, dv]), axis=0), 2.0)
+    for i in range(len(dv)):
+        if damaged[i]:
+            anchor_of[i], previous = len(anchors) - 1, None
             continue
-        step = (dv[t] - dv[t - 1], scores[t] - scores[t - 1]) if t else None
-        onset = t and not damaged[t - 1] and steps[t - 1] > detection
-        if onset and _onset(test, *step, None if peak is None else (peak_dv, touch, peak), detection):
-            rest = np.arange(np.flatnonzero(held[:t])[-1] + 1 if held[:t].any() else 0, t)
-            # The rest level moved when every frame of the window stands out of the anchor's
-            # noise, and their mean does; a frame that does not is at the anchor's level.
-            window = rest[~damaged[rest]][-_ANCHOR_FRAMES:]
-            if len(window) >= _LEAST_REST_FRAMES and standing[window].all():
-                level = dv[window].mean(axis=0)
-                variance = 1 / len(window) + base_variance
-                if test.statistic(level - base_dv, variance)[0] > detection:
-                    anchors.append(window)
-                    anchor_of[rest] = len(anchors) - 1
-                    base_dv, base_scores = level, scores[anchors[-1]].mean(axis=0)
-                    base_variance = 1 / len(anchors[-1])
-            peak, peak_dv, touch = None, None, None  # what is held is now measured against this onset's touches
-        anchor_of[t] = len(anchors) - 1
-        standing[t] = test.statistic(dv[t] - base_dv, 1 + base_variance)[0] > detection
-        if not standing[t]:
-            continue
-        here = scores[t] - base_scores
-        if peak is None or here.max() > peak.max():
-            peak, peak_dv = here, dv[t] - base_dv
-            touch = test.whitened(peak_dv)[0]
-        # What a touch left where it was is it scaled down, significantly above 0 and below HELD
-        # (the scale's standard error from the readings' noise), in its voltages and in its
-        # image's peak, and nothing else stands out.
-        along = test.whitened(dv[t] - base_dv)[0]
-        scale = (along @ touch) / (touch @ touch)
-        error = np.sqrt((1 + base_variance) / (touch @ touch))
-        left = here - scale * peak
-        remains = SIGNIFICANCE * error < scale < HELD - SIGNIFICANCE * error and here.max() < HELD * peak.max()
-        held[t] = here.max() > 0 and not (remains and left.max() <= THRESHOLD * _robust_std(left))
-    return anchor_of, anchors
+        step = None if previous is None or steps[i] <= detection else (dv[i] - previous[0], scores[i] - previous[1])
+        if step is not None and _onset(test, *step, peak, detection):
+            moved = _moved_anchor(test, rest[-_ANCHOR_FRAMES:], anchor, detection)
+            if moved is not None:
+                anchor = moved
+                anchors.append(anchor)
+                anchor_of[max(rest_start - first, 0) : i] = len(anchors) - 1
+            peak = None  # what is held is now measured against this onset's touches
+        anchor_of[i] = len(anchors) - 1
+        previous = dv[i], scores[i]
+        base_dv, base_scores = anchor.means[:2]
+        standing = bool(test.statistic(dv[i] - base_dv, 1 + 1 / anchor.count)[0] > detection)
+        if standing:
+            here = scores[i] - base_scores
+            if peak is None or here.max() > peak[2].max():
+                peak = dv[i] - base_dv, test.whitened(dv[i] - base_dv)[0], here
+            # What a touch left where it was is it scaled down, significantly above 0 and below
+            # HELD (the scale's standard error from the readings' noise), in its voltages and in
+            # its image's peak, and nothing else stands out.
+            along, touch = test.whitened(dv[i] - base_dv)[0], peak[1]
+            scale = (along @ touch) / (touch @ touch)
+            error = np.sqrt((1 + 1 / anchor.count) / (touch @ touch))
+            left = here - scale * peak[2]
+            remains = SIGNIFICANCE * error < scale < HELD - SIGNIFICANCE * error and here.max() < HELD * peak[2].max()
+            held[i] = here.max() > 0 and not (remains and left.max() <= THRESHOLD * _robust_std(left))
+        if held[i]:
+            rest_start, rest = first + i + 1, ()
+        else:
+            frame = (first + i, dv[i], scores[i], tuple(value[i] for value in values), standing)
+            rest = (*rest, frame)[-_ANCHOR_FRAMES:]
+    return anchor_of, anchors, held, _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest)
+
+
+def _moved_anchor(
+    test: _VoltageTest,
+    window: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool], ...],
+    anchor: _Anchor,
+    detection: float,
+) -> _Anchor | None:
+    """The anchor the rest frames `window` (`_Anchoring.rest`'s last) make at an onset, or None
+    where the rest level did not move from `anchor`'s: fewer than `_LEAST_REST_FRAMES` of them,
+    one within the anchor's noise (it is at the anchor's level), or their mean within it."""
+    if len(window) < _LEAST_REST_FRAMES or not all(frame[4] for frame in window):
+        return None
+    columns = zip(*(frame[3] for frame in window), strict=True)
+    means = (
+        np.stack([frame[1] for frame in window]).mean(axis=0),
+        np.stack([frame[2] for frame in window]).mean(axis=0),
+        *(np.stack(values).mean(axis=0) for values in columns),
+    )
+    if test.statistic(means[0] - anchor.means[0], 1 / len(window) + 1 / anchor.count)[0] <= detection:
+        return None
+    return _Anchor(np.array([frame[0] for frame in window]), len(window), means)
+
+
+def _against(values: np.ndarray, which: int, anchor_of: np.ndarray, anchors: list[_Anchor]) -> np.ndarray:
+    """(T, X) the rows of `values` less their anchor's mean of them, its `which`th
+    (`_rest_anchors`: 0 the differences, 1 the scores, then the values)."""
+    return values - np.stack([anchor.means[which] for anchor in anchors])[anchor_of]
 
 
 def _onset(
@@ -697,16 +773,6 @@ def _onset(
     scale = (along @ touch) / (touch @ touch)
     left = step_image - scale * image
     return bool(test.statistic(step - scale * differences, 2.0)[0] > detection and left.max() > -left.min())
-
-
-def _against_anchors(values: np.ndarray, anchor_of: np.ndarray, anchors: list[np.ndarray]) -> np.ndarray:
-    """(T, X) each row of `values` (T, X; differences from the recording's reference, or images
-    of them) less the mean of its anchor's rows (`_rest_anchors`)."""
-    values = np.array(values, np.float64)
-    means = [values[frames].mean(axis=0) for frames in anchors]
-    for k, mean in enumerate(means):
-        values[anchor_of == k] -= mean
-    return values
 
 
 def touch_subspace(calibration: Any) -> np.ndarray:

@@ -145,17 +145,31 @@ def _bump(centre: int, height: float, readings: int = 60) -> np.ndarray:
 
 
 def _anchors_of(
-    clean: list[np.ndarray], seed: int, damaged: tuple[int, ...] = ()
-) -> tuple[np.ndarray, list[np.ndarray]]:
+    clean: list[np.ndarray], seed: int, damaged: tuple[int, ...] = (), batch: int | None = None
+) -> tuple[np.ndarray, list[list[int]]]:
     """`_rest_anchors` of the frames `clean` (T, 60) with unit noise, after 20 reference frames at
     0, each reading its own image (a touch positive); the frames `damaged` replaced by a glitch
-    (every reading 50) and marked damaged."""
-    from diffeit.touch import _rest_anchors, _VoltageTest
+    (every reading 50) and marked damaged. All at once, or `batch` frames at a time, the state
+    carried (as `diffeit live` reads them). Each frame's anchor (-1: the reference) and each
+    anchor's frames."""
+    from diffeit.touch import _Anchoring, _rest_anchors, _VoltageTest
 
     frames = np.array(clean) + np.random.default_rng(seed).standard_normal((len(clean), 60))
     frames[list(damaged)] = 50.0
+    marked = np.isin(np.arange(len(frames)), damaged)
     test = _VoltageTest(frames, np.zeros(60), np.ones(60), 20, 20, None)
-    return _rest_anchors(test, frames, de.touch.DETECTION, np.isin(np.arange(len(frames)), damaged))
+    state = _Anchoring.at_reference(test, 60, ())
+    anchor_of, anchors = [], []
+    size = batch or len(frames)
+    for start in range(0, len(frames), size):
+        part = slice(start, start + size)
+        which, made, _, state = _rest_anchors(
+            test._replace(frames=frames[part]), frames[part], (), de.touch.DETECTION, marked[part], state
+        )
+        # Index 0 is the anchor in force at the batch's start: the last one made, or the reference.
+        anchor_of += (which - 1 + len(anchors)).tolist()
+        anchors += [anchor.frames.tolist() for anchor in made[1:]]
+    return np.array(anchor_of), anchors
 
 
 def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_not_move():
@@ -167,11 +181,16 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
         rest = rest + 0.45 * _bump(centre, 12.0)
         frames += [rest] * 4
     anchor_of, anchors = _anchors_of(frames, seed=0)
-    assert [frames.tolist() for frames in anchors] == [[6, 7, 8, 9], [13, 14, 15, 16]]
+    assert anchors == [[6, 7, 8, 9], [13, 14, 15, 16]]
     np.testing.assert_array_equal(anchor_of, [-1] * 6 + [0] * 7 + [1] * 11)
+    # Read 4 frames at a time: the same anchors, each from its onset on; the rest frames of an
+    # earlier batch (6, 7; 13 to 15) keep the anchor they were read against.
+    anchor_of, anchors = _anchors_of(frames, seed=0, batch=4)
+    assert anchors == [[6, 7, 8, 9], [13, 14, 15, 16]]
+    np.testing.assert_array_equal(anchor_of, [-1] * 8 + [0] * 8 + [1] * 8)
     # Damaged frames in a press's hold and at rest are passed over: the same anchors, less them.
     anchor_of, anchors = _anchors_of(frames, seed=0, damaged=(11, 14))
-    assert [frames.tolist() for frames in anchors] == [[6, 7, 8, 9], [13, 15, 16]]
+    assert anchors == [[6, 7, 8, 9], [13, 15, 16]]
     # A press held while it relaxes by 20% stays held: the frames after it are no rest.
     relaxing = [np.zeros(60)] * 3 + [_bump(20, 12.0) * (1 - 0.02 * k) for k in range(10)] + [_bump(45, 12.0)] * 2
     anchor_of, anchors = _anchors_of(relaxing, seed=1)
