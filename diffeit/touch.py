@@ -113,8 +113,8 @@ and 36 of 200 frames between presses touched where all 200 had been, 3 and 0 of 
 the reference alone and 4.0 mm after the presses on the first seed. On the same skin without
 memory no anchor moved: every frame read as against the reference. A touch whose start stays
 within the noise frame by frame brings no onset: it is read against the anchor in force.
-`baseline="reference"` reads every frame against the recording's reference, as `diffeit live`
-does (it sees a batch at a time).
+`baseline="reference"` reads every frame against the recording's reference. `LiveTouches`
+carries the anchors through a stream a batch at a time (`diffeit live --touches`).
 
 ## Refinement by the model (`method="fit"`)
 
@@ -427,6 +427,128 @@ def touches(
     return found
 
 
+class LiveTouches(eqx.Module):
+    """Touches read from a stream one batch of frames at a time (`diffeit live --touches`), the
+    future unknown: `touches`'s rule, its voltage test and rest anchors carried from batch to
+    batch.
+
+    With a calibration that knows its readings' noise, each frame is read against the rest
+    anchor in force (module docstring, "Rest anchors"): an anchor moves at an onset as
+    `touches` moves it, and is that of the frames from the onset on; the rest frames before
+    it, already shown, were read against the anchor before. A frame that is what the last
+    touch left (step 2) reads no touch: `touches` reads it against the anchor the next onset
+    sets, which a stream does not know yet. Without that noise, each frame is read against the
+    reference, tested by `touched` (or not at all without a calibration).
+
+    The polarity is the calibration's (from its presses), else the first batch with touched
+    frames tells it (`polarity_of`) and it is kept; until then each batch's own.
+
+    Attributes:
+        mesh: The sheet the images are on.
+        calibration: The `diffeit.calibration.SkinCalibration`, or None.
+        reference: (M,) the reference, as recorded.
+        reference_frames: How many frames it is the mean of.
+        subspace: The calibration's `touch_subspace` (None without its noise).
+        image_noise: (E,) the images' noise (`image_noise`), or None.
+        polarity: The touches' polarity, once known; None before.
+        anchoring: The rest anchors' state after the frames read; None before the polarity is
+            known, or without the calibration's noise.
+        frame: The frames read so far (their indices in `Touches.anchor` count from the first).
+    """
+
+    mesh: Mesh
+    calibration: Any
+    reference: np.ndarray
+    reference_frames: int
+    subspace: np.ndarray | None
+    image_noise: np.ndarray | None
+    polarity: int | None = None
+    anchoring: _Anchoring | None = None
+    frame: int = 0
+
+    @classmethod
+    def of(
+        cls, mesh: Mesh, calibration: Any, reference: ArrayLike, reference_frames: int, image_noise: ArrayLike | None
+    ) -> LiveTouches:
+        """The touches of a stream imaged on `mesh` against the mean `reference` (M,) of
+        `reference_frames` frames, as recorded, with a `calibration` (or None) and the images'
+        noise `image_noise` (E,) (or None). The calibration's touch subspace is computed here,
+        once for every batch."""
+        noise = getattr(calibration, "noise", None)
+        return cls(
+            mesh,
+            calibration,
+            np.asarray(reference, np.float64),
+            int(reference_frames),
+            None if noise is None else touch_subspace(calibration),
+            None if image_noise is None else np.asarray(image_noise, np.float64),
+            getattr(calibration, "polarity", None),
+        )
+
+    def step(self, frames: ArrayLike, images: ArrayLike, finite: ArrayLike) -> tuple[Touches, np.ndarray, LiveTouches]:
+        """The touches of a batch.
+
+        Arguments:
+            frames: (B, M) the batch's frames, as recorded (drift taken out).
+            images: (B, E) their images, relative changes.
+            finite: (B,) bool, the images that are finite: the others are not read, and the
+                anchors pass them over.
+
+        Returns:
+            The `Touches` of the batch's finite frames (in order), (B,) bool the frames that
+            are what the last touch left (read as no touch), and the state after the batch.
+        """
+        frames = np.atleast_2d(np.asarray(frames, np.float64))
+        images = np.atleast_2d(np.asarray(images, np.float64))
+        finite = np.asarray(finite, bool)
+        skin, state = self.calibration, self
+        frames_touched = touched(
+            frames[finite], self.reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
+        )
+        polarity = self.polarity
+        if polarity is None:
+            polarity = polarity_of(images[finite] if frames_touched is None else images[finite][frames_touched])
+            if frames_touched is not None and frames_touched.any():  # touched frames told it: kept
+                state = eqx.tree_at(lambda live: live.polarity, state, polarity, is_leaf=lambda node: node is None)
+        left_behind, spans = np.zeros(len(frames), bool), None
+        if state.polarity is not None and self.subspace is not None:
+            test = _VoltageTest(
+                skin.signed(frames),
+                skin.signed(self.reference),
+                skin.noise,
+                skin.noise_frames,
+                self.reference_frames,
+                self.subspace,
+            )
+            start = self.anchoring
+            if start is None:
+                start = _Anchoring.at_reference(test, images.shape[1], (images.shape[1],))._replace(frame=self.frame)
+            images = np.where(finite[:, None], images, 0.0)  # a frame not finite is passed over
+            scores = polarity * images if self.image_noise is None else polarity * images / self.image_noise
+            anchor_of, anchors, left_behind, anchoring = _rest_anchors(
+                test, scores, (images,), DETECTION, ~finite, start
+            )
+            images = _against(images, 2, anchor_of, anchors)
+            counts = np.array([anchor.count for anchor in anchors])[anchor_of]
+            dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
+            frames_touched = (test.statistic(dv, (1 + 1 / counts)[:, None]) > DETECTION) & ~left_behind
+            frames_touched = frames_touched[finite]
+            spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])
+            spans = spans[anchor_of][finite]
+            state = eqx.tree_at(lambda live: live.anchoring, state, anchoring, is_leaf=lambda node: node is None)
+        found = read(
+            self.mesh,
+            images[finite],
+            polarity=polarity,
+            position_map=None if skin is None else skin.position_map,
+            touched=frames_touched,
+            relative=relative_floor(skin),
+            image_noise=self.image_noise,
+        )
+        found = eqx.tree_at(lambda t: t.anchor, found, spans, is_leaf=lambda node: node is None)
+        return found, left_behind, eqx.tree_at(lambda live: live.frame, state, self.frame + len(frames))
+
+
 def relative_floor(calibration: Any) -> float:
     """The fraction of a frame's highest peak a further touch's must reach (module docstring,
     "The rule", step 2): `RELATIVE`, or the `ringing` of `calibration` (a
@@ -672,16 +794,16 @@ def _rest_anchors(
     Returns:
         (T,) each frame's anchor, an index into the anchors: the state's anchor first, then
         those these frames set (a new anchor is also that of the frames since the last that
-        held a touch among these: `diffeit live`, which has shown the frames before, reads
-        only the frames after against it); (T,) bool, the frames that hold a touch (stand out
-        of their anchor's noise and are not what the last touch left); and the state after
-        them.
+        held a touch among these: `LiveTouches`, which has shown the frames before, reads
+        only the frames after against it); the anchors; (T,) bool, the frames that are what
+        the last touch left (they stand out of their anchor's noise and are that touch scaled
+        down, step 2); and the state after them.
     """
     dv = test.frames - test.reference
     first, anchor, previous, peak, rest_start, rest = state
     anchors = [anchor]
     anchor_of = np.zeros(len(dv), int)
-    held = np.zeros(len(dv), bool)
+    held, left_behind = np.zeros(len(dv), bool), np.zeros(len(dv), bool)
     # A frame less the one before (variance 2 s^2); the first against the state's last frame.
     before = dv[:1] if previous is None else previous[0][None]
     steps = test.statistic(np.diff(np.concatenate([before, dv]), axis=0), 2.0)
@@ -713,13 +835,14 @@ def _rest_anchors(
             error = np.sqrt((1 + 1 / anchor.count) / (touch @ touch))
             left = here - scale * peak[2]
             remains = SIGNIFICANCE * error < scale < HELD - SIGNIFICANCE * error and here.max() < HELD * peak[2].max()
-            held[i] = here.max() > 0 and not (remains and left.max() <= THRESHOLD * _robust_std(left))
+            left_behind[i] = here.max() > 0 and remains and left.max() <= THRESHOLD * _robust_std(left)
+            held[i] = here.max() > 0 and not left_behind[i]
         if held[i]:
             rest_start, rest = first + i + 1, ()
         else:
             frame = (first + i, dv[i], scores[i], tuple(value[i] for value in values), standing)
             rest = (*rest, frame)[-_ANCHOR_FRAMES:]
-    return anchor_of, anchors, held, _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest)
+    return anchor_of, anchors, left_behind, _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest)
 
 
 def _moved_anchor(

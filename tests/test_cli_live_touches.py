@@ -152,3 +152,41 @@ def test_live_without_a_calibration_reads_one_touch_a_press_against_its_referenc
         found = re.search(r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm", lines[frame])
         assert found and "touch 1" not in lines[frame], lines[frame]
         assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - PLACES[0]) < 0.1, lines[frame]
+
+
+def test_live_reads_a_skin_that_keeps_part_of_each_press_against_the_rest_before_each(skin, tmp_path, capsys):
+    """Each press (held 3 frames) leaves 0.4 of its change for good, then 4 frames at rest: live
+    carries the rest anchors from batch to batch (`diffeit.touch.LiveTouches`), so each press
+    reads one touch where it was, and a frame at rest, what the presses left, no touch.
+    (Against the reference frame, 9 of the 15 pressed frames read a second touch: the earlier
+    presses' remains.)"""
+    path, board, pressed, mesh = skin
+    places = np.array([[0.35, 0.2], [-0.3, -0.35], [0.0, 0.45], [-0.4, 0.1], [0.3, -0.3]])
+    rest = np.ones(mesh.n_elements)
+    sigmas, held = [rest] * 4, []
+    for place in places:
+        press = pressed(place)
+        held.append(range(len(sigmas) - 1, len(sigmas) + 2))  # printed frames count from the second
+        sigmas += [rest * press] * 3
+        rest = rest * (1 - 0.4 * (1 - press))
+        sigmas += [rest] * 4
+    emulator = hw.Emulator(board(sigmas, 4), frame_rate=100.0).start()
+    options = ("--frames", str(len(sigmas)), "--calibration", str(path), "--touches", "--png", str(tmp_path / "l.png"))
+    status = _live(emulator.port, *options)
+    emulator.stop()
+    assert status == 0
+    printed = capsys.readouterr().out
+    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    assert sorted(lines) == list(range(len(sigmas) - 1))
+    pattern = r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm"
+    for frames, place in zip(held, places, strict=True):
+        for frame in frames:
+            found = re.search(pattern, lines[frame])
+            assert found, (frame, lines[frame])
+            assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
+    # A hill at the rim beside a press, now and then, reads as a second touch (measured: 1 of 15).
+    assert sum("touch 1" in lines[frame] for frames in held for frame in frames) <= 2
+    at_rest = sorted(set(lines) - {frame for frames in held for frame in frames})
+    touched_at_rest = [frame for frame in at_rest if "touch 0" in lines[frame]]
+    assert not touched_at_rest, [lines[frame] for frame in touched_at_rest]
+    assert any("what the last touch left" in lines[frame] for frame in at_rest)

@@ -384,13 +384,11 @@ class _LiveViewer:
     reference; the images are made at the calibration's model and level, the reference mapped
     by its `signed`, at its hyperparameter when "auto" asks and it has one.
 
-    With `touches`: each frame's touches are read from its image (`diffeit.touch.read`, one call
-    a batch; through the calibration's position map and polarity, or where no presses gave it,
-    the polarity the batch's touched images show, `diffeit.touch.polarity_of`; a further touch
-    above the calibration's ringing, `diffeit.touch.relative_floor`, as `diffeit.touches` reads
-    them) and printed, a line a frame beside its image's peak. A calibration that knows its
-    readings' noise decides which frames are touched by the voltage test of
-    `diffeit.touch.touches`.
+    With `touches`: each frame's touches are read from its image and printed, a line a frame
+    beside its image's peak (`diffeit.touch.LiveTouches`: `diffeit.touches`'s rule, the
+    calibration's position map, polarity and ringing; where the calibration knows its readings'
+    noise, its voltage test, and each frame read against the rest anchor in force, carried
+    from batch to batch, what the last touch left read as no touch).
 
     With 6 or more reference frames, the skin's drift (every reading moving with a common gain:
     a hydrogel drying, a board warming) is followed and each frame divided by its gain before
@@ -425,14 +423,6 @@ class _LiveViewer:
         self.nonfinite: list[int] = []
         self.touches = touches
         self.skin = calibration
-        self.raw_reference = reference.mean(axis=0)
-        self.reference_frames = len(reference)  # the touches' voltage test needs how many
-        # The voltage test's subspace, once for every batch (a Jacobian and an eigendecomposition).
-        self.subspace = None
-        if touches and calibration is not None and calibration.noise is not None:
-            from ..touch import touch_subspace
-
-            self.subspace = touch_subspace(calibration)
         self.start_time: float | None = None  # the host time of the first frame imaged
         from ..calibration import LiveDrift
 
@@ -463,6 +453,12 @@ class _LiveViewer:
             self.tolerance = dead_band * image_noise(matrix, scale, fit.background)
             self.step = eqx.filter_jit(correct_memory_step)
             self.state = None
+        self.live_touches = None  # the touches' state, carried from batch to batch
+        if touches:
+            from ..touch import LiveTouches
+
+            mean = reference.mean(axis=0)
+            self.live_touches = LiveTouches.of(self.mesh, calibration, mean, len(reference), self.image_noise)
         # Agg is what matplotlib falls back to without a display: then write PNGs instead.
         self.headless = plt.get_backend().lower() == "agg"
         self.png = png
@@ -570,37 +566,21 @@ class _LiveViewer:
 
     def _print_touches(self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray) -> None:
         """Print a line per frame of the batch: its index among the frames imaged, its time, its
-        image's peak and its touches (`diffeit.touch.read` on the finite images, one call)."""
-        from ..touch import polarity_of, read, relative_floor, touched
-
-        skin, found = self.skin, None
-        if finite.any():
-            frames_touched = touched(
-                values[finite], self.raw_reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
-            )
-            polarity = None if skin is None else skin.polarity
-            if polarity is None:  # not known from labelled presses: the batch's touched images say
-                polarity = polarity_of(images[finite] if frames_touched is None else images[finite][frames_touched])
-            found = read(
-                self.mesh,
-                images[finite],
-                polarity=polarity,
-                position_map=None if skin is None else skin.position_map,
-                touched=frames_touched,
-                relative=relative_floor(skin),
-                image_noise=self.image_noise,
-            )
+        image's peak and its touches (`diffeit.touch.LiveTouches`, the state carried)."""
+        found, left_behind, self.live_touches = self.live_touches.step(values, images, finite)
         row = np.cumsum(finite) - 1  # each finite image's row in `found`
         for k, (frame, image) in enumerate(zip(batch, images, strict=True)):
             if self.start_time is None:
                 self.start_time = frame.host_time
             when = "" if frame.host_time is None else f" (t = {frame.host_time - self.start_time:.3f} s)"
-            if finite[k]:
-                lines = found.lines(int(row[k]))
-                peak = image.flat[np.argmax(np.abs(image))]
-                text = f"peak {peak:+.3f}; " + ("; ".join(lines) or "no touch")
-            else:
+            if not finite[k]:
                 text = "not finite: no touches read"
+            else:
+                peak = image.flat[np.argmax(np.abs(image))]
+                lines = found.lines(int(row[k]))
+                if left_behind[k]:
+                    lines = ["no touch (what the last touch left)"]
+                text = f"peak {peak:+.3f}; " + ("; ".join(lines) or "no touch")
             print(f"frame {self.imaged + k}{when}: {text}", flush=True)
 
     def _corrected(self, images: np.ndarray, batch: list[hw.Frame]) -> np.ndarray:
