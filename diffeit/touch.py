@@ -435,10 +435,10 @@ class LiveTouches(eqx.Module):
     With a calibration that knows its readings' noise, each frame is read against the rest
     anchor in force (module docstring, "Rest anchors"): an anchor moves at an onset as
     `touches` moves it, and is that of the frames from the onset on; the rest frames before
-    it, already shown, were read against the anchor before. A frame that is what the last
-    touch left (step 2) reads no touch: `touches` reads it against the anchor the next onset
-    sets, which a stream does not know yet. Without that noise, each frame is read against the
-    reference, tested by `touched` (or not at all without a calibration).
+    it, already shown, were read against the anchor before (`touches` reads them against the
+    new one): what the last touch left stands in them, and `step` says which they are (step
+    2). Without that noise, each frame is read against the reference, tested by `touched` (or
+    not at all without a calibration).
 
     The polarity is the calibration's (from its presses), else the first batch with touched
     frames tells it (`polarity_of`) and it is kept; until then each batch's own.
@@ -496,7 +496,8 @@ class LiveTouches(eqx.Module):
 
         Returns:
             The `Touches` of the batch's finite frames (in order), (B,) bool the frames that
-            are what the last touch left (read as no touch), and the state after the batch.
+            are what the last touch left (by the rule: a weak press beside the last one, with
+            no release between, can look the same), and the state after the batch.
         """
         frames = np.atleast_2d(np.asarray(frames, np.float64))
         images = np.atleast_2d(np.asarray(images, np.float64))
@@ -531,8 +532,7 @@ class LiveTouches(eqx.Module):
             images = _against(images, 2, anchor_of, anchors)
             counts = np.array([anchor.count for anchor in anchors])[anchor_of]
             dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
-            frames_touched = (test.statistic(dv, (1 + 1 / counts)[:, None]) > DETECTION) & ~left_behind
-            frames_touched = frames_touched[finite]
+            frames_touched = (test.statistic(dv, (1 + 1 / counts)[:, None]) > DETECTION)[finite]
             spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])
             spans = spans[anchor_of][finite]
             state = eqx.tree_at(lambda live: live.anchoring, state, anchoring, is_leaf=lambda node: node is None)

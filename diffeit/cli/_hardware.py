@@ -388,7 +388,7 @@ class _LiveViewer:
     beside its image's peak (`diffeit.touch.LiveTouches`: `diffeit.touches`'s rule, the
     calibration's position map, polarity and ringing; where the calibration knows its readings'
     noise, its voltage test, and each frame read against the rest anchor in force, carried
-    from batch to batch, what the last touch left read as no touch).
+    from batch to batch; a frame the rule takes for what the last touch left says so).
 
     With 6 or more reference frames, the skin's drift (every reading moving with a common gain:
     a hydrogel drying, a board warming) is followed and each frame divided by its gain before
@@ -577,10 +577,10 @@ class _LiveViewer:
                 text = "not finite: no touches read"
             else:
                 peak = image.flat[np.argmax(np.abs(image))]
-                lines = found.lines(int(row[k]))
+                text = f"peak {peak:+.3f}; " + ("; ".join(found.lines(int(row[k]))) or "no touch")
                 if left_behind[k]:
-                    lines = ["no touch (what the last touch left)"]
-                text = f"peak {peak:+.3f}; " + ("; ".join(lines) or "no touch")
+                    text += " (likely what the last touch left)"
+
             print(f"frame {self.imaged + k}{when}: {text}", flush=True)
 
     def _corrected(self, images: np.ndarray, batch: list[hw.Frame]) -> np.ndarray:
