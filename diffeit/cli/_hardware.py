@@ -96,10 +96,10 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
     live.add_argument(
         "--touches",
         action="store_true",
-        help="print each frame's touches (diffeit.touch.read on its image): position in mm, radius in mm, depth "
+        help="print each frame's touches (diffeit.touch.LiveTouches): position in mm, radius in mm, depth "
         "(the peak dsigma/sigma); with --calibration, through its position map and polarity (without labelled "
-        "presses, the polarity the batch's images show), and a frame counts as touched by the voltage test on its "
-        "noise when it knows it",
+        "presses, the polarity the first touched frames show), and, when it knows its readings' noise, a frame "
+        "counts as touched by the voltage test and each touch is read against the rest before it",
     )
     live.add_argument("--png", default="live.png", help="image written when there is no display (live.png)")
     live.set_defaults(run=_live)
@@ -580,7 +580,6 @@ class _LiveViewer:
                 text = f"peak {peak:+.3f}; " + ("; ".join(found.lines(int(row[k]))) or "no touch")
                 if left_behind[k]:
                     text += " (likely what the last touch left)"
-
             print(f"frame {self.imaged + k}{when}: {text}", flush=True)
 
     def _corrected(self, images: np.ndarray, batch: list[hw.Frame]) -> np.ndarray:
