@@ -601,7 +601,7 @@ def test_a_stream_read_a_batch_at_a_time_reads_each_press_as_the_recording_does(
     released = np.setdiff1d(np.arange(10, len(sigmas)), pressed)
     assert left[released].sum() >= 10, left[released]
     extra = (counts[released] > 0) & (found.count[released] == 0)
-    assert 0 < extra.sum() and np.all(left[released][extra]), (counts[released], left[released])
+    assert extra.sum() > 0 and np.all(left[released][extra]), (counts[released], left[released])
 
 
 def test_a_touch_added_while_one_is_held_keeps_the_anchor_and_both_are_read(mixing_skin, calibrated):
