@@ -527,17 +527,24 @@ def _imaged(skin, calibration, sigmas: list[np.ndarray], seed: int) -> de.io.Rec
     return de.reconstruct(recording, calibration=calibration, difference="calibrated", progress=False)
 
 
-def test_a_skin_that_keeps_part_of_each_press_has_each_press_read_against_the_rest_before_it(mixing_skin, calibrated):
-    # Each press held 3 frames leaves 0.4 of its change for good, then 3 frames at rest.
-    centres = mixing_skin.presses.centres[20:28]
-    rest = np.ones(mixing_skin.mesh.n_elements)
+def _lasting_presses(skin, centres: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
+    """The conductivities of 10 untouched frames, then a press at each of `centres` held 3
+    frames that leaves 0.4 of its change for good, and 3 frames at rest; and the pressed frames."""
+    rest = np.ones(skin.mesh.n_elements)
     sigmas, pressed = [rest] * 10, []
     for centre in centres:
-        press = mixing_skin.pressed(centre)
+        press = skin.pressed(centre)
         pressed += range(len(sigmas), len(sigmas) + 3)
         sigmas += [rest * press] * 3
         rest = rest * (1 - 0.4 * (1 - press))
         sigmas += [rest] * 3
+    return sigmas, pressed
+
+
+def test_a_skin_that_keeps_part_of_each_press_has_each_press_read_against_the_rest_before_it(mixing_skin, calibrated):
+    # Each press held 3 frames leaves 0.4 of its change for good, then 3 frames at rest.
+    centres = mixing_skin.presses.centres[20:28]
+    sigmas, pressed = _lasting_presses(mixing_skin, centres)
     images = _imaged(mixing_skin, calibrated, sigmas, seed=7)
     released = np.setdiff1d(np.arange(10, len(sigmas)), pressed)
     truth = np.repeat(centres, 3, axis=0)
@@ -569,14 +576,7 @@ def test_a_stream_read_a_batch_at_a_time_reads_each_press_as_the_recording_does(
     """`LiveTouches` (`diffeit live`) over the lasting-changes skin's frames, 4 at a time: each
     pressed frame reads as `de.touches` reads it (its anchor the same from each onset on)."""
     centres = mixing_skin.presses.centres[20:26]
-    rest = np.ones(mixing_skin.mesh.n_elements)
-    sigmas, pressed = [rest] * 10, []
-    for centre in centres:
-        press = mixing_skin.pressed(centre)
-        pressed += range(len(sigmas), len(sigmas) + 3)
-        sigmas += [rest * press] * 3
-        rest = rest * (1 - 0.4 * (1 - press))
-        sigmas += [rest] * 3
+    sigmas, pressed = _lasting_presses(mixing_skin, centres)
     images = _imaged(mixing_skin, calibrated, sigmas, seed=11)
     found = de.touches(images, calibrated)
     metadata = images.provenance["metadata"]
