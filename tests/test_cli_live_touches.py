@@ -186,10 +186,14 @@ def test_live_reads_a_skin_that_keeps_part_of_each_press_against_the_rest_before
             assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
     # A hill at the rim beside a press, now and then, reads as a second touch (measured: 1 of 15).
     assert sum("touch 1" in lines[frame] for frames in held for frame in frames) <= 2
-    # At rest, a touch read is what the last press left, where it was, and says so.
+    # At rest, a touch read is what the last press left, where it was, and says so (measured:
+    # all 20 frames at rest said so, 14 with a touch).
+    flagged = 0
     for frames, place in zip(held, places, strict=True):
         for frame in range(frames[-1] + 1, frames[-1] + 5):
+            flagged += lines[frame].endswith("(likely what the last touch left)")
             found = re.search(pattern, lines[frame])
             if found:
                 assert lines[frame].endswith("(likely what the last touch left)"), lines[frame]
                 assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
+    assert flagged >= 15, flagged
