@@ -502,11 +502,12 @@ class LiveTouches(eqx.Module):
         frames = np.atleast_2d(np.asarray(frames, np.float64))
         images = np.atleast_2d(np.asarray(images, np.float64))
         finite = np.asarray(finite, bool)
-        skin, state = self.calibration, self
-        frames_touched = touched(
-            frames[finite], self.reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
-        )
-        polarity = self.polarity
+        skin, state, polarity = self.calibration, self, self.polarity
+        frames_touched = None  # against the reference: to tell the polarity, or where no anchors are kept
+        if polarity is None or self.subspace is None:
+            frames_touched = touched(
+                frames[finite], self.reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
+            )
         if polarity is None:
             polarity = polarity_of(images[finite] if frames_touched is None else images[finite][frames_touched])
             if frames_touched is not None and frames_touched.any():  # touched frames told it: kept
