@@ -151,6 +151,10 @@ With labelled presses (`diffeit.io.Presses`), these fits follow.
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
   orientation, scale and offset against the labels' frame), 2 or 3, or none, chosen by
   leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
+  With the labels' frame found (20 presses or more, on a flat skin), a touch the polynomial
+  takes off the skin (it extrapolates beyond the presses) is taken to the nearest point of the
+  skin's outline in that frame: a rim hill beside a press had been placed 1.2 radii from the
+  centre.
   How high the further hills of the presses' images stand beside each one's highest (95% of
   the presses' below it) is the calibration's `ringing`, above which alone `diffeit.touches`
   reads a further touch: a single press is one touch.
@@ -230,7 +234,7 @@ from .io import (
     write_attributes,
 )
 from .memory import MemoryParameters
-from .mesh import Mesh, disc, disc_fractions, onto_surface, surface_distance
+from .mesh import Mesh, disc, disc_fractions, onto_sheet, onto_surface, surface_distance
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
@@ -817,7 +821,9 @@ class PositionMap(eqx.Module):
     cross-validation (degree 0 shifts, 1 is affine: the labels' orientation, scale and offset;
     `degree=None` is the identity). On a curved skin the polynomial is in x, y and z and each
     displaced point is taken back onto the surface (`diffeit.mesh.onto_surface`): an affine
-    map then turns, stretches and shifts touches along it.
+    map then turns, stretches and shifts touches along it. On a flat skin whose labels' frame
+    is known (`held_to`), a point the polynomial takes off the skin (it extrapolates beyond the
+    presses it was fitted on) is taken to the nearest point of the skin's outline in that frame.
 
     Attributes:
         degree: The polynomial's degree, or None for the identity.
@@ -828,6 +834,10 @@ class PositionMap(eqx.Module):
             between mapped and labelled positions (on a curved skin along it:
             `diffeit.mesh.surface_distance`).
         surface: The curved skin's mesh the mapped points are taken onto; None on a flat one.
+        sheet: The flat skin's mesh whose outline, in the labels' frame `frame`, holds the
+            mapped points; None: they are not held.
+        frame: (5,) the labels' frame onto the mesh's (`SkinCalibration.values["label_frame"]`:
+            ln scale, angle (rad), offset x and y (m), handedness), with `sheet`; else None.
     """
 
     degree: int | None = eqx.field(static=True)
@@ -835,15 +845,37 @@ class PositionMap(eqx.Module):
     length: float
     errors: dict[str, float]
     surface: Mesh | None = None
+    sheet: Mesh | None = None
+    frame: np.ndarray | None = None
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         """(..., D) the labels'-frame positions, m, of positions `points` (..., D) read in the
         mesh's frame; NaN stays NaN."""
         points = np.asarray(points, np.float64)
         if self.degree is None:
-            return points.copy()
+            return self.within(points)
         moved = points + _terms(points / self.length, self.degree) @ self.coefficients * self.length
-        return moved if self.surface is None else onto_surface(self.surface, moved)
+        return self.within(moved) if self.surface is None else onto_surface(self.surface, moved)
+
+    def held_to(self, sheet: Mesh, frame: np.ndarray) -> PositionMap:
+        """This map, its points held to the flat skin `sheet`, seen in the labels' frame `frame`
+        (as `frame`)."""
+        return dataclasses.replace(self, sheet=sheet, frame=np.asarray(frame, np.float64))
+
+    def within(self, points: np.ndarray) -> np.ndarray:
+        """(..., 2) labels'-frame positions `points`, m, each off the skin taken to the nearest
+        point of its outline (`diffeit.mesh.onto_sheet` in the mesh's frame: the labels' frame
+        is a similarity of it); a copy of them when the map holds no sheet."""
+        points = np.array(points, np.float64)
+        if self.sheet is None or self.frame is None:
+            return points
+        scale, angle, offset, mirror = math.exp(self.frame[0]), self.frame[1], self.frame[2:4], [1.0, self.frame[4]]
+        rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+        in_mesh = scale * (points * mirror) @ rotation.T + offset
+        on_mesh = onto_sheet(self.sheet, in_mesh)
+        moved = np.any(on_mesh != in_mesh, axis=-1)  # the others stay bit for bit
+        points[moved] = (on_mesh[moved] - offset) @ rotation / scale * mirror
+        return points
 
     @classmethod
     def fit(cls, read: np.ndarray, labelled: np.ndarray, mesh: Mesh | None = None) -> PositionMap:
@@ -1690,7 +1722,20 @@ def calibrate(
     if with_memory:
         frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
         calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
-    return calibration
+    return _held_to_skin(calibration)
+
+
+def _held_to_skin(calibration: SkinCalibration) -> SkinCalibration:
+    """`calibration` with its position map holding touches to the skin in the labels' frame it
+    found (`PositionMap.held_to`), and its presses' positions held so; as it is without a map,
+    without that frame, or on a curved skin (whose map takes touches onto it)."""
+    mapping, frame, mesh = calibration.position_map, calibration.values.get("label_frame"), calibration.model.mesh
+    if mapping is None or frame is None or mesh.nodes.shape[1] != 2:
+        return calibration
+    held = mapping.held_to(mesh, frame)
+    return eqx.tree_at(
+        lambda c: (c.position_map, c.press_positions), calibration, (held, held.within(calibration.press_positions))
+    )
 
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
@@ -3555,6 +3600,7 @@ _STORED_ARRAYS = {
     "noise": "non-negative",
     "model/electrode_shift": "",
     "position_map/coefficients": "",
+    "values/label_frame": "",
 }
 
 
@@ -3585,6 +3631,11 @@ def _check_stored(arrays: dict, attributes: dict) -> None:
             raise ValueError(f"its {name} holds values that are not {kind}")
     if not np.all(np.abs(np.asarray(arrays["reading_sign"], float)) == 1):
         raise ValueError("its reading_sign holds values other than +-1")
+    frame = np.asarray(arrays.get("values/label_frame", _IDENTITY_FRAME), float)
+    if frame.shape not in ((4,), (5,)) or (len(frame) == 5 and abs(frame[4]) != 1):
+        raise ValueError(
+            "its values/label_frame is not a labels' frame (ln scale, angle, offset x and y, handedness +-1)"
+        )
 
 
 def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, path: Path) -> SkinCalibration:
@@ -3627,6 +3678,9 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         )
     values = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("values/")}
     errors = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("standard_errors/")}
+    if position_map is not None and "label_frame" in values and mesh.nodes.shape[1] == 2:
+        frame = np.asarray(values["label_frame"], np.float64)
+        position_map = position_map.held_to(mesh, frame if len(frame) == 5 else np.append(frame, 1.0))  # versions 1-4
     first = stored["first_stage"]
     first_stage = ReferenceCalibration(
         model=model,

@@ -709,6 +709,30 @@ def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
     assert PositionMap.fit(read[:4], labelled[:4]).degree in (None, 0)
 
 
+def test_a_position_map_held_to_the_skin_takes_what_it_maps_off_the_skin_onto_the_outline():
+    """Labels in a frame 12.5 times the mesh's, turned, offset and mirrored: the affine map
+    fitted on reads within 0.7 of the unit disc's centre, held to the disc in that frame, takes
+    reads beyond it to the outline along the ray from the centre (its polynomial would take them
+    off the skin), and leaves those on it bit for bit."""
+    frame = np.array([np.log(12.5), np.deg2rad(25.0), 0.1, -0.2, -1.0])  # labels onto the mesh
+    scale, angle = np.exp(frame[0]), frame[1]
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+
+    def labels_of(on_mesh):
+        return (on_mesh - frame[2:4]) @ rotation / scale * [1.0, frame[4]]
+
+    rng = np.random.default_rng(1)
+    read = rng.uniform(-0.5, 0.5, (20, 2))
+    mapping = PositionMap.fit(read, labels_of(read))
+    held = mapping.held_to(de.mesh.disc(16, h=0.1), frame)
+    inside = np.vstack([read, [[0.9, 0.0], [np.nan, np.nan]]])
+    np.testing.assert_array_equal(held(inside), mapping(inside))
+    beyond = np.array([[1.5, 0.0], [0.0, -3.0], [-2.0, 2.0]])
+    outline = labels_of(beyond / np.linalg.norm(beyond, axis=1, keepdims=True))
+    assert np.all(np.linalg.norm(mapping(beyond) - outline, axis=1) > 0.4 / scale)
+    np.testing.assert_allclose(held(beyond), outline, atol=0.02 / scale)
+
+
 def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, calibrated, tmp_path):
     recording = mixing_skin.recording
     path = calibrated.save(tmp_path / "skin.cal.h5")
@@ -716,7 +740,8 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     np.testing.assert_allclose(again.signed(recording.frames), calibrated.signed(recording.frames), rtol=1e-12)
     np.testing.assert_allclose(again.contact_impedance, calibrated.contact_impedance)
     assert again.position_map.degree == calibrated.position_map.degree
-    np.testing.assert_allclose(again.position_map(recording.mesh.nodes), calibrated.position_map(recording.mesh.nodes))
+    beyond = np.vstack([recording.mesh.nodes, 3.0 * recording.mesh.nodes])  # the latter off the skin
+    np.testing.assert_allclose(again.position_map(beyond), calibrated.position_map(beyond))
     assert again.lines() == calibrated.lines()
     assert again.ringing == calibrated.ringing and 0.1 < again.ringing <= 0.5
     np.testing.assert_array_equal(again.noise, calibrated.noise)
@@ -750,6 +775,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         ("dataset", "readout/gains", 0.0, "readout/gains holds values that are not nonzero"),
         ("dataset", "noise", -1.0, "noise holds values that are not non-negative"),
         ("dataset", "reading_sign", 0.5, "reading_sign holds values other than"),
+        ("dataset", "values/label_frame", np.nan, "values/label_frame holds values that are not finite"),
     ],
 )
 def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
@@ -818,6 +844,11 @@ def test_labels_in_another_frame_are_moved_onto_the_mesh_and_mapped_back(mixing_
     np.testing.assert_allclose(moved.values["mixing"][[0, 10]], calibrated.values["mixing"][[0, 10]], atol=0.03)
     # Leave-one-out errors in the labels' frame, as small (relative to its scale) as in the mesh's.
     assert np.nanmedian(moved.press_errors) < 1.5 * scale * np.nanmedian(calibrated.press_errors) + 1e-4
+    # Touches are held to the skin in the labels' frame: what the map takes of points off the
+    # skin lies no further from its centre (the offset) than its radius there (the frame found
+    # to 10%).
+    beyond = 3.0 * recording.mesh.nodes
+    assert np.max(np.linalg.norm(moved.position_map(beyond) - offset, axis=1)) < 1.1 * scale
 
 
 def test_presses_that_raise_the_conductivity_set_the_touches_polarity():

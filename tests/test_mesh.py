@@ -218,3 +218,18 @@ def test_locate_finds_the_element_holding_each_point(small_disc):
     found = de.mesh.locate(small_disc, small_disc.element_centroids)
     np.testing.assert_array_equal(found, np.arange(small_disc.n_elements))
     assert de.mesh.locate(small_disc, [2.0, 0.0]) == -1 and de.mesh.locate(small_disc, [2.0, 0.0]).shape == ()
+
+
+def test_onto_sheet_takes_points_off_a_sheet_to_the_nearest_point_of_its_outline():
+    """On a 2 x 1 rectangle: a point beyond a side goes straight onto it, one beyond a corner to
+    the corner; points on the sheet and NaN stay as they are, bit for bit, in any batch shape."""
+    sheet = de.mesh.rectangle(2.0, 1.0, 8, h=0.25)
+    points = np.array([[[3.0, 0.2], [0.4, -0.9]], [[-1.5, 0.75], [0.3, 0.1]], [[np.nan, np.nan], [-0.99, 0.49]]])
+    held = de.mesh.onto_sheet(sheet, points)
+    assert held.shape == points.shape
+    np.testing.assert_allclose(held[0], [[1.0, 0.2], [0.4, -0.5]], atol=1e-12)
+    np.testing.assert_allclose(held[1, 0], [-1.0, 0.5], atol=1e-12)
+    np.testing.assert_array_equal(held[1, 1], points[1, 1])
+    np.testing.assert_array_equal(held[2], points[2])
+    with pytest.raises(ValueError, match="onto_sheet"):
+        de.mesh.onto_sheet(de.mesh.sphere_cap(1.0, 0.8, 8, h=0.3), np.zeros((1, 2)))

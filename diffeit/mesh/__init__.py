@@ -7,6 +7,7 @@ from ._fields import distance_to_segments as distance_to_segments
 from ._fields import element_sample_points as element_sample_points
 from ._fields import locate as locate
 from ._fields import nearest_element as nearest_element
+from ._fields import onto_sheet as onto_sheet
 from ._fields import onto_surface as onto_surface
 from ._fields import surface_distance as surface_distance
 from ._generate import disc as disc

@@ -198,6 +198,15 @@ def element_sample_points(mesh: Mesh, level: int = 8) -> np.ndarray:
     return points
 
 
+def _from_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """(P, K, 2) each point (P, 2) less its nearest point on each segment (K of `starts`,
+    `stops`)."""
+    direction = stops - starts
+    relative = points[:, None] - starts[None]
+    t = np.clip(np.sum(relative * direction, axis=2) / np.sum(direction**2, axis=1), 0.0, 1.0)
+    return relative - t[..., None] * direction
+
+
 def distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
     """The distance from each point to the nearest of a set of segments.
 
@@ -209,10 +218,34 @@ def distance_to_segments(points: np.ndarray, starts: np.ndarray, stops: np.ndarr
     Returns:
         (P,) the distances, in the points' units; inf when there is no segment.
     """
-    direction = stops - starts
-    relative = points[:, None] - starts[None]  # (P, K, 2)
-    t = np.clip(np.sum(relative * direction, axis=2) / np.sum(direction**2, axis=1), 0.0, 1.0)
-    return np.min(np.linalg.norm(relative - t[..., None] * direction, axis=2), axis=1, initial=np.inf)
+    return np.min(np.linalg.norm(_from_segments(points, starts, stops), axis=2), axis=1, initial=np.inf)
+
+
+def onto_sheet(mesh: Mesh, points: ArrayLike) -> np.ndarray:
+    """Points of the plane held to a flat sheet: each off it taken to the nearest point of its
+    boundary (outer or a hole's), the others and NaN unchanged.
+
+    Arguments:
+        mesh: The flat sheet.
+        points: (..., 2) positions, m.
+
+    Returns:
+        (..., 2) the positions, m, on the sheet.
+
+    Raises:
+        ValueError: For a surface mesh (a curved skin; `onto_surface` takes points onto it).
+    """
+    require_flat(mesh, "onto_sheet")
+    positions = np.array(points, dtype=float)
+    flat = positions.reshape(-1, 2)
+    finite = np.flatnonzero(np.all(np.isfinite(flat), axis=1))
+    off = finite[locate(mesh, flat[finite]) < 0] if len(finite) else finite
+    if len(off):
+        starts, stops = mesh.nodes[mesh.boundary_edges[:, 0]], mesh.nodes[mesh.boundary_edges[:, 1]]
+        offsets = _from_segments(flat[off], starts, stops)
+        nearest = np.argmin(np.sum(offsets**2, axis=2), axis=1)
+        flat[off] -= offsets[np.arange(len(off)), nearest]
+    return flat.reshape(positions.shape)
 
 
 def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level: int = 8) -> np.ndarray:
