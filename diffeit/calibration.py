@@ -245,6 +245,12 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 # A recording without a reference is calibrated on the mean of at most this many first frames;
 # a session without presses on those of its first _SESSION_FRAMES that look untouched.
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
+# A frame whose difference from the frames about it (`_DAMAGE_REACH` each side) exceeds this
+# fraction of their norm is damaged, not touched (a board's glitch: a frame of zeros, one at
+# another gain, readings out of order): never a reference frame, and `diffeit.reconstruct`
+# reads no touch on a frame whose differences exceed it (a press changes the readings by a few
+# percent).
+_LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
 # A recording's first frames that look touched are left out of its reference when they are at
 # most this many (a board's first frames after it connects; `reference_frames`).
 _LEADING_DAMAGED = 2
@@ -1226,15 +1232,18 @@ def reference_frames(
         # it one long press (the untouched trend `_untouched` starts from is the frames' median),
         # and the leading run is its reference.
         return recording.frames[:first], f"mean of the first {first} frames (up to the first of a long press)"
-    count = min(REFERENCE_FRAMES, recording.n_frames)
-    return recording.frames[:count], f"mean of the first {count} frames"
+    whole = ~_damaged(recording.frames)
+    if whole.all():
+        return recording.frames, f"mean of the first {recording.n_frames} frames"
+    kept = np.flatnonzero(whole)
+    return recording.frames[kept], f"mean of frames {name_indices(kept)} (the others look damaged)"
 
 
 def _looking_untouched(frames: np.ndarray, times: np.ndarray, where: str) -> tuple[np.ndarray, str]:
     """Those of `frames` (T, M), recorded at `times` (T,), that look untouched (`_untouched`,
-    when there are more than `REFERENCE_FRAMES`), and their description, the frames `where`
-    they are."""
-    still = _untouched(frames, times) if len(frames) > REFERENCE_FRAMES else np.ones(len(frames), bool)
+    when there are more than `REFERENCE_FRAMES`; else those not damaged, `_damaged`), and
+    their description, the frames `where` they are."""
+    still = _untouched(frames, times) if len(frames) > REFERENCE_FRAMES else ~_damaged(frames)
     if still.all():
         return frames, f"the {len(frames)} frames {where}"
     return frames[still], f"the {int(still.sum())} frames {where} that look untouched (of {len(frames)})"
@@ -1254,26 +1263,45 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
     single presses on a benchmark skin then read 41 mm off from the reference alone, 5 mm with
     the gain taken out). Three times: first against the frames' median (robust to the touched
     ones), then against the line through those kept; the first `REFERENCE_FRAMES` when fewer
-    pass."""
+    pass. A damaged frame (`_damaged`) is never untouched: with its gain taken out, a frame of
+    zeros stood on the trend, and a reference holding one read no press of a session."""
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
     time = np.asarray(times, np.float64) - np.mean(times)
     time = time / max(float(np.max(np.abs(time))), 1e-300)
     design = np.column_stack([np.ones_like(time), time])
+    whole = ~_damaged(frames)
 
     def near(trend: np.ndarray, still: np.ndarray) -> np.ndarray:
         trend = np.broadcast_to(trend, frames.shape)
         gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
         distance = np.linalg.norm(frames - gains[:, None] * trend, axis=1)
-        return distance <= factor * np.median(distance[still])
+        return whole & (distance <= factor * np.median(distance[still]))
 
-    still = near(np.median(frames, axis=0), np.ones(len(frames), bool))
+    still = near(np.median(frames[whole], axis=0), whole)
     for _ in range(2):
         if still.sum() < 3:  # no line through fewer
             break
         still = near(design @ np.linalg.lstsq(design[still], frames[still], rcond=None)[0], still)
     if still.sum() < REFERENCE_FRAMES:
-        still = np.arange(len(frames)) < REFERENCE_FRAMES
+        still = whole & (np.cumsum(whole) <= REFERENCE_FRAMES)
     return still
+
+
+def _damaged(frames: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames (T, M), in time order, whose difference from the median of the
+    frames about them (four each side; all of them, up to 9) exceeds `_LARGEST_CHANGE` of its
+    norm: a board's glitch (a frame of zeros, one at another gain, readings out of place), not
+    a touch, and not a drift over so few frames. None of fewer than 3 frames (nothing to tell
+    which is damaged), nor of frames that all look so."""
+    damaged = np.zeros(len(frames), bool)
+    if len(frames) < 3:
+        return damaged
+    if len(frames) <= 2 * _DAMAGE_REACH + 1:
+        about = np.broadcast_to(np.median(frames, axis=0), frames.shape)
+    else:
+        about = scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
+    damaged = np.linalg.norm(frames - about, axis=1) > _LARGEST_CHANGE * np.linalg.norm(about, axis=1)
+    return np.zeros(len(frames), bool) if damaged.all() else damaged
 
 
 @host_algebra

@@ -66,6 +66,7 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from ._threads import host_algebra
 from .calibration import (
+    _LARGEST_CHANGE,
     _LEAST_CORRELATION,
     _NOISE_FRAMES,
     _SKIN_LEAST_CORRELATION,
@@ -112,10 +113,6 @@ _GAUSS_NEWTON_FACTOR = 4.0
 # The solver each method names, and GREIT's design when its hyperparameter is "auto".
 _METHOD_SOLVERS = {"one_step": OneStep, "gauss_newton": GaussNewton, "total_variation": TotalVariation, "greit": GREIT}
 _GREIT_NOISE_FIGURE = 0.5
-# A frame whose differences' norm exceeds this fraction of the reference's is damaged, not touched
-# (a board's glitch: a frame of zeros, one at another gain, readings out of order): "auto" chooses
-# the hyperparameter without it (module docstring, "Hyperparameter").
-_LARGEST_CHANGE = 0.5
 # Frames per solve: one-step and GREIT in batches (one product and one progress step each), total
 # variation frame by frame (a progress step each), Gauss-Newton (and any other solver) all at once.
 _CHUNKS = {OneStep: 256, GREIT: 256, TotalVariation: 1}

@@ -66,16 +66,20 @@ def test_live_prints_the_touches_at_the_calibrations_model(skin, tmp_path, capsy
             assert "touch 1" not in lines[frame], lines[frame]  # one press, one touch: above the ringing alone
 
 
-def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_path, capsys):
+@pytest.mark.parametrize("first", ["as read", "zeros"])
+def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_path, capsys, first):
     """A stream whose readings grow 2% (20 times the board's noise) from its first frame to its
     last, 8 reference frames: the drift is taken out frame by frame, so the untouched frames
     after them read no touch and each press one touch where it was; the summary gives the
     gains taken out. (Against the fixed reference every one of those untouched frames read as
-    touched.)"""
+    touched.) A first frame of zeros (a board's glitch as it connects) is left out of the
+    reference, and said so."""
     path, board, pressed, mesh = skin
     untouched = np.ones(mesh.n_elements)
     sigmas = [untouched] * 14 + [pressed(PLACES[0])] * 3 + [untouched] * 6 + [pressed(PLACES[1])] * 3 + [untouched] * 6
     frames = board(sigmas, 3) * (1 + 0.02 * np.linspace(0, 1, len(sigmas)))[:, None]
+    if first == "zeros":
+        frames[0] = 0.0
     emulator = hw.Emulator(frames, frame_rate=100.0).start()
     options = ("--frames", str(len(sigmas)), "--reference-frames", "8", "--calibration", str(path), "--touches")
     status = _live(emulator.port, *options, "--png", str(tmp_path / "live.png"))
@@ -92,10 +96,11 @@ def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_pat
             found = re.search(pattern, lines[frame])
             assert found and "touch 1" not in lines[frame], lines[frame]
             assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
+    assert ("reference frame(s) [0] left out" in printed) == (first == "zeros")
     gains = re.search(r"the common gain drifted, taken out: ([\d.]+) to ([\d.]+)$", printed, re.M)
-    # Against the reference (the mean of the first 8 frames, its gain 1 + 0.02 * 3.5 / 31): the
-    # first imaged frame's gain, and the last's.
-    drift = (1 + 0.02 * np.array([8, 31]) / 31) / (1 + 0.02 * 3.5 / 31)
+    # Against the reference (the mean of the first 8 frames, its gain 1 + 0.02 * 3.5 / 31, or of
+    # frames 1 to 7, 1 + 0.02 * 4 / 31): the first imaged frame's gain, and the last's.
+    drift = (1 + 0.02 * np.array([8, 31]) / 31) / (1 + 0.02 * (3.5 if first == "as read" else 4.0) / 31)
     assert gains, printed[-300:]
     np.testing.assert_allclose([float(gains[1]), float(gains[2])], drift, atol=5e-4)
 

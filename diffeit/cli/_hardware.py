@@ -62,7 +62,8 @@ def add_commands(commands: argparse._SubParsersAction) -> None:
         "--reference-frames",
         type=int,
         default=1,
-        help="frames averaged into the reference (1); with 6 or more the skin's drift is followed and taken out",
+        help="frames averaged into the reference (1), but those of 3 or more that look damaged; with 6 or more "
+        "the skin's drift is followed and taken out",
     )
     live.add_argument("--batch", type=int, default=8, help="frames reconstructed together (8)")
     add_model_options(live, methods=_LIVE_METHODS, hyperparameter_default="auto")
@@ -165,6 +166,23 @@ def _open_source(arguments: argparse.Namespace) -> hw.SerialSource:
     return hw.SerialSource(
         arguments.port, parser, baudrate=arguments.baudrate, reconnect_timeout=arguments.reconnect_timeout
     )
+
+
+def _undamaged(reference: np.ndarray) -> np.ndarray:
+    """The reference frames (T, M) but those that look damaged (a board's glitch, often its
+    first frame after it connects: `diffeit.calibration`'s test, of 3 frames or more), which
+    are said."""
+    from .._messages import name_indices
+    from ..calibration import _damaged
+
+    damaged = _damaged(reference)
+    if damaged.any():
+        print(
+            f"reference frame(s) {name_indices(np.flatnonzero(damaged))} left out: they differ from the others by "
+            "more than half their size (damaged)",
+            flush=True,
+        )
+    return reference[~damaged]
 
 
 def _frame_protocol(source: hw.SerialSource, frame: hw.Frame) -> Protocol:
@@ -271,7 +289,7 @@ def _live(arguments: argparse.Namespace) -> int:
                     protocol,
                     settings,
                     arguments.png,
-                    np.array(reference_frames),
+                    _undamaged(np.array(reference_frames)),
                     fit,
                     dead_band=arguments.dead_band,
                     colour_limit=arguments.colour_limit,
