@@ -81,7 +81,11 @@ weights, left free, traded with the sheet the model lacks.
 
 ## Presses
 
-With labelled presses (`diffeit.io.Presses`), these fits follow.
+With labelled presses (`diffeit.io.Presses`), these fits follow. A press one of whose frames
+a board garbled (its change from the frames about it over 0.15 of their norm and over 10 times
+the presses' median: readings one place out of order change a frame by 0.26 to 0.6, a press by
+about 0.01, a deep one by 0.1) is left out first, with a warning: one such press had cost a
+session its fit.
 
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
   the presses' images.
@@ -251,6 +255,12 @@ REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
 # reads no touch on a frame whose differences exceed it (a press changes the readings by a few
 # percent).
 _LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
+# A labelled press whose frame changes more than this, and more than this factor times the
+# presses' median change, is a glitch (`_damaged_presses`): readings one place out of order
+# changed a frame by 0.26 of its norm (adjacent drive) to 0.6 (opposition); the presses of the
+# tests' and the benchmark's skins by at most 0.006 and 0.019, deep ones (-0.8, up to 16 mm) by
+# 0.105, 5.3 times their median.
+_GLITCH_CHANGE, _GLITCH_FACTOR = 0.15, 10.0
 # A recording's first frames that look touched are left out of its reference when they are at
 # most this many (a board's first frames after it connects; `reference_frames`).
 _LEADING_DAMAGED = 2
@@ -1288,20 +1298,26 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
 
 
 def _damaged(frames: np.ndarray) -> np.ndarray:
-    """(T,) bool, the frames (T, M), in time order, whose difference from the median of the
-    frames about them (four each side; all of them, up to 9) exceeds `_LARGEST_CHANGE` of its
-    norm: a board's glitch (a frame of zeros, one at another gain, readings out of place), not
-    a touch, and not a drift over so few frames. None of fewer than 3 frames (nothing to tell
-    which is damaged), nor of frames that all look so."""
-    damaged = np.zeros(len(frames), bool)
+    """(T,) bool, the frames (T, M), in time order, whose change from the frames about them
+    (`_change_from_about`) exceeds `_LARGEST_CHANGE`: a board's glitch (a frame of zeros, one
+    at another gain, readings out of place), not a touch, and not a drift over so few frames.
+    None of fewer than 3 frames (nothing to tell which is damaged), nor of frames that all
+    look so."""
     if len(frames) < 3:
-        return damaged
+        return np.zeros(len(frames), bool)
+    damaged = _change_from_about(frames) > _LARGEST_CHANGE
+    return np.zeros(len(frames), bool) if damaged.all() else damaged
+
+
+def _change_from_about(frames: np.ndarray) -> np.ndarray:
+    """(T,) each frame's (T, M, in time order; at least 3) distance from the median of the
+    frames about it (`_DAMAGE_REACH` each side; all of them, up to 9), a fraction of that
+    median's norm."""
     if len(frames) <= 2 * _DAMAGE_REACH + 1:
         about = np.broadcast_to(np.median(frames, axis=0), frames.shape)
     else:
         about = scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
-    damaged = np.linalg.norm(frames - about, axis=1) > _LARGEST_CHANGE * np.linalg.norm(about, axis=1)
-    return np.zeros(len(frames), bool) if damaged.all() else damaged
+    return np.linalg.norm(frames - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
 
 
 @host_algebra
@@ -1628,7 +1644,9 @@ def calibrate(
     (five folds, at least 20 presses);
     each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
     as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
-    fitted, its degree chosen by cross-validation.
+    fitted, its degree chosen by cross-validation. A press one of whose frames looks damaged
+    (a board's glitch: `_damaged_presses`) is left out, its press error and position NaN, with
+    a warning naming it.
 
     Arguments:
         recording: The session: untouched frames (or a reference) and, with presses, the
@@ -1674,7 +1692,7 @@ def calibrate(
         ValueError: For a recording without frames, presses outside the skin or outside the
             recording's time, an unknown prior group, `press_groups` without "mixing" or with
             a group the presses cannot fit (or "background_map" with `background_map=False`),
-            a `background_map` other than None, True or False, or a reference the model
+            a `background_map` other than None, True or False, a reference the model
             cannot be calibrated on.
     """
     if not isinstance(recording, Recording):
@@ -1719,13 +1737,17 @@ def calibrate(
     calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
+    damaged = _damaged_presses(presses, recording)
+    presses = presses.select(~damaged)
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, further, chosen, polarity)
     with_memory = memory and _held(presses, recording.times)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
         # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
         calibration = _too_few_to_hold_out(reference_only, (*(press_groups or PRESS_GROUP_CHOICES[-1]), "press depths"))
-        return _with_background_map(calibration, recording, presses, reference) if background_map else calibration
+        if background_map:
+            calibration = _with_background_map(calibration, recording, presses, reference)
+        return _with_every_press(calibration, damaged)
     frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
     # Without held-out presses (the memory's fit needs the frame) nothing could choose: the first set.
     choices = PRESS_GROUP_CHOICES if presses.n_presses >= _LEAST_HELD_OUT else PRESS_GROUP_CHOICES[:1]
@@ -1750,7 +1772,43 @@ def calibrate(
     if with_memory:
         frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
         calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
-    return _held_to_skin(calibration)
+    return _with_every_press(_held_to_skin(calibration), damaged)
+
+
+def _damaged_presses(presses: Presses, recording: Recording) -> np.ndarray:
+    """(K,) bool, the presses one of whose frames looks damaged: its change from the frames
+    about it (`_change_from_about`, over the whole recording) over `_GLITCH_CHANGE` and over
+    `_GLITCH_FACTOR` times the presses' median (a skin whose every press changes its readings
+    that much has no press left out). A board's glitch on one press's frame (its readings one
+    place out of order) had cost a session its presses' fit; a press changes the readings by a
+    few percent. None of a recording of fewer than 3 frames."""
+    frames = presses.frames(recording.times)
+    if recording.n_frames < 3:
+        return np.zeros(len(frames), bool)
+    change = _change_from_about(recording.frames)
+    largest = np.array([change[chosen].max() for chosen in frames])
+    return (largest > _GLITCH_CHANGE) & (largest > _GLITCH_FACTOR * np.median(largest))
+
+
+def _with_every_press(calibration: SkinCalibration, damaged: np.ndarray) -> SkinCalibration:
+    """`calibration`, fitted on the presses not `damaged` (K,), with its press errors and
+    positions for every press (NaN for those), and a warning naming them."""
+    if not damaged.any():
+        return calibration
+    errors = np.full(len(damaged), np.nan)
+    positions = np.full((len(damaged), calibration.model.mesh.nodes.shape[1]), np.nan)
+    if calibration.press_errors is not None:
+        errors[~damaged], positions[~damaged] = calibration.press_errors, calibration.press_positions
+    note = (
+        f"press(es) {name_indices(np.flatnonzero(damaged))} left out: a frame of theirs looks damaged (it changes "
+        "far more than the other presses do: a board's glitch)"
+    )
+    return eqx.tree_at(
+        lambda c: (c.press_errors, c.press_positions, c.warnings),
+        calibration,
+        (errors, positions, (*calibration.warnings, note)),
+        is_leaf=lambda node: node is None,
+    )
 
 
 def _held_to_skin(calibration: SkinCalibration) -> SkinCalibration:
