@@ -980,10 +980,11 @@ class SkinCalibration(eqx.Module):
         press_errors: (K,) distances, m, between mapped and labelled press positions, each
             press held out: of the presses' fit and the position map when the presses' fit
             is kept (five folds), of the position map alone otherwise (leave-one-out; with
-            fewer than 20 presses always); NaN for a press no touch was read at; None without
-            presses.
+            fewer than 20 presses always); NaN for a press no touch was read at, or left out
+            as damaged; None without presses.
         press_positions: (K, 2), or (K, 3) on a curved skin, where each press was read, m,
-            through the position map (NaN for a press no touch was read at), or None.
+            through the position map (NaN for a press no touch was read at, or left out as
+            damaged), or None.
         noise: (M_used,) the standard deviation of one reading, in the units of `signed`, from
             the spread of the reference frames (None with fewer than 6): `diffeit.touches`
             tests each frame's differences against it.
@@ -1193,7 +1194,9 @@ def reference_frames(
     first `_LEADING_DAMAGED` frames or fewer look touched (damaged), the untouched run after
     them; when more do, those (the untouched trend is the frames' median, and most of such a
     recording is one long press); the first `REFERENCE_FRAMES` when the recording holds no
-    more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched).
+    more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched). A
+    frame that looks damaged (`_damaged`: a frame of zeros, one at another gain) is never one
+    of them, of 3 frames or more.
 
     Arguments:
         recording: The recording.
