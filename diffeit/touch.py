@@ -485,31 +485,34 @@ class LiveTouches(eqx.Module):
             getattr(calibration, "polarity", None),
         )
 
-    def step(self, frames: ArrayLike, images: ArrayLike, finite: ArrayLike) -> tuple[Touches, np.ndarray, LiveTouches]:
+    def step(
+        self, frames: ArrayLike, images: ArrayLike, readable: ArrayLike
+    ) -> tuple[Touches, np.ndarray, LiveTouches]:
         """The touches of a batch.
 
         Arguments:
             frames: (B, M) the batch's frames, as recorded (drift taken out).
             images: (B, E) their images, relative changes.
-            finite: (B,) bool, the images that are finite: the others are not read, and the
-                anchors pass them over.
+            readable: (B,) bool, the frames to read: their images finite, the frames not
+                damaged (a board's glitch). The others are not read, and the anchors pass
+                them over.
 
         Returns:
-            The `Touches` of the batch's finite frames (in order), (B,) bool the frames that
+            The `Touches` of the batch's readable frames (in order), (B,) bool the frames that
             are what the last touch left (by the rule: a weak press beside the last one, with
             no release between, can look the same), and the state after the batch.
         """
         frames = np.atleast_2d(np.asarray(frames, np.float64))
         images = np.atleast_2d(np.asarray(images, np.float64))
-        finite = np.asarray(finite, bool)
+        readable = np.asarray(readable, bool)
         skin, state, polarity = self.calibration, self, self.polarity
         frames_touched = None  # against the reference: to tell the polarity, or where no anchors are kept
         if polarity is None or self.subspace is None:
             frames_touched = touched(
-                frames[finite], self.reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
+                frames[readable], self.reference, skin, reference_frames=self.reference_frames, subspace=self.subspace
             )
         if polarity is None:
-            polarity = polarity_of(images[finite] if frames_touched is None else images[finite][frames_touched])
+            polarity = polarity_of(images[readable] if frames_touched is None else images[readable][frames_touched])
             if frames_touched is not None and frames_touched.any():  # touched frames told it: kept
                 state = eqx.tree_at(lambda live: live.polarity, state, polarity, is_leaf=lambda node: node is None)
         left_behind, spans = np.zeros(len(frames), bool), None
@@ -525,21 +528,21 @@ class LiveTouches(eqx.Module):
             start = self.anchoring
             if start is None:
                 start = _Anchoring.at_reference(test, images.shape[1], (images.shape[1],))._replace(frame=self.frame)
-            images = np.where(finite[:, None], images, 0.0)  # a frame not finite is passed over
+            images = np.where(readable[:, None], images, 0.0)  # a frame not read is passed over
             scores = polarity * images if self.image_noise is None else polarity * images / self.image_noise
             anchor_of, anchors, left_behind, anchoring = _rest_anchors(
-                test, scores, (images,), DETECTION, ~finite, start
+                test, scores, (images,), DETECTION, ~readable, start
             )
             images = _against(images, 2, anchor_of, anchors)
             counts = np.array([anchor.count for anchor in anchors])[anchor_of]
             dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
-            frames_touched = (test.statistic(dv, (1 + 1 / counts)[:, None]) > DETECTION)[finite]
+            frames_touched = (test.statistic(dv, (1 + 1 / counts)[:, None]) > DETECTION)[readable]
             spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])
-            spans = spans[anchor_of][finite]
+            spans = spans[anchor_of][readable]
             state = eqx.tree_at(lambda live: live.anchoring, state, anchoring, is_leaf=lambda node: node is None)
         found = read(
             self.mesh,
-            images[finite],
+            images[readable],
             polarity=polarity,
             position_map=None if skin is None else skin.position_map,
             touched=frames_touched,

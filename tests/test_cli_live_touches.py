@@ -66,6 +66,31 @@ def test_live_prints_the_touches_at_the_calibrations_model(skin, tmp_path, capsy
             assert "touch 1" not in lines[frame], lines[frame]  # one press, one touch: above the ringing alone
 
 
+def test_live_does_not_read_a_frame_the_board_garbled(skin, tmp_path, capsys):
+    """A frame of zeros in the middle of a press (a board's glitch): said damaged and not read,
+    as `diffeit.touches` does; the press's frames after it read where it is, and the frame
+    after the press no touch (the glitch is no rest anchor)."""
+    path, board, pressed, mesh = skin
+    untouched = np.ones(mesh.n_elements)
+    sigmas = [untouched] * 2 + [pressed(PLACES[0])] * 5 + [untouched] * 2
+    frames = board(sigmas, 5)
+    frames[4] = 0.0
+    emulator = hw.Emulator(frames, frame_rate=100.0).start()
+    options = ("--frames", "9", "--calibration", str(path), "--touches", "--png", str(tmp_path / "l.png"))
+    status = _live(emulator.port, *options)
+    emulator.stop()
+    assert status == 0
+    printed = capsys.readouterr().out
+    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    assert sorted(lines) == list(range(8))
+    assert lines[3].endswith("damaged frame (its differences exceed half the reference): not read"), lines[3]
+    for frame in (1, 2, 4, 5):
+        found = re.search(r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm", lines[frame])
+        assert found, lines[frame]
+        assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - PLACES[0]) < 0.1, lines[frame]
+    assert lines[0].endswith("no touch") and lines[7].endswith("no touch"), (lines[0], lines[7])
+
+
 @pytest.mark.parametrize("first", ["as read", "zeros"])
 def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_path, capsys, first):
     """A stream whose readings grow 2% (20 times the board's noise) from its first frame to its

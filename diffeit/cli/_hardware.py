@@ -539,11 +539,17 @@ class _LiveViewer:
             differences = self.calibration.signed(values) - self.reference
             images = np.asarray(self.solver.solve(differences, throw=False).value) / self.calibration.background
         else:
-            images = np.asarray(self.solver.solve(values - self.reference, throw=False).value)
+            differences = values - self.reference
+            images = np.asarray(self.solver.solve(differences, throw=False).value)
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
         if self.touches:
-            self._print_touches(batch, values, images, finite)
+            from ..calibration import _LARGEST_CHANGE
+
+            # As `diffeit.reconstruct` and `diffeit.touches`: a frame whose differences exceed
+            # half the reference is a board's glitch, not read (and passed over by the anchors).
+            damaged = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(self.reference)
+            self._print_touches(batch, values, images, finite, damaged)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
         self.imaged += len(batch)
         image = images[-1]
@@ -582,17 +588,23 @@ class _LiveViewer:
             return ""
         return f"; the common gain drifted, taken out: {gains.min():.4f} to {gains.max():.4f}"
 
-    def _print_touches(self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray) -> None:
+    def _print_touches(
+        self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray, damaged: np.ndarray
+    ) -> None:
         """Print a line per frame of the batch: its index among the frames imaged, its time, its
-        image's peak and its touches (`diffeit.touch.LiveTouches`, the state carried)."""
-        found, left_behind, self.live_touches = self.live_touches.step(values, images, finite)
-        row = np.cumsum(finite) - 1  # each finite image's row in `found`
+        image's peak and its touches (`diffeit.touch.LiveTouches`, the state carried); frames
+        whose image is not `finite`, or that are `damaged`, are not read."""
+        read = finite & ~damaged
+        found, left_behind, self.live_touches = self.live_touches.step(values, images, read)
+        row = np.cumsum(read) - 1  # each read image's row in `found`
         for k, (frame, image) in enumerate(zip(batch, images, strict=True)):
             if self.start_time is None:
                 self.start_time = frame.host_time
             when = "" if frame.host_time is None else f" (t = {frame.host_time - self.start_time:.3f} s)"
             if not finite[k]:
                 text = "not finite: no touches read"
+            elif damaged[k]:
+                text = "damaged frame (its differences exceed half the reference): not read"
             else:
                 peak = image.flat[np.argmax(np.abs(image))]
                 text = f"peak {peak:+.3f}; " + ("; ".join(found.lines(int(row[k]))) or "no touch")
