@@ -63,6 +63,8 @@ def test_openeit_electrode_count_from_the_line_length_and_malformed_lines(tmp_pa
     recording = read_openeit(log, skip_malformed=True)
     assert recording.protocol.n_electrodes == 8 and recording.n_frames == 3
     assert recording.provenance["metadata"]["skipped_lines"] == [2, 4]
+    # The frames keep their places in time: a line dropped leaves its frame's time empty.
+    np.testing.assert_array_equal(recording.times, [0.0, 2.0, 4.0])
     (tmp_path / "odd.txt").write_text("magnitudes: 1, 2, 3\n")
     with pytest.raises(ValueError, match="lines hold \\[3\\] values; OpenEIT's opposition layouts have"):
         read_openeit(tmp_path / "odd.txt")

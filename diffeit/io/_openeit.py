@@ -39,10 +39,13 @@ def read_openeit(
     Arguments:
         path: The log file.
         n_electrodes: 8, 16 or 32; None chooses from the number of values per line.
-        frame_rate: Frames per second (logs carry no times: frame t is at t / frame_rate s).
+        frame_rate: Frames per second (logs carry no times: the t-th line of values is at
+            t / frame_rate s).
         skip_malformed: Drop lines of another length or with non-numbers, and a last line
             without its newline, instead of refusing the file (their line numbers go in
-            `provenance["metadata"]["skipped_lines"]`).
+            `provenance["metadata"]["skipped_lines"]`). Each dropped line keeps its place in
+            time: the frames after it keep theirs (labelled presses timed by the frame
+            count stay on their frames).
 
     Returns:
         The `Recording` under `opposite(n_electrodes)`.
@@ -100,7 +103,9 @@ def read_openeit(
             f"{path}: lines {name_indices(np.array(bad))} are not {n_values} numbers (the {n_electrodes}-electrode "
             "opposition layout); pass skip_malformed=True to drop them"
         )
-    kept = [(number, values) for number, values in rows if number not in set(bad)]
+    skipped = set(bad)
+    slots = [slot for slot, (number, _) in enumerate(rows) if number not in skipped]  # each line of values, a frame
+    kept = [rows[slot] for slot in slots]
     if not kept:
         raise ValueError(f"{path}: no line holds {n_values} values")
     frames = np.array([values for _, values in kept])
@@ -114,7 +119,7 @@ def read_openeit(
         )
     return Recording(
         frames=frames,
-        times=np.arange(len(frames)) / frame_rate,
+        times=np.array(slots, np.float64) / frame_rate,
         protocol=protocol,
         provenance={
             "source": f"OpenEIT text log {path.name}",
