@@ -85,7 +85,8 @@ With labelled presses (`diffeit.io.Presses`), these fits follow. A press one of 
 a board garbled (its change from the frames about it over 0.15 of their norm and over 10 times
 the presses' median: readings one place out of order change a frame by 0.26 to 0.6, a press by
 about 0.01, a deep one by 0.1) is left out first, with a warning: one such press had cost a
-session its fit.
+session its fit. So is a press timed at an instant no frame lies within half a frame's period
+of (a frame lost: the nearest frame is the rest's, or another press's).
 
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
   the presses' images.
@@ -256,7 +257,7 @@ REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
 # percent).
 _LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
 # A labelled press whose frame changes more than this, and more than this factor times the
-# presses' median change, is a glitch (`_damaged_presses`): readings one place out of order
+# presses' median change, is a glitch (`_presses_left_out`): readings one place out of order
 # changed a frame by 0.26 of its norm (adjacent drive) to 0.6 (opposition); the presses of the
 # tests' and the benchmark's skins by at most 0.006 and 0.019, deep ones (-0.8, up to 16 mm) by
 # 0.105, 5.3 times their median.
@@ -1648,8 +1649,8 @@ def calibrate(
     each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
     as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
     fitted, its degree chosen by cross-validation. A press one of whose frames looks damaged
-    (a board's glitch: `_damaged_presses`) is left out, its press error and position NaN, with
-    a warning naming it.
+    (a board's glitch), or timed where a frame is missing, is left out (`_presses_left_out`),
+    its press error and position NaN, with a warning naming it.
 
     Arguments:
         recording: The session: untouched frames (or a reference) and, with presses, the
@@ -1693,8 +1694,9 @@ def calibrate(
 
     Raises:
         ValueError: For a recording without frames, presses outside the skin or outside the
-            recording's time, an unknown prior group, `press_groups` without "mixing" or with
-            a group the presses cannot fit (or "background_map" with `background_map=False`),
+            recording's time, presses that are all left out, an unknown prior group,
+            `press_groups` without "mixing" or with a group the presses cannot fit (or
+            "background_map" with `background_map=False`),
             a `background_map` other than None, True or False, a reference the model
             cannot be calibrated on.
     """
@@ -1740,8 +1742,8 @@ def calibrate(
     calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
-    damaged = _damaged_presses(presses, recording)
-    presses = presses.select(~damaged)
+    left_out, notes = _presses_left_out(presses, recording)
+    presses = presses.select(~left_out)
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, further, chosen, polarity)
     with_memory = memory and _held(presses, recording.times)
@@ -1750,7 +1752,7 @@ def calibrate(
         calibration = _too_few_to_hold_out(reference_only, (*(press_groups or PRESS_GROUP_CHOICES[-1]), "press depths"))
         if background_map:
             calibration = _with_background_map(calibration, recording, presses, reference)
-        return _with_every_press(calibration, damaged)
+        return _with_every_press(calibration, left_out, notes)
     frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
     # Without held-out presses (the memory's fit needs the frame) nothing could choose: the first set.
     choices = PRESS_GROUP_CHOICES if presses.n_presses >= _LEAST_HELD_OUT else PRESS_GROUP_CHOICES[:1]
@@ -1775,41 +1777,63 @@ def calibrate(
     if with_memory:
         frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
         calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
-    return _with_every_press(_held_to_skin(calibration), damaged)
+    return _with_every_press(_held_to_skin(calibration), left_out, notes)
 
 
-def _damaged_presses(presses: Presses, recording: Recording) -> np.ndarray:
-    """(K,) bool, the presses one of whose frames looks damaged: its change from the frames
-    about it (`_change_from_about`, over the whole recording) over `_GLITCH_CHANGE` and over
-    `_GLITCH_FACTOR` times the presses' median (a skin whose every press changes its readings
-    that much has no press left out). A board's glitch on one press's frame (its readings one
-    place out of order) had cost a session its presses' fit; a press changes the readings by a
-    few percent. None of a recording of fewer than 3 frames."""
-    frames = presses.frames(recording.times)
-    if recording.n_frames < 3:
-        return np.zeros(len(frames), bool)
-    change = _change_from_about(recording.frames)
-    largest = np.array([change[chosen].max() for chosen in frames])
-    return (largest > _GLITCH_CHANGE) & (largest > _GLITCH_FACTOR * np.median(largest))
+def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(K,) bool, the presses the calibration leaves out, and why, in words: those one of whose
+    frames looks damaged, its change from the frames about it (`_change_from_about`, over the
+    whole recording) over `_GLITCH_CHANGE` and over `_GLITCH_FACTOR` times the presses' median
+    (a skin whose every press changes its readings that much has none left out: a board's
+    glitch on one press's frame, its readings one place out of order, had cost a session its
+    presses' fit, and a press changes the readings by a few percent); and those timed at an
+    instant no frame lies within half a frame's period of (a frame missing: the nearest one is
+    another's, or the rest's)."""
+    frames, times = presses.frames(recording.times), recording.times
+    left_out, notes = np.zeros(len(frames), bool), []
+    if recording.n_frames >= 3:
+        change = _change_from_about(recording.frames)
+        largest = np.array([change[chosen].max() for chosen in frames])
+        damaged = (largest > _GLITCH_CHANGE) & (largest > _GLITCH_FACTOR * np.median(largest))
+        if damaged.any():
+            notes.append(
+                f"press(es) {name_indices(np.flatnonzero(damaged))} left out: a frame of theirs looks damaged (it "
+                "changes far more than the other presses do: a board's glitch)"
+            )
+        left_out |= damaged
+    if recording.n_frames >= 2:
+        step = float(np.median(np.diff(times)))
+        missing = np.array(
+            [
+                not np.any((times[chosen] >= start) & (times[chosen] <= end))
+                and np.min(np.abs(times[chosen] - 0.5 * (start + end))) > 0.5 * step
+                for chosen, (start, end) in zip(frames, presses.times, strict=True)
+            ]
+        )
+        if missing.any():
+            notes.append(
+                f"press(es) {name_indices(np.flatnonzero(missing))} left out: no frame lies within half a frame's "
+                "period of their time (a frame missing; the nearest is another's)"
+            )
+        left_out |= missing
+    if left_out.all():
+        raise ValueError(f"every labelled press is left out: {'; '.join(notes)}")
+    return left_out, tuple(notes)
 
 
-def _with_every_press(calibration: SkinCalibration, damaged: np.ndarray) -> SkinCalibration:
-    """`calibration`, fitted on the presses not `damaged` (K,), with its press errors and
-    positions for every press (NaN for those), and a warning naming them."""
-    if not damaged.any():
+def _with_every_press(calibration: SkinCalibration, left_out: np.ndarray, notes: tuple[str, ...]) -> SkinCalibration:
+    """`calibration`, fitted on the presses not `left_out` (K,), with its press errors and
+    positions for every press (NaN for those), and the `notes` saying why among its warnings."""
+    if not left_out.any():
         return calibration
-    errors = np.full(len(damaged), np.nan)
-    positions = np.full((len(damaged), calibration.model.mesh.nodes.shape[1]), np.nan)
+    errors = np.full(len(left_out), np.nan)
+    positions = np.full((len(left_out), calibration.model.mesh.nodes.shape[1]), np.nan)
     if calibration.press_errors is not None:
-        errors[~damaged], positions[~damaged] = calibration.press_errors, calibration.press_positions
-    note = (
-        f"press(es) {name_indices(np.flatnonzero(damaged))} left out: a frame of theirs looks damaged (it changes "
-        "far more than the other presses do: a board's glitch)"
-    )
+        errors[~left_out], positions[~left_out] = calibration.press_errors, calibration.press_positions
     return eqx.tree_at(
         lambda c: (c.press_errors, c.press_positions, c.warnings),
         calibration,
-        (errors, positions, (*calibration.warnings, note)),
+        (errors, positions, (*calibration.warnings, *notes)),
         is_leaf=lambda node: node is None,
     )
 
