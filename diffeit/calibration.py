@@ -85,7 +85,7 @@ With labelled presses (`diffeit.io.Presses`), these fits follow. A press one of 
 a board garbled (its change from the frames about it over 0.15 of their norm and over 10 times
 the presses' median: readings one place out of order change a frame by 0.26 to 0.6, a press by
 about 0.01, a deep one by 0.1) is left out first, with a warning: one such press had cost a
-session its fit. So is a press timed at an instant no frame lies within half a frame's period
+session its fit. So is a press timed at an instant no frame lies within 3/4 of a frame's period
 of (a frame lost: the nearest frame is the rest's, or another press's).
 
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
@@ -262,6 +262,10 @@ _LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
 # tests' and the benchmark's skins by at most 0.006 and 0.019, deep ones (-0.8, up to 16 mm) by
 # 0.105, 5.3 times their median.
 _GLITCH_CHANGE, _GLITCH_FACTOR = 0.15, 10.0
+# A labelled press timed at an instant no frame lies within this fraction of the frames' median
+# period of lost its frame (`_presses_left_out`): the nearest is the rest's or another press's.
+# Not a half: frames' times jitter, and labels may be timed at a press's onset.
+_LOST_FRAME = 0.75
 # A recording's first frames that look touched are left out of its reference when they are at
 # most this many (a board's first frames after it connects; `reference_frames`).
 _LEADING_DAMAGED = 2
@@ -1787,8 +1791,8 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
     (a skin whose every press changes its readings that much has none left out: a board's
     glitch on one press's frame, its readings one place out of order, had cost a session its
     presses' fit, and a press changes the readings by a few percent); and those timed at an
-    instant no frame lies within half a frame's period of (a frame missing: the nearest one is
-    another's, or the rest's)."""
+    instant no frame lies within `_LOST_FRAME` of the frames' median period of (a frame
+    missing: the nearest one is another's, or the rest's)."""
     frames, times = presses.frames(recording.times), recording.times
     left_out, notes = np.zeros(len(frames), bool), []
     if recording.n_frames >= 3:
@@ -1806,13 +1810,13 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
         missing = np.array(
             [
                 not np.any((times[chosen] >= start) & (times[chosen] <= end))
-                and np.min(np.abs(times[chosen] - 0.5 * (start + end))) > 0.5 * step
+                and np.min(np.abs(times[chosen] - 0.5 * (start + end))) > _LOST_FRAME * step
                 for chosen, (start, end) in zip(frames, presses.times, strict=True)
             ]
         )
         if missing.any():
             notes.append(
-                f"press(es) {name_indices(np.flatnonzero(missing))} left out: no frame lies within half a frame's "
+                f"press(es) {name_indices(np.flatnonzero(missing))} left out: no frame lies within 3/4 of a frame's "
                 "period of their time (a frame missing; the nearest is another's)"
             )
         left_out |= missing

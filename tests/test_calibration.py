@@ -225,7 +225,7 @@ def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibrat
     skin = de.calibrate(session, presses.select(np.arange(22)))
     notes = [w for w in skin.warnings if w.startswith("press(es) [")]
     assert notes[0].startswith("press(es) [5] left out: a frame of theirs looks damaged"), notes
-    assert notes[1].startswith("press(es) [7] left out: no frame lies within half a frame's period"), notes
+    assert notes[1].startswith("press(es) [7] left out: no frame lies within 3/4 of a frame's period"), notes
     assert np.all(np.isnan(skin.press_errors[[5, 7]])) and np.all(np.isnan(skin.press_positions[[5, 7]]))
     assert np.isfinite(np.delete(skin.press_errors, [5, 7])).sum() >= 18 and skin.press_positions.shape == (22, 2)
     assert not any("correlation with the reference" in w for w in skin.warnings), skin.warnings
