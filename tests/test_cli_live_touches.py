@@ -36,22 +36,30 @@ def _live(port, *options):
     return main(["live", "--port", port, "--protocol", "adjacent", "--batch", "4", *options])
 
 
+def _streamed(frames, capsys, *options):
+    """`live` (`options`) on `frames` streamed by the emulator, which must end well: what it
+    printed, and each frame imaged's line (frame index -> the text after its time)."""
+    emulator = hw.Emulator(frames, frame_rate=100.0).start()
+    status = _live(emulator.port, *options)
+    emulator.stop()
+    assert status == 0
+    printed = capsys.readouterr().out
+    return printed, {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+
+
 def test_live_prints_the_touches_at_the_calibrations_model(skin, tmp_path, capsys):
     path, board, pressed, mesh = skin
     untouched = np.ones(mesh.n_elements)
     # The reference frame, then: untouched, a press at each place (held 3 frames), untouched. One reference
     # frame (the default): the voltage test must take its noise into the differences to pass untouched frames.
     sigmas = [untouched] * 3 + [pressed(PLACES[0])] * 3 + [pressed(PLACES[1])] * 3 + [untouched]
-    emulator = hw.Emulator(board(sigmas, 2), frame_rate=100.0).start()
     png = tmp_path / "live.png"
-    status = _live(emulator.port, "--frames", "10", "--calibration", str(path), "--touches", "--png", str(png))
-    emulator.stop()
-    assert status == 0
-    printed = capsys.readouterr().out
+    printed, lines = _streamed(
+        board(sigmas, 2), capsys, "--frames", "10", "--calibration", str(path), "--touches", "--png", str(png)
+    )
     assert "imaging at the calibration's model" in printed and "(the calibration's)" in printed
     assert "calibrated to the reference" not in printed  # its own reference calibration is skipped
     assert "done: 9 frames reconstructed" in printed and png.exists()
-    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
     assert sorted(lines) == list(range(9))
     for frame in (0, 1, 8):  # untouched: the voltage test finds no touch
         assert lines[frame].endswith("no touch"), lines[frame]
@@ -75,13 +83,8 @@ def test_live_does_not_read_a_frame_the_board_garbled(skin, tmp_path, capsys):
     sigmas = [untouched] * 2 + [pressed(PLACES[0])] * 5 + [untouched] * 2
     frames = board(sigmas, 5)
     frames[4] = 0.0
-    emulator = hw.Emulator(frames, frame_rate=100.0).start()
     options = ("--frames", "9", "--calibration", str(path), "--touches", "--png", str(tmp_path / "l.png"))
-    status = _live(emulator.port, *options)
-    emulator.stop()
-    assert status == 0
-    printed = capsys.readouterr().out
-    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    _, lines = _streamed(frames, capsys, *options)
     assert sorted(lines) == list(range(8))
     assert lines[3].endswith("damaged frame (its differences exceed half the reference): not read"), lines[3]
     for frame in (1, 2, 4, 5):
@@ -105,13 +108,8 @@ def test_live_follows_a_drifting_skin_with_enough_reference_frames(skin, tmp_pat
     frames = board(sigmas, 3) * (1 + 0.02 * np.linspace(0, 1, len(sigmas)))[:, None]
     if first == "zeros":
         frames[0] = 0.0
-    emulator = hw.Emulator(frames, frame_rate=100.0).start()
     options = ("--frames", str(len(sigmas)), "--reference-frames", "8", "--calibration", str(path), "--touches")
-    status = _live(emulator.port, *options, "--png", str(tmp_path / "live.png"))
-    emulator.stop()
-    assert status == 0
-    printed = capsys.readouterr().out
-    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    printed, lines = _streamed(frames, capsys, *options, "--png", str(tmp_path / "live.png"))
     assert sorted(lines) == list(range(len(sigmas) - 8))
     for frame in (*range(6), *range(9, 15), *range(18, 24)):
         assert lines[frame].endswith("no touch"), (frame, lines[frame])
@@ -168,13 +166,8 @@ def test_live_without_a_calibration_reads_one_touch_a_press_against_its_referenc
     clean = [np.asarray(model.measure(jnp.asarray(sigma))) for sigma in (untouched, pressed)]
     frames = np.array([clean[0]] * 11 + [clean[1]] * 3 + [clean[0]] * 3)
     frames = frames + 1e-3 * np.sqrt(np.mean(clean[0] ** 2)) * np.random.default_rng(5).standard_normal(frames.shape)
-    emulator = hw.Emulator(frames, frame_rate=100.0).start()
     options = ("--frames", str(len(frames)), "--reference-frames", "8", "--touches", "--png", str(tmp_path / "l.png"))
-    status = _live(emulator.port, *options)
-    emulator.stop()
-    assert status == 0
-    printed = capsys.readouterr().out
-    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    _, lines = _streamed(frames, capsys, *options)
     assert sorted(lines) == list(range(9))
     for frame in (0, 1, 2, 6, 7, 8):
         assert lines[frame].endswith("no touch"), (frame, lines[frame])
@@ -200,13 +193,8 @@ def test_live_reads_a_skin_that_keeps_part_of_each_press_against_the_rest_before
         sigmas += [rest * press] * 3
         rest = rest * (1 - 0.4 * (1 - press))
         sigmas += [rest] * 4
-    emulator = hw.Emulator(board(sigmas, 4), frame_rate=100.0).start()
     options = ("--frames", str(len(sigmas)), "--calibration", str(path), "--touches", "--png", str(tmp_path / "l.png"))
-    status = _live(emulator.port, *options)
-    emulator.stop()
-    assert status == 0
-    printed = capsys.readouterr().out
-    lines = {int(m[1]): m[2] for m in re.finditer(r"^frame (\d+) \(t = [\d.]+ s\): (.*)$", printed, re.M)}
+    printed, lines = _streamed(board(sigmas, 4), capsys, *options)
     assert sorted(lines) == list(range(len(sigmas) - 1))
     pattern = r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm"
     for frames, place in zip(held, places, strict=True):
