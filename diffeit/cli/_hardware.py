@@ -406,7 +406,8 @@ class _LiveViewer:
     beside its image's peak (`diffeit.touch.LiveTouches`: `diffeit.touches`'s rule, the
     calibration's position map, polarity and ringing; where the calibration knows its readings'
     noise, its voltage test, and each frame read against the rest anchor in force, carried
-    from batch to batch; a frame the rule takes for what the last touch left says so).
+    from batch to batch; a frame the rule takes for what the last touch left says so; a frame
+    whose differences exceed half the reference is said damaged and not read).
 
     With 6 or more reference frames, the skin's drift (every reading moving with a common gain:
     a hydrogel drying, a board warming) is followed and each frame divided by its gain before
