@@ -1805,8 +1805,8 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
                 "changes far more than the other presses do: a board's glitch)"
             )
         left_out |= damaged
-    if recording.n_frames >= 2:
-        step = float(np.median(np.diff(times)))
+    step = float(np.median(np.diff(times))) if recording.n_frames >= 2 else 0.0
+    if step > 0:  # else no period to tell a lost frame by (times of a coarse clock repeat)
         missing = np.array(
             [
                 not np.any((times[chosen] >= start) & (times[chosen] <= end))
