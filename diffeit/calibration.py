@@ -252,9 +252,9 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
 # A frame whose difference from the frames about it (`_DAMAGE_REACH` each side) exceeds this
 # fraction of their norm is damaged, not touched (a board's glitch: a frame of zeros, one at
-# another gain, readings out of order): never a reference frame, and `diffeit.reconstruct`
-# reads no touch on a frame whose differences exceed it (a press changes the readings by a few
-# percent).
+# another gain, readings out of order): never a reference frame; `diffeit.reconstruct` chooses
+# the "auto" hyperparameter without a frame whose differences exceed it, and `diffeit.touches`
+# reads no touch there (a press changes the readings by a few percent).
 _LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
 # A labelled press whose frame changes more than this, and more than this factor times the
 # presses' median change, is a glitch (`_presses_left_out`): readings one place out of order
