@@ -890,9 +890,9 @@ class PositionMap(eqx.Module):
         points = np.array(points, np.float64)
         if self.sheet is None or self.frame is None:
             return points
-        scale, angle, offset, mirror = math.exp(self.frame[0]), self.frame[1], self.frame[2:4], [1.0, self.frame[4]]
-        rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
-        in_mesh = scale * (points * mirror) @ rotation.T + offset
+        scale, rotation = _similarity_of(self.frame)
+        offset, mirror = self.frame[2:4], [1.0, self.frame[4]]
+        in_mesh = _in_mesh_frame(points, self.frame)
         on_mesh = onto_sheet(self.sheet, in_mesh)
         moved = np.any(on_mesh != in_mesh, axis=-1)  # the others stay bit for bit
         points[moved] = (on_mesh[moved] - offset) @ rotation / scale * mirror
@@ -3237,10 +3237,19 @@ def _moved(presses: Presses, frame: np.ndarray | None) -> Presses:
     are in it (a curved skin's)."""
     if frame is None:
         return presses
-    scale, angle = math.exp(frame[0]), frame[1]
-    rotation = np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
-    labelled = presses.centres * [1.0, frame[4]]
-    return Presses(scale * labelled @ rotation.T + frame[2:4], presses.radius * scale, presses.times)
+    return Presses(_in_mesh_frame(presses.centres, frame), presses.radius * math.exp(frame[0]), presses.times)
+
+
+def _similarity_of(frame: np.ndarray) -> tuple[float, np.ndarray]:
+    """The scale and the rotation (2, 2) of the labels' frame `frame` (`_moved`)."""
+    angle = frame[1]
+    return math.exp(frame[0]), np.array([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+
+
+def _in_mesh_frame(points: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(..., 2) labels'-frame `points` in the mesh's frame under `frame` (`_moved`)."""
+    scale, rotation = _similarity_of(frame)
+    return scale * (points * [1.0, frame[4]]) @ rotation.T + frame[2:4]
 
 
 def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:

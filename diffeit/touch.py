@@ -394,10 +394,7 @@ def touches(
         anchor_of, anchors, _, _ = _rest_anchors(test, scores, (images, *signed), detection, ~intact, start)
         images = _against(images, 2, anchor_of, anchors)
         signed = tuple(_against(values, 3, anchor_of, anchors) for values in signed)
-        counts = np.array([anchor.count for anchor in anchors])[anchor_of]
-        dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
-        frames_touched = test.statistic(dv, (1 + 1 / counts)[:, None]) > detection
-        spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])[anchor_of]
+        frames_touched, spans = _against_anchors_tested(test, anchor_of, anchors, detection)
     found = read(
         recording.mesh,
         images,
@@ -534,11 +531,8 @@ class LiveTouches(eqx.Module):
                 test, scores, (images,), DETECTION, ~readable, start
             )
             images = _against(images, 2, anchor_of, anchors)
-            counts = np.array([anchor.count for anchor in anchors])[anchor_of]
-            dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
-            frames_touched = (test.statistic(dv, (1 + 1 / counts)[:, None]) > DETECTION)[readable]
-            spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])
-            spans = spans[anchor_of][readable]
+            frames_touched, spans = _against_anchors_tested(test, anchor_of, anchors, DETECTION)
+            frames_touched, spans = frames_touched[readable], spans[readable]
             state = eqx.tree_at(lambda live: live.anchoring, state, anchoring, is_leaf=lambda node: node is None)
         found = read(
             self.mesh,
@@ -877,6 +871,19 @@ def _against(values: np.ndarray, which: int, anchor_of: np.ndarray, anchors: lis
     return values - np.stack([anchor.means[which] for anchor in anchors])[anchor_of]
 
 
+def _against_anchors_tested(
+    test: _VoltageTest, anchor_of: np.ndarray, anchors: list[_Anchor], detection: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T,) bool, the frames whose differences from their anchor stand out of its noise (the
+    voltage test, with the anchor's number of frames), and (T, 2) the first and last frame of
+    each frame's anchor (-1, -1: the recording's reference; `Touches.anchor`)."""
+    counts = np.array([anchor.count for anchor in anchors])[anchor_of]
+    dv = _against(test.frames - test.reference, 0, anchor_of, anchors)
+    frames_touched = test.statistic(dv, (1 + 1 / counts)[:, None]) > detection
+    spans = np.array([anchor.frames[[0, -1]] if len(anchor.frames) else [-1, -1] for anchor in anchors])
+    return frames_touched, spans[anchor_of]
+
+
 def _onset(
     test: _VoltageTest,
     step: np.ndarray,
@@ -888,9 +895,9 @@ def _onset(
     (M,), image `step_image` (E,), a touch positive) brought a touch: when it grew a touch's
     hill (its image's largest value is positive), or when what is left of it once the
     least-squares multiple of the touch held since the last onset is taken out (`peak`, the
-    differences, their whitened values and the image of its highest frame) stands out of the noise and grew one (a touch
-    moved, or one added beside a deeper one; not that touch pressed deeper, relaxed or
-    released, nor another released)."""
+    differences, their whitened values and the image of its highest frame) stands out of the
+    noise and grew one (a touch moved, or one added beside a deeper one; not that touch pressed
+    deeper, relaxed or released, nor another released)."""
     if step_image.max() > -step_image.min():
         return True
     if peak is None:
