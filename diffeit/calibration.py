@@ -165,6 +165,11 @@ of (a frame lost: the nearest frame is the rest's, or another press's).
   reads a further touch: a single press is one touch.
   On a curved skin the polynomial is in x, y and z and the displaced touches are taken back
   onto the surface.
+- **A size map** (`SizeMap`), with the labels' frame found (20 presses or more on a flat skin)
+  or on a curved skin: gains on the radius and depth a touch reads at, smooth over the sheet,
+  that take each press's to its labelled radius and its depth under its labelled disc at the
+  calibrated model (a one-step image reads a press about twice as wide and a fifth as deep,
+  more so in the sheet's middle). `diffeit.touches` reads through it.
 - **Memory**, when every press is held over several frames: the skin's memory parameters
   fitted to the session's readings with the presses' holds known, each press's signature
   learned from its own frames, and its depth and how its readings bend with it from the
@@ -932,6 +937,121 @@ class PositionMap(eqx.Module):
         return cls(degree, coefficients, length, errors, surface)
 
 
+class SizeMap(eqx.Module):
+    """Gains, smooth over the sheet, on the radius and the depth of touches read from images,
+    fitted on labelled presses.
+
+    A one-step image blurs a touch: it reads a press wider and shallower than it is, by factors
+    that vary over the sheet (on the calibration benchmark's skins, presses of radius 10 mm and
+    depth -0.3 read 1.6 to 3.1 times as wide and 0.11 to 0.43 times as deep, 10th to 90th
+    percentile). ln(labelled radius / read radius) and ln(model depth / read depth) are each a
+    polynomial in the read position (positions divided by `length`, as `PositionMap`'s), its
+    degree chosen by leave-one-out cross-validation as `PositionMap`'s (None: a gain of 1); the
+    model depth is the press's depth under its labelled disc at the calibrated model. A touch
+    like the presses then reads at their radius and depth; one of another size in proportion.
+    Beyond the presses the polynomial is not trusted: each ln gain stays within the range it
+    takes at them.
+
+    Attributes:
+        radius_degree: The radius gain's polynomial degree, or None for a gain of 1.
+        depth_degree: The depth gain's, or None.
+        radius_coefficients: (n_terms,) the radius gain's polynomial coefficients (ln gain).
+        depth_coefficients: (n_terms,) the depth gain's.
+        limits: (2, 2) the smallest and largest ln gain of radius (row 0) and depth (row 1) at
+            the presses.
+        length: The length, m, positions are divided by (the presses' spread).
+        errors: "radius" and "depth" -> degree (str; "none" for a gain of 1) -> the median
+            leave-one-out |ln(read x gain / press's)|.
+    """
+
+    radius_degree: int | None = eqx.field(static=True)
+    depth_degree: int | None = eqx.field(static=True)
+    radius_coefficients: np.ndarray
+    depth_coefficients: np.ndarray
+    limits: np.ndarray
+    length: float
+    errors: dict[str, dict[str, float]]
+
+    def __call__(self, points: np.ndarray, radius: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The radii and depths (...) of touches read at positions `points` (..., D), m in the
+        mesh's frame, with their gains; NaN stays NaN."""
+        scaled = np.asarray(points, np.float64) / self.length
+        gains = [
+            np.exp(np.clip(_terms(scaled, degree) @ coefficients, *limits)) if degree is not None else 1.0
+            for degree, coefficients, limits in (
+                (self.radius_degree, self.radius_coefficients, self.limits[0]),
+                (self.depth_degree, self.depth_coefficients, self.limits[1]),
+            )
+        ]
+        return np.asarray(radius) * gains[0], np.asarray(depth) * gains[1]
+
+    @classmethod
+    def fit(
+        cls,
+        read_positions: np.ndarray,
+        read_radius: np.ndarray,
+        read_depth: np.ndarray,
+        radius: np.ndarray,
+        depth: np.ndarray,
+    ) -> SizeMap:
+        """The gains that take the radii and depths (K,) read at `read_positions` (K, D), m, to
+        the presses' `radius` (K,) and `depth` (K,) (presses read at no position, or whose read
+        and press's values differ in sign, are left out).
+
+        Raises:
+            ValueError: For fewer than 3 presses left.
+        """
+        read_positions = np.asarray(read_positions, np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            targets = {
+                "radius": np.log(np.asarray(radius, np.float64) / read_radius),
+                "depth": np.log(np.asarray(depth, np.float64) / read_depth),
+            }
+        seen = np.all(np.isfinite(read_positions), axis=1)
+        if seen.sum() < 3:
+            raise ValueError(f"a size map needs 3 presses read or more; {int(seen.sum())} were")
+        length = _spread(read_positions[seen])
+        degrees, coefficients, limits, errors = {}, {}, [], {}
+        for name, target in targets.items():
+            kept = seen & np.isfinite(target)
+            if kept.sum() < 3:
+                raise ValueError(f"a size map needs 3 presses whose {name} was read or more; {int(kept.sum())} were")
+            points, target = read_positions[kept] / length, target[kept]
+            errors[name] = {"none": float(np.median(np.abs(target)))}
+            degrees[name], coefficients[name] = None, np.zeros(0)
+            for candidate in _MAP_DEGREES[1:]:
+                terms = _terms(points, candidate)
+                if len(points) < terms.shape[1] + 2:
+                    break
+                errors[name][str(candidate)] = float(np.median(np.abs(_held_out_residuals(terms, target))))
+                if errors[name][str(candidate)] < errors[name]["none" if degrees[name] is None else str(degrees[name])]:
+                    degrees[name] = candidate
+            fitted = np.zeros(len(target))
+            if degrees[name] is not None:
+                terms = _terms(points, degrees[name])
+                coefficients[name] = np.linalg.lstsq(terms, target, rcond=_MAP_RCOND)[0]
+                fitted = terms @ coefficients[name]
+            limits.append([fitted.min(), fitted.max()])
+        return cls(
+            degrees["radius"],
+            degrees["depth"],
+            coefficients["radius"],
+            coefficients["depth"],
+            np.array(limits),
+            length,
+            errors,
+        )
+
+
+def _held_out_residuals(terms: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """The residuals (K, ...) of each of `targets` (K, ...) left out of the least-squares fit
+    on `terms` (K, n_terms), through the fit's hat matrix."""
+    coefficients, *_ = np.linalg.lstsq(terms, targets, rcond=None)
+    hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
+    leverage = np.maximum(1.0 - hat, 1e-9).reshape((-1,) + (1,) * (targets.ndim - 1))
+    return (targets - terms @ coefficients) / leverage
+
+
 def _spread(points: np.ndarray) -> float:
     """The RMS distance, m, of `points` (K, D) from their mean (at least 1 um)."""
     return float(max(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))), 1e-6))
@@ -1009,6 +1129,9 @@ class SkinCalibration(eqx.Module):
             highest, a fraction of its peak (the `_RINGING_QUANTILE` quantile over the
             presses, at most `_RINGING_CAP`): `diffeit.touches` reports a further touch only
             above it (a single press is one touch). None without a position map.
+        size_map: The `SizeMap` that `diffeit.touches` reads touches' radii and depths
+            through, fitted on labelled presses (20 or more on a flat skin: the labels' frame
+            gives their radius in the mesh's), or None.
     """
 
     model: ForwardModel
@@ -1038,6 +1161,7 @@ class SkinCalibration(eqx.Module):
     protocol: Protocol = eqx.field(static=True)
     readings: str = eqx.field(static=True)
     ringing: float | None = None
+    size_map: SizeMap | None = None
 
     @property
     def driven_readings(self) -> str:
@@ -1079,6 +1203,9 @@ class SkinCalibration(eqx.Module):
             else [float(self.background_map.min()), float(self.background_map.max())],
             "undetermined": list(self.undetermined),
             "position_map_degree": None if self.position_map is None else self.position_map.degree,
+            "size_map_degrees": None
+            if self.size_map is None
+            else {"radius": self.size_map.radius_degree, "depth": self.size_map.depth_degree},
             "press_error_median": None if self.press_errors is None else float(np.median(self.press_errors)),
             "warnings": list(self.warnings),
         }
@@ -1130,8 +1257,22 @@ class SkinCalibration(eqx.Module):
             )
         if self.ringing is not None:
             lines.append(f"ringing: a further touch stands above {self.ringing:.2f} of the highest's peak")
+        if self.size_map is not None:
+            lines.append(self._sizes_line())
         lines.extend(f"warning: {note}" for note in self.warnings)
         return lines
+
+    def _sizes_line(self) -> str:
+        """The size map's line of the report: each gain's range and, by degree, its
+        leave-one-out median factor off the presses'."""
+        sizes, parts = self.size_map, []
+        for row, (name, degree) in enumerate((("radius", sizes.radius_degree), ("depth", sizes.depth_degree))):
+            low, high = np.exp(sizes.limits[row])
+            off = ", ".join(f"{key}: {math.exp(error):.2f}x" for key, error in sizes.errors[name].items())
+            parts.append(
+                f"{name} x{low:.2f} to x{high:.2f}, degree {degree} (leave-one-out median off by degree: {off})"
+            )
+        return "size map (touches' radius and depth as the presses'): " + "; ".join(parts)
 
     @property
     def electrode_points(self) -> np.ndarray:
@@ -1756,7 +1897,7 @@ def calibrate(
         calibration = _too_few_to_hold_out(reference_only, (*(press_groups or PRESS_GROUP_CHOICES[-1]), "press depths"))
         if background_map:
             calibration = _with_background_map(calibration, recording, presses, reference)
-        return _with_every_press(calibration, left_out, notes)
+        return _with_every_press(_with_size_map(calibration, recording, presses, reference), left_out, notes)
     frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
     # Without held-out presses (the memory's fit needs the frame) nothing could choose: the first set.
     choices = PRESS_GROUP_CHOICES if presses.n_presses >= _LEAST_HELD_OUT else PRESS_GROUP_CHOICES[:1]
@@ -1781,7 +1922,8 @@ def calibrate(
     if with_memory:
         frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
         calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
-    return _with_every_press(_held_to_skin(calibration), left_out, notes)
+    calibration = _with_size_map(_held_to_skin(calibration), recording, presses, reference)
+    return _with_every_press(calibration, left_out, notes)
 
 
 def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -1853,6 +1995,28 @@ def _held_to_skin(calibration: SkinCalibration) -> SkinCalibration:
     return eqx.tree_at(
         lambda c: (c.position_map, c.press_positions), calibration, (held, held.within(calibration.press_positions))
     )
+
+
+def _with_size_map(
+    calibration: SkinCalibration, recording: Recording, presses: Presses, reference: np.ndarray
+) -> SkinCalibration:
+    """`calibration` with the `SizeMap` fitted on the presses: each one's touch read as
+    `diffeit.touches` reads it (`_read_presses`), against its labelled radius and its depth under
+    its labelled disc at the calibrated model (`_press_depths`); as it is on a flat skin without
+    the labels' frame (whose scale gives the labels' radius in the mesh's frame), or with fewer
+    than 3 presses read."""
+    mesh, frame = calibration.model.mesh, calibration.values.get("label_frame")
+    if mesh.nodes.shape[1] == 2 and frame is None:
+        return calibration
+    moved = _moved(presses, frame)
+    found, _, _, _ = _read_presses(
+        calibration, recording, presses, reference, calibration.hyperparameter, calibration.polarity
+    )
+    if np.sum(found.count > 0) < 3:
+        return calibration
+    _, depths, _ = _press_depths(calibration, recording, reference, moved)
+    sizes = SizeMap.fit(found.position[:, 0], found.radius[:, 0], found.depth[:, 0], moved.radius, depths)
+    return eqx.tree_at(lambda c: c.size_map, calibration, sizes, is_leaf=lambda node: node is None)
 
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
@@ -3085,10 +3249,7 @@ def _with_memory(
     known (`diffeit.fit.memory_from_press_readings`); their depths and bends from the
     calibrated model (`_depths_and_bends`)."""
     at_rest = calibration.signed(np.atleast_2d(reference).mean(axis=0))
-    dv = calibration.signed(recording.frames) - at_rest
-    patterns = _press_patterns(calibration.model.mesh, presses)
-    held = np.stack([np.isin(np.arange(recording.n_frames), chosen) for chosen in presses.frames(recording.times)], 1)
-    depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held, _before(held))
+    dv, depths, bends = _press_depths(calibration, recording, reference, presses)
     # Each frame's part along the reference is dropped: a common gain cannot move the fit, neither
     # a drift nor the part of the skin's lasting changes that `drift_corrected` took for one (on a
     # simulated skin with memory, a 1% drift found in every session biased the relaxation by 2
@@ -3123,6 +3284,19 @@ def _with_memory(
         ),
         is_leaf=lambda node: node is None,
     )
+
+
+def _press_depths(
+    calibration: SkinCalibration, recording: Recording, reference: np.ndarray, presses: Presses
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The signed differences dv (T, M_used) of the recording's frames from the reference
+    frames' mean, and each press's depth and bend (K,) under its disc (`presses` in the mesh's
+    frame) at the calibrated model (`_depths_and_bends`)."""
+    dv = calibration.signed(recording.frames) - calibration.signed(np.atleast_2d(reference).mean(axis=0))
+    patterns = _press_patterns(calibration.model.mesh, presses)
+    held = np.stack([np.isin(np.arange(recording.n_frames), chosen) for chosen in presses.frames(recording.times)], 1)
+    depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held, _before(held))
+    return dv, depths, bends
 
 
 def _before(held: np.ndarray) -> np.ndarray:
@@ -3323,10 +3497,7 @@ def _leave_one_out_errors(
             coefficients, *_ = np.linalg.lstsq(terms[others], shift[others], rcond=_MAP_RCOND)
             mapped[k] = read[k] + terms[k] @ coefficients * length
         return surface_distance(surface, onto_surface(surface, mapped), labelled)
-    coefficients, *_ = np.linalg.lstsq(terms, shift, rcond=None)
-    hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
-    residual = (shift - terms @ coefficients) / np.maximum(1.0 - hat, 1e-9)[:, None]
-    return np.linalg.norm(residual, axis=1) * length
+    return np.linalg.norm(_held_out_residuals(terms, shift), axis=1) * length
 
 
 def _held_out_errors(
@@ -3568,9 +3739,10 @@ SCHEMA = "diffeit.calibration"
 # for a calibration without presses (none known), which a reader of version 3 would refuse to read
 # touches with; version 5: the labels' frame's handedness (values/label_frame's fifth value), which
 # a reader of version 4 would fail on, and a curved skin's position maps (coefficients (n_terms, 3)),
-# which it would apply without taking the touches back onto the surface. Versions 1 to 4 read
-# (their -1 without presses stays -1).
-SCHEMA_VERSION = 5
+# which it would apply without taking the touches back onto the surface; version 6: the size map
+# (size_map), without which a reader of version 5 would read touches' radii and depths other than
+# the calibration's. Versions 1 to 5 read (their -1 without presses stays -1).
+SCHEMA_VERSION = 6
 
 
 def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
@@ -3608,6 +3780,10 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         arrays["background_map"] = calibration.background_map
     if calibration.position_map is not None:
         arrays["position_map/coefficients"] = calibration.position_map.coefficients
+    if calibration.size_map is not None:
+        arrays["size_map/radius_coefficients"] = calibration.size_map.radius_coefficients
+        arrays["size_map/depth_coefficients"] = calibration.size_map.depth_coefficients
+        arrays["size_map/limits"] = calibration.size_map.limits
     if calibration.press_errors is not None:
         arrays["press_errors"] = calibration.press_errors
         arrays["press_positions"] = calibration.press_positions
@@ -3642,6 +3818,14 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
                     "degree": calibration.position_map.degree,
                     "length": calibration.position_map.length,
                     "errors": calibration.position_map.errors,
+                },
+                "size_map": None
+                if calibration.size_map is None
+                else {
+                    "radius_degree": calibration.size_map.radius_degree,
+                    "depth_degree": calibration.size_map.depth_degree,
+                    "length": calibration.size_map.length,
+                    "errors": calibration.size_map.errors,
                 },
             }
         ),
@@ -3727,6 +3911,9 @@ _STORED_ARRAYS = {
     "model/electrode_shift": "",
     "position_map/coefficients": "",
     "values/label_frame": "",
+    "size_map/radius_coefficients": "",
+    "size_map/depth_coefficients": "",
+    "size_map/limits": "",
 }
 
 
@@ -3762,6 +3949,32 @@ def _check_stored(arrays: dict, attributes: dict) -> None:
         raise ValueError(
             "its values/label_frame is not a labels' frame (ln scale, angle, offset x and y, handedness +-1)"
         )
+
+
+def _stored_size_map(sizes: dict, arrays: dict, dimension: int) -> SizeMap:
+    """The `SizeMap` a file keeps; ValueError naming what does not fit together."""
+    length = float(sizes["length"])
+    if not (math.isfinite(length) and length > 0):
+        raise ValueError(f"its size map's length is {length!r}, not a positive number")
+    limits = np.asarray(arrays["size_map/limits"], np.float64)
+    if limits.shape != (2, 2) or np.any(limits[:, 0] > limits[:, 1]):
+        raise ValueError("its size_map/limits is not two ranges (smallest, largest ln gain)")
+    for name in ("radius", "depth"):
+        degree, coefficients = sizes[f"{name}_degree"], arrays[f"size_map/{name}_coefficients"]
+        terms = 0 if degree is None else _terms(np.zeros((1, dimension)), int(degree)).shape[1]
+        if np.shape(coefficients) != (terms,):
+            raise ValueError(
+                f"its size_map/{name}_coefficients has shape {np.shape(coefficients)}; "
+                f"degree {degree} has {terms} terms"
+            )
+    return SizeMap(
+        *(None if sizes[f"{name}_degree"] is None else int(sizes[f"{name}_degree"]) for name in ("radius", "depth")),
+        arrays["size_map/radius_coefficients"],
+        arrays["size_map/depth_coefficients"],
+        limits,
+        length,
+        sizes["errors"],
+    )
 
 
 def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, path: Path) -> SkinCalibration:
@@ -3807,6 +4020,8 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
     if position_map is not None and "label_frame" in values and mesh.nodes.shape[1] == 2:
         frame = np.asarray(values["label_frame"], np.float64)
         position_map = position_map.held_to(mesh, frame if len(frame) == 5 else np.append(frame, 1.0))  # versions 1-4
+    sizes = stored.get("size_map")  # none before version 6
+    size_map = None if sizes is None else _stored_size_map(sizes, arrays, mesh.nodes.shape[1])
     first = stored["first_stage"]
     first_stage = ReferenceCalibration(
         model=model,
@@ -3855,4 +4070,5 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         protocol=protocol,
         readings=str(attributes["readings"]),
         ringing=None if ringing < 0 else ringing,
+        size_map=size_map,
     )

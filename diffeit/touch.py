@@ -60,9 +60,12 @@ ringing and noise, so a skin's touches vote for their own sign.
    `ringing` are still fractions of the highest one's peak in a.
 3. **Readout.** Position: the centroid of the half-amplitude set, weighted by a times area,
    m, mapped by the calibration's `PositionMap` when there is one; radius: sqrt(area / pi) of
-   the set, m; depth: the peak relative change (negative for a press with polarity -1);
-   pressure, kPa, from the depth through a foam stack's map
-   (`diffeit.scene.pressure_to_change`) when one is given.
+   the set, m; depth: the peak relative change (negative for a press with polarity -1); both
+   times the gains of the calibration's `SizeMap` at the position read, when it has one (an
+   image blurs a touch: it reads a press about twice as wide and a fifth as deep; the gains,
+   fitted on labelled presses, read touches like them at their radius and depth); pressure,
+   kPa, from the depth through a foam stack's map (`diffeit.scene.pressure_to_change`) when one
+   is given.
 
 ## Rest anchors (`baseline="rest"`, the default)
 
@@ -221,9 +224,10 @@ class Touches(eqx.Module):
         position: (T, K, D) centres, m, in the skin's frame (the labels' frame after a
             calibration's position map); NaN where a frame has fewer than K touches. D is
             the mesh's: 2 on a flat sheet, 3 on a curved skin (points on its surface).
-        radius: (T, K) contact radius, m: sqrt(area / pi) of the half-amplitude set.
+        radius: (T, K) contact radius, m: sqrt(area / pi) of the half-amplitude set (times
+            the calibration's size map's gain, when it has one).
         depth: (T, K) the peak relative conductivity change dsigma / sigma (negative for a
-            touch that lowers it).
+            touch that lowers it; times the size map's gain, when there is one).
         pressure: (T, K) kPa through the given foam stack's map, or None.
         noise: (T,) the robust standard deviation of each image, in relative change.
         standard_errors: With `method="fit"`, (T, K, 4) the standard errors of the centre's
@@ -402,6 +406,7 @@ def touches(
         threshold=threshold,
         polarity=polarity,
         position_map=mapping if method == "image" else None,
+        size_map=getattr(calibration, "size_map", None) if method == "image" else None,
         stack=stack if method == "image" else None,
         touched=frames_touched,
         relative=relative_floor(calibration),
@@ -539,6 +544,7 @@ class LiveTouches(eqx.Module):
             images[readable],
             polarity=polarity,
             position_map=None if skin is None else skin.position_map,
+            size_map=getattr(skin, "size_map", None),
             touched=frames_touched,
             relative=relative_floor(skin),
             image_noise=self.image_noise,
@@ -1009,6 +1015,7 @@ def read(
     threshold: float = THRESHOLD,
     polarity: int = -1,
     position_map: Any = None,
+    size_map: Any = None,
     stack: FoamStack | None = None,
     touched: np.ndarray | None = None,
     relative: float = RELATIVE,
@@ -1024,6 +1031,8 @@ def read(
         polarity: -1 when a touch lowers the conductivity, +1 when it raises it.
         position_map: A callable from (..., D) read positions to the labels' frame
             (`diffeit.calibration.PositionMap`), or None.
+        size_map: A callable from read positions (..., D), radii and depths (...) to the
+            radii and depths reported (`diffeit.calibration.SizeMap`), or None.
         stack: A foam stack whose map gives pressures from depths, or None.
         touched: (T,) bool, which frames are touched (a test on the voltages, module
             docstring): a touched frame reports its strongest hill and the others above `LOW`
@@ -1076,6 +1085,8 @@ def read(
         count[t] = len(hills)
         for k, (centre, size, peak) in enumerate(hills):
             position[t, k], radius[t, k], depth[t, k] = centre, size, polarity * peak
+    if size_map is not None:
+        radius, depth = size_map(position, radius, depth)
     if position_map is not None:
         position = position_map(position)
     pressure = None if stack is None else _pressure(depth, stack)

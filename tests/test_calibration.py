@@ -11,11 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from skin_sessions import PROTOCOL, UNTOUCHED, gains_board, mixing_board, skin_session
+from skin_sessions import DROP, PROTOCOL, RADIUS, UNTOUCHED, gains_board, mixing_board, skin_session
 
 import diffeit as de
 from diffeit import calibration as calibration_module
-from diffeit.calibration import PositionMap
+from diffeit.calibration import PositionMap, SizeMap
 from diffeit.inverse import OneStep
 
 
@@ -543,6 +543,15 @@ def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin
                 position_map=calibration.position_map,
             )
             np.testing.assert_array_equal(divided.position, found.position)
+            # The size map reads the unseen presses at their radius and depth (measured 0.95 to
+            # 1.05 and 0.84 to 1.15 times); the image alone 1.4 to 1.8 times as wide and 0.28 to
+            # 0.51 times as deep.
+            np.testing.assert_allclose(found.radius[pressed, 0], RADIUS, rtol=0.1)
+            np.testing.assert_allclose(found.depth[pressed, 0], -DROP, rtol=0.25)
+            unsized = eqx.tree_at(lambda c: c.size_map, calibration, None, is_leaf=lambda node: node is None)
+            blurred = de.touches(images, unsized)
+            assert np.all(blurred.radius[pressed, 0] > 1.3 * RADIUS) and np.all(blurred.depth[pressed, 0] > -0.6 * DROP)
+            np.testing.assert_array_equal(blurred.position, found.position)
     assert errors["skin"] < 0.5 * errors["first stage"], errors
     assert errors["skin"] < 0.05, errors
 
@@ -757,6 +766,36 @@ def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
     assert PositionMap.fit(read[:4], labelled[:4]).degree in (None, 0)
 
 
+def test_the_size_map_recovers_gains_that_vary_over_the_sheet_and_holds_them_beyond_the_presses():
+    """Reads 2 to 3 times as wide and a fifth to a half as deep as the presses, by a radial
+    quadratic law in ln gain with 2% noise: the cross-validation chooses degree 2 or more and
+    the gains take reads to the presses' values; beyond the presses each ln gain stays within its range
+    there, and NaN stays NaN."""
+    rng = np.random.default_rng(2)
+    read = rng.uniform(-0.6, 0.6, (40, 2))
+    squared = np.sum(read**2, axis=1)
+    radius, depth = np.full(40, 0.01), np.full(40, -0.3)
+    read_radius = radius * np.exp(1.1 - 1.5 * squared + rng.normal(0, 0.02, 40))
+    read_depth = depth * np.exp(-0.7 - 2.0 * squared + rng.normal(0, 0.02, 40))
+    sizes = SizeMap.fit(read, read_radius, read_depth, radius, depth)
+    assert sizes.radius_degree in (2, 3) and sizes.depth_degree in (2, 3)
+    assert sizes.errors["radius"]["2"] < 0.03 < sizes.errors["radius"]["1"] < sizes.errors["radius"]["none"]
+    mapped_radius, mapped_depth = sizes(read, read_radius, read_depth)
+    np.testing.assert_allclose(mapped_radius, radius, rtol=0.06)
+    np.testing.assert_allclose(mapped_depth, depth, rtol=0.06)
+    far = np.array([[3.0, 0.0], [np.nan, np.nan]])
+    far_radius, far_depth = sizes(far, np.array([0.02, np.nan]), np.array([-0.1, np.nan]))
+    assert np.exp(sizes.limits[0, 0]) * 0.02 <= far_radius[0] <= np.exp(sizes.limits[0, 1]) * 0.02
+    assert np.exp(sizes.limits[1, 0]) * -0.1 >= far_depth[0] >= np.exp(sizes.limits[1, 1]) * -0.1
+    assert np.isnan(far_radius[1]) and np.isnan(far_depth[1])
+    # A read of the other sign than its press's is left out; fewer than 3 left are refused.
+    flipped = read_depth.copy()
+    flipped[0] = -flipped[0]
+    assert SizeMap.fit(read, read_radius, flipped, radius, depth).depth_degree in (2, 3)
+    with pytest.raises(ValueError, match="3 presses"):
+        SizeMap.fit(read[:2], read_radius[:2], read_depth[:2], radius[:2], depth[:2])
+
+
 def test_a_position_map_held_to_the_skin_takes_what_it_maps_off_the_skin_onto_the_outline():
     """Labels in a frame 12.5 times the mesh's, turned, offset and mirrored: the affine map
     fitted on reads within 0.7 of the unit disc's centre, held to the disc in that frame, takes
@@ -792,6 +831,12 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     np.testing.assert_allclose(again.position_map(beyond), calibrated.position_map(beyond))
     assert again.lines() == calibrated.lines()
     assert again.ringing == calibrated.ringing and 0.1 < again.ringing <= 0.5
+    assert (again.size_map.radius_degree, again.size_map.depth_degree) == (
+        calibrated.size_map.radius_degree,
+        calibrated.size_map.depth_degree,
+    )
+    radii, depths = np.full(len(beyond), 0.3), np.full(len(beyond), -0.1)
+    np.testing.assert_array_equal(again.size_map(beyond, radii, depths), calibrated.size_map(beyond, radii, depths))
     np.testing.assert_array_equal(again.noise, calibrated.noise)
     voltages = again.model.measure(jnp.full(again.model.n_elements, again.conductivity))
     np.testing.assert_allclose(voltages, calibrated.model.measure(jnp.full(again.model.n_elements, again.conductivity)))
@@ -804,6 +849,14 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         file.attrs["schema_version"] = 99
     with pytest.raises(ValueError, match="newer than this diffeit reads"):
         de.calibration.load(newer)
+    shorter = tmp_path / "shorter.cal.h5"
+    shorter.write_bytes(path.read_bytes())
+    with h5py.File(shorter, "r+") as file:
+        coefficients = file["size_map/depth_coefficients"][()]
+        del file["size_map/depth_coefficients"]
+        file.create_dataset("size_map/depth_coefficients", data=coefficients[:-1], fletcher32=True)
+    with pytest.raises(ValueError, match="size_map/depth_coefficients has shape"):
+        de.calibration.load(shorter)
     with pytest.raises(ValueError, match="another protocol"):
         de.reconstruct(other, calibration=calibrated)
 
@@ -824,6 +877,8 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         ("dataset", "noise", -1.0, "noise holds values that are not non-negative"),
         ("dataset", "reading_sign", 0.5, "reading_sign holds values other than"),
         ("dataset", "values/label_frame", np.nan, "values/label_frame holds values that are not finite"),
+        ("dataset", "size_map/limits", np.nan, "size_map/limits holds values that are not finite"),
+        ("dataset", "size_map/limits", 9.0, "size_map/limits is not two ranges"),
     ],
 )
 def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
