@@ -2004,7 +2004,7 @@ def _with_size_map(
     `diffeit.touches` reads it (`_read_presses`), against its labelled radius and its depth under
     its labelled disc at the calibrated model (`_press_depths`); as it is on a flat skin without
     the labels' frame (whose scale gives the labels' radius in the mesh's frame), or with fewer
-    than 3 presses read."""
+    than 3 presses read; with a warning where fewer than 3 reads and depths agree in sign."""
     mesh, frame = calibration.model.mesh, calibration.values.get("label_frame")
     if mesh.nodes.shape[1] == 2 and frame is None:
         return calibration
@@ -2015,7 +2015,10 @@ def _with_size_map(
     if np.sum(found.count > 0) < 3:
         return calibration
     _, depths, _ = _press_depths(calibration, recording, reference, moved)
-    sizes = SizeMap.fit(found.position[:, 0], found.radius[:, 0], found.depth[:, 0], moved.radius, depths)
+    try:
+        sizes = SizeMap.fit(found.position[:, 0], found.radius[:, 0], found.depth[:, 0], moved.radius, depths)
+    except ValueError as error:  # reads of the other sign than the model's depths: said, and no map
+        return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, f"no size map: {error}"))
     return eqx.tree_at(lambda c: c.size_map, calibration, sizes, is_leaf=lambda node: node is None)
 
 

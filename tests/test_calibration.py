@@ -796,6 +796,25 @@ def test_the_size_map_recovers_gains_that_vary_over_the_sheet_and_holds_them_bey
         SizeMap.fit(read[:2], read_radius[:2], read_depth[:2], radius[:2], depth[:2])
 
 
+def test_a_size_map_the_presses_cannot_give_is_said_and_not_made(mixing_skin, calibrated, monkeypatch):
+    """Model depths of the other sign than every press's read depth (a model that contradicts
+    its presses): the calibration says why it has no size map, and is made."""
+    press_depths = calibration_module._press_depths
+
+    def contradicted(*arguments):
+        dv, depths, bends = press_depths(*arguments)
+        return dv, -depths, bends
+
+    monkeypatch.setattr(calibration_module, "_press_depths", contradicted)
+    unsized = eqx.tree_at(lambda c: c.size_map, calibrated, None, is_leaf=lambda node: node is None)
+    recording = mixing_skin.recording
+    again = calibration_module._with_size_map(
+        unsized, recording, mixing_skin.presses.select(np.arange(20)), recording.frames[:UNTOUCHED]
+    )
+    assert again.size_map is None
+    assert again.warnings[-1] == "no size map: a size map needs 3 presses whose depth was read or more; 0 were"
+
+
 def test_a_position_map_held_to_the_skin_takes_what_it_maps_off_the_skin_onto_the_outline():
     """Labels in a frame 12.5 times the mesh's, turned, offset and mirrored: the affine map
     fitted on reads within 0.7 of the unit disc's centre, held to the disc in that frame, takes
