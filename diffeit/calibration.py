@@ -88,6 +88,13 @@ about 0.01, a deep one by 0.1) is left out first, with a warning: one such press
 session its fit. So is a press timed at an instant no frame lies within 3/4 of a frame's period
 of (a frame lost: the nearest frame is the rest's, or another press's).
 
+Each press's change is its frames' mean less the rest before it: the reference frames' mean, or
+the frames just before the press where their mean stands out of the reference's noise (the
+voltage test of `diffeit.touch` over every reading, z = 5), as `diffeit.touches` reads a touch
+against the rest before it. What earlier presses left on a skin with memory is then not read
+as this press's: a press's disc does not explain it, and the fits below bent the readout's
+mixing and the contact impedances to it (`_press_changes`).
+
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
   the presses' images.
 - **The labels' frame** (scale, rotation, offset against the mesh's, and whether it is
@@ -248,7 +255,7 @@ from .mesh import Mesh, disc, disc_fractions, onto_sheet, onto_surface, surface_
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import _noise_test, _one_step_noise, polarity_of, read
+from .touch import _noise_test, _one_step_noise, _statistic, polarity_of, read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
@@ -805,6 +812,9 @@ _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
 _PRESS_ROUNDS, _PRESS_STEP = 30, 1e-6
 # Halvings of a step that does not decrease the presses' objective before the fit stops there.
 _PRESS_HALVINGS = 20
+# A press is read against the frames just before it, not the reference, where their mean stands
+# out of the reference's noise at this z (`_press_changes`; the voltage test's).
+_REST_MOVED = 5.0
 # A magnitude's sign follows the presses' differences where their projection on its predicted
 # changes exceeds this many standard errors (`_signs`).
 _SIGN_ERRORS = 3.0
@@ -2676,10 +2686,13 @@ def _fit_presses(
     drive = protocol.drive_index
     weights = np.asarray(protocol.measure)
     signed_reference = first.signed(np.atleast_2d(reference).mean(axis=0)) / gains
-    differences = (
-        np.stack([first.signed(recording.frames[chosen]).mean(axis=0) for chosen in presses.frames(recording.times)])
-        / gains
-        - signed_reference
+    differences = _press_changes(
+        first.signed(recording.frames) / gains,
+        signed_reference,
+        presses,
+        recording.times,
+        calibration.noise,
+        calibration.noise_frames,
     )
     keep = np.ones(presses.n_presses, bool) if train is None else np.asarray(train, bool)
     differences = differences[keep]
@@ -3302,11 +3315,11 @@ def _press_depths(
     return dv, depths, bends
 
 
-def _before(held: np.ndarray) -> np.ndarray:
-    """(T, K) the frames just before each press (`held` (T, K)): the run of frames that no press
-    holds up to its first held frame, its last `_HELD_FRAMES` at most (none for a press that
-    follows another's hold at once)."""
-    free = ~held.any(axis=1)
+def _before(held: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
+    """(T, K) the frames just before each press (`held` (T, K)): the run of `free` frames (T,;
+    by default those no press holds) up to its first held frame, its last `_HELD_FRAMES` at
+    most (none for a press that follows another's hold at once)."""
+    free = ~held.any(axis=1) if free is None else free
     before = np.zeros_like(held)
     for press, column in enumerate(held.T):
         frame = int(np.argmax(column)) - 1
@@ -3314,6 +3327,39 @@ def _before(held: np.ndarray) -> np.ndarray:
             before[frame, press] = True
             frame -= 1
     return before
+
+
+def _press_changes(
+    signed: np.ndarray,
+    at_rest: np.ndarray,
+    presses: Presses,
+    times: np.ndarray,
+    noise: np.ndarray | None,
+    noise_frames: int,
+) -> np.ndarray:
+    """(K, M) each press's change in the readings: the mean of its frames in `signed` (T, M;
+    at `times`) less the rest before it. That rest is the reference frames' mean `at_rest`
+    (M,), or the mean of the frames just before the press (`_before`) where it has moved from
+    the reference beyond the readings' `noise` (M,; from `noise_frames` reference frames): its
+    standardised sum of squared whitened differences (`diffeit.touch`'s voltage test, each term
+    F(1, n - 1) for noise alone, over every reading) exceeds `_REST_MOVED` (a frame changed from
+    those about it as a board's glitch changes one ends the run). What earlier presses left
+    there (a skin's memory) is then not read as this press's: a press's disc does not explain
+    it, and the presses' fit had bent the readout's mixing and the contact impedances to it.
+    Without the noise, the reference."""
+    held = np.stack([np.isin(np.arange(len(times)), chosen) for chosen in presses.frames(times)], 1)
+    changes = (held.T @ signed) / held.sum(axis=0)[:, None] - at_rest
+    if noise is None:
+        return changes
+    free = ~held.any(axis=1)
+    if len(signed) >= 3:  # a frame a board garbled is no rest (`_presses_left_out`'s rule)
+        free &= _change_from_about(signed) <= _GLITCH_CHANGE
+    before = _before(held, free)
+    count = before.sum(axis=0)
+    rests = (before.T @ signed) / np.maximum(count, 1)[:, None] - at_rest
+    variance = (1.0 / np.maximum(count, 1) + 1.0 / noise_frames)[:, None]
+    moved = (count > 0) & (_statistic(rests, noise, noise_frames, variance) > _REST_MOVED)
+    return changes - np.where(moved[:, None], rests, 0.0)
 
 
 def _depths_and_bends(
@@ -3365,8 +3411,14 @@ def _read_presses(
     `auto_hyperparameter` on the presses), and the touches' polarity (None: the sign of the
     presses' median extreme change)."""
     signed_reference = calibration.signed(np.atleast_2d(reference).mean(axis=0))
-    frames = presses.frames(recording.times)
-    dv = np.stack([calibration.signed(recording.frames[chosen]).mean(axis=0) for chosen in frames]) - signed_reference
+    dv = _press_changes(
+        calibration.signed(recording.frames),
+        signed_reference,
+        presses,
+        recording.times,
+        calibration.noise,
+        calibration.noise_frames,
+    )
     level = calibration.background
     problem = LinearisedProblem(calibration.model, "noser", level)
     if hyperparameter is None:

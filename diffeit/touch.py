@@ -74,8 +74,8 @@ keep 46-49% of the peak just after it), and the parts add up over a session: aga
 recording's reference, every later frame holds the ghosts of the touches before it. On a
 simulated skin with the preset `over_foam` (80 mm radius, magnitudes, medium noise), pressed for
 0.5 s once a second, every frame between presses stood out of the noise from the first presses
-on, and 40 presses read 12.2 and 9.6 mm off (median, two seeds) from the reference alone, 5.1
-and 6.9 mm after 50 labelled presses. Where the readings' noise is known (the voltage test's),
+on, and 40 presses read 12.2 and 9.6 mm off (median, two seeds) from the reference alone, 11.7
+and 10.8 mm after 50 labelled presses. Where the readings' noise is known (the voltage test's),
 each touch is read against the rest just before it instead, frame by frame:
 
 1. **Onsets.** A step from one frame to the next brings a touch when it stands out of the
@@ -111,9 +111,11 @@ each touch is read against the rest just before it instead, frame by frame:
 
 On the skin above (`benchmarks/rest_anchors.py`), from the reference alone: 5.0 and 5.8 mm, 41
 and 36 of 200 frames between presses touched where all 200 had been, 3 and 0 of 40 presses
-(weak, near the middle) not found where none had been; after 50 labelled presses, 4.3 and
-5.2 mm. Reading each press against the 3 frames before it, its start known, gave 5.5 mm from
-the reference alone and 4.0 mm after the presses on the first seed. On the same skin without
+(weak, near the middle) not found where none had been; after 50 labelled presses, 3.2 and
+5.9 mm (2 and 0 presses not found). Reading each press against the 3 frames before it, its
+start known, gave 5.5 mm from the reference alone and 4.0 mm after the presses on the first
+seed (with a calibration that read its presses against the reference; the calibration reads
+each against the frames before it now, and on the second seed its presses so read 4.8 mm off). On the same skin without
 memory no anchor moved: every frame read as against the reference. A touch whose start stays
 within the noise frame by frame brings no onset: it is read against the anchor in force.
 `baseline="reference"` reads every frame against the recording's reference. `LiveTouches`
