@@ -3409,7 +3409,8 @@ def _read_presses(
     (its strongest hill, read however low: a press is known to be there), how high its image's
     highest further hill stands beside it (K,; 0 for none), the hyperparameter (None:
     `auto_hyperparameter` on the presses), and the touches' polarity (None: the sign of the
-    presses' median extreme change)."""
+    presses' median extreme change). Each press is imaged from its change against the rest
+    before it (`_press_changes`)."""
     signed_reference = calibration.signed(np.atleast_2d(reference).mean(axis=0))
     dv = _press_changes(
         calibration.signed(recording.frames),
