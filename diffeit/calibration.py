@@ -1468,15 +1468,20 @@ def _damaged(frames: np.ndarray) -> np.ndarray:
     return np.zeros(len(frames), bool) if damaged.all() else damaged
 
 
-def _change_from_about(frames: np.ndarray) -> np.ndarray:
+def _change_from_about(frames: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
     """(T,) each frame's (T, M, in time order; at least 3) distance from the median of the
-    frames about it (`_DAMAGE_REACH` each side; all of them, up to 9), a fraction of that
-    median's norm."""
-    if len(frames) <= 2 * _DAMAGE_REACH + 1:
-        about = np.broadcast_to(np.median(frames, axis=0), frames.shape)
+    frames about it (`_DAMAGE_REACH` each side, reflected at the ends; all of them, up to 9), a
+    fraction of that median's norm; (R,) those of the frames `rows` (R,) alone."""
+    rows = np.arange(len(frames)) if rows is None else np.asarray(rows, int)
+    count = len(frames)
+    if count <= 2 * _DAMAGE_REACH + 1:
+        about = np.broadcast_to(np.median(frames, axis=0), (len(rows), frames.shape[1]))
     else:
-        about = scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
-    return np.linalg.norm(frames - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
+        about_rows = rows[:, None] + np.arange(-_DAMAGE_REACH, _DAMAGE_REACH + 1)
+        about_rows = np.where(about_rows < 0, -about_rows - 1, about_rows)
+        about_rows = np.where(about_rows >= count, 2 * count - about_rows - 1, about_rows)
+        about = np.median(frames[about_rows], axis=1)
+    return np.linalg.norm(frames[rows] - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
 
 
 @host_algebra
@@ -3352,8 +3357,9 @@ def _press_changes(
     if noise is None:
         return changes
     free = ~held.any(axis=1)
+    candidates = np.flatnonzero(_before(held).any(axis=1))
     if len(signed) >= 3:  # a frame a board garbled is no rest (`_presses_left_out`'s rule)
-        free &= _change_from_about(signed) <= _GLITCH_CHANGE
+        free[candidates[_change_from_about(signed, candidates) > _GLITCH_CHANGE]] = False
     before = _before(held, free)
     count = before.sum(axis=0)
     rests = (before.T @ signed) / np.maximum(count, 1)[:, None] - at_rest
