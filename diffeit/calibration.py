@@ -3315,9 +3315,14 @@ def _press_depths(
     frame) at the calibrated model (`_depths_and_bends`)."""
     dv = calibration.signed(recording.frames) - calibration.signed(np.atleast_2d(reference).mean(axis=0))
     patterns = _press_patterns(calibration.model.mesh, presses)
-    held = np.stack([np.isin(np.arange(recording.n_frames), chosen) for chosen in presses.frames(recording.times)], 1)
+    held = _held_frames(presses, recording.times)
     depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held, _before(held))
     return dv, depths, bends
+
+
+def _held_frames(presses: Presses, times: np.ndarray) -> np.ndarray:
+    """(T, K) bool, the frames (at `times`) each press holds."""
+    return np.stack([np.isin(np.arange(len(times)), chosen) for chosen in presses.frames(times)], 1)
 
 
 def _before(held: np.ndarray, free: np.ndarray | None = None) -> np.ndarray:
@@ -3352,7 +3357,7 @@ def _press_changes(
     there (a skin's memory) is then not read as this press's: a press's disc does not explain
     it, and the presses' fit had bent the readout's mixing and the contact impedances to it.
     Without the noise, the reference."""
-    held = np.stack([np.isin(np.arange(len(times)), chosen) for chosen in presses.frames(times)], 1)
+    held = _held_frames(presses, times)
     changes = (held.T @ signed) / held.sum(axis=0)[:, None] - at_rest
     if noise is None:
         return changes
