@@ -198,11 +198,11 @@ def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibrat
     """A glitch on one labelled press's frame (its readings one place out of order: 0.26 of the
     frame's norm, the presses' 0.006 at most), and another press's frame lost (the nearest frame
     to its time is the rest after it): both presses are left out, said so, their errors and
-    positions NaN, and the mixing's fit to the other 20 is judged on presses it did not see
-    (here not kept: 21.4 against 20.8 mm). Measured: the 8 unseen presses read 0.023 off (unit
-    disc). With the garbled press in (of 20 presses), the fits took the model's correlation
-    with the reference to -0.39 and were refused for it, and the unseen presses read 0.045 off
-    against 0.017."""
+    positions NaN, and the mixing's fit to the other 20 is kept (judged on presses it did not
+    see), the model's correlation with the reference 0.89. Measured: the 8 unseen presses read
+    0.016 off (unit disc; 0.023 with the reference's calibration). With the garbled press in
+    (of 20 presses), the fits took that correlation to -0.39 and were refused for it, and the
+    unseen presses read 0.045 off against 0.017."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
     frames = recording.frames.copy()
     garbled, lost = presses.frames(recording.times)[5][0], presses.frames(recording.times)[7][0]
@@ -220,7 +220,7 @@ def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibrat
     assert not any("no frame lies" in note for note in notes), notes
     assert np.isfinite(np.delete(skin.press_errors, [5, 7])).sum() >= 18 and skin.press_positions.shape == (22, 2)
     assert not any("correlation with the reference" in w for w in skin.warnings), skin.warnings
-    assert skin.correlation > 0.99
+    assert skin.fitted["presses"] == ("mixing", "press depths") and skin.correlation > 0.8
     images = de.reconstruct(recording, calibration=skin, progress=False)
     pressed = [chosen[0] for chosen in presses.frames(recording.times)[22:]]
     unseen = np.linalg.norm(de.touches(images, skin).position[pressed, 0] - presses.centres[22:], axis=1)
@@ -696,22 +696,31 @@ def test_presses_one_after_another_and_a_skin_back_at_its_reference_keep_the_ref
     assert np.all(found.count[pressed] >= 1) and np.sum(found.count) == np.sum(found.count[pressed])
 
 
-def test_the_presses_fit_is_kept_only_when_presses_it_did_not_see_are_read_better(mixing_skin, calibrated):
-    """The presses' fit is judged on presses held out of it, five folds: on this skin the
-    reference alone finds the board's mixing, and the presses' fit of every weight alone reads
-    unseen presses worse (measured 20.7 mm against 19.4 mm, on a disc of radius 1 m): the
-    reference's calibration is kept, with its position map, and a warning says so. By default
-    the mixing with the electrode positions is fitted too, and kept (`calibrated`): its press
+def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_presses_better(mixing_skin, calibrated):
+    """The presses' fit is judged on presses held out of it, five folds, against the reference's
+    calibration with a position map held out in the same folds: it goes, with a warning giving
+    both, only where the reference's reads significantly more of the presses closer (a sign
+    test, p < 0.05). On this skin the fit of every weight alone and the reference's are near
+    (12 presses closer with the reference's, 8 farther, p = 0.25): kept, and it reads 10
+    presses neither saw 14.4 mm off against 22.1 (measured; the rule before, against the
+    reference's leave-one-out median, 19.4 against 20.7 mm, had refused it). By default the
+    mixing with the electrode positions is fitted too, and kept (`calibrated`): its press
     errors are the held-out ones, near those of 10 presses it was not given at all (measured
     19.4 mm against 21.1 mm)."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
-    calibration = de.calibrate(recording, presses.select(np.arange(20)), press_groups=("mixing",))
-    assert calibration.fitted["presses"] == ()
-    (note,) = [w for w in calibration.warnings if w.startswith("the presses' fit")]
-    ours, theirs = (float(value) for value in re.findall(r"([0-9.]+) mm", note))
-    assert ours > theirs and theirs == pytest.approx(1e3 * np.nanmedian(calibration.press_errors), abs=0.05)
-    assert calibration.position_map is not None and np.nanmedian(calibration.press_errors) < 0.03
-    assert any(line.startswith("warning: the presses' fit") for line in calibration.lines())
+    mixing = de.calibrate(recording, presses.select(np.arange(20)), press_groups=("mixing",))
+    assert mixing.fitted["presses"] == ("mixing", "press depths")
+    assert not any(w.startswith("the presses' fit") for w in mixing.warnings)
+    reference_only = calibration_module._too_few_to_hold_out(mixing, ())  # any other calibration
+    held_out = np.linspace(0.01, 0.02, 20)
+    kept = calibration_module._kept_if_it_generalises(mixing, reference_only, held_out, held_out + 0.001)
+    assert kept.fitted == mixing.fitted and np.array_equal(kept.press_errors, held_out)
+    closer = np.where(np.arange(20) < 16, held_out - 0.002, held_out + 0.001)
+    closer[0] = np.nan  # not read: the farthest (15 closer, 5 farther: p = 0.021)
+    refused = calibration_module._kept_if_it_generalises(mixing, reference_only, held_out, closer)
+    assert refused.warnings[:-1] == reference_only.warnings
+    pattern = r"read 15\.0 mm off \(median\) against 13\.5 mm .* 15 of them closer and 5 farther \(sign test p = 0\.021"
+    assert re.search(pattern, refused.warnings[-1]), refused.warnings[-1]
 
     assert calibrated.fitted["presses"] == ("mixing", "electrode_positions", "press depths")
     assert not any(w.startswith("the presses' fit") for w in calibrated.warnings)
@@ -777,7 +786,8 @@ def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_ref
     times = 0.1 * np.arange(40)
     frames[[15, 25]] += 0.2 * rng.uniform(0.0, 1.0, 50)
     frames[16:] += 0.05 * rng.uniform(0.0, 1.0, 50)
-    presses = de.io.Presses(np.zeros((2, 2)), 0.1, times[[15, 25]])
+    # Holds of one frame each (an instant's rest is the middle of the run: the next test).
+    presses = de.io.Presses(np.zeros((2, 2)), 0.1, np.stack([times[[15, 25]], times[[15, 25]] + 0.05], axis=1))
     at_rest, noise = frames[:10].mean(axis=0), frames[:10].std(axis=0, ddof=1)
     changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
     np.testing.assert_array_equal(changes[0], frames[15] - at_rest)
@@ -788,6 +798,29 @@ def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_ref
     np.testing.assert_allclose(changes[1], garbled[25] - garbled[24], rtol=1e-12, atol=1e-12)
     unknown = calibration_module._press_changes(frames, at_rest, presses, times, None, 10)
     np.testing.assert_array_equal(unknown, frames[[15, 25]] - at_rest)
+
+
+def test_a_press_labelled_at_an_instant_is_read_against_the_middle_of_the_rest_before_it():
+    """Presses held over frames 14-18 and 28-32 but labelled at the instants of frames 16 and
+    30, a lasting change from frame 19 on: the frames just before each instant are its own
+    onset, so each is read against the 3 frames about the middle of the rest before it (the
+    reference's frames, bit for bit, for the first; frames 22-24 for the second). Labelled by
+    its hold, the second press is read against frames 25-27, as before."""
+    rng = np.random.default_rng(4)
+    frames = rng.uniform(1.0, 2.0, 50) + 0.01 * rng.standard_normal((40, 50))
+    times = 0.1 * np.arange(40)
+    for start in (14, 28):
+        frames[start : start + 5] += 0.2 * rng.uniform(0.0, 1.0, 50)
+    frames[19:] += 0.05 * rng.uniform(0.0, 1.0, 50)
+    presses = de.io.Presses(np.zeros((2, 2)), 0.1, times[[16, 30]])
+    at_rest, noise = frames[:10].mean(axis=0), frames[:10].std(axis=0, ddof=1)
+    changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
+    np.testing.assert_array_equal(changes[0], frames[16] - at_rest)
+    np.testing.assert_allclose(changes[1], frames[30] - frames[22:25].mean(axis=0), rtol=1e-12, atol=1e-12)
+    holds = de.io.Presses(np.zeros((2, 2)), 0.1, times[[[14, 18], [28, 32]]])
+    changes = calibration_module._press_changes(frames, at_rest, holds, times, noise, 10)
+    expected = frames[28:33].mean(axis=0) - frames[25:28].mean(axis=0)
+    np.testing.assert_allclose(changes[1], expected, rtol=1e-12, atol=1e-12)
 
 
 def test_the_size_map_recovers_gains_that_vary_over_the_sheet_and_holds_them_beyond_the_presses():
@@ -1230,25 +1263,29 @@ def test_the_reference_determines_electrode_widths_within_their_standard_errors(
 
 def test_a_domes_presses_are_points_on_its_surface_and_mapped_along_it(tmp_path, monkeypatch):
     """A dome (a sphere cap of 60 degrees, its rim 1 m in radius) read by a board with gains,
-    30 presses at known points on it: the calibration takes them in the mesh's frame (no
-    labels' frame is searched), its position map (a polynomial in x, y and z, the touches taken
-    back onto the surface) keeps them on it, its press errors are the distances to the touches
-    read, and a 3D file round-trips with its map. Labels in the plane are refused by name.
-    Measured: the affine map is chosen (leave-one-out 17.7 mm; none 35.1, shift 29.8); the 5
-    presses it did not see are read 16.8 mm off (median), 29.1 mm without the map (the identity,
-    the only map on a curved skin before)."""
+    30 presses at known points on it. With 19 (too few to hold out: the reference's calibration
+    and a position map) the calibration takes them in the mesh's frame (no labels' frame is
+    searched), its position map (a polynomial in x, y and z, the touches taken back onto the
+    surface) keeps them on it, its press errors are the distances to the touches read, and a
+    3D file round-trips with its map. Labels in the plane are refused by name. Measured: the
+    affine map is chosen (leave-one-out 22.2 mm; none 36.1, shift 32.9); the 11 presses it did
+    not see are read 22.1 mm off (median), 36.7 mm without the map (the identity, the only map
+    on a curved skin before). With 25, the presses' fit of the electrode positions is kept:
+    the reference's calibration with a map held out in the same folds read 17 of them closer
+    and 8 farther (21.8 against 25.0 mm), not significantly (p = 0.054), and the 5 presses
+    neither saw are read 13.0 mm off (16.8 at the reference's calibration and map)."""
     mesh = de.mesh.sphere_cap(1.15, np.deg2rad(60.0), 16, h=0.12, electrode_width=0.2)
     skin = skin_session(4, gains_board, mesh=mesh)
     recording, presses = skin.recording, skin.presses
     groups = ("contact_impedance", "drive_gains", "channel_gains")
     with pytest.raises(ValueError, match="presses have 2-dimensional centres; the mesh's nodes have 3"):
         de.calibrate(recording, de.io.Presses(presses.centres[:, :2], presses.radius, presses.times[:, 0]))
-    calibration = de.calibrate(recording, presses.select(np.arange(25)), reference_groups=groups)
-    assert "label_frame" not in calibration.values
-    assert calibration.press_positions.shape == (25, 3) and calibration.polarity == -1
+    calibration = de.calibrate(recording, presses.select(np.arange(19)), reference_groups=groups)
+    assert "label_frame" not in calibration.values and calibration.fitted["presses"] == ()
+    assert calibration.press_positions.shape == (19, 3) and calibration.polarity == -1
     assert calibration.position_map.degree == 1 and calibration.position_map.errors["none"] > 0.03
     np.testing.assert_allclose(de.mesh.onto_surface(mesh, calibration.press_positions), calibration.press_positions)
-    assert np.all(np.isfinite(calibration.press_errors)) and np.median(calibration.press_errors) < 0.02
+    assert np.all(np.isfinite(calibration.press_errors)) and np.median(calibration.press_errors) < 0.03
     images = de.reconstruct(recording, calibration=calibration, progress=False)
     pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
     unmapped = eqx.tree_at(lambda c: c.position_map, calibration, None, is_leaf=lambda node: node is None)
@@ -1256,18 +1293,14 @@ def test_a_domes_presses_are_points_on_its_surface_and_mapped_along_it(tmp_path,
         np.linalg.norm(de.touches(images, skin).position[pressed, 0] - presses.centres, axis=1)
         for skin in (calibration, unmapped)
     )
-    assert np.median(distances[25:]) < 0.02 and np.median(distances[25:]) < 0.75 * np.median(without[25:])
-    # Its press errors (leave-one-out) tell what the touches then show.
-    assert abs(np.median(calibration.press_errors) - np.median(distances[:25])) < 0.005
-    # The presses' fits read those they did not see worse than the reference's calibration with
-    # this map (the positions' 25.0 against 17.7 mm): not kept. (Before the contact impedances'
-    # factor was fitted again with the level, the positions' fit took the model's correlation
-    # with the reference from 1.000 to 0.483, and was refused for it.)
-    assert calibration.fitted["presses"] == ()
-    (note,) = [w for w in calibration.warnings if "electrode_positions" in w]
-    read = re.search(r"not kept: presses it did not see were read ([\d.]+) mm off \(median\) against ([\d.]+)", note)
-    assert read and float(read[1]) > float(read[2]), note
-    assert calibration.correlation > 0.5
+    assert np.median(distances[19:]) < 0.025 and np.median(distances[19:]) < 0.75 * np.median(without[19:])
+    # Its press errors (leave-one-out) tell what the touches then show on presses it did not see.
+    assert abs(np.median(calibration.press_errors) - np.median(distances[19:])) < 0.005
+    fitted = de.calibrate(recording, presses.select(np.arange(25)), reference_groups=groups)
+    assert "electrode_positions" in fitted.fitted["presses"] and fitted.correlation > 0.5
+    images = de.reconstruct(recording, calibration=fitted, progress=False)
+    unseen = np.linalg.norm(de.touches(images, fitted).position[pressed[25:], 0] - presses.centres[25:], axis=1)
+    assert np.median(unseen) < 0.02, unseen
     # A fit that takes the model under the correlation at which the frames' calibrated differences
     # are imaged is refused by name (kept, such a fit's presses, read at the normalised differences
     # `de.reconstruct` then took, had been 140 mm off): here with that correlation raised to 0.9999.
