@@ -89,13 +89,14 @@ session its fit. So is a press timed at an instant no frame lies within 3/4 of a
 of (a frame lost: the nearest frame is the rest's, or another press's).
 
 Each press's change is its frames' mean less the rest before it: the reference frames' mean, or
-the frames just before the press where their mean stands out of the reference's noise (the
+the rest frames just before the press where their mean stands out of the reference's noise (the
 voltage test of `diffeit.touch` over every reading, z = 5), as `diffeit.touches` reads a touch
 against the rest before it. What earlier presses left on a skin with memory is then not read
 as this press's: a press's disc does not explain it, and the fits below bent the readout's
-mixing and the contact impedances to it (`_press_changes`). For a press labelled at an
-instant, the frames about the middle of the rest before it: such a press is often held over
-the frames about its instant.
+mixing and the contact impedances to it (`_press_changes`). A rest frame is one no press
+changes: within the noise of the quietest frame since the previous labelled press, and not
+moved from it towards this press (`_rests`). Presses not labelled, a press's onset before its
+labelled instant, and a frame a board garbled are then no rest.
 
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
   the presses' images.
@@ -258,7 +259,7 @@ from .mesh import Mesh, disc, disc_fractions, onto_sheet, onto_surface, surface_
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import _noise_test, _one_step_noise, _statistic, polarity_of, read
+from .touch import _noise_test, _one_step_noise, _statistic, _whitened, polarity_of, read
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
@@ -815,9 +816,11 @@ _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
 _PRESS_ROUNDS, _PRESS_STEP = 30, 1e-6
 # Halvings of a step that does not decrease the presses' objective before the fit stops there.
 _PRESS_HALVINGS = 20
-# A press is read against the frames just before it, not the reference, where their mean stands
-# out of the reference's noise at this z (`_press_changes`; the voltage test's).
-_REST_MOVED = 5.0
+# A press is read against the rest frames before it, not the reference, where their mean stands
+# out of the reference's noise at this z (`_press_changes`; the voltage test's), and a frame is
+# one of those rests when it stands within it of the quietest before the press (`_rests`) and
+# has moved from that one towards the press by at most `_REST_TOWARD` standard deviations.
+_REST_MOVED, _REST_TOWARD = 5.0, 3.0
 # A magnitude's sign follows the presses' differences where their projection on its predicted
 # changes exceeds this many standard errors (`_signs`).
 _SIGN_ERRORS = 3.0
@@ -1471,12 +1474,12 @@ def _damaged(frames: np.ndarray) -> np.ndarray:
     return np.zeros(len(frames), bool) if damaged.all() else damaged
 
 
-def _change_from_about(frames: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+def _change_from_about(frames: np.ndarray) -> np.ndarray:
     """(T,) each frame's (T, M, in time order; at least 3) distance from the median of the
     frames about it (`_DAMAGE_REACH` each side, reflected at the ends; all of them, up to 9), a
-    fraction of that median's norm; (R,) those of the frames `rows` (R,) alone."""
-    rows = np.arange(len(frames)) if rows is None else np.asarray(rows, int)
+    fraction of that median's norm."""
     count = len(frames)
+    rows = np.arange(count)
     if count <= 2 * _DAMAGE_REACH + 1:
         about = np.broadcast_to(np.median(frames, axis=0), (len(rows), frames.shape[1]))
     else:
@@ -3320,7 +3323,8 @@ def _press_depths(
     dv = calibration.signed(recording.frames) - calibration.signed(np.atleast_2d(reference).mean(axis=0))
     patterns = _press_patterns(calibration.model.mesh, presses)
     held = _held_frames(presses, recording.times)
-    before = _before(held, instants=presses.times[:, 1] == presses.times[:, 0])
+    noise = calibration.noise
+    before = _before(held) if noise is None else _rests(dv, 0.0, held, noise, calibration.noise_frames)
     depths, bends = _depths_and_bends(calibration.model, calibration.background, patterns, dv, held, before)
     return dv, depths, bends
 
@@ -3330,27 +3334,56 @@ def _held_frames(presses: Presses, times: np.ndarray) -> np.ndarray:
     return np.stack([np.isin(np.arange(len(times)), chosen) for chosen in presses.frames(times)], 1)
 
 
-def _before(held: np.ndarray, free: np.ndarray | None = None, instants: np.ndarray | None = None) -> np.ndarray:
-    """(T, K) the frames just before each press (`held` (T, K)): of the run of `free` frames
-    (T,; by default those no press holds) up to its first held frame, the last `_HELD_FRAMES`
-    at most (none for a press that follows another's hold at once). For a press labelled at an
-    instant (`instants` (K,) bool) the frames about the run's middle instead: such a press is
-    often held over the frames about its instant, the last of the run its own (labelled at
-    instants, presses held 5 frames had read 3.1 mm as 4.7 mm with 4 of 40 missed on the
-    calibration benchmark's skin, each read against its own onset), the first the previous
-    press's release."""
-    free = ~held.any(axis=1) if free is None else free
-    instants = np.zeros(held.shape[1], bool) if instants is None else instants
+def _before(held: np.ndarray) -> np.ndarray:
+    """(T, K) the frames just before each press (`held` (T, K)): of the run of frames no press
+    holds up to its first held frame, the last `_HELD_FRAMES` at most (none for a press that
+    follows another's hold at once). Without the readings' noise to tell a rest by
+    (`_rests`)."""
+    free = ~held.any(axis=1)
     before = np.zeros_like(held)
     for press, column in enumerate(held.T):
-        last = first = int(np.argmax(column)) - 1
-        while first >= 0 and free[first]:
-            first -= 1
-        if instants[press]:
-            middle = (first + 1 + last) // 2
-            first, last = max(first, middle - _HELD_FRAMES // 2 - 1), min(last, middle + _HELD_FRAMES // 2)
-        before[max(first + 1, last + 1 - _HELD_FRAMES) : last + 1, press] = True
+        frame = int(np.argmax(column)) - 1
+        while frame >= 0 and free[frame] and before[:, press].sum() < _HELD_FRAMES:
+            before[frame, press] = True
+            frame -= 1
     return before
+
+
+def _rests(
+    signed: np.ndarray, at_rest: np.ndarray, held: np.ndarray, noise: np.ndarray, noise_frames: int
+) -> np.ndarray:
+    """(T, K) the rest frames before each press (`held` (T, K)) in `signed` (T, M): of the run of
+    frames no labelled press holds up to its first held frame, those that stand within the
+    readings' `noise` (M,; from `noise_frames` frames) of the run's quietest frame (the least
+    changed from `at_rest` (M,)), by the voltage test's statistic at `_REST_MOVED`, and have
+    not moved from it towards the press (their whitened change along the press's, in standard
+    deviations, at most `_REST_TOWARD`: a faint press's onset passes the test over every
+    reading); the last `_HELD_FRAMES` of them.
+
+    A frame a press changes is no rest. The labelled presses may be some of the session's: of
+    a random 50 of 110 on the calibration benchmark's skin, 19 had been read against other
+    presses (the last frames before them, labelled or not). A press labelled at an instant is
+    often held over the frames about it: its onset had been its rest (presses held 5 frames
+    read 4.7 mm off, 4 of 40 missed; now 2.8 mm, 3.1 labelled with their holds). A frame a
+    board garbled stands apart too. What a skin's memory leaves is alike from frame to frame."""
+    free = ~held.any(axis=1)
+    changed = _statistic(signed - at_rest, noise, noise_frames, 1.0 + 1.0 / noise_frames)
+    rests = np.zeros_like(held)
+    for press, column in enumerate(held.T):
+        end = start = int(np.argmax(column))
+        while start > 0 and free[start - 1]:
+            start -= 1
+        if start == end:
+            continue
+        run = np.arange(start, end)
+        quietest = signed[run[np.argmin(changed[run])]]
+        alike = _statistic(signed[run] - quietest, noise, noise_frames, 2.0) <= _REST_MOVED
+        # A press's onset, too faint for the test over every reading, shows along its change.
+        toward = _whitened(signed[column].mean(axis=0) - quietest, noise, None)[0]
+        toward /= max(float(np.linalg.norm(toward)), 1e-300)
+        along = _whitened(signed[run] - quietest, noise, None) @ toward / np.sqrt(2.0 * (1.0 + 1.0 / noise_frames))
+        rests[run[alike & (along <= _REST_TOWARD)][-_HELD_FRAMES:], press] = True
+    return rests
 
 
 def _press_changes(
@@ -3363,24 +3396,18 @@ def _press_changes(
 ) -> np.ndarray:
     """(K, M) each press's change in the readings: the mean of its frames in `signed` (T, M;
     at `times`) less the rest before it. That rest is the reference frames' mean `at_rest`
-    (M,), or the mean of the rest frames before the press (`_before`) where it has moved from
+    (M,), or the mean of the rest frames before the press (`_rests`) where it has moved from
     the reference beyond the readings' `noise` (M,; from `noise_frames` reference frames): its
     standardised sum of squared whitened differences (`diffeit.touch`'s voltage test, each term
-    F(1, n - 1) for noise alone, over every reading) exceeds `_REST_MOVED` (a frame changed from
-    those about it as a board's glitch changes one ends the run). What earlier presses left
-    there (a skin's memory) is then not read as this press's: a press's disc does not explain
-    it, and the presses' fit had bent the readout's mixing and the contact impedances to it.
-    Without the noise, the reference."""
+    F(1, n - 1) for noise alone, over every reading) exceeds `_REST_MOVED`. What earlier
+    presses left there (a skin's memory) is then not read as this press's: a press's disc does
+    not explain it, and the presses' fit had bent the readout's mixing and the contact
+    impedances to it. Without the noise, the reference."""
     held = _held_frames(presses, times)
     changes = (held.T @ signed) / held.sum(axis=0)[:, None] - at_rest
     if noise is None:
         return changes
-    free = ~held.any(axis=1)
-    instants = presses.times[:, 1] == presses.times[:, 0]
-    candidates = np.flatnonzero(_before(held, instants=instants).any(axis=1))
-    if len(signed) >= 3:  # a frame a board garbled is no rest (`_presses_left_out`'s rule)
-        free[candidates[_change_from_about(signed, candidates) > _GLITCH_CHANGE]] = False
-    before = _before(held, free, instants)
+    before = _rests(signed, at_rest, held, noise, noise_frames)
     count = before.sum(axis=0)
     rests = (before.T @ signed) / np.maximum(count, 1)[:, None] - at_rest
     variance = (1.0 / np.maximum(count, 1) + 1.0 / noise_frames)[:, None]

@@ -786,8 +786,7 @@ def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_ref
     times = 0.1 * np.arange(40)
     frames[[15, 25]] += 0.2 * rng.uniform(0.0, 1.0, 50)
     frames[16:] += 0.05 * rng.uniform(0.0, 1.0, 50)
-    # Holds of one frame each (an instant's rest is the middle of the run: the next test).
-    presses = de.io.Presses(np.zeros((2, 2)), 0.1, np.stack([times[[15, 25]], times[[15, 25]] + 0.05], axis=1))
+    presses = de.io.Presses(np.zeros((2, 2)), 0.1, times[[15, 25]])
     at_rest, noise = frames[:10].mean(axis=0), frames[:10].std(axis=0, ddof=1)
     changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
     np.testing.assert_array_equal(changes[0], frames[15] - at_rest)
@@ -795,32 +794,33 @@ def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_ref
     garbled = frames.copy()
     garbled[23] = np.roll(garbled[23], 1)
     changes = calibration_module._press_changes(garbled, at_rest, presses, times, noise, 10)
-    np.testing.assert_allclose(changes[1], garbled[25] - garbled[24], rtol=1e-12, atol=1e-12)
+    expected = garbled[25] - garbled[[21, 22, 24]].mean(axis=0)
+    np.testing.assert_allclose(changes[1], expected, rtol=1e-12, atol=1e-12)
     unknown = calibration_module._press_changes(frames, at_rest, presses, times, None, 10)
     np.testing.assert_array_equal(unknown, frames[[15, 25]] - at_rest)
 
 
-def test_a_press_labelled_at_an_instant_is_read_against_the_middle_of_the_rest_before_it():
+def test_a_press_is_read_against_the_frames_before_it_that_no_press_changes():
     """Presses held over frames 14-18 and 28-32 but labelled at the instants of frames 16 and
-    30, a lasting change from frame 19 on: the frames just before each instant are its own
-    onset, so each is read against the 3 frames about the middle of the rest before it (the
-    reference's frames, bit for bit, for the first; frames 22-24 for the second). Labelled by
-    its hold, the second press is read against frames 25-27, as before."""
+    30, another press, not labelled, over frames 25-26, and a lasting change from frame 19 on:
+    the frames just before each instant are its own onset. The first press is read against
+    the reference; the second against frames 23, 24 and 27, the last 3 before it
+    alike the quietest of those since the first. Labelled by their holds, the same rests."""
     rng = np.random.default_rng(4)
     frames = rng.uniform(1.0, 2.0, 50) + 0.01 * rng.standard_normal((40, 50))
     times = 0.1 * np.arange(40)
-    for start in (14, 28):
-        frames[start : start + 5] += 0.2 * rng.uniform(0.0, 1.0, 50)
+    for start, length in ((14, 5), (28, 5), (25, 2)):
+        frames[start : start + length] += 0.2 * rng.uniform(0.0, 1.0, 50)
     frames[19:] += 0.05 * rng.uniform(0.0, 1.0, 50)
-    presses = de.io.Presses(np.zeros((2, 2)), 0.1, times[[16, 30]])
     at_rest, noise = frames[:10].mean(axis=0), frames[:10].std(axis=0, ddof=1)
-    changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
-    np.testing.assert_array_equal(changes[0], frames[16] - at_rest)
-    np.testing.assert_allclose(changes[1], frames[30] - frames[22:25].mean(axis=0), rtol=1e-12, atol=1e-12)
+    instants = de.io.Presses(np.zeros((2, 2)), 0.1, times[[16, 30]])
     holds = de.io.Presses(np.zeros((2, 2)), 0.1, times[[[14, 18], [28, 32]]])
-    changes = calibration_module._press_changes(frames, at_rest, holds, times, noise, 10)
-    expected = frames[28:33].mean(axis=0) - frames[25:28].mean(axis=0)
-    np.testing.assert_allclose(changes[1], expected, rtol=1e-12, atol=1e-12)
+    for presses in (instants, holds):
+        first, second = (frames[chosen].mean(axis=0) for chosen in presses.frames(times))
+        changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
+        np.testing.assert_allclose(changes[0], first - at_rest, rtol=1e-12, atol=1e-12)
+        expected = second - frames[[23, 24, 27]].mean(axis=0)
+        np.testing.assert_allclose(changes[1], expected, rtol=1e-12, atol=1e-12)
 
 
 def test_the_size_map_recovers_gains_that_vary_over_the_sheet_and_holds_them_beyond_the_presses():
