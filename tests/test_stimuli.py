@@ -313,5 +313,11 @@ def test_other_bad_inputs_refused(mesh):
     with pytest.raises(ValueError, match=r"touches\[0\] must be a Touch"):
         stimulus(mesh, [Disc(CENTRE, RADIUS)], [0.0])
     increase = Touch(Disc(CENTRE, RADIUS), 1.5)  # resistance -60% each: together -120%
-    with pytest.raises(ValueError, match=r"conductivity increases"):
+    with pytest.raises(ValueError, match=r"increases \(positive Touch.amplitude\) \[1.5, 1.5\], pressed at once"):
         stimulus(mesh, [increase, increase], [0.0])
+    # Pressed one after the other they never add up; overlapping in time they do.
+    first, second, third = (Touch(Disc(CENTRE, RADIUS), 1.5, Press(start=s, hold=1.0)) for s in (0.0, 1.0, 1.5))
+    field = stimulus(mesh, [first, second], [0.5, 1.5])
+    np.testing.assert_allclose(field, stimulus(mesh, [first], [0.5, 0.5]), atol=1e-12)
+    with pytest.raises(ValueError, match=r"increases \(positive Touch.amplitude\) \[1.5, 1.5\], pressed at once"):
+        stimulus(mesh, [first, second, third], [0.0])

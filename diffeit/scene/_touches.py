@@ -37,7 +37,7 @@ import numpy as np
 from .._arrays import concrete_floats, is_concrete
 from ..mesh import Mesh, distance_to_segments, element_sample_points
 from ._shapes import AbstractShape, Disc, check_level, covered_fraction, default_edge_width
-from ._time_courses import AbstractTimeCourse, ArrayLike, as_float, check_shape, float_array, reach, value_at
+from ._time_courses import AbstractTimeCourse, ArrayLike, Press, as_float, check_shape, float_array, reach, value_at
 
 # Sample points held in memory at once by `stimulus` (frames x elements x samples): frames are
 # mapped in batches of this size, so long scenes on fine meshes stay within a few hundred MB.
@@ -289,14 +289,28 @@ def _stimulus(
 
 
 def _check_increases(touches: tuple[Touch, ...]) -> None:
-    increases = [float(t.amplitude) for t in touches if is_concrete(t.amplitude) and float(t.amplitude) > 0]
-    drops = [a / (1 + a) for a in increases]  # each resistance drop, as a fraction
-    if len(drops) > 1 and sum(drops) >= 1:
-        raise ValueError(
-            f"touch amplitudes: the conductivity increases (positive Touch.amplitude) {increases} lower the "
-            f"resistance by {sum(drops):.0%} together (sum of a / (1 + a)); where they overlap the conductivity "
-            "would not stay positive; use smaller increases"
-        )
+    """Refuse conductivity increases that, pressed at once, lower the resistance by 100% or more
+    together (`combine_changes` then leaves the conductivity positive nowhere they overlap). A
+    touch whose envelope is a `Press` is pressed from its start to its end only (presses one
+    after another never add up); any other, always."""
+    increases = []  # (start, end, amplitude) of each increase
+    for touch in touches:
+        if not is_concrete(touch.amplitude) or float(touch.amplitude) <= 0:
+            continue
+        course = touch.envelope
+        pressed = (-np.inf, np.inf)
+        if isinstance(course, Press) and is_concrete(course.start) and is_concrete(course.end):
+            pressed = (float(course.start), float(course.end))
+        increases.append((*pressed, float(touch.amplitude)))
+    for start, _, _ in increases:
+        together = [a for begin, end, a in increases if begin <= start and (start < end or begin == end)]
+        drops = [a / (1 + a) for a in together]  # each resistance drop, as a fraction
+        if len(drops) > 1 and sum(drops) >= 1:
+            raise ValueError(
+                f"touch amplitudes: the conductivity increases (positive Touch.amplitude) {together}, pressed at "
+                f"once, lower the resistance by {sum(drops):.0%} together (sum of a / (1 + a)); where they overlap "
+                "the conductivity would not stay positive; use smaller increases"
+            )
 
 
 def check_touches(mesh: Mesh, touches: Sequence[Touch], *, surface: tuple[str, float] | None = None) -> None:
