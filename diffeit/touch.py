@@ -111,12 +111,12 @@ each touch is read against the rest just before it instead, frame by frame:
 
 On the skin above (`benchmarks/rest_anchors.py`), from the reference alone: 5.0 and 5.8 mm, 41
 and 36 of 200 frames between presses touched where all 200 had been, 3 and 0 of 40 presses
-(weak, near the middle) not found where none had been; after 50 labelled presses, 3.2 and
-5.9 mm (2 and 0 presses not found). Reading each press against the 3 frames before it, its
-start known, gave 5.5 mm from the reference alone and 4.0 mm after the presses on the first
-seed (with a calibration that read its presses against the reference; the calibration reads
-each against the frames before it now, and on the second seed its presses so read 4.8 mm
-off). On the same skin without memory no anchor moved: every frame read as against the
+(weak, near the middle) not found where none had been; after 50 labelled presses, 3.0 and
+4.9 mm (3 and 0 presses not found; 3.2 and 5.9 while the calibration read a press against
+the frames just before it whatever they held, and 4.3 and 5.2 against the reference).
+Reading each press against the 3 frames before it, its start known, gave 5.5 mm from the
+reference alone and 4.0 mm after the presses on the first seed (with a calibration that read
+its presses against the reference). On the same skin without memory no anchor moved: every frame read as against the
 reference. A touch whose start stays within the noise frame by frame brings no onset: it is
 read against the anchor in force.
 `baseline="reference"` reads every frame against the recording's reference. `LiveTouches`
