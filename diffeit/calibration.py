@@ -1810,8 +1810,8 @@ def calibrate(
     readings with the presses' holds known (`diffeit.fit.memory_from_press_readings`).
     With labelled `presses`: the readout's mixing, and the electrode positions (and gains per
     reading when `press_groups` names them), are fitted to the presses' differences, and kept
-    only when they read presses they did not see better than the reference's calibration does
-    (five folds, at least 20 presses);
+    unless the reference's calibration reads significantly more of the presses they did not see
+    closer (five folds, at least 20 presses);
     each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
     as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
     fitted, its degree chosen by cross-validation. A press one of whose frames looks damaged
@@ -1821,7 +1821,9 @@ def calibrate(
     Arguments:
         recording: The session: untouched frames (or a reference) and, with presses, the
             pressed frames; its protocol and `readings` are the board's.
-        presses: The labelled presses (`diffeit.io.Presses`), times on the recording's clock.
+        presses: The labelled presses (`diffeit.io.Presses`), times on the recording's clock:
+            all of the session's or some (the others kept to test on: each is read against
+            the rest frames before it that no press changes, `_rests`).
         mesh: The sheet; None for `default_mesh(recording, h)`.
         h: Element size of the default mesh, m.
         reference_frame: Calibrate on this frame instead of the recording's reference.
