@@ -16,7 +16,11 @@ class Presses(eqx.Module):
             curved skin (K, 3), points on its surface in the mesh's frame.
         radius: The contact radius, metres: one for all presses or (K,) one each.
         times: (K,) the instant each press is held, seconds on the recording's clock, or
-            (K, 2) the start and end of each hold.
+            (K, 2) the start and end of each hold. An instant is read from the one frame
+            nearest it; a hold from every frame within it (their mean), and holds of 3 frames
+            or more let `diffeit.calibrate` fit the skin's memory. The presses may be some of
+            a session's: frames outside them are not taken for rest where a press changes
+            them.
 
     Attributes:
         centres: (K, 2) or (K, 3) float64, metres.
