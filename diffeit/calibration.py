@@ -223,7 +223,7 @@ import dataclasses
 import itertools
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Literal, NamedTuple
 
@@ -937,14 +937,10 @@ class PositionMap(eqx.Module):
             if mesh is None or mesh.nodes.shape[1] != 3:
                 raise ValueError("a position map of points on a curved skin needs the skin's (surface) mesh")
             surface = mesh
-        errors = {"none": float(np.median(_leave_one_out_errors(read, labelled, None, surface)))}
-        degree = None
-        for candidate in _MAP_DEGREES[1:]:
-            if len(read) < _terms(read[:1], candidate).shape[1] + 2:
-                break
-            errors[str(candidate)] = float(np.median(_leave_one_out_errors(read, labelled, candidate, surface)))
-            if errors[str(candidate)] < errors["none" if degree is None else str(degree)]:
-                degree = candidate
+        degree, errors = _chosen_degree(
+            read,
+            lambda degree: float(np.median(_leave_one_out_errors(read, labelled, degree, surface))),
+        )
         length = _spread(labelled)
         coefficients = np.zeros((0, read.shape[1]))
         if degree is not None:
@@ -1033,15 +1029,13 @@ class SizeMap(eqx.Module):
             if kept.sum() < 3:
                 raise ValueError(f"a size map needs 3 presses whose {name} was read or more; {int(kept.sum())} were")
             points, target = read_positions[kept] / length, target[kept]
-            errors[name] = {"none": float(np.median(np.abs(target)))}
-            degrees[name], coefficients[name] = None, np.zeros(0)
-            for candidate in _MAP_DEGREES[1:]:
-                terms = _terms(points, candidate)
-                if len(points) < terms.shape[1] + 2:
-                    break
-                errors[name][str(candidate)] = float(np.median(np.abs(_held_out_residuals(terms, target))))
-                if errors[name][str(candidate)] < errors[name]["none" if degrees[name] is None else str(degrees[name])]:
-                    degrees[name] = candidate
+
+            def held_out(degree: int | None, points: np.ndarray = points, target: np.ndarray = target) -> float:
+                residuals = target if degree is None else _held_out_residuals(_terms(points, degree), target)
+                return float(np.median(np.abs(residuals)))
+
+            degrees[name], errors[name] = _chosen_degree(points, held_out)
+            coefficients[name] = np.zeros(0)
             fitted = np.zeros(len(target))
             if degrees[name] is not None:
                 terms = _terms(points, degrees[name])
@@ -1057,6 +1051,22 @@ class SizeMap(eqx.Module):
             length,
             errors,
         )
+
+
+def _chosen_degree(points: np.ndarray, held_out: Callable[[int | None], float]) -> tuple[int | None, dict[str, float]]:
+    """The polynomial degree (None: no polynomial) of a map of `points` (K, D) chosen by
+    cross-validation: among the degrees K points determine with two to spare, a degree
+    replaces a lower one when its held-out median error `held_out(degree)` is lower; and each
+    degree's error ("none" for None)."""
+    errors = {"none": held_out(None)}
+    degree = None
+    for candidate in _MAP_DEGREES[1:]:
+        if len(points) < _terms(points[:1], candidate).shape[1] + 2:
+            break
+        errors[str(candidate)] = held_out(candidate)
+        if errors[str(candidate)] < errors["none" if degree is None else str(degree)]:
+            degree = candidate
+    return degree, errors
 
 
 def _held_out_residuals(terms: np.ndarray, targets: np.ndarray) -> np.ndarray:
