@@ -1486,18 +1486,13 @@ def _damaged(frames: np.ndarray) -> np.ndarray:
 
 def _change_from_about(frames: np.ndarray) -> np.ndarray:
     """(T,) each frame's (T, M, in time order; at least 3) distance from the median of the
-    frames about it (`_DAMAGE_REACH` each side, reflected at the ends; all of them, up to 9), a
-    fraction of that median's norm."""
-    count = len(frames)
-    rows = np.arange(count)
-    if count <= 2 * _DAMAGE_REACH + 1:
-        about = np.broadcast_to(np.median(frames, axis=0), (len(rows), frames.shape[1]))
+    frames about it (`_DAMAGE_REACH` each side; all of them, up to 9), a fraction of that
+    median's norm."""
+    if len(frames) <= 2 * _DAMAGE_REACH + 1:
+        about = np.broadcast_to(np.median(frames, axis=0), frames.shape)
     else:
-        about_rows = rows[:, None] + np.arange(-_DAMAGE_REACH, _DAMAGE_REACH + 1)
-        about_rows = np.where(about_rows < 0, -about_rows - 1, about_rows)
-        about_rows = np.where(about_rows >= count, 2 * count - about_rows - 1, about_rows)
-        about = np.median(frames[about_rows], axis=1)
-    return np.linalg.norm(frames[rows] - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
+        about = scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
+    return np.linalg.norm(frames - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
 
 
 @host_algebra
