@@ -287,6 +287,10 @@ _LOST_FRAME = 0.75
 _LEADING_DAMAGED = 2
 _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift_corrected`)
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
+# Runs of untouched frames shorter than this among touched ones are rests only when their gains
+# stand apart from the presses beside them as a rest's do, where a press moves the gain by more
+# than this many times a gain's noise (`_rests_not_presses`).
+_LONG_REST, _PRESS_PART = 5, 4.0
 _LEAST_NEAR = 3  # touched frames near untouched ones that tell a press's part of the common gain (`drift_corrected`)
 _DRIFT_CHANCE = 1e-6  # the chance that the reference's own jitter passes for a drift (`drift_corrected`)
 _ROUND_OFF = 1e-12  # a reading's spread under this fraction of its value is round-off, not noise (`drift_corrected`)
@@ -1540,8 +1544,10 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     if drift is None or recording.n_frames == 0:
         return recording, None
     common = drift.gains(recording.frames)
-    still = drift.untouched(recording.frames, common)
     ordered = not np.any(np.diff(recording.times) < 0)
+    still = drift.untouched(recording.frames, common)
+    if ordered:
+        still = _rests_not_presses(recording.times, common, still, drift.jitter)
     gains = np.ones_like(common)
     if still.any() and ordered:
         # A running median over the untouched frames: a touch that moves the readings' common
@@ -1575,6 +1581,81 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
             "interpolated in time"
         )
     return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
+
+
+def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, jitter: float) -> np.ndarray:
+    """(T,) the frames `still` (T,) bool, at `times` (T,) in order, that are at rest, by their
+    gains (T,): those of long runs (`_LONG_REST` frames or more), and those of the short runs
+    among touched frames (and of the long runs next to a touched frame) whose gains stand nearer
+    a rest's than a press's against the presses beside them.
+
+    A press near the middle moves the readings' common part and little else, and its frame
+    minus its gain times the reference passes for untouched (25 of 110 presses on the
+    calibration benchmark's skin, 10 mm at -30%, each raising the gain 0.35%). Between rest
+    frames a running median outvotes them; with presses one after another and no rest between,
+    they were all the untouched frames after the reference, the drift followed them, and every
+    frame was divided by the presses' typical gain (9 of 60 presses then missed).
+
+    A press's part of the gain, p, is the median, over the touched frames within
+    `_DRIFT_WINDOW` frame steps of a long run, of their gain less the rest's there (`_trend_at`
+    of the `_DRIFT_WINDOW` long runs' frames nearest in time: a drift moves on from a run's
+    end). Against the mean gain of the nearest touched frames before and after it, a rest's
+    gain stands about -p off, a press's about 0 (a drift moves both alike): a short run's frame
+    is a press when its gain less theirs lies nearer 0 than -p. When p is unknown (fewer than
+    `_LEAST_NEAR` such frames: no long run, or a gap in time after it) or within
+    `_PRESS_PART` times a gain's noise (sqrt(`jitter`)) of 0, every frame `still` is kept: a
+    press that moves the gain by so little moves no drift."""
+    touched = np.flatnonzero(~still)
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0])).reshape(-1, 2)
+    long = np.zeros_like(still)
+    for first, last in edges[edges[:, 1] - edges[:, 0] >= _LONG_REST]:
+        long[first:last] = True
+    if not len(touched) or not long.any():
+        return still
+    step = float(np.median(np.diff(times)))
+    after = np.clip(np.searchsorted(times[long], times[touched]), 1, long.sum()) - 1
+    apart = np.minimum(
+        np.abs(times[touched] - times[long][after]),
+        np.abs(times[touched] - times[long][np.minimum(after + 1, long.sum() - 1)]),
+    )
+    near = touched[apart <= (_DRIFT_WINDOW + 0.5) * step]
+    if len(near) < _LEAST_NEAR:
+        return still
+    rest = np.flatnonzero(long)
+    levels = []
+    for t in near:
+        nearest = rest[np.argsort(np.abs(times[rest] - times[t]), kind="stable")[:_DRIFT_WINDOW]]
+        levels.append(_trend_at(times[nearest], gains[nearest], times[t]))
+    part = float(np.median(gains[near] - np.asarray(levels)))
+    if abs(part) <= _PRESS_PART * math.sqrt(jitter):
+        return still
+    # The short runs' frames after the first touch, and the long runs' frames next to a touch
+    # (a press that passes for untouched, just before or after a run, joins it).
+    edge = np.zeros_like(still)
+    edge[touched[touched > 0] - 1] = edge[touched[touched < len(still) - 1] + 1] = True
+    frames = np.flatnonzero(still & ((~long & (np.arange(len(still)) > touched[0])) | (long & edge)))
+    before = touched[np.maximum(np.searchsorted(touched, frames) - 1, 0)]
+    following = touched[np.minimum(np.searchsorted(touched, frames), len(touched) - 1)]
+    beside = np.select(
+        [(before < frames) & (following > frames), before < frames],
+        [0.5 * (gains[before] + gains[following]), gains[before]],
+        gains[following],
+    )
+    offset = gains[frames] - beside
+    kept = still.copy()
+    kept[frames[np.abs(offset) < np.abs(offset + part)]] = False
+    return kept
+
+
+def _trend_at(times: np.ndarray, gains: np.ndarray, time: float) -> float:
+    """The gain at `time` of gains (n,) at `times` (n,): their median moved to `time` along their
+    Theil-Sen slope (the median of the slopes between pairs of them), robust to a touch among
+    them that passed for untouched; a median alone lags a steady drift by half their span."""
+    first, second = np.triu_indices(len(gains), k=1)
+    apart = times[second] - times[first]
+    slopes = (gains[second] - gains[first])[apart != 0] / apart[apart != 0]
+    slope = float(np.median(slopes)) if len(slopes) else 0.0
+    return float(np.median(gains)) + slope * (time - float(np.median(times)))
 
 
 def _departs(deviations: np.ndarray, variance: float, run: int, freedom: int) -> bool:
@@ -1727,11 +1808,7 @@ class LiveDrift(eqx.Module):
         median = float(np.median(gains))
         if abs(median - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(self.reference.jitter / len(gains)):
             return 1.0
-        first, second = np.triu_indices(len(gains), k=1)
-        apart = times[second] - times[first]
-        slopes = (gains[second] - gains[first])[apart > 0] / apart[apart > 0]
-        slope = float(np.median(slopes)) if len(slopes) else 0.0
-        return median + slope * (time - float(np.median(times)))
+        return _trend_at(times, gains, time)
 
 
 def _drift_note(gains: np.ndarray) -> str:

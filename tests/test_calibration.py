@@ -448,6 +448,47 @@ def test_a_drifting_sessions_first_frames_joined_to_its_later_ones_still_give_th
     assert np.max(moved) < 0.02  # of the skin's radius 1 m
 
 
+def test_presses_that_pass_for_untouched_among_presses_one_after_another_are_no_drift():
+    """Presses one after another, no rest between them, each raising the readings' common gain
+    0.4% (a touch lowering the conductivity): every other one moves the readings by that gain
+    alone, and so passes for untouched once its gain is taken out. They are not rest frames: no
+    drift is taken out (before, the drift followed them and every frame after the reference was
+    divided by 1.004). With rest frames between the presses, or with a drift of 2% under them,
+    the gains follow the rest level."""
+    rng = np.random.default_rng(3)
+    readings = PROTOCOL.n_measurements
+    level = 1.0 + rng.uniform(0.0, 1.0, readings)
+    # A touch's own pattern, none of it along the level (the readings weighed by their noise).
+    bump = 0.02 * np.sin(2 * np.pi * np.arange(readings) / 16)
+    bump -= np.sum(bump * level) / np.sum(level)
+
+    def frames(shape: tuple[int, ...]) -> np.ndarray:
+        return level * (1.0 + 1e-4 * rng.standard_normal((*shape, readings)))
+
+    reference = frames((20,))
+    weak = rng.random(60) < 0.5
+    parts = 0.004 + 0.0005 * rng.standard_normal((60, 1))
+    pressed = frames((60,)) * (1.0 + parts + np.where(weak[:, None], 0.0, bump))
+
+    def recording(values: np.ndarray) -> de.io.Recording:
+        return de.io.Recording(frames=values, times=0.1 * np.arange(len(values)), protocol=PROTOCOL)
+
+    together = np.concatenate([reference, pressed])
+    drift = calibration_module._DriftReference.of(reference)
+    still = drift.untouched(together, drift.gains(together))
+    np.testing.assert_array_equal(still[20:], weak)  # the weak presses pass for untouched
+    assert de.calibration.drift_corrected(recording(together), reference)[1] is None
+    # Rest frames between the presses: still nothing to take out, the weak presses outvoted.
+    rests = frames((60,))
+    between = np.concatenate([reference, np.stack([pressed, rests], axis=1).reshape(120, readings)])
+    assert de.calibration.drift_corrected(recording(between), reference)[1] is None
+    # A drift of 2% under the presses one after another is followed by their own gains, less a
+    # press's typical part (to 0.25%: that part is measured where the drift has moved on a little).
+    growth = 1.0 + 0.02 * np.arange(80) / 79
+    _, gains = de.calibration.drift_corrected(recording(together * growth[:, None]), reference)
+    np.testing.assert_allclose(gains[20:], growth[20:], atol=2.5e-3)
+
+
 def test_a_drift_under_presses_one_after_another_is_followed_by_their_own_gains():
     """Presses one after another with no untouched frame between them (30 after the first 10
     untouched frames), on a skin whose common gain grows 4% over the session: the untouched
