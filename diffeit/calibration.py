@@ -1510,22 +1510,24 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     above the noise over a session, and every frame looks touched. Each frame's gain c_t is its
     least-squares multiple of the reference (the readings weighed by their noise); a frame is
     untouched when what is left, frame - c_t reference, stands within the reference frames'
-    noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5). The
-    gains are the running median of the untouched frames' c_t over `_DRIFT_WINDOW` of them,
-    interpolated in time to the touched frames (the nearest one's beyond them): a touch moves
-    the readings' common part too, and one that moves little else passes for untouched (its
-    own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were then
-    missed). Touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
+    noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5), and its
+    gain does not mark it as a press that moved the common part alone (`_rests_not_presses`:
+    among presses one after another, those were all the untouched frames, and the drift followed
+    them). The gains are the running median of the untouched frames' c_t over `_DRIFT_WINDOW` of
+    them, interpolated in time to the touched frames (the nearest one's beyond them): a touch
+    moves the readings' common part too, and one that moves little else passes for untouched
+    (its own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were
+    then missed). Touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
     one (presses one after another, which the untouched frames' gains no longer follow) take
     their own c_t instead, less a press's typical part of it (the median, over the touched
     frames near untouched ones, of their c_t less the untouched frames' gain there), in a
-    running median over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under
-    60 presses one after another, the test presses were read 19.5 mm off with the nearest
-    untouched gain held, 4.6 mm so). Gains are taken out only when the untouched frames' c_t
-    spread beyond the reference frames' own jitter from one frame to the next, or the far
-    touched frames' gains beyond the uncertainty of their running median and typical part (F
-    tests at chance `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the
-    readings' common part, and without drift dividing by them only adds that noise.
+    running median over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under 60
+    presses one after another, the test presses were read 19.5 mm off with the nearest untouched
+    gain held, 4.6 mm so). Gains are taken out only when the untouched frames' c_t spread beyond
+    the reference frames' own jitter from one frame to the next, or the far touched frames'
+    gains beyond the uncertainty of their running median and typical part (F tests at chance
+    `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the readings' common
+    part, and without drift dividing by them only adds that noise.
 
     Arguments:
         recording: The recording (frames as recorded).
