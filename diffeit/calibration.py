@@ -1615,12 +1615,7 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
     if not len(touched) or not long.any():
         return still
     step = float(np.median(np.diff(times)))
-    after = np.clip(np.searchsorted(times[long], times[touched]), 1, long.sum()) - 1
-    apart = np.minimum(
-        np.abs(times[touched] - times[long][after]),
-        np.abs(times[touched] - times[long][np.minimum(after + 1, long.sum() - 1)]),
-    )
-    near = touched[apart <= (_DRIFT_WINDOW + 0.5) * step]
+    near = touched[_time_to_nearest(times, long)[touched] <= (_DRIFT_WINDOW + 0.5) * step]
     if len(near) < _LEAST_NEAR:
         return still
     rest = np.flatnonzero(long)
@@ -1674,12 +1669,15 @@ def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
     frame (`still`, (T,) bool, some true): presses one after another with no untouched frame
     between them, whose drift the untouched frames' gains no longer follow."""
     step = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
-    untouched = times[still]
-    after = np.clip(np.searchsorted(untouched, times), 1, len(untouched)) - 1
-    nearest = np.minimum(
-        np.abs(times - untouched[after]), np.abs(times - untouched[np.minimum(after + 1, len(untouched) - 1)])
-    )
-    return ~still & (nearest > (_DRIFT_WINDOW // 2 + 0.5) * step)
+    return ~still & (_time_to_nearest(times, still) > (_DRIFT_WINDOW // 2 + 0.5) * step)
+
+
+def _time_to_nearest(times: np.ndarray, marked: np.ndarray) -> np.ndarray:
+    """(T,) the time, s, from each of `times` (T,), in order, to the nearest frame `marked`
+    ((T,) bool, some true)."""
+    at = times[marked]
+    after = np.clip(np.searchsorted(at, times), 1, len(at)) - 1
+    return np.minimum(np.abs(times - at[after]), np.abs(times - at[np.minimum(after + 1, len(at) - 1)]))
 
 
 def _checked_reference_set(reference_set: ArrayLike, readings: int | None = None) -> np.ndarray:
