@@ -266,6 +266,8 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 # A recording without a reference is calibrated on the mean of at most this many first frames;
 # a session without presses on those of its first _SESSION_FRAMES that look untouched.
 REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
+# `_within_noise_of` follows the untouched trend out from the first run in at most this many passes.
+_TREND_PASSES = 6
 # A frame whose difference from the frames about it (`_DAMAGE_REACH` each side) exceeds this
 # fraction of their norm is damaged, not touched (a board's glitch: a frame of zeros, one at
 # another gain, readings out of order): never a reference frame; `diffeit.reconstruct` chooses
@@ -1399,10 +1401,8 @@ def reference_frames(
         if (~pressed).any():
             return _looking_untouched(recording.frames[~pressed], recording.times[~pressed], "outside the presses")
     if recording.n_frames > REFERENCE_FRAMES:
-        still = _untouched(recording.frames[:_SESSION_FRAMES], recording.times[:_SESSION_FRAMES])
-        if every_frame:
-            frames = recording.frames[:_SESSION_FRAMES][still]
-            return frames, f"the {len(frames)} untouched frames of the first ones"
+        session, session_times = recording.frames[:_SESSION_FRAMES], recording.times[:_SESSION_FRAMES]
+        still = _untouched(session, session_times)
         # Only the first run: a light press later on can pass for untouched. A run shorter than
         # `REFERENCE_FRAMES` is kept as it is: the first frames beyond it had put a press into the
         # reference of a session with one untouched frame before its presses, and every
@@ -1410,6 +1410,10 @@ def reference_frames(
         first = int(np.argmax(still))  # `_untouched` passes some frames, the first ones when too few pass
         run = still[first:]
         end = first + (len(run) if run.all() else int(np.argmin(run)))
+        if every_frame:
+            leading = slice(first, end) if first <= _LEADING_DAMAGED else slice(0, first)
+            kept = _within_noise_of(session, session_times, still, leading)
+            return session[kept], f"the {int(kept.sum())} untouched frames of the first ones"
         if first == 0:
             return recording.frames[:end], f"mean of the first {end} frames (up to the first that looks touched)"
         if first <= _LEADING_DAMAGED:
@@ -1474,6 +1478,48 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
     if still.sum() < REFERENCE_FRAMES:
         still = whole & (np.cumsum(whole) <= REFERENCE_FRAMES)
     return still
+
+
+def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, leading: slice) -> np.ndarray:
+    """(T,) bool: those of the frames (T, M) of the untouched run `leading` and of `still`
+    (`_untouched`) that lie within the noise of the untouched trend through them, the noise
+    measured on the run alone (3 frames or more; with fewer, or fewer than 3 passing, the run).
+
+    `_untouched` measures the noise on the frames it passes: when most of a session's frames
+    are presses (one after another, no rest between them), faint ones pass, and the noise they
+    set lets more pass. On the calibration benchmark's skin, a session of 20 untouched frames
+    then 110 presses back to back gave 60 "untouched" frames, 40 of them faint presses, and a
+    calibration from them missed 15 of 60 presses (none now). The run's noise is the median
+    distance of its frames from their mean, squared, over (1 - 1/n) (sigma^2 M, a faint press
+    ending the run left out); a frame passes when its distance from the trend, its common gain
+    taken out (as `_untouched`), is within (1 + 5 / sqrt(2 M)) times that of an untouched frame
+    from a mean of the frames kept. The trend is the run's mean, then each reading's straight
+    line in time through the frames kept once some lie outside the run: a rest level that
+    drifts is followed outwards from the run."""
+    run = np.zeros(len(frames), bool)
+    run[leading] = True
+    n = int(run.sum())
+    if n < 3:
+        return run
+    variance = float(np.median(np.sum((frames[run] - frames[run].mean(axis=0)) ** 2, axis=1))) / (1.0 - 1.0 / n)
+    factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
+    candidates = still | run
+    time = np.asarray(times, np.float64) - np.mean(times)
+    time = time / max(float(np.max(np.abs(time))), 1e-300)
+    line = np.column_stack([np.ones_like(time), time])
+    kept = run
+    for _ in range(_TREND_PASSES):
+        design = line if (kept & ~run).any() else line[:, :1]
+        trend = design @ np.linalg.lstsq(design[kept], frames[kept], rcond=None)[0]
+        gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
+        distance = np.sum((frames - gains[:, None] * trend) ** 2, axis=1)
+        passed = candidates & (distance <= factor**2 * variance * (1.0 + 1.0 / kept.sum()))
+        if passed.sum() < 3:
+            return run
+        if np.array_equal(passed, kept):
+            break
+        kept = passed
+    return kept
 
 
 def _damaged(frames: np.ndarray) -> np.ndarray:

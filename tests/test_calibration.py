@@ -161,6 +161,38 @@ def test_a_recording_with_few_untouched_frames_before_its_presses_keeps_them_alo
     assert np.median(distance) < 0.1, np.median(distance)
 
 
+def test_a_session_of_presses_one_after_another_takes_no_faint_press_among_its_untouched_frames():
+    """20 untouched frames, then 60 presses one after another (no rest between them), half of
+    them faint (a change 1.5 times the noise's size), half strong (6 times). Most frames are
+    presses: measured against them, the faint ones passed for untouched, and a calibration took
+    50 "untouched" frames, their noise half as large again. Measured against the first run's
+    noise, every untouched frame is kept and no press; a common drift of 2% and each reading's
+    own drift of up to 0.1% over the session, with rests between the presses, keep every rest."""
+    rng = np.random.default_rng(11)
+    readings = PROTOCOL.n_measurements
+    level = 1.0 + rng.uniform(0.0, 1.0, readings)
+    size = 1e-3 * np.linalg.norm(level)  # the noise's norm over the readings
+
+    def frames(count: int) -> np.ndarray:
+        return level * (1.0 + 1e-3 * rng.standard_normal((count, readings)))
+
+    patterns = rng.standard_normal((60, readings))
+    patterns *= (np.where(np.arange(60) % 2 == 0, 1.5, 6.0) * size / np.linalg.norm(patterns, axis=1))[:, None]
+    together = np.concatenate([frames(20), frames(60) + patterns])
+    recording = de.io.Recording(frames=together, times=0.1 * np.arange(80), protocol=PROTOCOL)
+    kept, _ = de.calibration.reference_frames(recording, every_frame=True)
+    np.testing.assert_array_equal(kept, together[:20])
+    # Rests between the presses, under a drift: every rest is kept.
+    between = np.concatenate([frames(20), np.stack([frames(60) + patterns, frames(60)], axis=1).reshape(120, readings)])
+    times = 0.1 * np.arange(140)
+    fraction = times[:, None] / times[-1]
+    drift = (1.0 + 0.02 * fraction) * (1.0 + 1e-3 * rng.uniform(-1, 1, readings) * fraction)
+    drifting = de.io.Recording(frames=between * drift, times=times, protocol=PROTOCOL)
+    kept, _ = de.calibration.reference_frames(drifting, every_frame=True)
+    rests = np.r_[np.arange(20), np.arange(21, 140, 2)]
+    np.testing.assert_array_equal(kept, (between * drift)[rests])
+
+
 @pytest.mark.parametrize("damage", ["readings off by up to 50%", "zeros", "3 times the gain"])
 def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin, damage):
     """A board's first frame after it connects can be garbage: each reading off by up to 50%,
