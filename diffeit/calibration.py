@@ -1372,7 +1372,8 @@ def reference_frames(
     first `_LEADING_DAMAGED` frames or fewer look touched (damaged), the untouched run after
     them; when more do, those (the untouched trend is the frames' median, and most of such a
     recording is one long press); the first `REFERENCE_FRAMES` when the recording holds no
-    more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched). A
+    more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched and
+    lies within the noise of the first untouched run, `_within_noise_of`). A
     frame that looks damaged (`_damaged`: a frame of zeros, one at another gain) is never one
     of them, of 3 frames or more.
 
@@ -1381,7 +1382,7 @@ def reference_frames(
         reference_frame: A frame to use instead of the recording's reference.
         presses: The session's labelled presses, if any.
         every_frame: Without a reference or presses, take every frame of the first ones that
-            looks untouched (a session), not just the first few.
+            looks untouched (a session; `_within_noise_of`), not just the first run.
 
     Returns:
         (T, M) the reference frames, and a description of them.
