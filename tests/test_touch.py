@@ -216,6 +216,16 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
     for seed in range(4):
         anchor_of, anchors = _anchors_of(faint, seed=seed)
         assert anchors == [] and np.all(anchor_of == -1)
+    # Three faint presses one after another after a deep one, each a little of the deep one's
+    # pattern (a press near the middle moves the readings' common level) and a wide change of its
+    # own: their steps stay within the noise, and each passed for what the deep one left. The
+    # deep one explains under a tenth of each and leaves the rest standing out of the noise:
+    # they are presses. (Taken as a rest, they anchored every frame after them.)
+    wide = [2.0 * np.exp(-0.5 * ((np.arange(60) - centre) / 10.0) ** 2) for centre in (35, 38, 41)]
+    row = [untouched] * 3 + [_bump(20, 12.0)] + [0.12 * _bump(20, 12.0) + change for change in wide]
+    for seed in range(4):
+        anchor_of, anchors = _anchors_of(row + [_bump(50, 12.0)] * 2, seed=seed)
+        assert anchors == [] and np.all(anchor_of == -1)
 
 
 def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_reference():
