@@ -99,7 +99,7 @@ from .inverse import (
 from .io import Recording
 from .mesh import Mesh
 from .results import RESULTS, failed, names, throw_if_failed
-from .touch import _one_step_noise
+from .touch import _one_step_noise, subspace_statistic
 
 Method = Literal["one_step", "gauss_newton", "total_variation", "greit"]
 Difference = Literal["auto", "calibrated", "normalised"]
@@ -149,9 +149,12 @@ def reconstruct(
     provenance as "reading_noise", the noise `diffeit.touches` tests frames against without a
     calibration; with it, or with a calibration's noise, one-step images keep each element's
     noise as "image_noise" (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the
-    hills. Where the frames drift beyond the reference's jitter, every frame is divided by its
-    common gain against the reference (`drift_corrected`), the gains kept as "frame_gains",
-    their range warned of, and the returned recording's frames the corrected ones. The model
+    hills. Without either, how far each frame stands out of its own noise is kept as
+    "touch_statistic" (`diffeit.touch.subspace_statistic`, at the calibrated model), on which
+    `diffeit.touches` tells touched frames. Where the frames drift beyond the reference's
+    jitter, every frame is divided by its common gain against the reference
+    (`drift_corrected`), the gains kept as "frame_gains", their range warned of, and the
+    returned recording's frames the corrected ones. The model
     (the sheet `mesh`, else `default_mesh(recording, h)`; the recording's protocol;
     `contact_impedance` at `background`) is calibrated to it by `calibrate_to_reference` (level, orientation, signs of
     magnitudes, driven readings, broken channels; its warnings are issued as
@@ -311,6 +314,8 @@ def reconstruct(
     damaged = np.linalg.norm(dv, axis=1) > _LARGEST_CHANGE * np.linalg.norm(signed_reference)
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
+    # Without it, how far each frame stands out of its own noise, for `diffeit.touches`.
+    statistic = None if noise is not None else subspace_statistic(frames - signed_reference, calibration)
     difference, difference_reason = _difference(difference, calibration, given)
     unsafe: list[int] = []
     if difference == "normalised":
@@ -359,6 +364,7 @@ def reconstruct(
         "noise_frames": 0 if spread is None else len(reference_set),
         "reading_noise": None if spread is None else spread.tolist(),
         "image_noise": None if element_noise is None else element_noise.tolist(),
+        "touch_statistic": None if statistic is None else statistic.tolist(),
         "frame_gains": None if frame_gains is None else frame_gains.tolist(),
         "calibrated": bool(calibrate) or given,
         "calibration": calibration.summary(),

@@ -29,12 +29,19 @@ ringing and noise, so a skin's touches vote for their own sign.
    a calibration that knows no noise (fewer than 6 reference frames), the differences inside the
    subspace a conductivity change reaches are compared with those outside it, where only noise
    is (`touched`): the ratio of their mean squares is about 1 for an untouched frame, and a
-   frame is touched when it exceeds 1 by `detection` of its standard deviations. A touched frame
-   reports its strongest hill however low, and the others above `low` (default 3) robust
-   standard deviations of its image; an untouched frame reports none. Without either, a hill
-   counts when its peak exceeds `threshold` (default 6) robust standard deviations of the image:
-   sigma_t = 1.4826 * MAD of a over the elements (a touch covers few of them, so this is the
-   image's noise and artefacts).
+   frame is touched when it exceeds 1 by `detection` of its standard deviations. Without a
+   calibration, and no noise kept, `diffeit.reconstruct` keeps that statistic, made at the model
+   it calibrated to the reference (`subspace_statistic`, "touch_statistic"), and a frame is
+   touched when it is, or when its image has a hill above `threshold` (each finds presses the
+   other misses: on a magnitude board with one untouched frame before 80 presses one after
+   another, 78 read where the hills alone read 37; on an adjacent board the statistic alone
+   missed 4 of 30 the hills read). A touched frame reports its strongest hill however low, and
+   the others above `LOW` (3) robust standard deviations of its image where the noise is known,
+   above `threshold` where it is not (`LOW` read a single press as 2 to 4 touches in 24 of those
+   80 frames); an untouched frame reports none. Without either, a hill counts when its peak
+   exceeds `threshold` (default 6) robust standard deviations of the image: sigma_t = 1.4826 *
+   MAD of a over the elements (a touch covers few of them, so this is the image's noise and
+   artefacts).
 2. **Hills.** The local maxima of a (at least every element sharing an edge), highest
    first, each further one at least `RELATIVE` (0.1) of the highest one's peak (a one-step
    image rings at a fraction of its touch's peak whatever the noise), or, with a calibration
@@ -396,6 +403,9 @@ def touches(
         frames_touched = touched(recording.frames, recording.reference, calibration, detection=detection)
     else:
         frames_touched = None
+    # `diffeit.reconstruct`'s subspace test, made with its own calibration where nothing knew the noise.
+    reconstructions = _subspace_tested(recording, detection) if frames_touched is None else None
+    frames_touched = reconstructions if frames_touched is None else frames_touched
     if polarity is None:
         polarity = None if calibration is None else calibration.polarity
     damaged = _damaged_frames(recording)
@@ -403,6 +413,9 @@ def touches(
     if polarity is None:
         polarity = polarity_of(images[intact] if frames_touched is None else images[frames_touched & intact])
     element_noise = _images_noise(recording)
+    if reconstructions is not None:  # or a hill above `threshold` (each misses what the other finds)
+        hills = read(recording.mesh, images, max_touches=1, threshold=threshold, polarity=polarity)
+        frames_touched = reconstructions | (hills.count > 0)
     # The discs' fit reads the calibrated model's signed differences (the test's may be raw).
     signed = ()
     if method == "fit":
@@ -427,6 +440,9 @@ def touches(
         touched=frames_touched,
         relative=relative_floor(calibration),
         image_noise=element_noise,
+        # A frame told touched with no noise known (its own, `subspace_statistic`): a further hill
+        # needs what a hill of an untested frame does (single presses read as 2 to 5 touches).
+        further=LOW if test is not None else threshold,
     )
     if damaged is not None:  # read as no touch
         found = Touches(
@@ -720,6 +736,26 @@ class _VoltageTest(NamedTuple):
         return _statistic(dv, self.noise, self.noise_frames, variance, self.subspace)
 
 
+def _subspace_tested(recording: Recording, detection: float) -> np.ndarray | None:
+    """(T,) bool, the frames whose "touch_statistic" in the recording's provenance
+    (`diffeit.reconstruct`'s `subspace_statistic`, made where the readings' noise is unknown)
+    exceeds `detection`; None without one.
+
+    Raises:
+        ValueError: For a statistic that is not one value per frame.
+    """
+    statistic = recording.provenance.get("metadata", {}).get("touch_statistic")
+    if statistic is None:
+        return None
+    statistic = np.asarray(statistic, np.float64)
+    if statistic.shape != (recording.n_frames,) or np.isnan(statistic).any():
+        raise ValueError(
+            f"the recording's touch_statistic (provenance) must hold {recording.n_frames} values, one per frame; "
+            f"got shape {statistic.shape}"
+        )
+    return statistic > detection
+
+
 def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None:
     """The voltage test of a recording with a reference: against the calibration's noise when it
     knows it (its signed readings, in the touch subspace), else against the reference frames'
@@ -1010,15 +1046,23 @@ def _calibrated_jacobian(calibration: Any) -> np.ndarray:
 
 
 def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.ndarray | None:
-    """(T,) which frames' differences `dv` (T, M) stand out of their own noise, or None when the
-    readings are too few to tell.
+    """(T,) which frames' differences `dv` (T, M) stand out of their own noise (`subspace_statistic`
+    above `detection`), or None when the readings are too few to tell."""
+    statistic = subspace_statistic(dv, calibration)
+    return None if statistic is None else statistic > detection
+
+
+def subspace_statistic(dv: np.ndarray, calibration: Any) -> np.ndarray | None:
+    """(T,) how far each frame's differences `dv` (T, M; in the units of `calibration.signed`)
+    stand out of their own noise, or None when the readings are too few to tell: the test of a
+    frame where the readings' noise is unknown.
 
     The calibrated Jacobian's left singular vectors split the readings' space: the k whose
     singular values exceed `_SUBSPACE_CUT` of the largest hold what a conductivity change
     makes, the M - k others little more than noise. For an untouched frame with noise alike on
     every reading, F = (|U_k^T dv|^2 / k) / (|dv - U_k U_k^T dv|^2 / (M - k)) is F(k, M - k)
-    distributed, about 1 with standard deviation sqrt(2 / k + 2 / (M - k)); a frame is touched
-    when F exceeds 1 by `detection` of those. On simulated magnitude skins (192 readings, k
+    distributed, about 1 with standard deviation sqrt(2 / k + 2 / (M - k)); the statistic is
+    (F - 1) over that, and a frame is touched when it exceeds `detection`. On simulated magnitude skins (192 readings, k
     about 45, medium noise) untouched frames reached F = 1.8 at most, pressed ones 2.4 at least.
     """
     basis = _leading_subspace(_calibrated_jacobian(calibration))
@@ -1029,7 +1073,7 @@ def _subspace_test(dv: np.ndarray, calibration: Any, detection: float) -> np.nda
     inside = np.sum((dv @ basis) ** 2, axis=1)
     outside = np.maximum(np.sum(dv**2, axis=1) - inside, np.finfo(float).tiny)
     ratio = (inside / k) / (outside / rest)
-    return (ratio - 1) / np.sqrt(2 / k + 2 / rest) > detection
+    return (ratio - 1) / np.sqrt(2 / k + 2 / rest)
 
 
 @host_algebra
@@ -1046,6 +1090,7 @@ def read(
     touched: np.ndarray | None = None,
     relative: float = RELATIVE,
     image_noise: ArrayLike | None = None,
+    further: float = LOW,
 ) -> Touches:
     """The touches of relative-change images on a mesh (module docstring, "The rule").
 
@@ -1061,14 +1106,17 @@ def read(
             radii and depths reported (`diffeit.calibration.SizeMap`), or None.
         stack: A foam stack whose map gives pressures from depths, or None.
         touched: (T,) bool, which frames are touched (a test on the voltages, module
-            docstring): a touched frame reports its strongest hill and the others above `LOW`
-            robust standard deviations, an untouched one none; None applies `threshold` alone.
+            docstring): a touched frame reports its strongest hill and the others above
+            `further` robust standard deviations, an untouched one none; None applies
+            `threshold` alone.
         relative: A further touch's peak must be at least this fraction of the highest's, in
             [0, 1).
         image_noise: (E,) each element's noise standard deviation in relative change
             (`image_noise`): the hills are then found, ordered and thresholded on the image
             divided by it (module docstring, "The rule", step 2), their sets, positions, radii
             and depths read on the image itself; None: found on the image.
+        further: In a frame `touched` marks, the robust standard deviations a hill after the
+            strongest must exceed.
 
     Returns:
         The `Touches` (T = 1 for one image).
@@ -1092,6 +1140,8 @@ def read(
         raise ValueError(f"threshold must be a positive number of standard deviations; got {threshold}")
     if not 0 <= relative < 1:
         raise ValueError(f"relative must be a fraction of the highest peak in [0, 1); got {relative}")
+    if not (np.isfinite(further) and further > 0):
+        raise ValueError(f"further must be a positive number of standard deviations; got {further}")
     if image_noise is not None:
         image_noise = _checked_element_noise(image_noise, mesh, "image_noise")
     count = np.zeros(len(images), int)
@@ -1105,7 +1155,8 @@ def read(
         if touched is None:
             hills, noise[t] = _hills(mesh, polarity * image, max_touches, threshold, relative, image_noise)
         elif touched[t]:
-            hills, noise[t] = _hills(mesh, polarity * image, max_touches, LOW, relative, image_noise, strongest=True)
+            found = _hills(mesh, polarity * image, max_touches, further, relative, image_noise, strongest=True)
+            hills, noise[t] = found
         else:
             hills, noise[t] = [], _robust_std(polarity * image)
         count[t] = len(hills)
