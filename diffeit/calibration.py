@@ -280,6 +280,9 @@ _LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
 # tests' and the benchmark's skins by at most 0.006 and 0.019, deep ones (-0.8, up to 16 mm) by
 # 0.105, 5.3 times their median.
 _GLITCH_CHANGE, _GLITCH_FACTOR = 0.15, 10.0
+# A frame whose readings, moved up to _MOVED_PLACES places along from some reading on, lie within
+# _MOVED_FIT of its distance from the frames about it is damaged (`_readings_moved`).
+_MOVED_PLACES, _MOVED_FIT = 2, 0.5
 # A labelled press timed at an instant no frame lies within this fraction of the frames' median
 # period of lost its frame (`_presses_left_out`): the nearest is the rest's or another press's.
 # Not a half: frames' times jitter, and labels may be timed at a press's onset.
@@ -1525,24 +1528,62 @@ def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, l
 
 def _damaged(frames: np.ndarray) -> np.ndarray:
     """(T,) bool, the frames (T, M), in time order, whose change from the frames about them
-    (`_change_from_about`) exceeds `_LARGEST_CHANGE`: a board's glitch (a frame of zeros, one
-    at another gain, readings out of place), not a touch, and not a drift over so few frames.
+    (`_change_from_about`) exceeds `_LARGEST_CHANGE`, or whose readings are theirs moved along
+    (`_readings_moved`): a board's glitch (a frame of zeros, one at another gain, readings out
+    of place), not a touch, and not a drift over so few frames.
     None of fewer than 3 frames (nothing to tell which is damaged), nor of frames that all
     look so."""
     if len(frames) < 3:
         return np.zeros(len(frames), bool)
-    damaged = _change_from_about(frames) > _LARGEST_CHANGE
+    about = _about(frames)
+    damaged = (_change_from(frames, about) > _LARGEST_CHANGE) | _readings_moved(frames, about)
     return np.zeros(len(frames), bool) if damaged.all() else damaged
+
+
+def _readings_moved(frames: np.ndarray, about: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames (T, M) whose readings are those of `about` ((T, M) or (M,)) moved
+    one or two places along, from some reading on to the frame's end or from its start up to
+    some reading: a board's stream that lost or gained a reading within a frame puts every
+    reading after it in its neighbour's place. A frame is so when the readings moved fit it
+    within `_MOVED_FIT` of its distance from `about` as they are. Neighbouring readings differ by
+    far more than a press changes them (one place along changes a frame by 0.26 of its norm on an
+    opposition board of magnitudes, 0.48 on an adjacent one; a press by a few percent), so a
+    touched frame fits no moved readings; under adjacent drive a whole frame one place along
+    changes it by less than `_LARGEST_CHANGE`, and was imaged as a touch."""
+    frames = np.asarray(frames, np.float64)
+    about = np.broadcast_to(np.asarray(about, np.float64), frames.shape)
+
+    def running(squares: np.ndarray) -> np.ndarray:  # (T, M + 1): the sums over readings before j
+        return np.concatenate([np.zeros((len(squares), 1)), np.cumsum(squares, axis=1)], axis=1)
+
+    before = running((frames - about) ** 2)
+    total = before[:, -1]
+    best = total
+    for places in (k for k in range(-_MOVED_PLACES, _MOVED_PLACES + 1) if k):
+        moved_before = running((frames - np.roll(about, places, axis=1)) ** 2)
+        # Moved from reading j on (j = 0: the whole frame), or up to reading j.
+        from_j = before + (moved_before[:, -1:] - moved_before)
+        up_to_j = moved_before + (total[:, None] - before)
+        best = np.minimum(best, np.minimum(from_j.min(axis=1), up_to_j.min(axis=1)))
+    return best < _MOVED_FIT**2 * total
 
 
 def _change_from_about(frames: np.ndarray) -> np.ndarray:
     """(T,) each frame's (T, M, in time order; at least 3) distance from the median of the
-    frames about it (`_DAMAGE_REACH` each side; all of them, up to 9), a fraction of that
-    median's norm."""
+    frames about it (`_about`), a fraction of that median's norm."""
+    return _change_from(frames, _about(frames))
+
+
+def _about(frames: np.ndarray) -> np.ndarray:
+    """(T, M) the median of the frames (T, M, in time order) about each one (`_DAMAGE_REACH`
+    each side; all of them, up to 9)."""
     if len(frames) <= 2 * _DAMAGE_REACH + 1:
-        about = np.broadcast_to(np.median(frames, axis=0), frames.shape)
-    else:
-        about = scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
+        return np.broadcast_to(np.median(frames, axis=0), frames.shape)
+    return scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
+
+
+def _change_from(frames: np.ndarray, about: np.ndarray) -> np.ndarray:
+    """(T,) each frame's (T, M) distance from `about` (T, M), a fraction of its norm."""
     return np.linalg.norm(frames - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
 
 

@@ -29,12 +29,13 @@ the recording's reference that it rests on (`calibrate_to_reference`).
 
 The corner of the L-curve of the calibrated, normalised one-step problem, from all frames at
 once (`diffeit.inverse.select_hyperparameter(..., "lcurve")`) but damaged ones: a frame whose
-differences' norm exceeds half the reference's is a board's glitch (a frame of zeros, one at
-another gain), not a touch, and alone it would place the corner (one such frame among 70 of a
-simulated skin took the median press error from 0.04 to 0.15 of the radius); they are listed
-in the choice as "frames_left_out" and imaged as they are. A named selection method leaves
-them out too. When the corner sits within a decade of an end of the candidates, the noise
-figure 0.5 instead
+differences' norm exceeds half the reference's, or whose readings are the reference's moved
+one or two places along (`_readings_moved`), is a board's glitch (a frame of zeros, one at
+another gain, a reading lost or gained in its stream), not a touch, and alone it would place
+the corner (one such frame among 70 of a simulated skin took the median press error from 0.04
+to 0.15 of the radius); they are listed in the choice as "frames_left_out" and imaged as
+they are. A named selection method leaves them out too. When the corner sits within a decade
+of an end of the candidates, the noise figure 0.5 instead
 (`diffeit.calibration.auto_hyperparameter`). Gauss-Newton iterates to the regularised
 minimiser and fits more of the noise than one linear step: its "auto" is 4 times the
 one-step's value. Total variation keeps the one-step's value; GREIT is designed for noise
@@ -75,6 +76,7 @@ from .calibration import (
     DrivenReadings,
     SkinCalibration,
     _drift_note,
+    _readings_moved,
     _refine_to_reference,
     _rms,
     _with,
@@ -219,7 +221,8 @@ def reconstruct(
         each frame's `diffeit.results.RESULTS` code (the solver's; `nonfinite` for an image
         that is not finite, which is then zero), "frames_failed", how many are not
         "successful", "damaged_frames", the frames whose differences exceed half the
-        reference (imaged as they are; `diffeit.touches` reads no touch on them), and the
+        reference or whose readings are moved along (imaged as they are; `diffeit.touches`
+        reads no touch on them), and the
         background map's code in `["background_map"]["result"]`.
 
     Raises:
@@ -312,6 +315,7 @@ def reconstruct(
     dv = frames - signed_reference
     # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
     damaged = np.linalg.norm(dv, axis=1) > _LARGEST_CHANGE * np.linalg.norm(signed_reference)
+    damaged |= _readings_moved(recording.frames, reference)  # as recorded: a board's stream moves those
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
     # Without it, how far each frame stands out of its own noise, for `diffeit.touches`.

@@ -226,6 +226,29 @@ def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin, damage)
         assert source == "the 2 frames before the first press that look untouched (of 3)"
 
 
+def test_a_frame_whose_readings_a_board_moved_along_is_damaged_and_read_as_no_touch(mixing_skin):
+    """A board's stream that gained a reading puts every reading of an untouched frame one place
+    along (0.26 of the frame's norm, under `_LARGEST_CHANGE`), and one that lost a reading within
+    a pressed frame puts those after it one place back: both frames are damaged, read as no
+    touch, and never a reference frame; no other frame is. (Before, the untouched frame read a
+    touch, imaged from a change 90 times a press's median.)"""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    pressed = [chosen[0] for chosen in presses.frames(recording.times)]
+    frames = recording.frames.copy()
+    untouched, touched = pressed[3] + 1, pressed[10]
+    frames[untouched] = np.roll(frames[untouched], 1)
+    frames[touched, 100:] = np.roll(frames[touched], -1)[100:]
+    moved = [untouched, touched]
+    assert np.flatnonzero(calibration_module._damaged(frames)).tolist() == moved
+    assert np.flatnonzero(calibration_module._damaged(recording.frames)).tolist() == []
+    images = de.reconstruct(dataclasses.replace(recording, frames=frames), progress=False)
+    assert images.provenance["metadata"]["damaged_frames"] == moved
+    found, clean = de.touches(images), de.touches(de.reconstruct(recording, progress=False))
+    assert np.all(found.count[moved] == 0)
+    others = np.setdiff1d(np.arange(recording.n_frames), moved)
+    np.testing.assert_array_equal(found.count[others], clean.count[others])
+
+
 def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibration(mixing_skin):
     """A glitch on one labelled press's frame (its readings one place out of order: 0.26 of the
     frame's norm, the presses' 0.006 at most), and another press's frame lost (the nearest frame
