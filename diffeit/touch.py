@@ -237,6 +237,11 @@ _ANCHOR_FRAMES, _LEAST_REST_FRAMES = 5, 3
 # the frame's whitened change from its anchor, or what it does not explain is within the noise.
 EXPLAINED = 0.1
 BASELINES = ("rest", "reference")
+# What `Touches.lines` (and `diffeit live`) say of a damaged frame.
+DAMAGED_LINE = (
+    "damaged frame (a board's glitch: its differences exceed half the reference, or its readings are moved along): "
+    "not read"
+)
 
 
 class Touches(eqx.Module):
@@ -297,7 +302,7 @@ class Touches(eqx.Module):
             damaged frame).
         """
         if self.damaged is not None and self.damaged[frame]:
-            return ["damaged frame (its differences exceed half the reference): not read"]
+            return [DAMAGED_LINE]
         lines = []
         for k in range(int(self.count[frame])):
             x, y, *z = 1e3 * self.position[frame, k]

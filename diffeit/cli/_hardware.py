@@ -446,6 +446,7 @@ class _LiveViewer:
         from ..calibration import LiveDrift
 
         self.drift = LiveDrift.of(reference)  # None for fewer than 6 reference frames
+        self.recorded_reference = reference.mean(axis=0)  # as recorded: a board's stream moves its readings
         self.gains: list[float] = []  # every imaged frame's common gain, taken out
         from ..touch import _one_step_noise, image_noise
 
@@ -545,11 +546,13 @@ class _LiveViewer:
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
         if self.touches:
-            from ..calibration import _LARGEST_CHANGE
+            from ..calibration import _LARGEST_CHANGE, _readings_moved
 
             # As `diffeit.reconstruct` and `diffeit.touches`: a frame whose differences exceed
-            # half the reference is a board's glitch, not read (and passed over by the anchors).
+            # half the reference, or whose readings are moved along, is a board's glitch, not
+            # read (and passed over by the anchors).
             damaged = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(self.reference)
+            damaged |= _readings_moved(values, self.recorded_reference)
             self._print_touches(batch, values, images, finite, damaged)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
         self.imaged += len(batch)
@@ -605,7 +608,9 @@ class _LiveViewer:
             if not finite[k]:
                 text = "not finite: no touches read"
             elif damaged[k]:
-                text = "damaged frame (its differences exceed half the reference): not read"
+                from ..touch import DAMAGED_LINE
+
+                text = DAMAGED_LINE
             else:
                 peak = image.flat[np.argmax(np.abs(image))]
                 text = f"peak {peak:+.3f}; " + ("; ".join(found.lines(int(row[k]))) or "no touch")
