@@ -409,8 +409,8 @@ def touches(
     else:
         frames_touched = None
     # `diffeit.reconstruct`'s subspace test, made with its own calibration where nothing knew the noise.
-    reconstructions = _subspace_tested(recording, detection) if frames_touched is None else None
-    frames_touched = reconstructions if frames_touched is None else frames_touched
+    from_reconstruct = _subspace_tested(recording, detection) if frames_touched is None else None
+    frames_touched = from_reconstruct if frames_touched is None else frames_touched
     if polarity is None:
         polarity = None if calibration is None else calibration.polarity
     damaged = _damaged_frames(recording)
@@ -418,9 +418,9 @@ def touches(
     if polarity is None:
         polarity = polarity_of(images[intact] if frames_touched is None else images[frames_touched & intact])
     element_noise = _images_noise(recording)
-    if reconstructions is not None:  # or a hill above `threshold` (each misses what the other finds)
+    if from_reconstruct is not None:  # or a hill above `threshold` (each misses what the other finds)
         hills = read(recording.mesh, images, max_touches=1, threshold=threshold, polarity=polarity)
-        frames_touched = reconstructions | (hills.count > 0)
+        frames_touched = from_reconstruct | (hills.count > 0)
     # The discs' fit reads the calibrated model's signed differences (the test's may be raw).
     signed = ()
     if method == "fit":
@@ -446,7 +446,7 @@ def touches(
         relative=relative_floor(calibration),
         image_noise=element_noise,
         # A frame told touched with no noise known (its own, `subspace_statistic`): a further hill
-        # needs what a hill of an untested frame does (single presses read as 2 to 5 touches).
+        # needs what a hill of an untested frame does (with `LOW`, single presses read as up to 5).
         further=LOW if test is not None else threshold,
     )
     if damaged is not None:  # read as no touch
@@ -755,8 +755,8 @@ def _subspace_tested(recording: Recording, detection: float) -> np.ndarray | Non
     statistic = np.asarray(statistic, np.float64)
     if statistic.shape != (recording.n_frames,) or np.isnan(statistic).any():
         raise ValueError(
-            f"the recording's touch_statistic (provenance) must hold {recording.n_frames} values, one per frame; "
-            f"got shape {statistic.shape}"
+            f"the recording's touch_statistic (provenance) must hold {recording.n_frames} values, one per frame, "
+            f"none NaN; got shape {statistic.shape}"
         )
     return statistic > detection
 

@@ -1,0 +1,92 @@
+"""How a calibration session is laid out, against the touches read from it: the median position
+error on presses the calibration did not use, for the ways labelled presses are stored.
+
+    python benchmarks/session_layouts.py [--seeds 2] [--test 60]
+
+The skin and board are the calibration benchmark's (`benchmarks/calibration.py`: 80 mm, 16
+electrodes, opposition drive, magnitudes, the artefacts of real boards, medium noise), 50
+labelled presses and `--test` more, one frame each. The layouts:
+
+- **rests between**: 20 untouched frames, then the presses with an untouched frame after each
+  (the calibration benchmark's);
+- **back to back**: 20 untouched frames, then the presses one after another;
+- **one untouched frame**: the first frame untouched, then the presses one after another (no
+  noise to test frames against: each is tested against its own, `subspace_statistic`);
+- **a separate reference**: the recording's reference is one untouched frame, its frames the
+  presses one after another.
+
+Each is read three ways: with no calibration (`de.reconstruct`, `de.touches` at their
+defaults), after `de.calibrate` from the reference alone, and after `de.calibrate` with the
+first 50 presses; a press without a touch read counts as missed, left out of the median.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import numpy as np
+from _common import MarkdownTable, skin_benchmark, write_tables
+from calibration import REFERENCE_FRAMES, cell, errors, session
+
+CALIBRATION_PRESSES = 50
+LAYOUTS = ("rests between", "back to back", "one untouched frame", "a separate reference")
+
+
+def laid_out(layout: str, seed: int, n_presses: int):
+    """The session of `seed` with `n_presses` presses, laid out as `layout`: the recording and
+    the presses."""
+    import diffeit as de
+
+    recording, presses, _ = session(seed, n_presses, period=2 if layout == "rests between" else 1)
+    if layout in ("rests between", "back to back"):
+        return recording, presses
+    frames, times = np.asarray(recording.frames), np.asarray(recording.times)
+    kept = slice(REFERENCE_FRAMES - 1, None) if layout == "one untouched frame" else slice(REFERENCE_FRAMES, None)
+    reference = frames[REFERENCE_FRAMES - 1] if layout == "a separate reference" else None
+    return (
+        de.io.Recording(
+            frames=frames[kept],
+            times=times[kept],
+            protocol=recording.protocol,
+            geometry=recording.geometry,
+            readings=recording.readings,
+            voltage_unit=recording.voltage_unit,
+            reference=reference,
+        ),
+        presses,
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--test", type=int, default=60, help="presses the errors are measured on")
+    started = skin_benchmark(parser, __file__)
+    if started is None:
+        return
+    options, printed = started
+    import diffeit as de
+
+    print(
+        f"\nmedian position error (mm) of the strongest touch on {options.test} test presses, misses in brackets; "
+        f"the calibration from the reference alone and with the first {CALIBRATION_PRESSES} presses\n"
+    )
+    table = MarkdownTable(["layout", "seed", "no calibration", "reference alone", f"{CALIBRATION_PRESSES} presses"])
+    for layout in LAYOUTS:
+        for seed in range(options.seeds):
+            recording, presses = laid_out(layout, seed, CALIBRATION_PRESSES + options.test)
+            test = presses.select(np.arange(CALIBRATION_PRESSES, presses.n_presses))
+            cells = [cell(errors(recording, test, None))]
+            for labelled in (None, presses.select(np.arange(CALIBRATION_PRESSES))):
+                cells.append(cell(errors(recording, test, de.calibrate(recording, labelled))))
+            table.row([layout, str(seed), *cells])
+    print()
+    write_tables("session_layouts", printed)
+
+
+if __name__ == "__main__":
+    main()
