@@ -280,3 +280,6 @@ def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_refe
     found = de.touches(images)
     assert found.count[0] == 0 and np.sum(found.count[1:] >= 1) >= 76, np.sum(found.count[1:] >= 1)
     assert np.all(found.count <= 1)
+    metadata = {**images.provenance["metadata"], "touch_statistic": [1.0, 2.0]}
+    with pytest.raises(ValueError, match="touch_statistic"):
+        de.touches(dataclasses.replace(images, provenance={**images.provenance, "metadata": metadata}))
