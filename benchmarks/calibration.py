@@ -21,11 +21,13 @@ calibration=...)`, `de.touches`) on `--test` other presses, against:
 
 Errors are medians over the test presses (a press without a touch read counts as missed and
 is left out of the median; the misses are counted). Times are `de.calibrate`'s, in this process.
-Beside them, the fitted model against the truth: the largest error of an electrode centre,
-degrees (the calibration's shift against the true offset, both about their mean: a common
-rotation of the electrodes rotates the sheet; with the default groups the positions are not
-fitted, so this is the largest true offset), and the largest error of a readout mixing weight
-(source, sink and every offset weight, relative to the pair's).
+Beside them, the fitted model against the truth: the largest and the root-mean-square error of
+an electrode centre, degrees (the calibration's shift against the true offset, both about their
+mean: a common rotation of the electrodes rotates the sheet; where the positions are not
+fitted, the true offsets), the errors' root mean square in units of the standard errors the
+calibration reports for them (about 1 when it knows how well the data determine them; "-"
+where not fitted), and the largest error of a readout mixing weight (source, sink and every
+offset weight, relative to the pair's).
 A median over 60 presses moves by about 10% from one session to the next, so a second table
 pools the seeds: the ratio of our median error to the true model's over every seed's test
 presses, with a bootstrap interval.
@@ -170,15 +172,20 @@ def errors(recording, presses, calibration) -> np.ndarray:
     return np.linalg.norm(found.position[chosen, 0] - presses.centres, axis=1)
 
 
-def model_errors(calibration, truth) -> tuple[float, float]:
-    """The largest electrode centre error, degrees, and the largest mixing weight error of
-    `calibration` against the truth (module docstring)."""
+def model_errors(calibration, truth) -> tuple[np.ndarray, float | None, float]:
+    """The electrode centre errors of `calibration` against the truth (module docstring), (L,)
+    degrees; their root mean square in units of their reported standard errors (None where the
+    positions were not fitted); and the largest mixing weight error."""
     import diffeit as de
 
     # About the electrodes' common rotation, which rotates the sheet (the labels' frame takes it).
     shift = np.asarray(calibration.values["electrode_positions"])
     offsets = np.asarray(truth["offsets"])
-    centre = float(np.rad2deg(np.max(np.abs((shift - shift.mean()) - (offsets - offsets.mean()))) / RADIUS))
+    error = (shift - shift.mean()) - (offsets - offsets.mean())
+    centre = np.rad2deg(error / RADIUS)
+    standard = calibration.standard_errors.get("electrode_positions")
+    fitted = standard is not None and np.all(np.asarray(standard) > 0)
+    in_errors = float(np.sqrt(np.mean((error / np.asarray(standard)) ** 2))) if fitted else None
     mixing = next(e for e in truth["scene"].effects if isinstance(e, de.scene.ReadoutMixing))
     readout = calibration.readout
     weight = max(
@@ -186,7 +193,7 @@ def model_errors(calibration, truth) -> tuple[float, float]:
         abs(float(readout.sink) - float(mixing.sink)),
         float(np.max(np.abs(np.asarray(readout.offsets) - np.asarray(mixing.offsets)))),
     )
-    return centre, weight
+    return centre, in_errors, weight
 
 
 def cell(distance: np.ndarray) -> str:
@@ -233,7 +240,8 @@ def main() -> None:
             "calibrated",
             "true model",
             "calibration time",
-            "centre error, deg",
+            "centre error, deg (largest, RMS)",
+            "in standard errors (RMS)",
             "mixing weight error",
         ]
     )
@@ -273,7 +281,7 @@ def main() -> None:
                 true_by_seed.append(true)
             ours = errors(test, test_presses, calibration)
             ours_by_count[count].append(ours)
-            centre, weight = model_errors(calibration, truth)
+            centre, in_errors, weight = model_errors(calibration, truth)
             table.row(
                 [
                     str(count),
@@ -282,7 +290,8 @@ def main() -> None:
                     cell(ours),
                     cell(true),
                     f"{seconds:.1f} s",
-                    f"{centre:.2f}",
+                    f"{np.max(np.abs(centre)):.2f}, {np.sqrt(np.mean(centre**2)):.2f}",
+                    "-" if in_errors is None else f"{in_errors:.2f}",
                     f"{weight:.3f}",
                 ]
             )
