@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -283,3 +284,30 @@ def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_refe
     metadata = {**images.provenance["metadata"], "touch_statistic": [1.0, 2.0]}
     with pytest.raises(ValueError, match="touch_statistic"):
         de.touches(dataclasses.replace(images, provenance={**images.provenance, "metadata": metadata}))
+
+
+@pytest.mark.parametrize("noise", ["a fraction of each reading", "alike on every reading"])
+def test_with_no_noise_known_untouched_frames_read_no_touch_whatever_the_noise_is_like(noise):
+    """A reference of one frame, no calibration: frames are tested against their own noise off
+    the subspace a conductivity change reaches (`subspace_statistic`). Noise that is a fraction
+    of each reading (0.1%) lies mostly on the largest readings, where that subspace is: tested on
+    the differences as they are, an untouched frame stood 12.8 out and read a touch. Relative to
+    the model's readings it is alike on every reading; the smaller of the two tells."""
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.12)
+    model = de.ForwardModel(mesh, de.protocol.adjacent(16))
+    untouched = np.asarray(model.measure(jnp.ones(mesh.n_elements)))
+    places = [(0.3 * np.cos(angle), 0.3 * np.sin(angle)) for angle in np.linspace(0, 6, 8)]
+    pressed = [np.asarray(model.measure(jnp.asarray(1 - 0.3 * de.mesh.disc_fraction(mesh, p, 0.2)))) for p in places]
+    clean = np.array([untouched] * 3 + pressed)
+    size = clean if noise == "a fraction of each reading" else np.sqrt(np.mean(untouched**2))
+    frames = clean + 1e-3 * size * np.random.default_rng(0).standard_normal(clean.shape)
+    recording = de.io.Recording(
+        frames=frames[1:], times=0.1 * np.arange(10), protocol=model.protocol, mesh=mesh, reference=frames[0]
+    )
+    images = de.reconstruct(recording, progress=False)
+    statistic = np.asarray(images.provenance["metadata"]["touch_statistic"])
+    assert np.all(statistic[:2] < 3) and np.all(statistic[2:] > 50), statistic
+    found = de.touches(images)
+    assert found.count.tolist() == [0, 0] + [1] * 8
+    distance = np.linalg.norm(found.position[2:, 0] - np.array(places), axis=1)
+    assert np.max(distance) < 0.15, distance
