@@ -1463,15 +1463,11 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
     pass. A damaged frame (`_damaged`) is never untouched: with its gain taken out, a frame of
     zeros stood on the trend, and a reference holding one read no press of a session."""
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
-    time = np.asarray(times, np.float64) - np.mean(times)
-    time = time / max(float(np.max(np.abs(time))), 1e-300)
-    design = np.column_stack([np.ones_like(time), time])
+    design = _time_line(times)
     whole = ~_damaged(frames)
 
     def near(trend: np.ndarray, still: np.ndarray) -> np.ndarray:
-        trend = np.broadcast_to(trend, frames.shape)
-        gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
-        distance = np.linalg.norm(frames - gains[:, None] * trend, axis=1)
+        distance = _off_trend(frames, trend)
         return whole & (distance <= factor * np.median(distance[still]))
 
     still = near(np.median(frames[whole], axis=0), whole)
@@ -1482,6 +1478,22 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
     if still.sum() < REFERENCE_FRAMES:
         still = whole & (np.cumsum(whole) <= REFERENCE_FRAMES)
     return still
+
+
+def _time_line(times: np.ndarray) -> np.ndarray:
+    """(T, 2) the design of a straight line in time through frames at `times` (T,): ones, and
+    the times about their mean over their largest distance from it."""
+    time = np.asarray(times, np.float64) - np.mean(times)
+    time = time / max(float(np.max(np.abs(time))), 1e-300)
+    return np.column_stack([np.ones_like(time), time])
+
+
+def _off_trend(frames: np.ndarray, trend: np.ndarray) -> np.ndarray:
+    """(T,) each frame's (T, M) distance from the `trend` ((T, M) or (M,)) once the frame's own
+    common gain against it is taken out (a drift's)."""
+    trend = np.broadcast_to(trend, frames.shape)
+    gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
+    return np.linalg.norm(frames - gains[:, None] * trend, axis=1)
 
 
 def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, leading: slice) -> np.ndarray:
@@ -1508,16 +1520,13 @@ def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, l
     variance = float(np.median(np.sum((frames[run] - frames[run].mean(axis=0)) ** 2, axis=1))) / (1.0 - 1.0 / n)
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
     candidates = still | run
-    time = np.asarray(times, np.float64) - np.mean(times)
-    time = time / max(float(np.max(np.abs(time))), 1e-300)
-    line = np.column_stack([np.ones_like(time), time])
+    line = _time_line(times)
     kept = run
     for _ in range(_TREND_PASSES):
         design = line if (kept & ~run).any() else line[:, :1]
         trend = design @ np.linalg.lstsq(design[kept], frames[kept], rcond=None)[0]
-        gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
-        distance = np.sum((frames - gains[:, None] * trend) ** 2, axis=1)
-        passed = candidates & (distance <= factor**2 * variance * (1.0 + 1.0 / kept.sum()))
+        distance = _off_trend(frames, trend)
+        passed = candidates & (distance**2 <= factor**2 * variance * (1.0 + 1.0 / kept.sum()))
         if passed.sum() < 3:
             return run
         if np.array_equal(passed, kept):
@@ -1538,6 +1547,15 @@ def _damaged(frames: np.ndarray) -> np.ndarray:
     about = _about(frames)
     damaged = (_change_from(frames, about) > _LARGEST_CHANGE) | _readings_moved(frames, about)
     return np.zeros(len(frames), bool) if damaged.all() else damaged
+
+
+def _glitched(differences: np.ndarray, reference: np.ndarray, frames: np.ndarray, recorded: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames that are a board's glitch, not a touch (`diffeit.reconstruct` and
+    `diffeit live`): their `differences` (T, M') exceed `_LARGEST_CHANGE` of the `reference`
+    (M') they are from, or their readings as recorded, `frames` (T, M), are the `recorded`
+    reference's (M,) moved along (`_readings_moved`)."""
+    large = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(reference)
+    return large | _readings_moved(frames, recorded)
 
 
 def _readings_moved(frames: np.ndarray, about: np.ndarray) -> np.ndarray:

@@ -67,7 +67,6 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from ._threads import host_algebra
 from .calibration import (
-    _LARGEST_CHANGE,
     _LEAST_CORRELATION,
     _NOISE_FRAMES,
     _SKIN_LEAST_CORRELATION,
@@ -76,7 +75,7 @@ from .calibration import (
     DrivenReadings,
     SkinCalibration,
     _drift_note,
-    _readings_moved,
+    _glitched,
     _refine_to_reference,
     _rms,
     _with,
@@ -314,8 +313,7 @@ def reconstruct(
         }
     dv = frames - signed_reference
     # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
-    damaged = np.linalg.norm(dv, axis=1) > _LARGEST_CHANGE * np.linalg.norm(signed_reference)
-    damaged |= _readings_moved(recording.frames, reference)  # as recorded: a board's stream moves those
+    damaged = _glitched(dv, signed_reference, recording.frames, reference)
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
     # Without it, how far each frame stands out of its own noise, for `diffeit.touches`.

@@ -546,13 +546,11 @@ class _LiveViewer:
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
         if self.touches:
-            from ..calibration import _LARGEST_CHANGE, _readings_moved
+            from ..calibration import _glitched
 
-            # As `diffeit.reconstruct` and `diffeit.touches`: a frame whose differences exceed
-            # half the reference, or whose readings are moved along, is a board's glitch, not
-            # read (and passed over by the anchors).
-            damaged = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(self.reference)
-            damaged |= _readings_moved(values, self.recorded_reference)
+            # As `diffeit.reconstruct` and `diffeit.touches`: a board's glitch is not read (and
+            # is passed over by the anchors).
+            damaged = _glitched(differences, self.reference, values, self.recorded_reference)
             self._print_touches(batch, values, images, finite, damaged)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
         self.imaged += len(batch)
