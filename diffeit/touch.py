@@ -1077,9 +1077,21 @@ def subspace_statistic(dv: np.ndarray, calibration: Any) -> np.ndarray | None:
     of an adjacent board with 0.1% noise per reading stood 12.8 out): the statistic is the
     smaller of the two, on the differences as they are and on them relative to the model's
     readings (each at least 5% of their RMS).
+
+    Raises:
+        ValueError: For differences that are not (T, M) with M the calibrated model's readings,
+            or not finite.
     """
-    jacobian = _calibrated_jacobian(calibration)
     model = calibration.model
+    dv = np.asarray(dv, np.float64)
+    if dv.ndim != 2 or dv.shape[1] != model.protocol.n_measurements:
+        raise ValueError(
+            f"differences must be (T, {model.protocol.n_measurements}), the calibrated model's readings; "
+            f"got shape {dv.shape}"
+        )
+    if not np.all(np.isfinite(dv)):
+        raise ValueError("the differences hold NaN or infinite values")
+    jacobian = _calibrated_jacobian(calibration)
     readings = np.abs(np.asarray(model.measure(per_element(calibration.background, model.n_elements))))
     scale = np.maximum(readings, _UNCERTAIN_READING * np.sqrt(np.mean(readings**2)))
     statistics = [_split_statistic(dv, jacobian), _split_statistic(dv / scale, jacobian / scale[:, None])]

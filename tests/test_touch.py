@@ -311,3 +311,7 @@ def test_with_no_noise_known_untouched_frames_read_no_touch_whatever_the_noise_i
     assert found.count.tolist() == [0, 0] + [1] * 8
     distance = np.linalg.norm(found.position[2:, 0] - np.array(places), axis=1)
     assert np.max(distance) < 0.15, distance
+    calibration = de.calibrate(recording)
+    for bad, match in ((statistic[:, None], "differences must be"), (np.full((2, 208), np.nan), "NaN")):
+        with pytest.raises(ValueError, match=match):
+            de.touch.subspace_statistic(bad, calibration)
