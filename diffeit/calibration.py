@@ -259,7 +259,16 @@ from .mesh import Mesh, disc, disc_fractions, onto_sheet, onto_surface, surface_
 from .protocol import Protocol
 from .readout import Readout, roles
 from .results import RESULTS, failed, names
-from .touch import _noise_test, _one_step_noise, _statistic, _whitened, polarity_of, read
+from .touch import (
+    DETECTION,
+    _noise_test,
+    _one_step_noise,
+    _statistic,
+    _whitened,
+    polarity_of,
+    read,
+    subspace_statistic,
+)
 
 DrivenReadings = Literal["auto", "keep", "drop"]
 
@@ -2003,8 +2012,10 @@ def calibrate(
     each press is imaged at the calibrated model (`diffeit.inverse.OneStep`, NOSER prior), read
     as a touch (`diffeit.touch.read`), and a `PositionMap` from read to labelled positions is
     fitted, its degree chosen by cross-validation. A press one of whose frames looks damaged
-    (a board's glitch), or timed where a frame is missing, is left out (`_presses_left_out`),
-    its press error and position NaN, with a warning naming it.
+    (a board's glitch), timed where a frame is missing (`_presses_left_out`), or whose frames
+    show no touch (timed off them: `_presses_unseen`, whose warning names a shift of the labels'
+    clock that would see more) is left out, its press error and position NaN, with a warning
+    naming it.
 
     Arguments:
         recording: The session: untouched frames (or a reference) and, with presses, the
@@ -2099,6 +2110,10 @@ def calibrate(
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
     left_out, notes = _presses_left_out(presses, recording)
+    unseen, unseen_notes = _presses_unseen(calibration, presses, recording, reference)
+    left_out, notes = left_out | unseen, (*notes, *unseen_notes)
+    if left_out.all():
+        raise ValueError(f"every labelled press is left out: {'; '.join(notes)}")
     presses = presses.select(~left_out)
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, further, chosen, polarity)
@@ -2177,6 +2192,57 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
     if left_out.all():
         raise ValueError(f"every labelled press is left out: {'; '.join(notes)}")
     return left_out, tuple(notes)
+
+
+def _presses_unseen(
+    calibration: SkinCalibration, presses: Presses, recording: Recording, reference: np.ndarray
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(K,) bool, the presses whose frames show no touch, and why, in words: their mean
+    change from the `reference` frames' mean stands within the readings' own noise, at
+    `diffeit.touch.DETECTION`: the voltage test on every reading where the calibration knows
+    the noise (no model in it: the reference's model may reproduce a real skin poorly), else
+    `diffeit.touch.subspace_statistic` at the reference's `calibration` (none unseen where the
+    readings are too few to tell). A press timed off its frames (another clock, a lag) would put
+    an untouched frame's position, wherever its image peaks, into the position map and its
+    noise into the presses' fit: on a simulated session whose 50 labels each fell one frame
+    after their presses' holds, the test presses were read 49 mm off (11 missed) with no
+    word of why. When some are unseen, the note says how many a common shift of the labels'
+    times by whole frames (within half the median spacing between presses) would see."""
+    times = recording.times
+    signed = calibration.signed(recording.frames)
+    at_rest = calibration.signed(np.atleast_2d(reference)).mean(axis=0)
+    noise, count = calibration.noise, calibration.noise_frames
+
+    def seen(shift: float) -> np.ndarray:
+        chosen = presses.frames(times - shift)
+        changes = np.array([signed[frames].mean(axis=0) for frames in chosen]) - at_rest
+        if noise is not None:
+            variance = np.array([1.0 / len(frames) + 1.0 / count for frames in chosen])[:, None]
+            return _statistic(changes, noise, count, variance) > DETECTION
+        statistic = subspace_statistic(changes, calibration)
+        return np.ones(len(chosen), bool) if statistic is None else statistic > DETECTION
+
+    unseen = ~seen(0.0)
+    if not unseen.any():
+        return unseen, ()
+    note = (
+        f"press(es) {name_indices(np.flatnonzero(unseen))} left out: their frames show no touch (their change "
+        "from the reference stands within the readings' noise)"
+    )
+    step = float(np.median(np.diff(times))) if len(times) >= 2 else 0.0
+    starts = np.sort(presses.times[:, 0])
+    spacing = float(np.median(np.diff(starts))) if len(starts) >= 2 else 0.0
+    reach = int(0.5 * spacing / step) if step > 0 else 0
+    if reach > 0:  # the nearest shift that sees the most (farther, the labels fall on other presses)
+        shifts = step * np.array([sign * k for k in range(1, reach + 1) for sign in (1, -1)])
+        counts = np.array([seen(shift).sum() for shift in shifts])
+        best = int(np.argmax(counts))
+        if counts[best] > presses.n_presses - unseen.sum():
+            note += (
+                f"; with every press's time moved by {shifts[best]:+.3g} s, {counts[best]} of {presses.n_presses} "
+                "would show one: are the presses' times on the recording's clock?"
+            )
+    return unseen, (note,)
 
 
 def _with_every_press(calibration: SkinCalibration, left_out: np.ndarray, notes: tuple[str, ...]) -> SkinCalibration:

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from skin_sessions import DROP, PROTOCOL, RADIUS, UNTOUCHED, gains_board, mixing_board, skin_session
+from skin_sessions import DROP, PERIOD, PROTOCOL, RADIUS, UNTOUCHED, gains_board, mixing_board, skin_session
 
 import diffeit as de
 from diffeit import calibration as calibration_module
@@ -280,6 +280,35 @@ def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibrat
     pressed = [chosen[0] for chosen in presses.frames(recording.times)[22:]]
     unseen = np.linalg.norm(de.touches(images, skin).position[pressed, 0] - presses.centres[22:], axis=1)
     assert np.median(unseen) < 0.03, np.median(unseen)
+
+
+def test_presses_timed_off_their_frames_are_left_out_and_a_shift_of_the_clock_is_named(mixing_skin):
+    """Labels one frame late fall on the untouched frame after each press: their frames show no
+    touch. Every press so: an error that says so and names the shift that would see them all,
+    whether the reference frames tell the readings' noise or not.
+    Two of 16 so: those two are left out, said so, their errors NaN, the rest read (no shift sees
+    more: it would lose the others)."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    late = de.io.Presses(presses.centres, presses.radius, presses.times + PERIOD)
+    message = r"left out: their frames show no touch .* moved by -0\.1 s, 30 of 30 would show one"
+    with pytest.raises(ValueError, match=message):
+        de.calibrate(recording, late)
+    # A reference given as one frame tells no noise: the frames are tested against their own (the
+    # readings outside the touch subspace).
+    given = dataclasses.replace(recording, reference=recording.frames[:UNTOUCHED].mean(axis=0))
+    with pytest.raises(ValueError, match=message):
+        de.calibrate(given, late)
+    some = de.io.Presses(
+        presses.centres[:16],
+        presses.radius[:16],
+        presses.times[:16] + PERIOD * np.isin(np.arange(16), [3, 11])[:, None],
+    )
+    skin = de.calibrate(recording, some)
+    notes = [w for w in skin.warnings if "show no touch" in w]
+    assert len(notes) == 1 and notes[0].startswith("press(es) [3, 11] left out"), skin.warnings
+    assert "clock" not in notes[0]
+    assert np.all(np.isnan(skin.press_errors[[3, 11]]))
+    assert np.median(np.delete(skin.press_errors, [3, 11])) < 0.05, skin.press_errors  # unit disc
 
 
 @pytest.mark.parametrize("lead", [3, 10])
