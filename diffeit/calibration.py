@@ -814,6 +814,9 @@ _NOISE_FRAMES = 6
 _CORNER_MARGIN = 10.0
 # A memory fit needs every press held over at least this many frames.
 _HELD_FRAMES = 3
+# A step of the readings this many frame periods or more from every labelled hold is a press not
+# labelled (`_unlabelled_steps`): a press's ramp and its release lie within it.
+_LABELLED_MARGIN = 2.5
 # The memory fit's press depths: a press fainter than this (dsigma/sigma) keeps it, and a bend
 # takes the model's readings under a press to within this factor (and its inverse) of their
 # linear part, and no press lowers the conductivity by more than `_DEEPEST` of itself
@@ -2004,7 +2007,9 @@ def calibrate(
     reference: it cannot tell one from the model's error at that reading (presses can:
     `press_groups`).
     With presses held over several frames, the skin's memory is fitted to the whole session's
-    readings with the presses' holds known (`diffeit.fit.memory_from_press_readings`).
+    readings with the presses' holds known (`diffeit.fit.memory_from_press_readings`), unless
+    the readings step out of their noise away from every labelled hold (presses the labels do
+    not hold, `_unlabelled_steps`: a warning names where).
     With labelled `presses`: the readout's mixing, and the electrode positions (and gains per
     reading when `press_groups` names them), are fitted to the presses' differences, and kept
     unless the reference's calibration reads significantly more of the presses they did not see
@@ -2115,9 +2120,19 @@ def calibrate(
     if left_out.all():
         raise ValueError(f"every labelled press is left out: {'; '.join(notes)}")
     presses = presses.select(~left_out)
+    with_memory = memory and _held(presses, recording.times)
+    unlabelled = _unlabelled_steps(calibration, recording, presses) if with_memory else np.zeros(0, int)
+    if len(unlabelled):
+        with_memory = False
+        note = (
+            f"the memory is not fitted: the readings step out of their noise at frame(s) {name_indices(unlabelled)}, "
+            "away from every labelled press's hold (presses not labelled, or left out): the memory's fit models "
+            "the labelled presses alone; label every press of the session, or calibrate on the part whose presses "
+            "are all labelled"
+        )
+        calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, further, chosen, polarity)
-    with_memory = memory and _held(presses, recording.times)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
         # Nothing could show the presses' fit better: it is not made (the memory's needs its frame).
         calibration = _too_few_to_hold_out(reference_only, (*(press_groups or PRESS_GROUP_CHOICES[-1]), "press depths"))
@@ -3524,6 +3539,31 @@ def _held(presses: Presses, times: np.ndarray) -> bool:
     return all(len(chosen) >= _HELD_FRAMES for chosen in presses.frames(times)) and bool(
         np.all(presses.times[:, 1] > presses.times[:, 0])
     )
+
+
+def _unlabelled_steps(calibration: SkinCalibration, recording: Recording, presses: Presses) -> np.ndarray:
+    """The frames whose readings step out of their noise from the frame before, and whose pair
+    (the frame and the next) stands out of the pair before them (the voltage test of each,
+    variances 2 s^2 and s^2, at `diffeit.touch.DETECTION`: a press's onset or release holds,
+    a noisy frame does not: with the noise from 10 frames, one step in 830 of a designed
+    session stood at 6.2), farther than `_LABELLED_MARGIN` frame periods from every labelled
+    press's hold: the onsets and releases of presses the labels do not hold. The memory's fit
+    explains the session's readings by the labelled presses alone: on a simulated session with
+    memory whose every other press was not labelled it did not converge (every press labelled:
+    fitted). None where the calibration knows no noise."""
+    noise = calibration.noise
+    if noise is None or recording.n_frames < 4:
+        return np.zeros(0, int)
+    signed, count = calibration.signed(recording.frames), calibration.noise_frames
+    steps = np.diff(signed, axis=0)[1:-1]  # into frames 2 to T - 2
+    pairs = 0.5 * (signed[2:-1] + signed[3:]) - 0.5 * (signed[:-3] + signed[1:-2])
+    stands_out = (_statistic(steps, noise, count, 2.0) > DETECTION) & (_statistic(pairs, noise, count, 1.0) > DETECTION)
+    times = recording.times[2:-1]
+    margin = _LABELLED_MARGIN * float(np.median(np.diff(recording.times)))
+    held = np.zeros(len(times), bool)
+    for start, end in presses.times:
+        held |= (times >= start - margin) & (times <= end + margin)
+    return 2 + np.flatnonzero(stands_out & ~held)
 
 
 def _with_memory(
