@@ -261,6 +261,7 @@ from .readout import Readout, roles
 from .results import RESULTS, failed, names
 from .touch import (
     DETECTION,
+    SIGNIFICANCE,
     _noise_test,
     _one_step_noise,
     _statistic,
@@ -268,6 +269,7 @@ from .touch import (
     polarity_of,
     read,
     subspace_statistic,
+    touch_subspace,
 )
 
 DrivenReadings = Literal["auto", "keep", "drop"]
@@ -2213,29 +2215,41 @@ def _presses_unseen(
     calibration: SkinCalibration, presses: Presses, recording: Recording, reference: np.ndarray
 ) -> tuple[np.ndarray, tuple[str, ...]]:
     """(K,) bool, the presses whose frames show no touch, and why, in words: their mean
-    change from the `reference` frames' mean stands within the readings' own noise, at
-    `diffeit.touch.DETECTION`: the voltage test on every reading where the calibration knows
-    the noise (no model in it: the reference's model may reproduce a real skin poorly), else
-    `diffeit.touch.subspace_statistic` at the reference's `calibration` (none unseen where the
-    readings are too few to tell). A press timed off its frames (another clock, a lag) would put
-    an untouched frame's position, wherever its image peaks, into the position map and its
-    noise into the presses' fit: on a simulated session whose 50 labels each fell one frame
-    after their presses' holds, the test presses were read 49 mm off (11 missed) with no
-    word of why. When some are unseen, the note says how many a common shift of the labels'
-    times by whole frames (within half the median spacing between presses) would see."""
+    change from the `reference` frames' mean stands within the readings' own noise: no test
+    of `diffeit.touch` exceeds `diffeit.touch.SIGNIFICANCE` (2, not the detection's 5: a faint
+    press still tells where it was) at the reference's `calibration`, its `subspace_statistic`
+    nor, where the calibration knows the noise, the voltage test on every reading (no model in
+    it: the model may reproduce a real skin poorly) and on the touch subspace (presses near the
+    middle of an 80 mm skin at medium noise stood at 4.0 to 4.8 on every reading, 7.9 to 9.7
+    on the subspace; without the noise, at 2 to 5). None is unseen where no test can tell. A
+    press timed off its frames (another clock, a lag) would put an untouched frame's position,
+    wherever its image peaks, into the position map and its noise into the presses' fit: on a
+    simulated session whose 50 labels each fell one frame after their presses' holds, the test
+    presses were read 49 mm off (11 missed) with no word of why. When some are unseen, the
+    note says how many a common shift of the labels' times by whole frames (within half the
+    median spacing between presses) would see, and when that shift sees twice as many as the
+    labels' own times and at least half of them, a ValueError says so: the labels are off the
+    clock, and the few that pass by chance (at z 2) would fit a position map to noise (on the
+    session above, 62 mm off).
+
+    Raises:
+        ValueError: For labels off the recording's clock, as above."""
     times = recording.times
     signed = calibration.signed(recording.frames)
     at_rest = calibration.signed(np.atleast_2d(reference)).mean(axis=0)
     noise, count = calibration.noise, calibration.noise_frames
+    subspace = None if noise is None else touch_subspace(calibration)
 
     def seen(shift: float) -> np.ndarray:
         chosen = presses.frames(times - shift)
         changes = np.array([signed[frames].mean(axis=0) for frames in chosen]) - at_rest
+        statistic = subspace_statistic(changes, calibration)
+        touched = np.full(len(chosen), noise is None) if statistic is None else statistic > SIGNIFICANCE
         if noise is not None:
             variance = np.array([1.0 / len(frames) + 1.0 / count for frames in chosen])[:, None]
-            return _statistic(changes, noise, count, variance) > DETECTION
-        statistic = subspace_statistic(changes, calibration)
-        return np.ones(len(chosen), bool) if statistic is None else statistic > DETECTION
+            for within in (None, subspace):
+                touched |= _statistic(changes, noise, count, variance, within) > SIGNIFICANCE
+        return touched
 
     unseen = ~seen(0.0)
     if not unseen.any():
@@ -2252,11 +2266,15 @@ def _presses_unseen(
         shifts = step * np.array([sign * k for k in range(1, reach + 1) for sign in (1, -1)])
         counts = np.array([seen(shift).sum() for shift in shifts])
         best = int(np.argmax(counts))
-        if counts[best] > presses.n_presses - unseen.sum():
+        shown = presses.n_presses - int(unseen.sum())
+        if counts[best] > shown:
             note += (
                 f"; with every press's time moved by {shifts[best]:+.3g} s, {counts[best]} of {presses.n_presses} "
                 "would show one: are the presses' times on the recording's clock?"
             )
+        if counts[best] >= max(2 * shown, 0.5 * presses.n_presses):
+            # Off the clock: those that pass by chance would fit a position map to noise.
+            raise ValueError(f"the labelled presses' times look off the recording's clock: {note}")
     return unseen, (note,)
 
 
