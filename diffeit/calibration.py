@@ -2068,7 +2068,8 @@ def calibrate(
 
     Raises:
         ValueError: For a recording without frames, presses outside the skin or outside the
-            recording's time, presses that are all left out, an unknown prior group,
+            recording's time, presses that are all left out or whose times look off the
+            recording's clock (`_presses_unseen`), an unknown prior group,
             `press_groups` without "mixing" or with a group the presses cannot fit (or
             "background_map" with `background_map=False`),
             a `background_map` other than None, True or False, a reference the model
