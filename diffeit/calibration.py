@@ -814,6 +814,9 @@ _PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains", "bac
 _NOISE_FRAMES = 6
 # An L-curve corner within this factor of an end of the candidates counts as at the end.
 _CORNER_MARGIN = 10.0
+# Presses read a median of this fraction of the skin's size or more from their labels are
+# warned of (`_far_from_labels_noted`).
+_FAR_FROM_LABELS = 0.25
 # A memory fit needs every press held over at least this many frames.
 _HELD_FRAMES = 3
 # A step of the readings this many frame periods or more from every labelled hold is a press not
@@ -2141,7 +2144,8 @@ def calibrate(
         calibration = _too_few_to_hold_out(reference_only, (*(press_groups or PRESS_GROUP_CHOICES[-1]), "press depths"))
         if background_map:
             calibration = _with_background_map(calibration, recording, presses, reference)
-        return _with_every_press(_with_size_map(calibration, recording, presses, reference), left_out, notes)
+        calibration = _with_size_map(calibration, recording, presses, reference)
+        return _far_from_labels_noted(_with_every_press(calibration, left_out, notes))
     frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
     # Without held-out presses (the memory's fit needs the frame) nothing could choose: the first set.
     choices = PRESS_GROUP_CHOICES if presses.n_presses >= _LEAST_HELD_OUT else PRESS_GROUP_CHOICES[:1]
@@ -2168,7 +2172,7 @@ def calibrate(
         frame = calibration.values.get("label_frame")  # the presses' fit's, where it refined it
         calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
     calibration = _with_size_map(_held_to_skin(calibration), recording, presses, reference)
-    return _with_every_press(calibration, left_out, notes)
+    return _far_from_labels_noted(_with_every_press(calibration, left_out, notes))
 
 
 def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -2294,6 +2298,28 @@ def _with_every_press(calibration: SkinCalibration, left_out: np.ndarray, notes:
         (errors, positions, (*calibration.warnings, *notes)),
         is_leaf=lambda node: node is None,
     )
+
+
+def _far_from_labels_noted(calibration: SkinCalibration) -> SkinCalibration:
+    """`calibration` with a warning when its presses are read a median `_FAR_FROM_LABELS` of
+    the skin's size or more from their labels (`press_errors`): labels on another clock by a
+    press or more, or in another frame than the search finds, fit a position map to nothing
+    (each label one press late on the calibration benchmark's skin, held presses: 45 mm off,
+    0.55 of its radius; on time, 4 mm)."""
+    errors = calibration.press_errors
+    if errors is None or not np.isfinite(errors).any():
+        return calibration
+    nodes = calibration.model.mesh.nodes
+    size = float(np.max(np.linalg.norm(nodes - nodes.mean(axis=0), axis=1)))
+    median = float(np.nanmedian(errors))
+    if median < _FAR_FROM_LABELS * size:
+        return calibration
+    note = (
+        f"the presses are read a median {1e3 * median:.3g} mm from their labels, {median / size:.2f} of the skin's "
+        "size: are the presses' times on the recording's clock (each press's own frames), and their centres "
+        "in one frame?"
+    )
+    return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
 
 
 def _held_to_skin(calibration: SkinCalibration) -> SkinCalibration:

@@ -311,6 +311,20 @@ def test_presses_timed_off_their_frames_are_left_out_and_a_shift_of_the_clock_is
     assert np.median(np.delete(skin.press_errors, [3, 11])) < 0.05, skin.press_errors  # unit disc
 
 
+def test_labels_one_press_off_are_read_far_from_their_frames_and_warned_of(mixing_skin, calibrated):
+    """Each label with the next press's centre: every frame shows a touch, so none is left out,
+    but the presses read far from their labels (a quarter of the skin's size or more), and a
+    warning says so; the calibration of the same presses labelled right has none."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    shifted = de.io.Presses(presses.centres[1:17], presses.radius[1:17], presses.times[:16])
+    skin = de.calibrate(recording, shifted)
+    notes = [w for w in skin.warnings if w.startswith("the presses are read a median")]
+    assert len(notes) == 1 and "of the skin's size" in notes[0], skin.warnings
+    assert np.nanmedian(skin.press_errors) > 0.25  # unit disc
+    assert not any(w.startswith("the presses are read a median") for w in calibrated.warnings)
+    assert np.nanmedian(calibrated.press_errors) < 0.1
+
+
 @pytest.mark.parametrize("lead", [3, 10])
 def test_a_recording_mostly_of_one_long_press_takes_its_leading_frames_as_the_reference(lead):
     """`lead` untouched frames, then one press held 40 frames: most frames are pressed, so the
