@@ -1791,7 +1791,7 @@ def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
     """(T,) the touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
     frame (`still`, (T,) bool, some true): presses one after another with no untouched frame
     between them, whose drift the untouched frames' gains no longer follow."""
-    step = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    step = _frame_period(times)
     return ~still & (_time_to_nearest(times, still) > (_DRIFT_WINDOW // 2 + 0.5) * step)
 
 
@@ -1975,11 +1975,26 @@ def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
 
 
 @host_algebra
+def _skin_size(mesh: Mesh) -> float:
+    """The skin's size, m: its farthest node from the nodes' mean."""
+    return float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(axis=0), axis=1)))
+
+
+def _frame_period(times: np.ndarray) -> float:
+    """The frames' median period, s, from their `times` (T,); 0 for fewer than two frames."""
+    return float(np.median(np.diff(times))) if len(times) >= 2 else 0.0
+
+
+def _with_warnings(calibration: Any, *notes: str) -> Any:
+    """`calibration` with `notes` added to its warnings."""
+    return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *notes))
+
+
 def _frame_steps(mesh: Mesh) -> np.ndarray:
     """(4,) the scale of a change of the labels' frame (ln scale, angle, offset x and y): the
     search's first steps, and the prior standard deviations of the frame's refinement about
     it (`_fit_presses`)."""
-    size = float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(0), axis=1)))
+    size = _skin_size(mesh)
     return np.array([0.05, math.radians(3.0), 0.03 * size, 0.03 * size])
 
 
@@ -2105,7 +2120,7 @@ def calibrate(
         nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
     )
     if gains is not None:  # said with every later stage's warnings
-        first = eqx.tree_at(lambda c: c.warnings, first, (*first.warnings, _drift_note(gains)))
+        first = _with_warnings(first, _drift_note(gains))
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
@@ -2136,7 +2151,7 @@ def calibrate(
             "the labelled presses alone; label every press of the session, or calibrate on the part whose presses "
             "are all labelled"
         )
-        calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+        calibration = _with_warnings(calibration, note)
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, hyperparameter, None)
     reference_only = _with_position_map(calibration, presses, found, further, chosen, polarity)
     if presses.n_presses < _LEAST_HELD_OUT and not with_memory:
@@ -2156,13 +2171,13 @@ def calibrate(
     made = [fit for fit in fits if fit.calibration is not None]
     refused = tuple(f"{_not_kept((*fit.groups, 'press depths'))}{fit.refused}" for fit in fits if fit.refused)
     if not made:
-        calibration = eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, *refused))
+        calibration = _with_warnings(reference_only, *refused)
     else:
         best = min(made, key=lambda fit: 0.0 if fit.held_out is None else _median_read(fit.held_out))
         chosen = best.hyperparameter
         theirs = _map_held_out_errors(found.position[:, 0], presses.centres, mesh)
         calibration = _kept_if_it_generalises(best.calibration, reference_only, best.held_out, theirs)
-        calibration = eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *refused))
+        calibration = _with_warnings(calibration, *refused)
     if frame is not None and "label_frame" not in calibration.values:  # the search's, where no fit kept refined it
         calibration = eqx.tree_at(lambda c: c.values, calibration, {**calibration.values, "label_frame": frame})
     mapped_by_presses = "background_map" in calibration.fitted.get("presses", ())
@@ -2196,7 +2211,7 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
                 "changes far more than the other presses do: a board's glitch)"
             )
         left_out |= damaged
-    step = float(np.median(np.diff(times))) if recording.n_frames >= 2 else 0.0
+    step = _frame_period(times)
     if step > 0:  # else no period to tell a lost frame by (times of a coarse clock repeat)
         missing = np.array(
             [
@@ -2245,8 +2260,10 @@ def _presses_unseen(
     noise, count = calibration.noise, calibration.noise_frames
     subspace = None if noise is None else touch_subspace(calibration)
 
-    def seen(shift: float) -> np.ndarray:
-        chosen = presses.frames(times - shift)
+    def seen(shifts: np.ndarray) -> np.ndarray:
+        """(S, K) which presses show a touch with every press's time moved by each of `shifts`
+        (S,), s: each test once over all of them (the subspace statistic's Jacobian is one)."""
+        chosen = [frames for shift in shifts for frames in presses.frames(times - shift)]
         changes = np.array([signed[frames].mean(axis=0) for frames in chosen]) - at_rest
         statistic = subspace_statistic(changes, calibration)
         touched = np.full(len(chosen), noise is None) if statistic is None else statistic > SIGNIFICANCE
@@ -2254,22 +2271,22 @@ def _presses_unseen(
             variance = np.array([1.0 / len(frames) + 1.0 / count for frames in chosen])[:, None]
             for within in (None, subspace):
                 touched |= _statistic(changes, noise, count, variance, within) > SIGNIFICANCE
-        return touched
+        return touched.reshape(len(shifts), presses.n_presses)
 
-    unseen = ~seen(0.0)
+    unseen = ~seen(np.zeros(1))[0]
     if not unseen.any():
         return unseen, ()
     note = (
         f"press(es) {name_indices(np.flatnonzero(unseen))} left out: their frames show no touch (their change "
         "from the reference stands within the readings' noise)"
     )
-    step = float(np.median(np.diff(times))) if len(times) >= 2 else 0.0
+    step = _frame_period(times)
     starts = np.sort(presses.times[:, 0])
     spacing = float(np.median(np.diff(starts))) if len(starts) >= 2 else 0.0
     reach = int(0.5 * spacing / step) if step > 0 else 0
     if reach > 0:  # the nearest shift that sees the most (farther, the labels fall on other presses)
         shifts = step * np.array([sign * k for k in range(1, reach + 1) for sign in (1, -1)])
-        counts = np.array([seen(shift).sum() for shift in shifts])
+        counts = seen(shifts).sum(axis=1)
         best = int(np.argmax(counts))
         shown = presses.n_presses - int(unseen.sum())
         if counts[best] > shown:
@@ -2309,8 +2326,7 @@ def _far_from_labels_noted(calibration: SkinCalibration) -> SkinCalibration:
     errors = calibration.press_errors
     if errors is None or not np.isfinite(errors).any():
         return calibration
-    nodes = calibration.model.mesh.nodes
-    size = float(np.max(np.linalg.norm(nodes - nodes.mean(axis=0), axis=1)))
+    size = _skin_size(calibration.model.mesh)
     median = float(np.nanmedian(errors))
     if median < _FAR_FROM_LABELS * size:
         return calibration
@@ -2319,7 +2335,7 @@ def _far_from_labels_noted(calibration: SkinCalibration) -> SkinCalibration:
         "size: are the presses' times on the recording's clock (each press's own frames), and their centres "
         "in one frame?"
     )
-    return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+    return _with_warnings(calibration, note)
 
 
 def _held_to_skin(calibration: SkinCalibration) -> SkinCalibration:
@@ -2356,7 +2372,7 @@ def _with_size_map(
     try:
         sizes = SizeMap.fit(found.position[:, 0], found.radius[:, 0], found.depth[:, 0], moved.radius, depths)
     except ValueError as error:  # reads of the other sign than the model's depths: said, and no map
-        return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, f"no size map: {error}"))
+        return _with_warnings(calibration, f"no size map: {error}")
     return eqx.tree_at(lambda c: c.size_map, calibration, sizes, is_leaf=lambda node: node is None)
 
 
@@ -2372,16 +2388,15 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
     times = recording.times
     if len(times) == 0:
         raise ValueError("presses need the recording's frames; the recording holds none")
-    step = float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    step = _frame_period(times)
     late = (presses.times[:, 1] < times[0] - step) | (presses.times[:, 0] > times[-1] + step)
     if late.any():
         raise ValueError(
             f"press(es) {name_indices(np.flatnonzero(late))} are outside the recording's time "
             f"({times[0]:.3f} to {times[-1]:.3f} s)"
         )
-    centre = mesh.nodes.mean(axis=0)
-    size = float(np.max(np.linalg.norm(mesh.nodes - centre, axis=1)))
-    outside = np.linalg.norm(presses.centres - centre, axis=1) > 1.5 * size
+    size = _skin_size(mesh)
+    outside = np.linalg.norm(presses.centres - mesh.nodes.mean(axis=0), axis=1) > 1.5 * size
     if outside.any():
         raise ValueError(
             f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
@@ -2422,7 +2437,7 @@ def _refine_to_reference(
             f"{first.correlation:.3f} (< {_MIXING_LEAST_CORRELATION}), so it departs from the model in ways mixing "
             "would only mask (gains per reading, the wiring)"
         )
-        return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+        return _with_warnings(calibration, note)
     return _refine(first, reference, priors, recording, groups)
 
 
@@ -3604,7 +3619,7 @@ def _unlabelled_steps(calibration: SkinCalibration, recording: Recording, presse
     pairs = 0.5 * (signed[2:-1] + signed[3:]) - 0.5 * (signed[:-3] + signed[1:-2])
     stands_out = (_statistic(steps, noise, count, 2.0) > DETECTION) & (_statistic(pairs, noise, count, 1.0) > DETECTION)
     times = recording.times[2:-1]
-    margin = _LABELLED_MARGIN * float(np.median(np.diff(recording.times)))
+    margin = _LABELLED_MARGIN * _frame_period(recording.times)
     held = np.zeros(len(times), bool)
     for start, end in presses.times:
         held |= (times >= start - margin) & (times <= end + margin)
@@ -4030,7 +4045,7 @@ def _kept_if_it_generalises(
         f"off (median) against {1e3 * _median_read(theirs):.1f} mm with the reference's calibration and a position "
         f"map, which read {closer} of them closer and {farther} farther (sign test p = {significance:.2g})"
     )
-    return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+    return _with_warnings(reference_only, note)
 
 
 def _with_background_map(
@@ -4066,7 +4081,7 @@ def _with_background_map(
         f"closer and {farther} farther (leave-one-out; median {1e3 * _median_read(ours):.1f} mm against "
         f"{1e3 * _median_read(theirs):.1f} mm without), not significantly better (sign test p = {significance:.2f})"
     )
-    return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+    return _with_warnings(calibration, note)
 
 
 def _closer(ours: np.ndarray, theirs: np.ndarray) -> tuple[int, int, float]:
@@ -4097,7 +4112,7 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
     errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
     if np.all(errors[1:] > _UNDETERMINED * _SHEET_PRIOR):
         note = "no background map: the reference determines none of its terms"
-        return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, note))
+        return _with_warnings(calibration, note)
     # c V(sigma, z) = V(sigma / c, c z): the fitted factor moves the level and the contacts.
     factor = math.exp(theta[0])
     level = calibration.conductivity / factor
@@ -4201,7 +4216,7 @@ def _too_few_to_hold_out(reference_only: SkinCalibration, groups: tuple[str, ...
         f"{_not_kept(groups)}fewer than {_LEAST_HELD_OUT} presses cannot show that it reads presses it did not see "
         "better than the reference's calibration"
     )
-    return eqx.tree_at(lambda c: c.warnings, reference_only, (*reference_only.warnings, note))
+    return _with_warnings(reference_only, note)
 
 
 def _not_kept(groups: tuple[str, ...]) -> str:
