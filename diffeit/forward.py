@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import warnings
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import equinox as eqx
 import jax
@@ -76,10 +76,11 @@ class ForwardModel(IdentityModule):
     work on them, and `jax.jit(model.measure)` works. Precision follows the conductivity's
     dtype: float64 by default, float32 on request (docs/conventions.md#precision). A model is
     an immutable `equinox.Module` whose one array leaf is `contact_impedance`; the rest is
-    static and compared by content, so a second model on an equal mesh and protocol compiles
-    nothing (docs/conventions.md#static-data-and-pytrees). A model whose electrodes are moved
-    along the boundary (`electrode_shift`, as a calibration fits them) holds the shift as a
-    second array leaf, and is differentiable in it.
+    static and compared by content, so a second model on an equal mesh compiles nothing for
+    `measure`, `potentials` and `jacobian` while its protocol's shapes agree: the protocol's
+    arrays are arguments of their programs (docs/conventions.md#static-data-and-pytrees). A
+    model whose electrodes are moved along the boundary (`electrode_shift`, as a calibration
+    fits them) holds the shift as a second array leaf, and is differentiable in it.
 
     Arguments:
         mesh: The triangle mesh of the sheet, with its electrodes.
@@ -206,7 +207,7 @@ class ForwardModel(IdentityModule):
         """
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
         self._check_precision(conductivity, sigma, z)
-        return _potentials(self, sigma, z)
+        return _potentials(_Solves.of(self), self.protocol.drive, sigma, z)
 
     def measure(self, conductivity: jax.Array, contact_impedance: jax.Array | None = None) -> jax.Array:
         """The protocol's readings, volts, for a conductivity.
@@ -228,7 +229,7 @@ class ForwardModel(IdentityModule):
         """
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
         self._check_precision(conductivity, sigma, z)
-        return _measure(self, sigma, z)
+        return _measure(_Solves.of(self), _Readings.of(self.protocol), sigma, z)
 
     def jacobian(
         self,
@@ -262,7 +263,8 @@ class ForwardModel(IdentityModule):
         """
         if wrt not in JacobianVariable.__args__:
             raise ValueError(f"wrt must be one of {JacobianVariable.__args__}; got {wrt!r}")
-        return _jacobian(self, *self._checked_inputs(conductivity, contact_impedance), wrt)
+        sigma, z = self._checked_inputs(conductivity, contact_impedance)
+        return _jacobian(_Solves.of(self), _Readings.of(self.protocol), sigma, z, wrt)
 
     def measure_and_jacobian(
         self, conductivity: jax.Array, contact_impedance: jax.Array | None = None
@@ -285,7 +287,8 @@ class ForwardModel(IdentityModule):
         Raises:
             ValueError: As `potentials` for the inputs.
         """
-        return _measure_and_jacobian(self, *self._checked_inputs(conductivity, contact_impedance))
+        sigma, z = self._checked_inputs(conductivity, contact_impedance)
+        return _measure_and_jacobian(_Solves.of(self), _Readings.of(self.protocol), sigma, z)
 
     def _checked_inputs(self, conductivity, contact_impedance) -> tuple[jax.Array, jax.Array]:
         sigma = jnp.asarray(conductivity)
@@ -309,10 +312,10 @@ class ForwardModel(IdentityModule):
 
     def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
         """Warn when a concrete float32 call cannot hold `FLOAT32_TOLERANCE` (see the class)."""
-        leaves = (conductivity, z, *_ends(self, z.dtype))
+        leaves = (conductivity, z, *_ends(_Solves.of(self), z.dtype))
         if sigma.dtype != jnp.float32 or not all(map(is_concrete, leaves)):
             return
-        error = float(_float32_voltage_error(self, sigma, z))
+        error = float(_float32_voltage_error(_Solves.of(self), _Readings.of(self.protocol), sigma, z))
         if not error <= FLOAT32_TOLERANCE:
             warnings.warn(
                 f"float32 voltages are estimated to be off by {error:.2g} (relative 2-norm), more than "
@@ -348,9 +351,10 @@ def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
     return jnp.broadcast_to(z, (n,))
 
 
-# The computations, jitted once per mesh, protocol, drive current and solver (compared by
-# content), shape and dtype. The methods above validate concrete inputs first with messages
-# naming the elements; under an outer jit or vmap only `_positive` can see the values.
+# The computations, jitted once per mesh, drive current and solver (compared by content), shape
+# and dtype (`_Solves`): the protocol's arrays are traced (`_Readings`). The methods above
+# validate concrete inputs first with messages naming the elements; under an outer jit or vmap
+# only `_positive` can see the values.
 # equinox.filter_jit, not jax.jit: it waits for the run-time checks (an unconverged solve), so
 # that a concrete call raises at the call even while other work is in flight (JAX dispatches
 # asynchronously, and a plain jitted call would report the error only where an output is read).
@@ -393,13 +397,64 @@ def _within_margin(shift: jax.Array, system: CompleteElectrodeSystem) -> jax.Arr
     return eqx.error_if(shift, bad, "electrode_shift must be finite, within electrode_margin and leave length")
 
 
-def _ends(model: ForwardModel, dtype) -> tuple[jax.Array, ...]:
+@jax.tree_util.register_pytree_node_class
+class _Solves:
+    """What a model's solves depend on besides the protocol, the key of their compiled programs
+    (with the arrays' shapes): models that differ in their protocol's values alone share them. A
+    calibration builds hundreds of models, each with the readout it fitted folded into the
+    readings; each had compiled its solves again (15 times in one calibration's `measure`, 7.6 s
+    of its 54). A plain pytree, its one leaf the electrode shift: made at every call, an
+    `equinox.Module` cost 34 us."""
+
+    def __init__(
+        self,
+        system: ElectrodeSystem,
+        drive_current: float,
+        solver: AbstractLinearSolver,
+        electrode_shift: jax.Array | None,
+    ) -> None:
+        self.system, self.drive_current, self.solver, self.electrode_shift = (
+            system,
+            drive_current,
+            solver,
+            electrode_shift,
+        )
+
+    @classmethod
+    def of(cls, model: ForwardModel) -> _Solves:
+        return cls(model.system, model.drive_current, model.solver, model.electrode_shift)
+
+    def tree_flatten(self) -> tuple[tuple[jax.Array | None], tuple]:
+        return (self.electrode_shift,), (self.system, self.drive_current, self.solver)
+
+    @classmethod
+    def tree_unflatten(cls, static: tuple, leaves: tuple) -> _Solves:
+        return cls(*static, *leaves)
+
+
+class _Readings(NamedTuple):
+    """A protocol's arrays (`Protocol` for their meaning), traced by the compiled programs."""
+
+    drive: np.ndarray  # (n_drives, L)
+    measure: np.ndarray  # (M, L)
+    drive_index: np.ndarray  # (M,)
+    measure_patterns: np.ndarray  # (P, L)
+    pattern_index: np.ndarray  # (M,)
+
+    @classmethod
+    def of(cls, protocol: Protocol) -> _Readings:
+        return cls(
+            protocol.drive, protocol.measure, protocol.drive_index, protocol.measure_patterns, protocol.pattern_index
+        )
+
+
+def _ends(solves: _Solves, dtype) -> tuple[jax.Array, ...]:
     """The electrode shift to pass to the system, as a tuple: empty for the mesh's electrodes."""
-    return () if model.electrode_shift is None else (model.electrode_shift.astype(dtype),)
+    return () if solves.electrode_shift is None else (solves.electrode_shift.astype(dtype),)
 
 
-def _values(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
-    return model.system.values(sigma, z, *_ends(model, sigma.dtype))
+def _values(solves: _Solves, sigma: jax.Array, z: jax.Array) -> jax.Array:
+    return solves.system.values(sigma, z, *_ends(solves, sigma.dtype))
 
 
 def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -411,13 +466,12 @@ def _positive(sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 
 @eqx.filter_jit
-def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentials:
-    system = model.system
+def _potentials(solves: _Solves, drive: jax.Array, sigma: jax.Array, z: jax.Array) -> Potentials:
+    system = solves.system
     sigma, z = _positive(sigma, z)
-    values = _values(model, sigma, z)
-    currents = model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype)
-    rhs = system.current_rhs(currents)
-    solution, result = solve_spd_with_result(system.pattern, values, rhs, model.solver)
+    values = _values(solves, sigma, z)
+    rhs = system.current_rhs(solves.drive_current * drive.astype(sigma.dtype))
+    solution, result = solve_spd_with_result(system.pattern, values, rhs, solves.solver)
     solution = eqx.error_if(
         solution,
         ~jnp.all(jnp.isfinite(solution)),
@@ -435,66 +489,70 @@ def _potentials(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> Potentia
 
 
 @eqx.filter_jit
-def _measure(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
-    return _readings(model, _potentials(model, sigma, z).electrode)
+def _measure(solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array) -> jax.Array:
+    return _readings(protocol, _potentials(solves, protocol.drive, sigma, z).electrode)
 
 
-def _readings(model: ForwardModel, electrode: jax.Array) -> jax.Array:
+def _readings(protocol: _Readings, electrode: jax.Array) -> jax.Array:
     """(n_measurements,) readings of the protocol from electrode potentials (n_drives, L)."""
-    weights = jnp.asarray(model.protocol.measure, electrode.dtype)
-    return jnp.sum(weights * electrode[model.protocol.drive_index], axis=-1)
+    return jnp.sum(protocol.measure.astype(electrode.dtype) * electrode[protocol.drive_index], axis=-1)
 
 
 @jax.jit  # its one number is read at once (float()), so a run-time error surfaces there
-def _float32_voltage_error(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> jax.Array:
+def _float32_voltage_error(solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array) -> jax.Array:
     """Estimated relative 2-norm error of float32 voltages: one step of iterative refinement,
     the residual taken in float64, the correction solved with the float32 system."""
-    system = model.system
-    values = _values(model, sigma, z)
-    rhs = system.current_rhs(model.drive_current * jnp.asarray(model.protocol.drive, sigma.dtype))
-    solution = solve_spd(system.pattern, values, rhs, model.solver)
-    exact_values = _values(model, sigma.astype(jnp.float64), z.astype(jnp.float64))
+    system = solves.system
+    values = _values(solves, sigma, z)
+    rhs = system.current_rhs(solves.drive_current * protocol.drive.astype(sigma.dtype))
+    solution = solve_spd(system.pattern, values, rhs, solves.solver)
+    exact_values = _values(solves, sigma.astype(jnp.float64), z.astype(jnp.float64))
     residual = rhs.astype(jnp.float64) - system.pattern.matvec(exact_values, solution.astype(jnp.float64))
-    correction = solve_spd(system.pattern, values, residual.astype(sigma.dtype), model.solver)
-    voltages = _readings(model, system.split(solution)[1])
-    change = _readings(model, system.split(correction)[1])
+    correction = solve_spd(system.pattern, values, residual.astype(sigma.dtype), solves.solver)
+    voltages = _readings(protocol, system.split(solution)[1])
+    change = _readings(protocol, system.split(correction)[1])
     return jnp.linalg.norm(change.astype(jnp.float64)) / jnp.linalg.norm(voltages.astype(jnp.float64))
 
 
 @eqx.filter_jit
-def _jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable) -> jax.Array:
+def _jacobian(solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable) -> jax.Array:
     sigma, z = _positive(sigma, z)
-    return _jacobian_of_fields(model, sigma, z, wrt, *_adjoint_fields(model, sigma, z))
+    return _jacobian_of_fields(solves, protocol, sigma, z, wrt, *_adjoint_fields(solves, protocol, sigma, z))
 
 
 @eqx.filter_jit
-def _measure_and_jacobian(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _measure_and_jacobian(
+    solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array
+) -> tuple[jax.Array, jax.Array]:
     sigma, z = _positive(sigma, z)
-    drive_fields, measure_fields = _adjoint_fields(model, sigma, z)
-    readings = _readings(model, model.system.split(drive_fields)[1])
-    return readings, _jacobian_of_fields(model, sigma, z, "conductivity", drive_fields, measure_fields)
+    drive_fields, measure_fields = _adjoint_fields(solves, protocol, sigma, z)
+    readings = _readings(protocol, solves.system.split(drive_fields)[1])
+    return readings, _jacobian_of_fields(solves, protocol, sigma, z, "conductivity", drive_fields, measure_fields)
 
 
-def _adjoint_fields(model: ForwardModel, sigma: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+def _adjoint_fields(
+    solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array
+) -> tuple[jax.Array, jax.Array]:
     """The system solutions (n, n_drives) of every drive and (n, n_patterns) of every
     measurement pattern, from one factorisation and L-1 solves (docs/science.md#jacobian)."""
-    system, protocol = model.system, model.protocol
+    system = solves.system
     n_free = system.n_electrodes - 1
     # Unit current into electrode l < L-1 and out of electrode L-1: every zero-sum pattern is
     # a combination of these with its first L-1 entries as weights.
     unit_currents = jnp.eye(n_free, system.n_electrodes, dtype=sigma.dtype).at[:, -1].set(-1)
-    basis = solve_spd(system.pattern, _values(model, sigma, z), system.current_rhs(unit_currents), model.solver)
-    drives = model.drive_current * jnp.asarray(protocol.drive[:, :n_free], sigma.dtype)
+    basis = solve_spd(system.pattern, _values(solves, sigma, z), system.current_rhs(unit_currents), solves.solver)
+    drives = solves.drive_current * protocol.drive[:, :n_free].astype(sigma.dtype)
     # A reading m of potentials that sum to zero equals one of m - mean(m), a zero-sum pattern.
     patterns = protocol.measure_patterns - protocol.measure_patterns.mean(axis=1, keepdims=True)
-    patterns = jnp.asarray(patterns[:, :n_free], sigma.dtype)
+    patterns = patterns[:, :n_free].astype(sigma.dtype)
     drive_fields = basis @ drives.T  # (n, n_drives) system solutions of every drive
     measure_fields = basis @ patterns.T  # (n, n_patterns) ... of every measurement pattern
     return drive_fields, measure_fields
 
 
 def _jacobian_of_fields(
-    model: ForwardModel,
+    solves: _Solves,
+    protocol: _Readings,
     sigma: jax.Array,
     z: jax.Array,
     wrt: JacobianVariable,
@@ -502,10 +560,10 @@ def _jacobian_of_fields(
     measure_fields: jax.Array,
 ) -> jax.Array:
     """The Jacobian by reciprocity from the drive and measurement fields (`_adjoint_fields`)."""
-    system, protocol = model.system, model.protocol
+    system = solves.system
     if wrt == "contact_impedance":
         forms = system.contact_forms(
-            drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index], *_ends(model, z.dtype)
+            drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index], *_ends(solves, z.dtype)
         )  # (n_measurements, L)
         return forms / z**2
     drive_gradients = _element_gradients(system, system.split(drive_fields)[0])  # each (n_drives, E)

@@ -62,6 +62,32 @@ def test_a_second_model_on_an_equal_mesh_compiles_nothing(compilations):
 
 
 @pytest.mark.slow
+def test_a_model_whose_readings_differ_shares_the_solves_compiled_programs(compilations):
+    """`measure`, `potentials` and `jacobian` take the protocol's arrays as arguments: a model
+    reading with other weights (a fitted readout) but as many readings compiles nothing, and
+    reads its own weights (the readings of every electrode's potential, weighed)."""
+    mesh = de.mesh.disc(16, electrode_width=0.2, h=0.17)
+    plain = de.protocol.opposite(16)
+    rng = np.random.default_rng(0)
+    mixed = de.Protocol(plain.drive, (plain.measure + 0.1 * rng.normal(size=plain.measure.shape)).reshape(16, -1, 16))
+    sigma = jnp.full(mesh.n_elements, 0.5)
+
+    def use(model):
+        return np.asarray(model.measure(sigma)), np.asarray(model.jacobian(sigma)), model.potentials(sigma)
+
+    use(de.ForwardModel(mesh, plain, 0.02))
+    first = use(de.ForwardModel(mesh, mixed, 0.02))
+    compilations.clear()
+    other = de.Protocol(plain.drive, (plain.measure - 0.1 * rng.normal(size=plain.measure.shape)).reshape(16, -1, 16))
+    readings, jacobian, potentials = use(de.ForwardModel(mesh, other, 0.02))
+    assert compilations == []
+    every = potentials.electrode[other.drive_index]
+    np.testing.assert_allclose(readings, np.sum(other.measure * every, axis=1), rtol=1e-12)
+    assert not np.allclose(readings, first[0], rtol=1e-3)
+    lower = np.asarray(de.ForwardModel(mesh, other, 0.02).measure(sigma * (1 - 1e-6 * np.eye(mesh.n_elements)[3])))
+    np.testing.assert_allclose((readings - lower) / (0.5e-6), jacobian[:, 3], rtol=1e-4, atol=1e-9)
+
+
 def test_dense_cholesky_factorises_once_for_the_forward_and_the_adjoint(small_disc, monkeypatch):
     """The gradient of the voltages is a forward and an adjoint solve with one factorisation
     between them (counted as traced), and it agrees with the host backend."""
