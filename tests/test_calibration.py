@@ -1652,10 +1652,12 @@ def test_presses_place_displaced_electrodes_and_map_the_sheet_under_a_mixing_mag
     assert calibration.standard_errors["background"].shape == (5,)
     # The calibrated model's response to a touch: discs fitted to the presses' frames through it
     # (the reference frames identical, no noise to weigh by: the fit had failed on infinite
-    # weights) read their strength, depth times radius squared, at 0.83 of the presses' (the
-    # true model reads 0.92 on the calibration benchmark's skins); with the level alone fitted
-    # again after the mixing, the contact impedances as the reference's fit left them, 1.17.
-    found = de.touches(de.reconstruct(recording, calibration=calibration, progress=False), calibration, method="fit")
+    # weights) read their strength, depth times radius squared, at 0.79 of the presses' on the
+    # first 20 (0.83 on all 50; the true model reads 0.92 on the calibration benchmark's skins);
+    # with the level alone fitted again after the mixing, the contact impedances as the
+    # reference's fit left them, 1.17. The first 20 presses alone: each fit takes 0.17 s.
+    first = dataclasses.replace(recording, frames=frames[:30], times=times[:30])
+    found = de.touches(de.reconstruct(first, calibration=calibration, progress=False), calibration, method="fit")
     strength = found.depth[10:, 0] * found.radius[10:, 0] ** 2 / (-0.3 * 0.01**2)
     assert 0.75 < np.median(strength) < 1.05, np.median(strength)
 
