@@ -75,6 +75,18 @@ def test_reconstruct_with_the_calibration_places_the_touches_at_the_presses(sess
     assert metadata["calibrated"]
 
 
+def test_a_hold_labelled_at_frame_times_holds_them_to_rounding():
+    """A hold labelled 3.8 s to 4.0 s holds the frames a clock stamped a rounding before 3.8 s
+    and after 4.0 s (times summed frame by frame, labels written from frame numbers); a frame a
+    period away does not."""
+    times = 0.1 * np.arange(60)
+    times[38], times[40] = np.nextafter(3.8, 0.0), np.nextafter(4.0, 5.0)
+    presses = de.io.Presses(np.zeros((2, 2)), 0.01, np.array([[3.8, 4.0], [3.85, 3.95]]))
+    held, inner = presses.frames(times)
+    np.testing.assert_array_equal(held, [38, 39, 40])
+    np.testing.assert_array_equal(inner, [39])
+
+
 def test_read_presses_reads_instants_and_holds(tmp_path):
     instants = tmp_path / "instants.csv"
     instants.write_text("\ufeffx_m,y_m,radius_m,time_s\n0.1,-0.2,0.05,1.5\n\n0,0.3,0.1,2\n")

@@ -79,7 +79,11 @@ class Presses(eqx.Module):
     def frames(self, times: np.ndarray) -> list[np.ndarray]:
         """The frames of each press: those within its hold, or the frame nearest its middle.
 
-        An instant (or a hold no frame falls in) gets the one frame nearest to it.
+        An instant (or a hold no frame falls in) gets the one frame nearest to it. A frame within
+        1e-6 of the frames' median period of a hold's end is within it: labels and frame times
+        computed apart (an end of 4.0 s against a clock's 4.000000000000001 s) had left a
+        held press a frame short, and the memory fit, which needs every press held over three
+        frames, was not made.
 
         Arguments:
             times: (T,) the frames' times, seconds on the recording's clock.
@@ -88,9 +92,10 @@ class Presses(eqx.Module):
             K arrays of frame indices, one per press, none empty.
         """
         times = np.asarray(times, np.float64)
+        slack = 1e-6 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
         chosen = []
         for start, end in self.times:
-            inside = np.flatnonzero((times >= start) & (times <= end))
+            inside = np.flatnonzero((times >= start - slack) & (times <= end + slack))
             chosen.append(inside if len(inside) else np.array([int(np.argmin(np.abs(times - 0.5 * (start + end))))]))
         return chosen
 
