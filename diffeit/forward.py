@@ -413,12 +413,10 @@ class _Solves:
         solver: AbstractLinearSolver,
         electrode_shift: jax.Array | None,
     ) -> None:
-        self.system, self.drive_current, self.solver, self.electrode_shift = (
-            system,
-            drive_current,
-            solver,
-            electrode_shift,
-        )
+        self.system = system
+        self.drive_current = drive_current
+        self.solver = solver
+        self.electrode_shift = electrode_shift
 
     @classmethod
     def of(cls, model: ForwardModel) -> _Solves:
