@@ -292,8 +292,10 @@ class ForwardModel(IdentityModule):
 
     def _checked_inputs(self, conductivity, contact_impedance) -> tuple[jax.Array, jax.Array]:
         sigma = jnp.asarray(conductivity)
-        # An explicit dtype also drops JAX's weak type (jnp.full(n, 1.0)), which would compile again.
-        sigma = jnp.asarray(sigma, dtype=sigma.dtype if jnp.issubdtype(sigma.dtype, jnp.floating) else float)
+        # An explicit dtype also drops JAX's weak type (jnp.full(n, 1.0)), which would compile
+        # again. Each conversion costs tens of microseconds a call: only where needed.
+        if sigma.weak_type or not jnp.issubdtype(sigma.dtype, jnp.floating):
+            sigma = jnp.asarray(sigma, dtype=sigma.dtype if jnp.issubdtype(sigma.dtype, jnp.floating) else float)
         if sigma.shape != (self.n_elements,):
             raise ValueError(
                 f"conductivity has shape {sigma.shape}; expected ({self.n_elements},), one value per element"
@@ -308,7 +310,7 @@ class ForwardModel(IdentityModule):
             z = self.contact_impedance
         else:
             z = _checked_contact_impedance(contact_impedance, self.mesh.n_electrodes)
-        return sigma, z.astype(sigma.dtype)
+        return sigma, z if z.dtype == sigma.dtype else z.astype(sigma.dtype)
 
     def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
         """Warn when a concrete float32 call cannot hold `FLOAT32_TOLERANCE` (see the class)."""
