@@ -310,7 +310,7 @@ class ForwardModel(IdentityModule):
             z = self.contact_impedance
         else:
             z = _checked_contact_impedance(contact_impedance, self.mesh.n_electrodes)
-        return sigma, z if z.dtype == sigma.dtype else z.astype(sigma.dtype)
+        return sigma, z if z.dtype == sigma.dtype and not z.weak_type else z.astype(sigma.dtype)
 
     def _check_precision(self, conductivity, sigma: jax.Array, z: jax.Array) -> None:
         """Warn when a concrete float32 call cannot hold `FLOAT32_TOLERANCE` (see the class)."""
@@ -350,7 +350,7 @@ def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
         values = np.asarray(z)
         if not np.all(np.isfinite(values)) or np.any(values <= 0):
             raise ValueError(f"contact_impedance must be finite and positive (ohm m); got {values}")
-    return jnp.broadcast_to(z, (n,))
+    return jnp.broadcast_to(z, (n,)).astype(z.dtype)  # not weak-typed (a Python float's): one compiled key
 
 
 # The computations, jitted once per mesh, drive current and solver (compared by content), shape
