@@ -229,7 +229,7 @@ class ForwardModel(IdentityModule):
         """
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
         self._check_precision(conductivity, sigma, z)
-        return _measure(_Solves.of(self), _Readings.of(self.protocol), sigma, z)
+        return _measure(_Solves.of(self), _ProtocolArrays.of(self.protocol), sigma, z)
 
     def jacobian(
         self,
@@ -264,7 +264,7 @@ class ForwardModel(IdentityModule):
         if wrt not in JacobianVariable.__args__:
             raise ValueError(f"wrt must be one of {JacobianVariable.__args__}; got {wrt!r}")
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
-        return _jacobian(_Solves.of(self), _Readings.of(self.protocol), sigma, z, wrt)
+        return _jacobian(_Solves.of(self), _ProtocolArrays.of(self.protocol), sigma, z, wrt)
 
     def measure_and_jacobian(
         self, conductivity: jax.Array, contact_impedance: jax.Array | None = None
@@ -288,7 +288,7 @@ class ForwardModel(IdentityModule):
             ValueError: As `potentials` for the inputs.
         """
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
-        return _measure_and_jacobian(_Solves.of(self), _Readings.of(self.protocol), sigma, z)
+        return _measure_and_jacobian(_Solves.of(self), _ProtocolArrays.of(self.protocol), sigma, z)
 
     def _checked_inputs(self, conductivity, contact_impedance) -> tuple[jax.Array, jax.Array]:
         sigma = jnp.asarray(conductivity)
@@ -317,7 +317,7 @@ class ForwardModel(IdentityModule):
         leaves = (conductivity, z, *_ends(_Solves.of(self), z.dtype))
         if sigma.dtype != jnp.float32 or not all(map(is_concrete, leaves)):
             return
-        error = float(_float32_voltage_error(_Solves.of(self), _Readings.of(self.protocol), sigma, z))
+        error = float(_float32_voltage_error(_Solves.of(self), _ProtocolArrays.of(self.protocol), sigma, z))
         if not error <= FLOAT32_TOLERANCE:
             warnings.warn(
                 f"float32 voltages are estimated to be off by {error:.2g} (relative 2-norm), more than "
@@ -354,7 +354,7 @@ def _checked_contact_impedance(contact_impedance, n: int) -> jax.Array:
 
 
 # The computations, jitted once per mesh, drive current and solver (compared by content), shape
-# and dtype (`_Solves`): the protocol's arrays are traced (`_Readings`). The methods above
+# and dtype (`_Solves`): the protocol's arrays are traced (`_ProtocolArrays`). The methods above
 # validate concrete inputs first with messages naming the elements; under an outer jit or vmap
 # only `_positive` can see the values.
 # equinox.filter_jit, not jax.jit: it waits for the run-time checks (an unconverged solve), so
@@ -432,7 +432,7 @@ class _Solves:
         return cls(*static, *leaves)
 
 
-class _Readings(NamedTuple):
+class _ProtocolArrays(NamedTuple):
     """A protocol's arrays (`Protocol` for their meaning), traced by the compiled programs."""
 
     drive: np.ndarray  # (n_drives, L)
@@ -442,7 +442,7 @@ class _Readings(NamedTuple):
     pattern_index: np.ndarray  # (M,)
 
     @classmethod
-    def of(cls, protocol: Protocol) -> _Readings:
+    def of(cls, protocol: Protocol) -> _ProtocolArrays:
         return cls(
             protocol.drive, protocol.measure, protocol.drive_index, protocol.measure_patterns, protocol.pattern_index
         )
@@ -489,17 +489,17 @@ def _potentials(solves: _Solves, drive: jax.Array, sigma: jax.Array, z: jax.Arra
 
 
 @eqx.filter_jit
-def _measure(solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array) -> jax.Array:
+def _measure(solves: _Solves, protocol: _ProtocolArrays, sigma: jax.Array, z: jax.Array) -> jax.Array:
     return _readings(protocol, _potentials(solves, protocol.drive, sigma, z).electrode)
 
 
-def _readings(protocol: _Readings, electrode: jax.Array) -> jax.Array:
+def _readings(protocol: _ProtocolArrays, electrode: jax.Array) -> jax.Array:
     """(n_measurements,) readings of the protocol from electrode potentials (n_drives, L)."""
     return jnp.sum(protocol.measure.astype(electrode.dtype) * electrode[protocol.drive_index], axis=-1)
 
 
 @jax.jit  # its one number is read at once (float()), so a run-time error surfaces there
-def _float32_voltage_error(solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array) -> jax.Array:
+def _float32_voltage_error(solves: _Solves, protocol: _ProtocolArrays, sigma: jax.Array, z: jax.Array) -> jax.Array:
     """Estimated relative 2-norm error of float32 voltages: one step of iterative refinement,
     the residual taken in float64, the correction solved with the float32 system."""
     system = solves.system
@@ -515,14 +515,16 @@ def _float32_voltage_error(solves: _Solves, protocol: _Readings, sigma: jax.Arra
 
 
 @eqx.filter_jit
-def _jacobian(solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable) -> jax.Array:
+def _jacobian(
+    solves: _Solves, protocol: _ProtocolArrays, sigma: jax.Array, z: jax.Array, wrt: JacobianVariable
+) -> jax.Array:
     sigma, z = _positive(sigma, z)
     return _jacobian_of_fields(solves, protocol, sigma, z, wrt, *_adjoint_fields(solves, protocol, sigma, z))
 
 
 @eqx.filter_jit
 def _measure_and_jacobian(
-    solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array
+    solves: _Solves, protocol: _ProtocolArrays, sigma: jax.Array, z: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     sigma, z = _positive(sigma, z)
     drive_fields, measure_fields = _adjoint_fields(solves, protocol, sigma, z)
@@ -531,7 +533,7 @@ def _measure_and_jacobian(
 
 
 def _adjoint_fields(
-    solves: _Solves, protocol: _Readings, sigma: jax.Array, z: jax.Array
+    solves: _Solves, protocol: _ProtocolArrays, sigma: jax.Array, z: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """The system solutions (n, n_drives) of every drive and (n, n_patterns) of every
     measurement pattern, from one factorisation and L-1 solves (docs/science.md#jacobian)."""
@@ -552,7 +554,7 @@ def _adjoint_fields(
 
 def _jacobian_of_fields(
     solves: _Solves,
-    protocol: _Readings,
+    protocol: _ProtocolArrays,
     sigma: jax.Array,
     z: jax.Array,
     wrt: JacobianVariable,
