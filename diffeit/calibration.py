@@ -1737,7 +1737,7 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
         long[first:last] = True
     if not len(touched) or not long.any():
         return still
-    step = float(np.median(np.diff(times)))
+    step = _frame_period(times)
     near = touched[_time_to_nearest(times, long)[touched] <= (_DRIFT_WINDOW + 0.5) * step]
     if len(near) < _LEAST_NEAR:
         return still
@@ -1974,7 +1974,6 @@ def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
     return disc(n, electrode_width=min(0.2, math.pi / n), h=0.08 if h is None else h)
 
 
-@host_algebra
 def _skin_size(mesh: Mesh) -> float:
     """The skin's size, m: its farthest node from the nodes' mean."""
     return float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(axis=0), axis=1)))
@@ -1990,6 +1989,7 @@ def _with_warnings(calibration: Any, *notes: str) -> Any:
     return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *notes))
 
 
+@host_algebra
 def _frame_steps(mesh: Mesh) -> np.ndarray:
     """(4,) the scale of a change of the labels' frame (ln scale, angle, offset x and y): the
     search's first steps, and the prior standard deviations of the frame's refinement about
