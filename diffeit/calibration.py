@@ -1184,6 +1184,10 @@ class SkinCalibration(eqx.Module):
         size_map: The `SizeMap` that `diffeit.touches` reads touches' radii and depths
             through, fitted on labelled presses (20 or more on a flat skin: the labels' frame
             gives their radius in the mesh's), or None.
+        reference: (M,) the mean of the reference frames the model was fitted to, as recorded
+            (the mean of `noise_frames` frames), or None (a file written before it was kept):
+            `diffeit.reconstruct` images a recording without untouched first frames against
+            it (`calibrated_reference_frames`).
     """
 
     model: ForwardModel
@@ -1214,6 +1218,7 @@ class SkinCalibration(eqx.Module):
     readings: str = eqx.field(static=True)
     ringing: float | None = None
     size_map: SizeMap | None = None
+    reference: np.ndarray | None = None
 
     @property
     def driven_readings(self) -> str:
@@ -1451,6 +1456,69 @@ def reference_frames(
         return recording.frames, f"mean of the first {recording.n_frames} frames"
     kept = np.flatnonzero(whole)
     return recording.frames[kept], f"mean of frames {name_indices(kept)} (the others look damaged)"
+
+
+def calibrated_reference_frames(recording: Recording, calibration: SkinCalibration) -> tuple[np.ndarray, str, int]:
+    """The reference frames of a recording without a reference, imaged at a calibration of its
+    skin: its own first untouched frames (`reference_frames`), unless one of them looks touched
+    against the calibration's reference.
+
+    A recording may start pressed: a test recording cut from a session, or one begun with a
+    finger on the skin. Its own first frames then hold a press, and every frame is imaged
+    against it (simulated, 60 single-frame presses with no rest: 9 of them missed). Where the
+    calibration keeps its reference and the readings' noise, each of the recording's own first
+    untouched frames is tested against that reference in the touch subspace (the statistic of
+    `diffeit.touch.touched`; not their mean, in which a press among rests is diluted). Where one
+    stands out:
+    1. the frames of the first `_SESSION_FRAMES` (not damaged) that lie within the noise of the
+       calibration's reference, when there are any;
+    2. else, where every frame differs from it: a skin that drifted since its calibration (a
+       hydrogel dries, contacts change) still rests, and its frames at rest agree with each
+       other: the own frames are kept when they are two or more and each lies within the noise
+       of their mean;
+    3. else the calibration's reference (the mean of its `noise_frames` frames).
+
+    Arguments:
+        recording: The recording (no reference of its own).
+        calibration: The skin's calibration.
+
+    Returns:
+        (R, M) the reference frames, as recorded; a description of them; how many frames their
+        mean stands for (R, or the calibration's `noise_frames` for its reference).
+    """
+    own, source = reference_frames(recording)
+    stored, noise = calibration.reference, calibration.noise
+    if stored is None or noise is None:
+        return own, source, len(own)
+    subspace = touch_subspace(calibration)
+    count = calibration.noise_frames
+
+    def statistic(frames: np.ndarray, against: np.ndarray, variance: float) -> np.ndarray:
+        return _statistic(calibration.signed(frames) - calibration.signed(against), noise, count, variance, subspace)
+
+    if np.all(statistic(own, stored, 1.0 + 1.0 / count) <= DETECTION):
+        return own, source, len(own)
+    session = recording.frames[:_SESSION_FRAMES]
+    quiet = ~_damaged(session) & (statistic(session, stored, 1.0 + 1.0 / count) <= DETECTION)
+    if quiet.any():
+        return (
+            session[quiet],
+            (
+                f"the {int(quiet.sum())} frames of the first ones within the noise of the calibration's reference "
+                f"({source} look touched against it)"
+            ),
+            int(quiet.sum()),
+        )
+    if len(own) >= 2 and np.all(statistic(own, own.mean(axis=0), 1.0 - 1.0 / len(own)) <= DETECTION):
+        return own, f"{source}: every frame differs from the calibration's reference (a drift since)", len(own)
+    return (
+        stored[None],
+        (
+            f"the calibration's reference ({source} look touched against it, differ from each other, and no frame lies "
+            "within its noise)"
+        ),
+        count,
+    )
 
 
 def _looking_untouched(frames: np.ndarray, times: np.ndarray, where: str) -> tuple[np.ndarray, str]:
@@ -2554,6 +2622,7 @@ def _refine(
         warnings=tuple(notes),
         protocol=recording.protocol,
         readings=recording.readings,
+        reference=frames.mean(axis=0),
     )
 
 
@@ -4269,6 +4338,8 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         arrays["model/electrode_shift"] = np.asarray(model.electrode_shift)
     if calibration.noise is not None:
         arrays["noise"] = calibration.noise
+    if calibration.reference is not None:
+        arrays["reference"] = calibration.reference
     if calibration.background_map is not None:
         arrays["background_map"] = calibration.background_map
     if calibration.position_map is not None:
@@ -4401,6 +4472,7 @@ _STORED_ARRAYS = {
     "readout/gains": "nonzero",
     "readout/weights": "",
     "noise": "non-negative",
+    "reference": "",
     "model/electrode_shift": "",
     "position_map/coefficients": "",
     "values/label_frame": "",
@@ -4468,6 +4540,18 @@ def _stored_size_map(sizes: dict, arrays: dict, dimension: int) -> SizeMap:
         length,
         sizes["errors"],
     )
+
+
+def _stored_reference(arrays: dict, protocol: Protocol) -> np.ndarray | None:
+    """The reference a file keeps (none before it was kept); ValueError for one that is not one
+    frame of the protocol's readings."""
+    reference = arrays.get("reference")
+    if reference is not None and np.shape(reference) != (protocol.n_measurements,):
+        raise ValueError(
+            f"its reference has shape {np.shape(reference)}; the protocol's frames have {protocol.n_measurements} "
+            "readings"
+        )
+    return reference
 
 
 def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, path: Path) -> SkinCalibration:
@@ -4564,4 +4648,5 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         readings=str(attributes["readings"]),
         ringing=None if ringing < 0 else ringing,
         size_map=size_map,
+        reference=_stored_reference(arrays, protocol),
     )

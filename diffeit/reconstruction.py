@@ -81,6 +81,7 @@ from .calibration import (
     _with,
     auto_hyperparameter,
     calibrate_to_reference,
+    calibrated_reference_frames,
     default_mesh,
     drift_corrected,
     reference_frames,
@@ -146,7 +147,9 @@ def reconstruct(
     The reference is the recording's, its frame `reference_frame`, or, when it has none, the
     mean of its first frames up to the first that looks touched, however few (where its first
     frame or two look touched, as a board's first frames after it connects may, the untouched
-    run after them; `reference_frames`). Their spread, from 6 frames or more, is kept in the
+    run after them; `reference_frames`; with a `calibration`, unless one of them looks touched
+    against the calibration's reference: then the frames within its noise, or that reference,
+    `calibrated_reference_frames`). Their spread, from 6 frames or more, is kept in the
     provenance as "reading_noise", the noise `diffeit.touches` tests frames against without a
     calibration; with it, or with a calibration's noise, one-step images keep each element's
     noise as "image_noise" (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the
@@ -257,7 +260,7 @@ def reconstruct(
         _check_calibration(calibration, recording, mesh, h)
         mesh = calibration.model.mesh
     mesh = default_mesh(recording, h) if mesh is None else mesh
-    reference_set, reference_source = reference_frames(recording, reference_frame)
+    reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
     reference = reference_set.mean(axis=0)
     # The readings' spread over the reference frames, when the reference is the mean of enough of
     # the recording's own frames: `diffeit.touches` tests frames against it without a calibration.
@@ -267,7 +270,7 @@ def reconstruct(
     if spread is not None:  # a drift's common gain out of every frame (`drift_corrected`)
         recording, frame_gains = drift_corrected(recording, reference_set)
         if frame_gains is not None:  # the reference frames, and their spread, without the drift
-            reference_set, reference_source = reference_frames(recording, reference_frame)
+            reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
             reference = reference_set.mean(axis=0)
             spread = reference_set.std(axis=0, ddof=1) if len(reference_set) >= _NOISE_FRAMES else None
     if calibration is None:
@@ -362,7 +365,7 @@ def reconstruct(
         "unsafe_ratio_readings": unsafe,
         "reference": reference_source,
         # How many frames the reference is the mean of; None for the recording's own (unknown).
-        "reference_frames": None if recording.reference is not None and reference_frame is None else len(reference_set),
+        "reference_frames": None if recording.reference is not None and reference_frame is None else averaged,
         "noise_frames": 0 if spread is None else len(reference_set),
         "reading_noise": None if spread is None else spread.tolist(),
         "image_noise": None if element_noise is None else element_noise.tolist(),
@@ -385,6 +388,18 @@ def reconstruct(
         image_quantity="relative conductivity change" if relative else "conductivity change",
         provenance={"source": f"diffeit.reconstruct ({method})", "metadata": metadata},
     )
+
+
+def _reference_set(
+    recording: Recording, reference_frame: int | None, calibration: SkinCalibration | None
+) -> tuple[np.ndarray, str, int]:
+    """(R, M) the frames a recording is imaged against, as recorded; their description; how many
+    frames their mean stands for: `reference_frames`, or with a calibration given and no
+    reference named, `calibrated_reference_frames`."""
+    if calibration is None or recording.reference is not None or reference_frame is not None:
+        frames, source = reference_frames(recording, reference_frame)
+        return frames, source, len(frames)
+    return calibrated_reference_frames(recording, calibration)
 
 
 def _reading_noise(calibration: Any, reference_set: np.ndarray | None) -> np.ndarray | None:

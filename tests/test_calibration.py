@@ -695,6 +695,52 @@ def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin
     assert errors["skin"] < 0.05, errors
 
 
+def test_a_recording_that_starts_pressed_is_imaged_against_the_calibrations_reference(mixing_skin, calibrated):
+    """A recording cut from the session's held-out presses, without a reference, begins with
+    three presses one after another: its own first frames would be a pressed reference (more
+    leading frames than a glitch look touched: `reference_frames` takes them as the reference of
+    one long press). Tested against the calibration's reference, the rests among its frames are
+    taken instead; with no rest at all, the calibration's reference; a skin that drifted since
+    still has its own first frames."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    np.testing.assert_allclose(calibrated.reference, recording.frames[:UNTOUCHED].mean(axis=0))
+    test_presses = presses.select(np.arange(20, 30))
+    pressed = np.array([frames[0] for frames in test_presses.frames(recording.times)])
+
+    def read(frames: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, str]:
+        cut = de.io.Recording(
+            frames=frames[rows],
+            times=recording.times[rows],
+            protocol=PROTOCOL,
+            mesh=recording.mesh,
+            voltage_unit="arbitrary",
+        )
+        images = de.reconstruct(cut, calibration=calibrated, progress=False)
+        found = de.touches(images, calibrated)
+        at = np.searchsorted(rows, pressed)
+        assert np.all(found.count[at] == 1) and np.all(found.count[np.setdiff1d(np.arange(len(rows)), at)] == 0)
+        return np.linalg.norm(found.position[at, 0] - test_presses.centres, axis=1), images.provenance["metadata"]
+
+    with_rests, metadata = read(
+        recording.frames, np.concatenate([pressed[:3], np.arange(pressed[3] - 1, recording.n_frames)])
+    )
+    assert metadata["reference"].startswith("the 8 frames of the first ones within the noise"), metadata["reference"]
+    assert metadata["reference_frames"] == 8
+    only_pressed, metadata = read(recording.frames, pressed)
+    assert metadata["reference"].startswith("the calibration's reference"), metadata["reference"]
+    assert metadata["reference_frames"] == calibrated.noise_frames
+    assert np.median(with_rests) < 0.05 and np.median(only_pressed) < 0.05, (with_rests, only_pressed)
+    # Every frame 3% off the calibration's reference: a drift, the skin's own first frames kept.
+    rests_first = np.concatenate([np.arange(UNTOUCHED), np.arange(pressed[0], recording.n_frames)])
+    drifted, metadata = read(1.03 * recording.frames, rests_first)
+    assert metadata["reference"].endswith("(a drift since)") and metadata["reference_frames"] == UNTOUCHED
+    assert np.median(drifted) < 0.05, drifted
+    forgotten = eqx.tree_at(lambda c: c.reference, calibrated, None, is_leaf=lambda node: node is None)
+    cut = dataclasses.replace(recording, frames=recording.frames[pressed], times=recording.times[pressed])
+    metadata = de.reconstruct(cut, calibration=forgotten, progress=False).provenance["metadata"]
+    assert metadata["reference"].startswith("mean of the first"), metadata["reference"]
+
+
 def test_images_take_the_calibrations_hyperparameter_only_with_a_position_map(mixing_skin, calibrated):
     """The map was fitted on images made at the calibration's hyperparameter; without one (the
     presses' cross-validation chose none) the recording's own frames choose it, as uncalibrated."""
@@ -1053,6 +1099,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     radii, depths = np.full(len(beyond), 0.3), np.full(len(beyond), -0.1)
     np.testing.assert_array_equal(again.size_map(beyond, radii, depths), calibrated.size_map(beyond, radii, depths))
     np.testing.assert_array_equal(again.noise, calibrated.noise)
+    np.testing.assert_array_equal(again.reference, calibrated.reference)
     voltages = again.model.measure(jnp.full(again.model.n_elements, again.conductivity))
     np.testing.assert_allclose(voltages, calibrated.model.measure(jnp.full(again.model.n_elements, again.conductivity)))
     other = de.io.Recording(frames=np.ones((2, 192)), times=[0.0, 1.0], protocol=de.protocol.opposite(16))
@@ -1090,6 +1137,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         ("dataset", "contact_impedance", -0.01, "contact_impedance holds values that are not positive"),
         ("dataset", "readout/gains", 0.0, "readout/gains holds values that are not nonzero"),
         ("dataset", "noise", -1.0, "noise holds values that are not non-negative"),
+        ("dataset", "reference", np.nan, "reference holds values that are not finite"),
         ("dataset", "reading_sign", 0.5, "reading_sign holds values other than"),
         ("dataset", "values/label_frame", np.nan, "values/label_frame holds values that are not finite"),
         ("dataset", "size_map/limits", np.nan, "size_map/limits holds values that are not finite"),
