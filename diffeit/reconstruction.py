@@ -101,7 +101,7 @@ from .inverse import (
 from .io import Recording
 from .mesh import Mesh
 from .results import RESULTS, failed, names, throw_if_failed
-from .touch import _one_step_noise, subspace_statistic
+from .touch import _one_step_noise, reading_projection, subspace_statistic
 
 Method = Literal["one_step", "gauss_newton", "total_variation", "greit"]
 Difference = Literal["auto", "calibrated", "normalised"]
@@ -151,9 +151,11 @@ def reconstruct(
     against the calibration's reference: then the frames within its noise, or that reference,
     `calibrated_reference_frames`). Their spread, from 6 frames or more, is kept in the
     provenance as "reading_noise", the noise `diffeit.touches` tests frames against without a
-    calibration; with it, or with a calibration's noise, one-step images keep each element's
-    noise as "image_noise" (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the
-    hills. Without either, how far each frame stands out of its own noise is kept as
+    calibration, with the calibrated model's projection of raw differences onto where a touch
+    puts them ("touch_projection", `diffeit.touch.reading_projection`); with it, or with a
+    calibration's noise, one-step images keep each element's noise as "image_noise"
+    (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the hills. Without either,
+    how far each frame stands out of its own noise is kept as
     "touch_statistic" (`diffeit.touch.subspace_statistic`, at the calibrated model), on which
     `diffeit.touches` tells touched frames. Where the frames drift beyond the reference's
     jitter, every frame is divided by its common gain against the reference
@@ -319,8 +321,10 @@ def reconstruct(
     damaged = _glitched(dv, signed_reference, recording.frames, reference)
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
-    # Without it, how far each frame stands out of its own noise, for `diffeit.touches`.
+    # Without it, how far each frame stands out of its own noise, for `diffeit.touches`; with it
+    # and no calibration given, where this model puts a touch, for `diffeit.touches`' voltage test.
     statistic = None if noise is not None else subspace_statistic(frames - signed_reference, calibration)
+    projection = None if given or noise is None else reading_projection(calibration, noise)
     difference, difference_reason = _difference(difference, calibration, given)
     unsafe: list[int] = []
     if difference == "normalised":
@@ -370,6 +374,7 @@ def reconstruct(
         "reading_noise": None if spread is None else spread.tolist(),
         "image_noise": None if element_noise is None else element_noise.tolist(),
         "touch_statistic": None if statistic is None else statistic.tolist(),
+        "touch_projection": None if projection is None else projection.tolist(),
         "frame_gains": None if frame_gains is None else frame_gains.tolist(),
         "calibrated": bool(calibrate) or given,
         "calibration": calibration.summary(),

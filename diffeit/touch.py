@@ -22,10 +22,13 @@ ringing and noise, so a skin's touches vote for their own sign.
    differences lie in that subspace, the noise spreads over all M readings: on the calibration
    benchmark's skins (192 magnitudes, k about 45) the sum over every reading missed 7 of 60
    presses on one skin, the subspace none, its untouched frames staying under z = 2.8. Without
-   a calibration, the sum over every reading runs on the raw readings (no model says where a
-   touch puts them) when the images' recording says their noise:
-   `diffeit.reconstruct` keeps the spread of its reference frames in the provenance
-   ("reading_noise") when the reference is the mean of 6 or more of the recording's frames. With
+   a calibration, the same test runs on the raw readings when the images' recording says their
+   noise and where a touch puts them: `diffeit.reconstruct`, imaging at the model it calibrated
+   to the reference of 6 or more of the recording's frames, keeps their spread
+   ("reading_noise") and that model's projection of raw differences onto the whitened subspace
+   ("touch_projection", `reading_projection`) in the provenance (on the same skins, the sum
+   over every raw reading had missed 2, 3 and 11 of 60 presses on three of five; a recording
+   without the projection is tested that way). With
    a calibration that knows no noise (fewer than 6 reference frames), the differences inside the
    subspace a conductivity change reaches are compared with those outside it, where only noise
    is (`touched`): the ratio of their mean squares is about 1 for an untouched frame, and a
@@ -787,7 +790,18 @@ def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None
                 f"reading; got shape {spread.shape}"
             )
         reference = np.asarray(recording.reference, np.float64)
-        return _VoltageTest(frames, reference, spread, metadata["noise_frames"], metadata["reference_frames"], None)
+        counts = metadata["noise_frames"], metadata["reference_frames"]
+        projection = metadata.get("touch_projection")
+        if projection is None:  # a recording imaged before it was kept: every raw reading
+            return _VoltageTest(frames, reference, spread, *counts, None)
+        projection = np.asarray(projection, np.float64)
+        if projection.ndim != 2 or projection.shape[0] != frames.shape[1] or not np.all(np.isfinite(projection)):
+            raise ValueError(
+                f"the recording's touch_projection (provenance) must be ({frames.shape[1]}, k) finite values, a row "
+                f"per reading; got shape {projection.shape}"
+            )
+        # `reading_projection` whitens in the model's units: the raw differences enter as they are.
+        return _VoltageTest(frames, reference, np.ones(frames.shape[1]), *counts, projection)
     averaged = metadata.get("reference_frames") or calibration.noise_frames  # the reference's own frames, where known
     return _VoltageTest(
         calibration.signed(np.atleast_2d(recording.frames)),
@@ -1045,6 +1059,21 @@ def _whitened(dv: ArrayLike, noise: np.ndarray, subspace: np.ndarray | None) -> 
     kept = noise > 0
     whitened = np.atleast_2d(dv)[:, kept] / noise[kept]
     return whitened if subspace is None else whitened @ subspace
+
+
+def reading_projection(calibration: Any, noise: np.ndarray) -> np.ndarray:
+    """(M, k) the voltage test's projection of a frame's differences as recorded (M readings,
+    raw) onto `touch_subspace`: row m is reading m's factor into the calibrated model's units
+    (its sign and gain, `calibration.signed`) over its `noise` s_m (M_used,, those units) times
+    the subspace's row, zero for a reading not used or whose noise is zero. `diffeit.reconstruct`
+    keeps it where no calibration is given, so that `touches` tests the raw differences as the
+    calibrated ones (`_voltage_test`)."""
+    kept = noise > 0
+    basis = _leading_subspace(_calibrated_jacobian(calibration)[kept] / noise[kept, None])
+    factor = calibration.signed(np.ones(calibration.protocol.n_measurements))  # sign / gain per reading used
+    projection = np.zeros((calibration.protocol.n_measurements, basis.shape[1]))
+    projection[np.flatnonzero(calibration.used)[kept]] = (factor[kept] / noise[kept])[:, None] * basis
+    return projection
 
 
 def _calibrated_jacobian(calibration: Any) -> np.ndarray:
