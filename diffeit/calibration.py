@@ -1505,7 +1505,7 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
             session[quiet],
             (
                 f"the {int(quiet.sum())} frames of the first ones within the noise of the calibration's reference "
-                f"({source} look touched against it)"
+                f"(the recording's own, {source}, look touched against it)"
             ),
             int(quiet.sum()),
         )
@@ -1514,8 +1514,8 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
     return (
         stored[None],
         (
-            f"the calibration's reference ({source} look touched against it, differ from each other, and no frame lies "
-            "within its noise)"
+            f"the calibration's reference (the recording's own, {source}, look touched against it and differ from "
+            "each other, and no frame lies within its noise)"
         ),
         count,
     )
