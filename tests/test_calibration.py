@@ -780,6 +780,27 @@ def test_a_recording_that_starts_pressed_is_imaged_against_the_calibrations_refe
     assert metadata["reference"].startswith("mean of the first"), metadata["reference"]
 
 
+def test_a_faint_press_among_a_recordings_first_frames_is_left_out_of_its_reference(
+    mixing_skin, calibrated, monkeypatch
+):
+    """A faint press the first frames' own test lets pass (on a benchmark skin, 3 of the first
+    26 frames stood 7.6 to 21 out of the calibration's noise) is left out of the reference, the
+    others kept; with fewer than `REFERENCE_FRAMES` others, the frames within the calibration's
+    noise are taken instead."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
+    own = np.concatenate([recording.frames[: UNTOUCHED - 1], recording.frames[pressed[12]][None]])
+    monkeypatch.setattr(calibration_module, "reference_frames", lambda recording: (own, "the own frames"))
+    frames, source, count = calibration_module.calibrated_reference_frames(recording, calibrated)
+    np.testing.assert_array_equal(frames, recording.frames[: UNTOUCHED - 1])
+    assert count == UNTOUCHED - 1
+    assert source == "the own frames, but 1 that look touched against the calibration's reference"
+    monkeypatch.setattr(calibration_module, "reference_frames", lambda recording: (own[-4:], "the own frames"))
+    frames, source, count = calibration_module.calibrated_reference_frames(recording, calibrated)
+    assert source.startswith(f"the {count} frames of the first ones within the noise") and count >= UNTOUCHED
+    assert not any((frames == recording.frames[p]).all(axis=1).any() for p in pressed), "a pressed frame kept"
+
+
 def test_images_take_the_calibrations_hyperparameter_only_with_a_position_map(mixing_skin, calibrated):
     """The map was fitted on images made at the calibration's hyperparameter; without one (the
     presses' cross-validation chose none) the recording's own frames choose it, as uncalibrated."""
