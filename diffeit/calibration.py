@@ -2931,10 +2931,13 @@ def _label_frame(
     if mesh.nodes.shape[1] != 2:
         return None
     unmoved = _ElectrodeResponse.of_calibration(calibration, None)
+    changes = _fitted_changes(calibration, recording, presses, reference)
 
     def misfit(frame: np.ndarray) -> float:
         try:
-            return _fit_presses(calibration, recording, presses, frame, reference, prior, polarity, unmoved)[1]
+            return _fit_presses(
+                calibration, recording, presses, frame, reference, prior, polarity, unmoved, changes=changes
+            )[1]
         except _ContradictsReference:
             return math.inf
 
@@ -3053,6 +3056,7 @@ def _fit_presses(
     free: _PressGroups | None = None,
     train: np.ndarray | None = None,
     refit_contacts: bool = False,
+    changes: np.ndarray | None = None,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
     "Presses"), and the relative misfit of the presses' differences, the labelled `presses` in
@@ -3083,7 +3087,8 @@ def _fit_presses(
     (docs/tutorials/calibration.md). The fitted mixing changes the reference's readings: the
     level (and unit) is fitted again to them, and with `refit_contacts` (the fit to be kept,
     not the frame search's nor the held-out folds') the contact impedances' common factor with
-    it (`_contact_factor`)."""
+    it (`_contact_factor`). `changes` are the presses' differences (`_fitted_changes`), given by
+    a caller that fits the same presses many times (the frame's search, the held-out folds)."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
@@ -3107,14 +3112,7 @@ def _fit_presses(
     drive = protocol.drive_index
     weights = np.asarray(protocol.measure)
     signed_reference = first.signed(np.atleast_2d(reference).mean(axis=0)) / gains
-    differences = _press_changes(
-        first.signed(recording.frames) / gains,
-        signed_reference,
-        presses,
-        recording.times,
-        calibration.noise,
-        calibration.noise_frames,
-    )
+    differences = _fitted_changes(calibration, recording, presses, reference) if changes is None else changes
     keep = np.ones(presses.n_presses, bool) if train is None else np.asarray(train, bool)
     differences = differences[keep]
     magnitude = recording.readings == "magnitude"
@@ -3820,6 +3818,22 @@ def _rests(
     return rests
 
 
+def _fitted_changes(
+    calibration: SkinCalibration, recording: Recording, presses: Presses, reference: np.ndarray
+) -> np.ndarray:
+    """(K, M_used) the presses' differences `_fit_presses` fits: `_press_changes` of the
+    recording's frames in the first stage's signs, divided by the calibration's gains."""
+    first, gains = calibration.first_stage, np.asarray(calibration.readout.gains)
+    return _press_changes(
+        first.signed(recording.frames) / gains,
+        first.signed(np.atleast_2d(reference).mean(axis=0)) / gains,
+        presses,
+        recording.times,
+        calibration.noise,
+        calibration.noise_frames,
+    )
+
+
 def _press_changes(
     signed: np.ndarray,
     at_rest: np.ndarray,
@@ -4064,11 +4078,22 @@ def _held_out_errors(
         return None
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
     errors = np.full(presses.n_presses, np.nan)
+    changes = _fitted_changes(calibration, recording, presses, reference)
     for k in range(_HELD_OUT_FOLDS):
         test = np.flatnonzero(fold == k)
         try:
             fitted, _ = _fit_presses(
-                calibration, recording, presses, frame, reference, prior, polarity, response, free, fold != k
+                calibration,
+                recording,
+                presses,
+                frame,
+                reference,
+                prior,
+                polarity,
+                response,
+                free,
+                fold != k,
+                changes=changes,
             )
         except _ContradictsReference:
             continue  # the fold's presses stay NaN: not read, the largest errors
