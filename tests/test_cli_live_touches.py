@@ -74,6 +74,21 @@ def test_live_prints_the_touches_at_the_calibrations_model(skin, tmp_path, capsy
             assert "touch 1" not in lines[frame], lines[frame]  # one press, one touch: above the ringing alone
 
 
+def test_live_says_a_reference_frame_that_looks_touched_against_the_calibrations(skin, tmp_path, capsys):
+    """A stream begun with a finger on the skin: its reference frame stands out of the
+    calibration's reference, and live says so; begun untouched, it says nothing."""
+    path, board, pressed, mesh = skin
+    untouched = np.ones(mesh.n_elements)
+    options = ("--frames", "4", "--calibration", str(path), "--touches", "--png", str(tmp_path / "live.png"))
+    for first, said in ((pressed(PLACES[0]), True), (untouched, False)):
+        emulator = hw.Emulator(board([first, *[untouched] * 3], 5), frame_rate=100.0).start()
+        status = _live(emulator.port, *options)
+        emulator.stop()
+        assert status == 0
+        error = capsys.readouterr().err
+        assert ("reference frame(s) [0] look touched against the calibration's reference" in error) is said, error
+
+
 def test_live_does_not_read_a_frame_the_board_garbled(skin, tmp_path, capsys):
     """A frame of zeros in the middle of a press (a board's glitch), and one whose readings the
     stream moved one place along: said damaged and not read, as `diffeit.touches` does; the

@@ -185,6 +185,28 @@ def _undamaged(reference: np.ndarray) -> np.ndarray:
     return reference[~damaged]
 
 
+def _touched_reference_said(reference: np.ndarray, skin: SkinCalibration | None) -> None:
+    """Say on stderr which of the reference frames (T, M) look touched against the calibration's
+    reference (`diffeit.touch.touched`, in its noise): a finger on the skin as the stream began,
+    or a skin that changed since its calibration. Every frame is imaged against them all the
+    same: a single frame cannot tell the two apart (`diffeit.reconstruct` of a recording can,
+    `diffeit.calibration.calibrated_reference_frames`)."""
+    if skin is None or skin.reference is None or skin.noise is None:
+        return
+    from .._messages import name_indices
+    from ..touch import touched
+
+    pressed = touched(reference, skin.reference, skin)
+    if pressed is not None and pressed.any():
+        print(
+            f"diffeit live: reference frame(s) {name_indices(np.flatnonzero(pressed))} look touched against the "
+            "calibration's reference (a finger on the skin, or a skin changed since its calibration): touches are "
+            "read against them; start again untouched if they were",
+            file=sys.stderr,
+            flush=True,
+        )
+
+
 def _frame_protocol(source: hw.SerialSource, frame: hw.Frame) -> Protocol:
     """The protocol of the frames: the declared one, else the layout the first frame names."""
     import hw
@@ -285,11 +307,13 @@ def _live(arguments: argparse.Namespace) -> int:
                 reference_frames.append(frame.values)
                 continue
             if viewer is None:
+                reference = _undamaged(np.array(reference_frames))
+                _touched_reference_said(reference, skin)
                 viewer = _LiveViewer(
                     protocol,
                     settings,
                     arguments.png,
-                    _undamaged(np.array(reference_frames)),
+                    reference,
                     fit,
                     dead_band=arguments.dead_band,
                     colour_limit=arguments.colour_limit,
