@@ -2477,7 +2477,7 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
     if outside.any():
         raise ValueError(
             f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
-            f"radius ({size:.3g} m) from its centre"
+            f"radius ({size:.3g} m) from its centre (centres are in metres, about the mesh's centre)"
         )
 
 

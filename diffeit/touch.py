@@ -1070,8 +1070,9 @@ def reading_projection(calibration: Any, noise: np.ndarray) -> np.ndarray:
     calibrated ones (`_voltage_test`)."""
     kept = noise > 0
     basis = _leading_subspace(_calibrated_jacobian(calibration)[kept] / noise[kept, None])
-    factor = calibration.signed(np.ones(calibration.protocol.n_measurements))  # sign / gain per reading used
-    projection = np.zeros((calibration.protocol.n_measurements, basis.shape[1]))
+    readings = len(calibration.used)  # the recording's, used or not
+    factor = calibration.signed(np.ones(readings))  # sign / gain per reading used
+    projection = np.zeros((readings, basis.shape[1]))
     projection[np.flatnonzero(calibration.used)[kept]] = (factor[kept] / noise[kept])[:, None] * basis
     return projection
 

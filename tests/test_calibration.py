@@ -175,6 +175,9 @@ def test_without_a_calibration_the_raw_differences_are_tested_where_the_referenc
     missed = [int(np.sum(read.count[pressed] == 0)) for read in (found, every_reading)]
     assert missed[0] <= 7 and missed[1] >= 2 * missed[0], missed
     assert np.all(found.count[untouched] == 0) and np.all(every_reading.count[untouched] == 0)
+    # The nominal model (calibrate=False: the first stage alone, no gains) keeps its projection too.
+    uncalibrated = de.reconstruct(noisy.recording, calibrate=False, progress=False).provenance["metadata"]
+    assert np.shape(uncalibrated["touch_projection"])[0] == noisy.recording.n_measurements
     damaged = {**metadata, "touch_projection": projection[:5].tolist()}
     with pytest.raises(ValueError, match="touch_projection"):
         de.touches(dataclasses.replace(images, provenance={"metadata": damaged}))
