@@ -1007,6 +1007,11 @@ def touch_subspace(calibration: Any) -> np.ndarray:
     noise = getattr(calibration, "noise", None)
     if noise is None:
         raise ValueError("the calibration knows no readings' noise (fewer than 6 reference frames): no subspace")
+    return _whitened_subspace(calibration, noise)
+
+
+def _whitened_subspace(calibration: Any, noise: np.ndarray) -> np.ndarray:
+    """`touch_subspace` for the readings' `noise` (M_used,, in the units of `calibration.signed`)."""
     kept = noise > 0
     return _leading_subspace(_calibrated_jacobian(calibration)[kept] / noise[kept, None])
 
@@ -1069,7 +1074,7 @@ def reading_projection(calibration: Any, noise: np.ndarray) -> np.ndarray:
     keeps it where no calibration is given, so that `touches` tests the raw differences as the
     calibrated ones (`_voltage_test`)."""
     kept = noise > 0
-    basis = _leading_subspace(_calibrated_jacobian(calibration)[kept] / noise[kept, None])
+    basis = _whitened_subspace(calibration, noise)
     readings = len(calibration.used)  # the recording's, used or not
     factor = calibration.signed(np.ones(readings))  # sign / gain per reading used
     projection = np.zeros((readings, basis.shape[1]))
