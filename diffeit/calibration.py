@@ -4337,7 +4337,9 @@ SCHEMA = "diffeit.calibration"
 # a reader of version 4 would fail on, and a curved skin's position maps (coefficients (n_terms, 3)),
 # which it would apply without taking the touches back onto the surface; version 6: the size map
 # (size_map), without which a reader of version 5 would read touches' radii and depths other than
-# the calibration's. Versions 1 to 5 read (their -1 without presses stays -1).
+# the calibration's. Versions 1 to 5 read (their -1 without presses stays -1). The reference
+# (reference) came within version 6, optional: a reader without it images every recording
+# against the recording's own first frames, as a calibration without it does.
 SCHEMA_VERSION = 6
 
 
