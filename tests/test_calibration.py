@@ -109,9 +109,8 @@ def test_without_a_calibration_the_leading_untouched_frames_give_the_reference_a
     """`de.reconstruct` with no calibration takes its reference from the recording's first frames
     up to the first touched one, and keeps their spread: `de.touches` tests the frames against it
     (on the raw readings, projected where the model it calibrated puts a touch), so every press
-    is read and no touch between them. With the
-    spread and the image's noise dropped, the image threshold alone reads touches on untouched
-    frames."""
+    is read and no touch between them. With the spread and the image's noise dropped, the image
+    threshold alone reads touches on untouched frames."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
     images = de.reconstruct(recording, progress=False)
     metadata = images.provenance["metadata"]
@@ -749,7 +748,9 @@ def test_a_recording_that_starts_pressed_is_imaged_against_the_calibrations_refe
     test_presses = presses.select(np.arange(20, 30))
     pressed = np.array([frames[0] for frames in test_presses.frames(recording.times)])
 
-    def read(frames: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, str]:
+    def read(frames: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, dict]:
+        """The distances, m, of the test presses read in `frames[rows]` from where they were, and
+        the images' provenance metadata; every press one touch, no touch elsewhere."""
         cut = de.io.Recording(
             frames=frames[rows],
             times=recording.times[rows],
