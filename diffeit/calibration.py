@@ -2340,12 +2340,12 @@ def _presses_unseen(
     def seen(shifts: np.ndarray) -> np.ndarray:
         """(S, K) which presses show a touch with every press's time moved by each of `shifts`
         (S,), s: each test once over all of them (the subspace statistic's Jacobian is one)."""
-        chosen = [frames for shift in shifts for frames in presses.frames(times - shift)]
-        changes = np.array([signed[frames].mean(axis=0) for frames in chosen]) - at_rest
+        held = np.concatenate([_held_frames(presses, times - shift) for shift in shifts], axis=1)  # (T, S K)
+        changes = _held_means(signed, held) - at_rest
         statistic = subspace_statistic(changes, calibration)
-        touched = np.full(len(chosen), noise is None) if statistic is None else statistic > SIGNIFICANCE
+        touched = np.full(held.shape[1], noise is None) if statistic is None else statistic > SIGNIFICANCE
         if noise is not None:
-            variance = np.array([1.0 / len(frames) + 1.0 / count for frames in chosen])[:, None]
+            variance = (1.0 / held.sum(axis=0) + 1.0 / count)[:, None]
             for within in (None, subspace):
                 touched |= _statistic(changes, noise, count, variance, within) > SIGNIFICANCE
         return touched.reshape(len(shifts), presses.n_presses)
@@ -3766,6 +3766,12 @@ def _held_frames(presses: Presses, times: np.ndarray) -> np.ndarray:
     return np.stack([np.isin(np.arange(len(times)), chosen) for chosen in presses.frames(times)], 1)
 
 
+def _held_means(values: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(K, M) the mean of the rows of `values` (T, M) that each column of `frames` (T, K, bool)
+    marks; zero for a column that marks none."""
+    return (frames.T @ values) / np.maximum(frames.sum(axis=0), 1)[:, None]
+
+
 def _before(held: np.ndarray) -> np.ndarray:
     """(T, K) the frames just before each press (`held` (T, K)): of the run of frames no press
     holds up to its first held frame, the last `_HELD_FRAMES` at most (none for a press that
@@ -3852,12 +3858,12 @@ def _press_changes(
     not explain it, and the presses' fit had bent the readout's mixing and the contact
     impedances to it. Without the noise, the reference."""
     held = _held_frames(presses, times)
-    changes = (held.T @ signed) / held.sum(axis=0)[:, None] - at_rest
+    changes = _held_means(signed, held) - at_rest
     if noise is None:
         return changes
     before = _rests(signed, at_rest, held, noise, noise_frames)
     count = before.sum(axis=0)
-    rests = (before.T @ signed) / np.maximum(count, 1)[:, None] - at_rest
+    rests = _held_means(signed, before) - at_rest
     variance = (1.0 / np.maximum(count, 1) + 1.0 / noise_frames)[:, None]
     moved = (count > 0) & (_statistic(rests, noise, noise_frames, variance) > _REST_MOVED)
     return changes - np.where(moved[:, None], rests, 0.0)
@@ -3883,7 +3889,7 @@ def _depths_and_bends(
     at_rest = np.asarray(model.measure(sigma))
     linear = np.asarray(model.jacobian(sigma, wrt="log_conductivity")) @ patterns.T  # (M, K)
     norms = np.maximum(np.sum(linear**2, axis=0), np.finfo(float).tiny)
-    change = (held.T @ dv) / held.sum(axis=0)[:, None] - (before.T @ dv) / np.maximum(before.sum(axis=0), 1)[:, None]
+    change = _held_means(dv, held) - _held_means(dv, before)
     amplitude = np.sum(linear * change.T, axis=0) / norms
     # A press too faint to read keeps a small depth of the presses' sign: its column stays a time course.
     sign = np.sign(np.median(amplitude)) or -1.0
