@@ -1614,7 +1614,11 @@ def _levenberg_marquardt(
         free = np.column_stack([np.repeat(significant[:, None], 3, axis=1), np.ones(len(theta), bool)]).ravel()
         block, pull = curvature[np.ix_(free, free)], gradient[free]
         diagonal = np.maximum(np.diag(block), 1e-12 * np.max(np.diag(block)))
-        variance = 1.0 if noise_known else max(cost / max(len(dv) - theta.size, 1), 1e-300)
+        # chi^2's unit: the noise's variance, or the residual's per degree of freedom where that
+        # is larger (the model's own error, which `_covariance` scales the errors by too: a
+        # step far below it moves the discs far less than their errors; on a noise-free frame
+        # weighed by rounding's spread the steps had run until the damping gave out).
+        variance = max(cost / max(len(dv) - theta.size, 1), 1.0 if noise_known else 1e-300)
         # Converged when even the Gauss-Newton step would lower chi^2 by less than the tolerance.
         newton = np.linalg.lstsq(block, pull, rcond=None)[0]
         if (newton @ pull) / variance < _FIT_TOLERANCE:

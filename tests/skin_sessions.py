@@ -4,16 +4,20 @@
 
 `skin_session(seed, board, ...)` builds one; `gains_board` and `mixing_board` are the boards
 (`Readout`s) the tests read their skins with. `calibrated_session(tmp_path_factory)` is one
-session written to files and calibrated by `diffeit calibrate`, made once per test process and
-shared by the CLI tests (pytest-xdist runs two processes: each makes its own)."""
+session written to files and calibrated by `diffeit calibrate`, made once per run and shared by
+the CLI tests (`once_per_run`: pytest-xdist's processes share it)."""
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import fcntl
 import functools
+import os
+import pickle
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import jax.numpy as jnp
 import numpy as np
@@ -178,23 +182,50 @@ class CalibratedSession:
     calibration: Path
 
 
+Value = TypeVar("Value")
+
+
+def once_per_run(tmp_path_factory, name: str, compute: Callable[[Path], Value]) -> Value:
+    """`compute(folder)`, computed once per run: by the first of pytest-xdist's processes to ask,
+    and read back (pickled) by the others; `folder`, new and empty, is where it may write files,
+    shared by them. The suite's slowest fixtures (calibrations of 15 s) were computed in both
+    processes. A process waiting on the other one's computation waits for it rather than
+    computing it again. The value must pickle."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:  # one process: its own temporary folder
+        return _computed(tmp_path_factory.getbasetemp(), name, compute)
+    root = tmp_path_factory.getbasetemp().parent  # the run's folder, above each process's own
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        return _computed(root, name, compute)
+
+
+@functools.cache
+def _computed(root: Path, name: str, compute: Callable[[Path], Value]) -> Value:
+    stored = root / f"{name}.pickle"
+    if stored.exists():
+        return pickle.loads(stored.read_bytes())
+    folder = root / name
+    folder.mkdir()
+    value = compute(folder)
+    partial = stored.with_suffix(".partial")
+    partial.write_bytes(pickle.dumps(value))
+    partial.replace(stored)
+    return value
+
+
 def calibrated_session(tmp_path_factory) -> CalibratedSession:
     """The session of a board with drive and channel gains up to 25% (`gains_board`), contact
     impedances spread 3x, 0.1% noise: 10 untouched frames, then 30 presses at known places, one
     after another (`skin_session(4, gains_board, untouched_between=False)`), written to a session
     file and a presses CSV and calibrated by `diffeit calibrate SESSION.h5 --presses PRESSES.csv
-    -o SKIN.cal.h5`. Made once per test process (pytest's `tmp_path_factory` is one per session):
-    a calibration takes about 15 s, and the CLI tests (tests/test_cli_calibrate.py,
-    tests/test_cli_live_touches.py) share this one."""
-    return _calibrated_session(tmp_path_factory.getbasetemp())
+    -o SKIN.cal.h5`. Made once per run (`once_per_run`): a calibration takes about 15 s, and the
+    CLI tests (tests/test_cli_calibrate.py, tests/test_cli_live_touches.py) share this one."""
+    return once_per_run(tmp_path_factory, "calibrated_session", _calibrated_session)
 
 
-@functools.cache
-def _calibrated_session(basetemp: Path) -> CalibratedSession:
+def _calibrated_session(folder: Path) -> CalibratedSession:
     skin = skin_session(4, gains_board, untouched_between=False)
     recording, centres, times = skin.recording, skin.presses.centres, skin.recording.times
-    folder = basetemp / "calibrated_session"
-    folder.mkdir()
     path = de.io.write_frames(folder / "session.h5", recording)
     presses = folder / "presses.csv"
     with open(presses, "w", newline="") as file:
