@@ -960,6 +960,34 @@ def test_presses_one_after_another_and_a_skin_back_at_its_reference_keep_the_ref
     assert np.all(found.count[pressed] >= 1) and np.sum(found.count) == np.sum(found.count[pressed])
 
 
+def test_the_presses_groups_standard_errors_are_raised_to_their_spread_over_the_held_out_folds(calibrated):
+    """The held-out folds' fits spread as the delete-a-group jackknife says the fit varies: a
+    group's standard errors are raised by the ratio (pooled over its parameters) where it is
+    larger, and never lowered; without every fold, or for a group the folds did not fit, they
+    stay."""
+    errors = calibrated.standard_errors
+    positions = np.asarray(errors["electrode_positions"])
+    assert np.all(np.isfinite(positions) & (positions > 0))
+    # Five folds whose positions deviate by +-d: the jackknife variance is 4/5 * 4 d^2 (one fold at 0).
+    signs = np.array([1.0, -1.0, 1.0, -1.0, 0.0])[:, None]
+
+    def folds(factor: float) -> list[dict[str, np.ndarray]]:
+        deviation = factor * positions / np.sqrt(4 / 5 * 4)  # jackknife variance = factor^2 error^2
+        return [
+            {**calibrated.values, "electrode_positions": calibrated.values["electrode_positions"] + s * deviation}
+            for s in signs
+        ]
+
+    raised = calibration_module._with_fold_spread(calibrated, folds(3.0))
+    np.testing.assert_allclose(raised.standard_errors["electrode_positions"], 3.0 * positions)
+    np.testing.assert_array_equal(raised.standard_errors["mixing"], errors["mixing"])  # the folds agree on it
+    kept = calibration_module._with_fold_spread(calibrated, folds(0.5))
+    np.testing.assert_array_equal(kept.standard_errors["electrode_positions"], positions)
+    for fewer in (folds(3.0)[:4], [{"mixing": f["mixing"]} for f in folds(3.0)]):
+        same = calibration_module._with_fold_spread(calibrated, fewer)
+        np.testing.assert_array_equal(same.standard_errors["electrode_positions"], positions)
+
+
 def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_presses_better(mixing_skin, calibrated):
     """The presses' fit is judged on presses held out of it, five folds, against the reference's
     calibration with a position map held out in the same folds: it goes, with a warning giving
