@@ -186,11 +186,10 @@ Value = TypeVar("Value")
 
 
 def once_per_run(tmp_path_factory, name: str, compute: Callable[[Path], Value]) -> Value:
-    """`compute(folder)`, computed once per run: by the first of pytest-xdist's processes to ask,
-    and read back (pickled) by the others; `folder`, new and empty, is where it may write files,
-    shared by them. The suite's slowest fixtures (calibrations of 15 s) were computed in both
-    processes. A process waiting on the other one's computation waits for it rather than
-    computing it again. The value must pickle."""
+    """`compute(folder)`, once per test run: the first of pytest-xdist's processes to ask computes
+    it, under a lock, and the others wait for it and read it back (pickled: the value must
+    pickle). `folder`, shared by the processes, is where `compute` may write files. The suite's
+    slowest fixtures (calibrations of about 15 s) had been computed in each process."""
     if os.environ.get("PYTEST_XDIST_WORKER") is None:  # one process: its own temporary folder
         return _computed(tmp_path_factory.getbasetemp(), name, compute)
     root = tmp_path_factory.getbasetemp().parent  # the run's folder, above each process's own
@@ -205,7 +204,7 @@ def _computed(root: Path, name: str, compute: Callable[[Path], Value]) -> Value:
     if stored.exists():
         return pickle.loads(stored.read_bytes())
     folder = root / name
-    folder.mkdir()
+    folder.mkdir(exist_ok=True)  # a computation that raised before may have left it
     value = compute(folder)
     partial = stored.with_suffix(".partial")
     partial.write_bytes(pickle.dumps(value))
