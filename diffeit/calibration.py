@@ -2240,11 +2240,17 @@ def calibrate(
             calibration = _with_background_map(calibration, recording, presses, reference)
         calibration = _with_size_map(calibration, recording, presses, reference)
         return _far_from_labels_noted(_with_every_press(calibration, left_out, notes))
-    frame = _label_frame(calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0])
+    # The presses' differences, the same for the frame's search, every set's fit and its folds.
+    changes = _fitted_changes(calibration, recording, presses, reference)
+    frame = _label_frame(
+        calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0], changes
+    )
     # Without held-out presses (the memory's fit needs the frame) nothing could choose: the first set.
     choices = PRESS_GROUP_CHOICES if presses.n_presses >= _LEAST_HELD_OUT else PRESS_GROUP_CHOICES[:1]
     fits = [
-        _press_fit(calibration, recording, presses, reference, priors, polarity, frame, groups, hyperparameter, chosen)
+        _press_fit(
+            calibration, recording, presses, reference, priors, polarity, frame, groups, hyperparameter, chosen, changes
+        )
         for groups in ([press_groups] if press_groups is not None else choices)
     ]
     made = [fit for fit in fits if fit.calibration is not None]
@@ -2920,10 +2926,12 @@ def _label_frame(
     prior: float,
     polarity: int,
     read_positions: np.ndarray,
+    changes: np.ndarray,
 ) -> np.ndarray | None:
     """The labels' frame (ln scale, angle, offset, handedness; `_moved`; module docstring,
-    "Presses") in which the readout's mixing fitted to the presses explains their differences
-    best; None on a curved skin, whose labels are in the mesh's frame.
+    "Presses") in which the readout's mixing fitted to the presses (their differences
+    `changes`, `_fitted_changes`) explains them best; None on a curved skin, whose labels are
+    in the mesh's frame.
 
     The frame starts from the best of the mesh's own and the similarities, turning and
     mirrored, that map the labels onto the positions read, and its scale, angle and offset are
@@ -2933,7 +2941,6 @@ def _label_frame(
     if mesh.nodes.shape[1] != 2:
         return None
     unmoved = _ElectrodeResponse.of_calibration(calibration, None)
-    changes = _fitted_changes(calibration, recording, presses, reference)
 
     def misfit(frame: np.ndarray) -> float:
         try:
@@ -2982,8 +2989,10 @@ def _press_fit(
     groups: tuple[str, ...],
     hyperparameter: float | None,
     chosen: float,
+    changes: np.ndarray,
 ) -> _PressFit:
-    """The presses' fit of `groups` in the labels' `frame` (`_fit_presses`), its presses read at
+    """The presses' fit of `groups` in the labels' `frame` (`_fit_presses`, their differences
+    `changes`), its presses read at
     it (at `hyperparameter`, or None: one chosen again from them) and a position map fitted, and
     its held-out errors (`_held_out_errors`); a refused fit carries `chosen`, the hyperparameter
     the reference's calibration read the presses at."""
@@ -2992,7 +3001,18 @@ def _press_fit(
     response = _ElectrodeResponse.of_calibration(calibration, None if free.positions is None else free.positions[1])
     try:
         fitted, _ = _fit_presses(
-            calibration, recording, presses, frame, reference, priors["mixing"], polarity, response, free, None, True
+            calibration,
+            recording,
+            presses,
+            frame,
+            reference,
+            priors["mixing"],
+            polarity,
+            response,
+            free,
+            None,
+            True,
+            changes=changes,
         )
     except _ContradictsReference:
         return _PressFit(None, None, chosen, groups, _CONTRADICTS)
@@ -3007,7 +3027,7 @@ def _press_fit(
     fitted = _with_position_map(fitted, presses, found, further, chosen, polarity)
     prior = priors["mixing"]
     held_out, folds = _held_out_errors(
-        calibration, recording, presses, reference, prior, frame, free, chosen, polarity, response
+        calibration, recording, presses, reference, prior, frame, free, chosen, polarity, response, changes
     )
     return _PressFit(_with_fold_spread(fitted, folds), held_out, chosen, groups)
 
@@ -3092,7 +3112,8 @@ def _fit_presses(
     free: _PressGroups | None = None,
     train: np.ndarray | None = None,
     refit_contacts: bool = False,
-    changes: np.ndarray | None = None,
+    *,
+    changes: np.ndarray,
 ) -> tuple[SkinCalibration, float]:
     """`calibration` with the readout's mixing fitted to the presses (module docstring,
     "Presses"), and the relative misfit of the presses' differences, the labelled `presses` in
@@ -3123,8 +3144,9 @@ def _fit_presses(
     (docs/tutorials/calibration.md). The fitted mixing changes the reference's readings: the
     level (and unit) is fitted again to them, and with `refit_contacts` (the fit to be kept,
     not the frame search's nor the held-out folds') the contact impedances' common factor with
-    it (`_contact_factor`). `changes` are the presses' differences (`_fitted_changes`), given by
-    a caller that fits the same presses many times (the frame's search, the held-out folds)."""
+    it (`_contact_factor`). `changes` are the presses' differences (`_fitted_changes`), computed
+    once by `calibrate` for all its fits of the same presses (the frame's search, each set of
+    groups and its held-out folds)."""
     first = calibration.first_stage
     protocol = first.model.protocol
     gains = np.asarray(calibration.readout.gains)
@@ -3148,9 +3170,8 @@ def _fit_presses(
     drive = protocol.drive_index
     weights = np.asarray(protocol.measure)
     signed_reference = first.signed(np.atleast_2d(reference).mean(axis=0)) / gains
-    differences = _fitted_changes(calibration, recording, presses, reference) if changes is None else changes
     keep = np.ones(presses.n_presses, bool) if train is None else np.asarray(train, bool)
-    differences = differences[keep]
+    differences = changes[keep]
     magnitude = recording.readings == "magnitude"
     if magnitude:
         differences = differences * first.reading_sign[first.used]  # back to |V| differences
@@ -4110,19 +4131,20 @@ def _held_out_errors(
     hyperparameter: float,
     polarity: int,
     response: _ElectrodeResponse,
+    changes: np.ndarray,
 ) -> tuple[np.ndarray | None, list[dict[str, np.ndarray]]]:
     """(K,) each press's distance, m, from where it is read when the presses' fit (mixing, and
     what `free` names) and the position map are made without it: the presses
     in `_HELD_OUT_FOLDS` folds (every fifth), each fold read at the calibration fitted to the
-    others, in the labels' frame `frame` found from all of them (`response`: as `_fit_presses`).
-    NaN for a press no touch was read at; None with fewer than `_LEAST_HELD_OUT` presses. And
-    the `values` of each fold's fit (for `_with_fold_spread`)."""
+    others, in the labels' frame `frame` found from all of them (`response` and the presses'
+    differences `changes`: as `_fit_presses`). NaN for a press no touch was read at; None with
+    fewer than `_LEAST_HELD_OUT` presses. And the `values` of each fold's fit (for
+    `_with_fold_spread`)."""
     if presses.n_presses < _LEAST_HELD_OUT:
         return None, []
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
     errors = np.full(presses.n_presses, np.nan)
     folds = []
-    changes = _fitted_changes(calibration, recording, presses, reference)
     for k in range(_HELD_OUT_FOLDS):
         test = np.flatnonzero(fold == k)
         try:
