@@ -39,13 +39,15 @@ def mixing_skin():
 
 @pytest.fixture(scope="module")
 def calibrated(mixing_skin, tmp_path_factory):
-    """The default calibration from 20 of the presses: the mixing and the electrode positions
-    fitted to them (their held-out presses read closer than the mixing's alone). Computed once
-    per run (15 s)."""
+    """The calibration from 20 of the presses with the mixing and the electrode positions fitted
+    to them, named: the default chooses between that set and the mixing alone by their held-out
+    presses, and on this skin, whose electrodes are the mesh's, the two read them alike
+    (measured: 18.3 and 18.2 mm). Computed once per run (15 s)."""
+    groups = ("mixing", "electrode_positions")
     return once_per_run(
         tmp_path_factory,
         "mixing_skin_calibrated",
-        lambda _: de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(20))),
+        lambda _: de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(20)), press_groups=groups),
     )
 
 
@@ -677,7 +679,7 @@ def test_presses_determine_the_readouts_mixing(calibrated):
     np.testing.assert_allclose(mixing[0], 0.2, atol=0.05)
     np.testing.assert_allclose(mixing[2 + 8], 0.1, atol=0.05)
     others = np.delete(mixing, [0, 2 + 8])
-    assert np.max(np.abs(others)) < 0.15, others  # measured 0.108 (at the electrode two on): the linearisation
+    assert np.max(np.abs(others)) < 0.15, others  # measured 0.069: the linearisation
     assert np.all(errors[[0, 1, 10]] > 0) and np.all(errors[[0, 1, 10]] < 0.05)
     assert calibrated.fitted["presses"] == ("mixing", "electrode_positions", "press depths")
     # The fitted centres on the boundary (a disc of radius 1 m): turned from the mesh's by their shifts.
@@ -691,9 +693,11 @@ def test_presses_determine_the_readouts_mixing(calibrated):
     assert np.max(np.abs(shift)) > 0.01
     np.testing.assert_allclose(turn, shift, rtol=0.02, atol=1e-3)
     # The skin's electrodes are the mesh's: the presses' positions lie within 3 standard errors of
-    # zero (measured: at most 2.0), the errors well under the prior's 39 mm (measured 4-7 mm).
+    # zero (measured: at most 1.7), the errors well under the prior's 39 mm (measured 11-15 mm:
+    # the labels' frame is fitted with them, and a shift of the labels and a first harmonic of
+    # the electrodes' shifts explain the presses nearly alike).
     shift, error = calibrated.values["electrode_positions"], calibrated.standard_errors["electrode_positions"]
-    assert np.all(np.abs(shift) < 3 * error) and np.all(error < 0.015), (shift, error)
+    assert np.all(np.abs(shift) < 3 * error) and np.all(error < 0.02), (shift, error)
 
 
 def test_calibrated_touches_are_read_where_the_held_out_presses_were(mixing_skin, calibrated):
@@ -995,10 +999,10 @@ def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_
     test, p < 0.05). On this skin the fit of every weight alone and the reference's are near
     (12 presses closer with the reference's, 8 farther, p = 0.25): kept, and it reads 10
     presses neither saw 14.4 mm off against 22.1 (measured; the rule before, against the
-    reference's leave-one-out median, 19.4 against 20.7 mm, had refused it). By default the
-    mixing with the electrode positions is fitted too, and kept (`calibrated`): its press
-    errors are the held-out ones, near those of 10 presses it was not given at all (measured
-    19.4 mm against 21.1 mm)."""
+    reference's leave-one-out median, 19.4 against 20.7 mm, had refused it). With the
+    electrode positions named too (`calibrated`) the fit is kept: its press errors are the
+    held-out ones, near those of 10 presses it was not given at all (measured 23.3 mm against
+    19.7 mm)."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
     mixing = de.calibrate(recording, presses.select(np.arange(20)), press_groups=("mixing",))
     assert mixing.fitted["presses"] == ("mixing", "press depths")
