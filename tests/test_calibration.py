@@ -40,9 +40,9 @@ def mixing_skin():
 @pytest.fixture(scope="module")
 def calibrated(mixing_skin, tmp_path_factory):
     """The calibration from 20 of the presses with the mixing and the electrode positions fitted
-    to them, named: the default chooses between that set and the mixing alone by their held-out
-    presses, and on this skin, whose electrodes are the mesh's, the two read them alike
-    (measured: 18.3 and 18.2 mm). Computed once per run (15 s)."""
+    to them, named: the default keeps that set unless the mixing alone reads the held-out
+    presses significantly closer, and on this skin, whose electrodes are the mesh's, the two
+    read them alike (measured: 18.3 and 18.2 mm). Computed once per run (15 s)."""
     groups = ("mixing", "electrode_positions")
     return once_per_run(
         tmp_path_factory,
@@ -1033,6 +1033,37 @@ def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_
     )
     unseen = np.linalg.norm(calibrated.position_map(found.position[:, 0]) - presses.centres[20:30], axis=1)
     assert np.nanmedian(calibrated.press_errors) == pytest.approx(np.nanmedian(unseen), rel=0.3)
+
+
+def test_the_default_keeps_the_positions_unless_the_mixing_alone_reads_held_out_presses_significantly_closer():
+    """Of the default sets, the fuller (last) is kept unless a smaller one reads significantly
+    more of the held-out presses closer (one-sided sign test, p < 0.05; a press not read counts
+    as the farthest): a lower median alone does not choose."""
+    fit = calibration_module._PressFit
+    held_out = np.linspace(0.010, 0.030, 20)
+    positions = fit(None, held_out, 0.1, ("mixing", "electrode_positions"))
+
+    def mixing(errors):
+        return fit(None, errors, 0.2, ("mixing",))
+
+    chose = calibration_module._fullest_unless_beaten
+    # 11 of 20 closer, 9 farther, the median lower: p = 0.41, the positions stay.
+    nearer = held_out + np.where(np.arange(20) % 2 == 0, -0.004, 0.001)
+    nearer[1] -= 0.002
+    assert np.median(nearer) < np.median(held_out)
+    assert chose([mixing(nearer), positions]) is positions
+    # 15 closer, 5 farther (p = 0.021): the mixing alone.
+    closer = held_out + np.where(np.arange(20) < 15, -0.002, 0.001)
+    beaten = chose([mixing(closer), positions])
+    assert beaten.groups == ("mixing",)
+    # A press the positions did not read is the mixing's: 15 closer, the other 5 alike.
+    unread = held_out.copy()
+    unread[:15] = np.nan
+    assert chose([mixing(held_out), fit(None, unread, 0.1, positions.groups)]).groups == ("mixing",)
+    # One set only, or too few presses to hold out: that one.
+    assert chose([positions]) is positions
+    too_few = fit(None, None, 0.1, positions.groups)
+    assert chose([mixing(closer), too_few]) is too_few
 
 
 def test_with_too_few_presses_to_hold_out_the_references_calibration_is_kept(mixing_skin):
