@@ -726,7 +726,9 @@ def _contact_factor(model, protocol, data, used, background, z0) -> float:
     sigma = jnp.asarray(per_element(background, model.n_elements))
 
     def misfits(factors: np.ndarray) -> np.ndarray:
-        voltages = np.asarray(_contact_scaled_readings(uniform, sigma, jnp.asarray(factors)))[:, used]
+        contact = jnp.asarray(z0)[None] * jnp.asarray(factors)[:, None]
+        voltages = np.asarray(_batched_readings(uniform, jnp.broadcast_to(sigma, (len(factors), len(sigma))), contact))
+        voltages = voltages[:, used]
         scales = np.maximum(np.sum(voltages * data[used], axis=1) / np.sum(voltages**2, axis=1), 0.0)
         return np.linalg.norm(data[used] - scales[:, None] * voltages, axis=1)
 
@@ -742,11 +744,12 @@ def _contact_factor(model, protocol, data, used, background, z0) -> float:
 
 
 @eqx.filter_jit
-def _contact_scaled_readings(model: ForwardModel, sigma: jax.Array, factors: jax.Array) -> jax.Array:
-    """(F, M) `model`'s readings at `sigma` with its contact impedances times each of `factors`
-    (F,). Compiled once per model's shape and F: unjitted, each call traced the batched model
-    again (0.1 s a call, 2.7 s of a first 20-press calibration's 22)."""
-    return jax.vmap(lambda factor: model.measure(sigma, model.contact_impedance * factor))(factors)
+def _batched_readings(model: ForwardModel, conductivities: jax.Array, contact_impedances: jax.Array) -> jax.Array:
+    """(K, M) `model`'s readings at each of K conductivities (K, E), S/sq, with each of K contact
+    impedances (K, L), ohm m. Compiled once per model's shape and K: an unjitted `jax.vmap`
+    traced the batched model again on every call (0.1 s a call; 2.7 s of a first 20-press
+    calibration's 22, in the contact factor's search)."""
+    return jax.vmap(model.measure)(conductivities, contact_impedances)
 
 
 def _electrode_contact_impedances(
@@ -3055,10 +3058,11 @@ def _with_fold_spread(calibration: SkinCalibration, folds: list[dict[str, np.nda
     their spread is the delete-a-group jackknife's variance, (g - 1) / g sum_i (theta_i -
     mean)^2, which counts a press as the independent unit. Its ratio to the Gauss-Newton
     variance is pooled over the group's parameters (g - 1 = 4 degrees of freedom each: one
-    parameter's is too noisy to use alone). On the calibration benchmark (the 11 fits of its
-    five skins, 25 to 100 presses, that kept the electrode positions) the positions' errors
-    stood 1.1 to 3.1 standard errors off (RMS; 1.6 to 4.5 before): what is left is a bias the
-    same on every press, which no resampling of the presses sees (docs/tutorials/calibration.md)."""
+    parameter's is too noisy to use alone). On the calibration benchmark, the labels' frame
+    then held while the positions were fitted, the positions' errors stood 1.1 to 3.1 standard
+    errors off (RMS; 1.6 to 4.5 before); the rest was the frame's bias, the same on every
+    press, which no resampling of the presses sees. With the frame refined with them, 0.71 to
+    1.24 (docs/tutorials/calibration.md)."""
     if len(folds) < _HELD_OUT_FOLDS:
         return calibration
     errors = dict(calibration.standard_errors)
@@ -3940,13 +3944,6 @@ def _press_changes(
     return changes - np.where(moved[:, None], rests, 0.0)
 
 
-@eqx.filter_jit
-def _changed_readings(model: ForwardModel, sigma: jax.Array, changes: jax.Array) -> jax.Array:
-    """(K, M) `model`'s readings at `sigma` (E,) changed by each relative change of `changes`
-    (K, E): sigma (1 + change). Compiled once per model's shape and K (`_contact_scaled_readings`)."""
-    return jax.vmap(lambda change: model.measure(sigma * (1 + change)))(changes)
-
-
 def _depths_and_bends(
     model: ForwardModel,
     background: float | np.ndarray,
@@ -3974,7 +3971,9 @@ def _depths_and_bends(
     amplitude = np.where(np.abs(amplitude) < _FAINTEST, sign * _FAINTEST, amplitude)
     depths, bends = np.maximum(amplitude, -_DEEPEST), np.zeros_like(amplitude)
     for _ in range(2):
-        readings = np.asarray(_changed_readings(model, sigma, jnp.asarray(depths[:, None] * patterns))) - at_rest
+        pressed = sigma * (1 + jnp.asarray(depths[:, None] * patterns))
+        contact = jnp.broadcast_to(model.contact_impedance, (len(depths), *model.contact_impedance.shape))
+        readings = np.asarray(_batched_readings(model, pressed, contact)) - at_rest  # (K, M)
         ratio = np.sum(linear.T * readings, axis=1) / (depths * norms)
         bends = (1 / np.clip(ratio, _BEND_RATIO, 1 / _BEND_RATIO) - 1) / depths
         depths = np.maximum(amplitude / np.maximum(1 - bends * amplitude, _BEND_RATIO), -_DEEPEST)
