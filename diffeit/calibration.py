@@ -101,11 +101,13 @@ labelled instant, and a frame a board garbled are then no rest.
 - **Polarity**: whether a press lowers the conductivity (-1) or raises it, from the sign of
   the presses' images.
 - **The labels' frame** (scale, rotation, offset against the mesh's, and whether it is
-  mirrored), the one whose discs explain the presses' differences best: Nelder-Mead on the
-  presses' misfit (a mixing fit at each step) from the best of the mesh's own frame and the
-  similarities, turning and mirrored, that map the labels onto the positions read
-  (`_label_frame`), then refined with the electrode positions (and the background map) when
-  the presses fit them (below). A mirrored frame is a skin whose electrodes are numbered
+  mirrored), the one whose discs explain the presses' differences best: it starts from the
+  best (a mixing fit each) of the mesh's own frame and the similarities, turning and mirrored,
+  that map the labels onto the positions read (`_label_frame`), and every presses' fit refines
+  its scale, angle and offset with its other groups, by Gauss-Newton (below). Before, a
+  Nelder-Mead search on the misfit of 80 mixing fits came first: 60% of a calibration of 8
+  presses, and the calibration benchmark's skins read their test presses alike without it
+  (docs/tutorials/calibration.md). A mirrored frame is a skin whose electrodes are numbered
   clockwise in the labels' axes (an indenter's or an image's y axis pointing the other way).
   On a curved skin the labels are points on its surface in the mesh's frame, and no frame is
   fitted.
@@ -191,7 +193,9 @@ labelled instant, and a frame a board garbled are then no rest.
 
 A sheet whose conductivity varies (thickness, filler, a seam) images touches where its
 sensitivity is not the uniform model's. The calibration can fit a smooth map of ln sigma to
-the mean reference at the calibrated model, its readout, gains and contacts held: the level
+the mean reference at the calibrated model, its readout and gains held and its contact
+impedances fitted with it (held, they had taken up the sheet's gradient at the uniform sheet:
+57x apart on a test skin whose truth is 3x, 3.6x fitted with the map): the level
 times exp of the monomials of degree 1 and 2 in the elements' centroids (five coefficients on a
 flat sheet, nine on a curved one, each less its area-weighted mean, prior standard deviation
 0.3), by the refinement's Levenberg-Marquardt, with standard errors (a map none of whose terms
@@ -234,7 +238,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.ndimage
-import scipy.optimize
 import scipy.stats
 from numpy.typing import ArrayLike
 
@@ -839,8 +842,6 @@ _LABELLED_MARGIN = 2.5
 # linear part, and no press lowers the conductivity by more than `_DEEPEST` of itself
 # (`_depths_and_bends`).
 _FAINTEST, _BEND_RATIO, _DEEPEST = 1e-3, 0.2, 0.9
-# The most misfits evaluated in the search for the labels' frame.
-_FRAME_EVALUATIONS = 80
 # The central differences of the frame's refinement: this fraction of its `_frame_steps`.
 _FRAME_DELTA = 0.2
 # The labels' frame: ln scale, angle (rad), offset x and y (m), handedness (+1, or -1: mirrored).
@@ -2252,7 +2253,7 @@ def calibrate(
             calibration = _with_background_map(calibration, recording, presses, reference)
         calibration = _with_size_map(calibration, recording, presses, reference)
         return _far_from_labels_noted(_with_every_press(calibration, left_out, notes))
-    # The presses' differences, the same for the frame's search, every set's fit and its folds.
+    # The presses' differences, the same for the frame's start, every set's fit and its folds.
     changes = _fitted_changes(calibration, recording, presses, reference)
     frame = _label_frame(
         calibration, recording, presses, reference, priors["mixing"], polarity, found.position[:, 0], changes
@@ -2941,14 +2942,12 @@ def _label_frame(
     changes: np.ndarray,
 ) -> np.ndarray | None:
     """The labels' frame (ln scale, angle, offset, handedness; `_moved`; module docstring,
-    "Presses") in which the readout's mixing fitted to the presses (their differences
-    `changes`, `_fitted_changes`) explains them best; None on a curved skin, whose labels are
-    in the mesh's frame.
-
-    The frame starts from the best of the mesh's own and the similarities, turning and
-    mirrored, that map the labels onto the positions read, and its scale, angle and offset are
-    refined by Nelder-Mead on the presses' misfit, a mixing fit (`_fit_presses`, the
-    reference's model) at each step, its handedness held."""
+    "Presses") the presses' fits start from: of the mesh's own and the similarities, turning
+    and mirrored, that map the labels onto the positions read, the one in which the readout's
+    mixing fitted to the presses (their differences `changes`, `_fitted_changes`; the
+    reference's model) explains them best; None on a curved skin, whose labels are in the
+    mesh's frame. Each fit refines its scale, angle and offset with its other groups
+    (`_PressGroups`), its handedness held."""
     mesh = calibration.model.mesh
     if mesh.nodes.shape[1] != 2:
         return None
@@ -2963,19 +2962,7 @@ def _label_frame(
             return math.inf
 
     starts = [_IDENTITY_FRAME, *(_frame_from_reads(read_positions, presses, mirror) for mirror in (False, True))]
-    misfits = [misfit(start) for start in starts]
-    frame = starts[int(np.argmin(misfits))]
-    if math.isfinite(min(misfits)):  # else no fit to refine: the last one says so
-        handedness = frame[4]
-        simplex = np.vstack([frame[:4], frame[:4] + np.diag(_frame_steps(mesh))])
-        best = scipy.optimize.minimize(
-            lambda turned: misfit(np.append(turned, handedness)),
-            frame[:4],
-            method="Nelder-Mead",
-            options={"initial_simplex": simplex, "maxfev": _FRAME_EVALUATIONS},
-        )
-        frame = np.append(best.x, handedness) if best.fun < min(misfits) else frame
-    return frame
+    return starts[int(np.argmin([misfit(start) for start in starts]))]
 
 
 class _PressFit(NamedTuple):
@@ -3084,7 +3071,8 @@ class _PressGroups(NamedTuple):
     positions' (prior standard deviation and margin, m), the gains per reading's (prior
     standard deviation of a gain's relative change), the background map's (prior standard
     deviation of each coefficient of ln sigma); None for a group not fitted; and whether the
-    labels' frame is refined with them (prior `_frame_steps` about the frame searched)."""
+    labels' frame is refined with them (prior `_frame_steps` about the start `_label_frame`
+    chose)."""
 
     positions: tuple[float, float] | None = None
     gains: float | None = None
@@ -3093,8 +3081,9 @@ class _PressGroups(NamedTuple):
 
     @classmethod
     def of(cls, model: ForwardModel, priors: Mapping[str, float], groups: tuple[str, ...]) -> _PressGroups:
-        """The groups' priors; on a flat sheet the labels' frame is refined with the positions.
-        The two are nearly one: a shift of the electrodes along the boundary by a first
+        """The groups' priors; on a flat sheet the labels' frame is refined with them (with the
+        mixing alone too: it was a Nelder-Mead search of mixing fits before). With the
+        positions the two are nearly one: a shift of the electrodes along the boundary by a first
         harmonic of their angle, and a shift of the labels, explain the presses alike (a
         conformal map of the disc onto itself moves both so, to first order). Held at the
         frame its search found with the electrodes unmoved, the positions took up that
@@ -3106,7 +3095,7 @@ class _PressGroups(NamedTuple):
             _position_prior(model, priors["electrode_positions"]) if "electrode_positions" in groups else None,
             priors["reading_gains"] if "reading_gains" in groups else None,
             _SHEET_PRIOR if "background_map" in groups else None,
-            flat and "electrode_positions" in groups,
+            flat,
         )
 
 
@@ -3156,14 +3145,14 @@ def _fit_presses(
     reading also gets a gain of its own, fitted with the weights and depths
     (`_mixing_depths_and_gains`) and multiplied into the readout's gains. With `free.frame`,
     the labels' frame (its scale, angle and offset; prior `_frame_steps` about `frame`) steps
-    with the positions (and the map), its derivative by central differences of the presses'
-    footprints (`_FRAME_DELTA` of those steps): searched before them on a mixing fit alone, at
-    the reference's electrodes and uniform sheet, it settled degrees off
-    (docs/tutorials/calibration.md). The fitted mixing changes the reference's readings: the
+    with the weights and depths (and the positions and the map), its derivative by central
+    differences of the presses' footprints (`_FRAME_DELTA` of those steps): searched before
+    them on a mixing fit alone, at the reference's electrodes and uniform sheet, it settled
+    degrees off (docs/tutorials/calibration.md). The fitted mixing changes the reference's readings: the
     level (and unit) is fitted again to them, and with `refit_contacts` (the fit to be kept,
-    not the frame search's nor the held-out folds') the contact impedances' common factor with
+    not the frame's start's nor the held-out folds') the contact impedances' common factor with
     it (`_contact_factor`). `changes` are the presses' differences (`_fitted_changes`), computed
-    once by `calibrate` for all its fits of the same presses (the frame's search, each set of
+    once by `calibrate` for all its fits of the same presses (the frame's start, each set of
     groups and its held-out folds)."""
     first = calibration.first_stage
     protocol = first.model.protocol
@@ -3249,13 +3238,16 @@ def _fit_presses(
         # weights held, the steps traded one for the other and stopped degrees off (measured on
         # the calibration benchmark's skins; docs/tutorials/calibration.md).
         scaled = differences / np.exp(log_gain)
-        ends = np.asarray(every.electrode_shift)
+        ends = np.zeros((protocol.n_electrodes, 2)) if positions is None else np.asarray(every.electrode_shift)
         values = np.concatenate([ends.mean(axis=1), coefficients, turn])[moving]
         mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
-        along = _press_readings_jacobian(
-            every, jnp.asarray(sigma), jnp.asarray(fractions), jnp.asarray(terms), full_weights, mixed, drive_onehot
-        )
-        along = np.asarray(along)[keep]
+        if positions is not None or len(coefficients):
+            along = _press_readings_jacobian(
+                every, jnp.asarray(sigma), jnp.asarray(fractions), jnp.asarray(terms), full_weights, mixed, drive_onehot
+            )
+            along = np.asarray(along)[keep]
+        else:  # the frame alone moves
+            along = np.zeros((*differences.shape, protocol.n_electrodes))
         if len(steps):
             along = np.concatenate([along, along_frame(response, turn, mixing)], axis=2)
         along = along[..., moving]
@@ -3608,7 +3600,7 @@ def _every_electrode(protocol: Protocol) -> Protocol:
 class _ElectrodeResponse:
     """A model reading every electrode's potential (`_every_electrode`), the conductivity
     `sigma` (E,), S/sq, and there the electrode potentials (drives, L), V, and their Jacobian
-    (drives * L, E), the fast adjoint path. Every press fit of the frame search, and of the
+    (drives * L, E), the fast adjoint path. Every press fit of the frame's starts, and of the
     held-out folds, starts from one calibration's model: they share one response."""
 
     every: ForwardModel
@@ -4300,30 +4292,31 @@ def _closer(ours: np.ndarray, theirs: np.ndarray) -> tuple[int, int, float]:
 
 def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> SkinCalibration:
     """`calibration` with its level and a smooth map of ln sigma fitted to the mean `reference`
-    (module docstring, "Background map"), the readout, gains and contact impedances held; the
+    (module docstring, "Background map") with each contact impedance (ln z, the reference's
+    prior about the calibration's), the readout and gains held; the
     calibration itself, with a note, when the data determine none of the map's terms."""
     data = calibration.signed(np.atleast_2d(reference).mean(axis=0))
     fit = _SheetFit.of(calibration.model, calibration.conductivity, calibration.contact_impedance)
-    n = fit.terms.shape[1]
-    spread = np.r_[1.0, np.full(n, _SHEET_PRIOR)]
-    fixed = np.zeros(n + 1, bool)
+    n, electrodes = fit.terms.shape[1], len(fit.contact_impedance)
+    spread = np.r_[1.0, np.full(electrodes, PRIORS["contact_impedance"]), np.full(n, _SHEET_PRIOR)]
+    fixed = np.zeros(len(spread), bool)
     scale = max(calibration.misfit, 1e-4) * _rms(data)
-    theta = np.zeros(n + 1)
+    theta = np.zeros(len(spread))
     for _ in range(_REFINE_ROUNDS):
         theta, curvature = _levenberg_marquardt(fit, theta, data, scale, spread, fixed)
         residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
-        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - n - 1, 1))), 1e-9 * _rms(data))
-    errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
-    if np.all(errors[1:] > _UNDETERMINED * _SHEET_PRIOR):
+        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - len(theta), 1))), 1e-9 * _rms(data))
+    errors = np.sqrt(np.diag(np.linalg.inv(curvature)))[1 + electrodes :]
+    if np.all(errors > _UNDETERMINED * _SHEET_PRIOR):
         note = "no background map: the reference determines none of its terms"
         return _with_warnings(calibration, note)
     # c V(sigma, z) = V(sigma / c, c z): the fitted factor moves the level and the contacts.
     factor = math.exp(theta[0])
     level = calibration.conductivity / factor
-    contact = np.asarray(calibration.contact_impedance) * factor
-    sheet = level * np.exp(np.asarray(fit.terms) @ theta[1:])
+    contact = np.asarray(calibration.contact_impedance) * np.exp(theta[1 : 1 + electrodes]) * factor
+    sheet = level * np.exp(np.asarray(fit.terms) @ theta[1 + electrodes :])
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
-    undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors[1:] > _UNDETERMINED * _SHEET_PRIOR))
+    undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors > _UNDETERMINED * _SHEET_PRIOR))
     return eqx.tree_at(
         lambda c: (
             c.model,
@@ -4343,8 +4336,8 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
             float(level),
             sheet,
             contact,
-            {**calibration.values, "background": theta[1:]},
-            {**calibration.standard_errors, "background": errors[1:]},
+            {**calibration.values, "background": theta[1 + electrodes :]},
+            {**calibration.standard_errors, "background": errors},
             (*calibration.undetermined, *undetermined),
             {**calibration.fitted, "reference": (*calibration.fitted["reference"], "background_map")},
             _relative(data - fitted, data),
@@ -4355,9 +4348,9 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
 
 
 class _SheetFit(eqx.Module):
-    """The calibrated model's readings of a smooth sheet: theta = (ln c, the coefficients of
-    ln sigma's terms), the readings c V(sigma_h exp(terms @ coefficients)) (as `_ReadoutFit`,
-    for `_levenberg_marquardt`)."""
+    """The calibrated model's readings of a smooth sheet: theta = (ln c, ln f (L,), the
+    coefficients of ln sigma's terms), the readings c V(sigma_h exp(terms @ coefficients), z f)
+    (as `_ReadoutFit`, for `_levenberg_marquardt`)."""
 
     model: ForwardModel
     conductivity: jax.Array
@@ -4384,8 +4377,10 @@ class _SheetFit(eqx.Module):
 
 @eqx.filter_jit
 def _sheet_readings(fit: _SheetFit, theta: jax.Array) -> jax.Array:
-    sigma = fit.conductivity * jnp.exp(fit.terms @ theta[1:])
-    return jnp.exp(theta[0]) * fit.model.measure(sigma, fit.contact_impedance)
+    electrodes = len(fit.contact_impedance)
+    sigma = fit.conductivity * jnp.exp(fit.terms @ theta[1 + electrodes :])
+    contact = fit.contact_impedance * jnp.exp(theta[1 : 1 + electrodes])
+    return jnp.exp(theta[0]) * fit.model.measure(sigma, contact)
 
 
 @eqx.filter_jit

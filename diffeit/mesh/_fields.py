@@ -297,15 +297,20 @@ def disc_fractions(mesh: Mesh, centres: ArrayLike, radius: ArrayLike, level: int
     if np.any(~(radii > 0)):
         raise ValueError(f"radius must be positive; got {radius}")
     samples = element_sample_points(mesh, level)
-    centroids = mesh.element_centroids
-    reach = np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - centroids[:, None], axis=2))
-    near = _centroid_tree(mesh).query_ball_point(centres, radii + reach)
+    near = _centroid_tree(mesh).query_ball_point(centres, radii + _largest_reach(mesh))
     disc = np.repeat(np.arange(len(centres)), [len(n) for n in near])
     element = np.concatenate([np.zeros(0, int), *(np.asarray(n, dtype=int) for n in near)])
-    inside = np.linalg.norm(samples[element] - centres[disc][:, None], axis=2) < radii[disc][:, None]
+    offsets = samples[element] - centres[disc][:, None]
+    inside = np.einsum("psx,psx->ps", offsets, offsets) < radii[disc][:, None] ** 2
     fraction = inside.mean(axis=1)
     kept = fraction > 0
     return scipy.sparse.csc_array((fraction[kept], (element[kept], disc[kept])), shape=(mesh.n_elements, len(centres)))
+
+
+@functools.lru_cache(maxsize=16)
+def _largest_reach(mesh: Mesh) -> float:
+    """The largest distance, m, from a triangle's centroid to one of its corners."""
+    return float(np.max(np.linalg.norm(mesh.nodes[mesh.triangles] - mesh.element_centroids[:, None], axis=2)))
 
 
 @functools.lru_cache(maxsize=16)
