@@ -1965,3 +1965,17 @@ def test_the_refinements_closed_form_jacobian_equals_forward_differentiation(mag
     forward[:, index] = np.asarray(calibration_module._readings_jacobian(fit, theta, jnp.asarray(index)))
     np.testing.assert_allclose(closed, forward, rtol=0, atol=1e-12 * np.max(np.abs(forward)))
     assert np.all(closed[:, ~free] == 0) and np.count_nonzero(closed[:, 1:17]) > 0
+
+
+def test_the_background_maps_adjoint_jacobian_equals_forward_differentiation():
+    """The background map's fit (level, each contact impedance, the map's coefficients) takes
+    its Jacobian from the adjoint path: equal to `jax.jacfwd` of its readings at a random
+    point, every column alive."""
+    rng = np.random.default_rng(1)
+    model = de.ForwardModel(de.mesh.disc(16, h=0.2), PROTOCOL, 0.02)
+    fit = calibration_module._SheetFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)))
+    theta = jnp.asarray(rng.normal(0, 0.1, 1 + 16 + fit.terms.shape[1]))
+    adjoint = np.asarray(calibration_module._sheet_jacobian(fit, theta))
+    forward = np.asarray(jax.jacfwd(lambda parameters: calibration_module._sheet_readings(fit, parameters))(theta))
+    np.testing.assert_allclose(adjoint, forward, rtol=0, atol=1e-12 * np.max(np.abs(forward)))
+    assert np.all(np.any(adjoint != 0, axis=0))
