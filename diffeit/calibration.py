@@ -3637,7 +3637,8 @@ def _press_readings_jacobian(
     drive_onehot: jax.Array,
 ) -> jax.Array:
     """(K, M, L + n) the derivative of each press's linearised readings at unit depth,
-    sum_l W_ml dU_k[drive of m, l], in a move of each electrode (both its ends), m, and in the
+    sum_l W_ml dU_k[drive of m, l], in a move of each electrode (both its ends), m (zero for a
+    model whose electrodes cannot move: the map fitted without the positions), and in the
     n coefficients c of the sheet's conductivity sigma exp(`terms` @ c), `terms` (E, n): W the
     reading weights `weights` (1 + p, M, L) combined by `mixing` (1 + p,), `drive_onehot` (M,
     drives) each reading's drive, `every` the model reading every electrode
@@ -3649,15 +3650,19 @@ def _press_readings_jacobian(
     slower under `jax.jacfwd`)."""
     combined = jnp.einsum("p,pml->ml", mixing, weights)
     spread = (drive_onehot[:, :, None] * combined[:, None, :]).reshape(len(combined), -1)  # (M, drives * L)
-    n_electrodes = len(every.electrode_shift)
+    n_electrodes = every.protocol.n_electrodes
 
-    def readings(parameters: jax.Array) -> jax.Array:
-        move = parameters[:n_electrodes, None]
-        moved = eqx.tree_at(lambda m: m.electrode_shift, every, every.electrode_shift + move)
-        conductivity = sigma * jnp.exp(terms @ parameters[n_electrodes:])
+    def readings(move: jax.Array | None, coefficients: jax.Array) -> jax.Array:
+        moved = every if move is None else eqx.tree_at(lambda m: m.electrode_shift, every, every.electrode_shift + move)
+        conductivity = sigma * jnp.exp(terms @ coefficients)
         return (fractions * conductivity) @ (spread @ moved.jacobian(conductivity)).T
 
-    return jax.jacfwd(readings)(jnp.zeros(n_electrodes + terms.shape[1]))
+    coefficients = jnp.zeros(terms.shape[1])
+    if every.electrode_shift is None:  # electrodes that cannot move: their columns are zero
+        along = jax.jacfwd(lambda c: readings(None, c))(coefficients)
+        return jnp.concatenate([jnp.zeros((*along.shape[:2], n_electrodes), along.dtype), along], axis=2)
+    parameters = jnp.zeros(n_electrodes + terms.shape[1])
+    return jax.jacfwd(lambda p: readings(p[:n_electrodes, None], p[n_electrodes:]))(parameters)
 
 
 def _signs(
