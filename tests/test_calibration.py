@@ -1784,20 +1784,20 @@ def test_presses_fit_a_boards_gains_per_reading_on_request(tmp_path):
 
 
 def test_presses_place_displaced_electrodes_and_map_the_sheet_under_a_mixing_magnitude_board():
-    """A skin of radius 80 mm whose electrodes lie up to 5 degrees off and whose sheet is 30%
-    more conductive on one side (a smooth step across x = 0), read by a board that mixes in up
-    to 0.3 of the source's and the far electrode's potentials and reports magnitudes (no
-    noise: the model's own errors alone), 50 labelled presses: their fit of the mixing, the
-    positions, the background map and the labels' frame (searched first) places every
-    electrode within 1 degree, every weight within 0.02, and the map along the step (measured
-    0.41 degrees RMS, at most 0.69; 0.003; the map's ln sigma correlates 0.96 with the sheet's,
-    1.54x across it where a quadratic meets a 1.3x step). With the frame held where the search
-    left it, 0.88 and 1.37 degrees; fitted with a uniform sheet, the positions took up the
-    step: 1.39 and 3.07. On the calibration benchmark's skins, Gauss-Newton steps of the
-    positions alone, in turn with the weights', from no mixing and with the model's signs of
-    the readings (8 of 192 of them contradicted by the presses' differences), stopped 2
-    degrees RMS and 0.07 off. Discs fitted to the presses' frames through the calibrated model
-    read their strength (below)."""
+    """A skin of radius 80 mm whose electrodes lie up to 5 degrees off and whose sheet is 30% more
+    conductive on one side (a smooth step across x = 0), read by a board that mixes in up to 0.3 of
+    the source's and the far electrode's potentials and reports magnitudes (no noise: the model's
+    own errors alone), 50 labelled presses: their fit of the mixing, the positions, the background
+    map and the labels' frame places every electrode within 1 degree, every weight within 0.02, and
+    the map along the step (measured 0.44 degrees RMS, at most 0.75; 0.006; the map's ln sigma
+    correlates 0.96 with the sheet's, 1.52x across it where a quadratic meets a 1.3x step; with the
+    frame's Nelder-Mead search before it, 0.41, 0.69, 0.003 and 1.54x). With the frame held where
+    that search left it, 0.88 and 1.37 degrees; fitted with a uniform sheet, the positions took up
+    the step: 1.39 and 3.07. On the calibration benchmark's skins, Gauss-Newton steps of the
+    positions alone, in turn with the weights', from no mixing and with the model's signs of the
+    readings (8 of 192 of them contradicted by the presses' differences), stopped 2 degrees RMS and
+    0.07 off. Discs fitted to the presses' frames through the calibrated model read their strength
+    (below)."""
     from diffeit.readout import Readout
     from diffeit.scene import ReadoutMixing, Skin
 
