@@ -3655,7 +3655,9 @@ def _press_readings_jacobian(
     def readings(move: jax.Array | None, coefficients: jax.Array) -> jax.Array:
         moved = every if move is None else eqx.tree_at(lambda m: m.electrode_shift, every, every.electrode_shift + move)
         conductivity = sigma * jnp.exp(terms @ coefficients)
-        return (fractions * conductivity) @ (spread @ moved.jacobian(conductivity)).T
+        # The presses first: (K, E) @ (E, drives * L) then @ (drives * L, M) is a quarter of the
+        # work of weighing the (drives * L, E) Jacobian by `spread` first, in every tangent.
+        return ((fractions * conductivity) @ moved.jacobian(conductivity).T) @ spread.T
 
     coefficients = jnp.zeros(terms.shape[1])
     if every.electrode_shift is None:  # electrodes that cannot move: their columns are zero
