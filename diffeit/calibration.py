@@ -4313,7 +4313,8 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
         theta, curvature = _levenberg_marquardt(fit, theta, data, scale, spread, fixed)
         residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
         scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - len(theta), 1))), 1e-9 * _rms(data))
-    errors = np.sqrt(np.diag(np.linalg.inv(curvature)))[1 + electrodes :]
+    all_errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
+    errors = all_errors[1 + electrodes :]
     if np.all(errors > _UNDETERMINED * _SHEET_PRIOR):
         note = "no background map: the reference determines none of its terms"
         return _with_warnings(calibration, note)
@@ -4324,6 +4325,11 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
     sheet = level * np.exp(np.asarray(fit.terms) @ theta[1 + electrodes :])
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
     undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors > _UNDETERMINED * _SHEET_PRIOR))
+    # The contacts' ln z (from the first stage's) moved with the map, their errors the joint fit's.
+    contact_values, contact_errors = {}, {}
+    if "contact_impedance" in calibration.values:
+        contact_values["contact_impedance"] = calibration.values["contact_impedance"] + theta[1 : 1 + electrodes]
+        contact_errors["contact_impedance"] = all_errors[1 : 1 + electrodes]
     return eqx.tree_at(
         lambda c: (
             c.model,
@@ -4343,8 +4349,8 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
             float(level),
             sheet,
             contact,
-            {**calibration.values, "background": theta[1 + electrodes :]},
-            {**calibration.standard_errors, "background": errors},
+            {**calibration.values, **contact_values, "background": theta[1 + electrodes :]},
+            {**calibration.standard_errors, **contact_errors, "background": errors},
             (*calibration.undetermined, *undetermined),
             {**calibration.fitted, "reference": (*calibration.fitted["reference"], "background_map")},
             _relative(data - fitted, data),
@@ -4382,12 +4388,16 @@ class _SheetFit(eqx.Module):
         return np.asarray(_sheet_jacobian(self, theta))
 
 
-@eqx.filter_jit
-def _sheet_readings(fit: _SheetFit, theta: jax.Array) -> jax.Array:
+def _sheet_at(fit: _SheetFit, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """The sheet's conductivity (E,), S/sq, and the contact impedances (L,), ohm m, at `theta`."""
     electrodes = len(fit.contact_impedance)
     sigma = fit.conductivity * jnp.exp(fit.terms @ theta[1 + electrodes :])
-    contact = fit.contact_impedance * jnp.exp(theta[1 : 1 + electrodes])
-    return jnp.exp(theta[0]) * fit.model.measure(sigma, contact)
+    return sigma, fit.contact_impedance * jnp.exp(theta[1 : 1 + electrodes])
+
+
+@eqx.filter_jit
+def _sheet_readings(fit: _SheetFit, theta: jax.Array) -> jax.Array:
+    return jnp.exp(theta[0]) * fit.model.measure(*_sheet_at(fit, theta))
 
 
 @eqx.filter_jit
@@ -4395,9 +4405,7 @@ def _sheet_jacobian(fit: _SheetFit, theta: jax.Array) -> jax.Array:
     """(M, 1 + L + n) the derivative of `_sheet_readings` by the adjoint path: d/d ln c the
     readings, d/d ln f_l = dV/dz_l z_l, d/d coefficients = dV/d(ln sigma) @ terms (`jax.jacfwd`
     through the solves took three times as long with the contact impedances free)."""
-    electrodes = len(fit.contact_impedance)
-    sigma = fit.conductivity * jnp.exp(fit.terms @ theta[1 + electrodes :])
-    contact = fit.contact_impedance * jnp.exp(theta[1 : 1 + electrodes])
+    sigma, contact = _sheet_at(fit, theta)
     readings = fit.model.measure(sigma, contact)
     along_contact = fit.model.jacobian(sigma, contact, wrt="contact_impedance") * contact
     along_sheet = fit.model.jacobian(sigma, contact, wrt="log_conductivity") @ fit.terms
