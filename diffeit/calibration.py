@@ -4406,9 +4406,9 @@ def _sheet_jacobian(fit: _SheetFit, theta: jax.Array) -> jax.Array:
     readings, d/d ln f_l = dV/dz_l z_l, d/d coefficients = dV/d(ln sigma) @ terms (`jax.jacfwd`
     through the solves took three times as long with the contact impedances free)."""
     sigma, contact = _sheet_at(fit, theta)
-    readings = fit.model.measure(sigma, contact)
+    readings, along_sigma = fit.model.measure_and_jacobian(sigma, contact)  # one set of solves for both
     along_contact = fit.model.jacobian(sigma, contact, wrt="contact_impedance") * contact
-    along_sheet = fit.model.jacobian(sigma, contact, wrt="log_conductivity") @ fit.terms
+    along_sheet = (along_sigma * sigma) @ fit.terms
     return jnp.exp(theta[0]) * jnp.concatenate([readings[:, None], along_contact, along_sheet], axis=1)
 
 
