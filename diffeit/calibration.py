@@ -3146,9 +3146,9 @@ def _fit_presses(
     (`_mixing_depths_and_gains`) and multiplied into the readout's gains. With `free.frame`,
     the labels' frame (its scale, angle and offset; prior `_frame_steps` about `frame`) steps
     with the weights and depths (and the positions and the map), its derivative by central
-    differences of the presses' footprints (`_FRAME_DELTA` of those steps): searched before
-    them on a mixing fit alone, at the reference's electrodes and uniform sheet, it settled
-    degrees off (docs/tutorials/calibration.md). The fitted mixing changes the reference's readings: the
+    differences of the presses' footprints (`_FRAME_DELTA` of those steps): a search of mixing
+    fits alone, at the reference's electrodes and uniform sheet, settled degrees off
+    (docs/tutorials/calibration.md). The fitted mixing changes the reference's readings: the
     level (and unit) is fitted again to them, and with `refit_contacts` (the fit to be kept,
     not the frame's start's nor the held-out folds') the contact impedances' common factor with
     it (`_contact_factor`). `changes` are the presses' differences (`_fitted_changes`), computed
