@@ -40,11 +40,24 @@ def pytest_configure(config: pytest.Config) -> None:
 
 # Every compiled XLA program keeps its machine code in memory mappings of its own, and JAX keeps
 # every program it compiled. The whole suite compiles enough of them to pass Linux's limit of
-# 65,530 mappings a process (vm.max_map_count), and the next compilation then crashes inside
-# LLVM (a segmentation fault, first seen in test_float32 in clean clones). Past this many
-# mappings JAX's caches are emptied between tests (the programs of later tests compile again,
-# from the persistent cache where they can).
-_MAPPINGS_BEFORE_CLEARING = 30_000
+# mappings a process (vm.max_map_count, 65,530 by default), and the next compilation then
+# crashes inside LLVM (a segmentation fault, first seen in test_float32 in clean clones). Within
+# this many mappings of the limit JAX's caches are emptied between tests (the programs of later
+# tests trace and compile again, from the persistent cache where they can): a test added at
+# most 2,658 in a suite run, and every clearing costs the later tests their shared programs
+# (at 30,000 mappings, a fixed count before, the caches were emptied 2 to 3 times a worker).
+_MAPPINGS_LEFT = 15_000
+
+
+def _mapping_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as limit:
+            return int(limit.read())
+    except (OSError, ValueError):
+        return 65_530
+
+
+_MAPPINGS_BEFORE_CLEARING = _mapping_limit() - _MAPPINGS_LEFT
 
 
 @pytest.hookimpl(trylast=True)
