@@ -3206,16 +3206,15 @@ def _fit_presses(
     mixing = mixing if start.mixing is None else start.mixing
     full_weights = jnp.asarray(np.concatenate([weights[None], basis]))  # (1 + p, M, L)
     drive_onehot = jnp.asarray(np.eye(protocol.n_drives)[drive])  # (M, drives)
-    moving = np.concatenate(
-        [np.full(protocol.n_electrodes, positions is not None), np.ones(len(coefficients) + len(steps), bool)]
-    )
+    # The groups that move, in this order: the electrodes' shifts, the map's coefficients, the frame's steps.
+    shifts = 0 if positions is None else protocol.n_electrodes
     precision = np.concatenate(
         [
-            np.full(protocol.n_electrodes, 0.0 if positions is None else positions[0] ** -2.0),
+            np.full(shifts, 0.0 if positions is None else positions[0] ** -2.0),
             np.full(len(coefficients), 0.0 if free.sheet is None else free.sheet**-2.0),
             steps**-2.0,
         ]
-    )[moving]
+    )
     joint_errors = None
     log_gain, gain_errors = np.zeros(differences.shape[1]), np.zeros(differences.shape[1])
     log_gain = log_gain if start.log_gain is None else start.log_gain
@@ -3243,7 +3242,7 @@ def _fit_presses(
         return np.stack(columns, axis=2)
 
     at = linearised(response, fractions)
-    converged = not moving.any()
+    converged = not len(precision)
     for position_round in itertools.count():
         # Only the presses: a mixing fitted to the reference as well bends to the model's own
         # errors there (measured: touches placed 5 times worse; docs/tutorials/calibration.md).
@@ -3257,19 +3256,25 @@ def _fit_presses(
         # weights held, the steps traded one for the other and stopped degrees off (measured on
         # the calibration benchmark's skins; docs/tutorials/calibration.md).
         scaled = differences / np.exp(log_gain)
-        ends = np.zeros((protocol.n_electrodes, 2)) if positions is None else np.asarray(every.electrode_shift)
-        values = np.concatenate([ends.mean(axis=1), coefficients, turn])[moving]
+        ends = np.zeros((0, 2)) if positions is None else np.asarray(every.electrode_shift)
+        values = np.concatenate([ends.mean(axis=1), coefficients, turn])
         mixed = jnp.asarray(np.concatenate([[1.0], mixing]))
-        if positions is not None or len(coefficients):
-            along = _press_readings_jacobian(
-                every, jnp.asarray(sigma), jnp.asarray(fractions), jnp.asarray(terms), full_weights, mixed, drive_onehot
+        along = []
+        if shifts or len(coefficients):
+            jacobian = _press_readings_jacobian(
+                every,
+                jnp.asarray(sigma),
+                jnp.asarray(fractions),
+                jnp.asarray(terms),
+                full_weights,
+                mixed,
+                drive_onehot,
+                positions is not None,
             )
-            along = np.asarray(along)[keep]
-        else:  # the frame alone moves
-            along = np.zeros((*differences.shape, protocol.n_electrodes))
+            along.append(np.asarray(jacobian)[keep])
         if len(steps):
-            along = np.concatenate([along, along_frame(response, turn, mixing)], axis=2)
-        along = along[..., moving]
+            along.append(along_frame(response, turn, mixing))
+        along = np.concatenate(along, axis=2)
         design = depth[:, None, None] * sign[None, :, None] * np.concatenate([at[1], along], axis=2)
         predicted = sign * linear.unsigned(mixing)
         scale = _residual_scale(residual, scaled)
@@ -3282,30 +3287,26 @@ def _fit_presses(
             np.r_[np.full(len(mixing), prior**-2.0), precision],
         )
         joint_errors = np.sqrt(np.diag(np.linalg.inv(joint))[len(mixing) :])
-        start = objective(at, mixing, depth, values, scale)
+        before = objective(at, mixing, depth, values, scale)
         converged = True
         for _ in range(_POSITION_HALVINGS):
-            change = np.zeros(len(moving))
-            change[moving] = step[len(mixing) :]
+            change = step[len(mixing) :].copy()
             trial = every
             if positions is not None:
-                moved = np.clip(ends + change[: len(ends), None], *(0.999 * np.array([-1, 1]) * positions[1]))
+                moved = np.clip(ends + change[:shifts, None], *(0.999 * np.array([-1, 1]) * positions[1]))
                 trial = eqx.tree_at(lambda m: m.electrode_shift, every, jnp.asarray(moved))
-                change[: len(ends)] = moved.mean(axis=1) - ends.mean(axis=1)
-            trial_sigma = sigma * np.exp(terms @ change[len(ends) : len(ends) + len(coefficients)])
-            trial_turn = turn + change[len(ends) + len(coefficients) :]
+                change[:shifts] = moved.mean(axis=1) - ends.mean(axis=1)
+            trial_sigma = sigma * np.exp(terms @ change[shifts : shifts + len(coefficients)])
+            trial_turn = turn + change[shifts + len(coefficients) :]
             trial_fractions = fractions_at(frame + np.r_[trial_turn, 0.0]) if len(steps) else fractions
             trial_response = _ElectrodeResponse.of(trial, jnp.asarray(trial_sigma))
             trial_at = linearised(trial_response, trial_fractions)
-            if (
-                objective(trial_at, mixing + step[: len(mixing)], depth + depth_step, values + change[moving], scale)
-                <= start
-            ):
+            if objective(trial_at, mixing + step[: len(mixing)], depth + depth_step, values + change, scale) <= before:
                 every, sigma, response, at = trial, trial_sigma, trial_response, trial_at
                 fractions, turn = trial_fractions, trial_turn
                 mixing = mixing + step[: len(mixing)]
-                coefficients = coefficients + change[len(ends) : len(ends) + len(coefficients)]
-                converged = np.all(np.abs(change[moving]) < _POSITION_STEP * np.sqrt(1.0 / precision))
+                coefficients = coefficients + change[shifts : shifts + len(coefficients)]
+                converged = np.all(np.abs(change) < _POSITION_STEP * np.sqrt(1.0 / precision))
                 break
             step, depth_step = step / 2, depth_step / 2
     unchanged = response.potentials
@@ -3669,10 +3670,11 @@ def _press_readings_jacobian(
     weights: jax.Array,
     mixing: jax.Array,
     drive_onehot: jax.Array,
+    positions: bool,
 ) -> jax.Array:
     """(K, M, L + n) the derivative of each press's linearised readings at unit depth,
-    sum_l W_ml dU_k[drive of m, l], in a move of each electrode (both its ends), m (zero for a
-    model whose electrodes cannot move: the map fitted without the positions), and in the
+    sum_l W_ml dU_k[drive of m, l], in a move of each electrode (both its ends), m (with
+    `positions`; (K, M, n) without, the map fitted alone), and in the
     n coefficients c of the sheet's conductivity sigma exp(`terms` @ c), `terms` (E, n): W the
     reading weights `weights` (1 + p, M, L) combined by `mixing` (1 + p,), `drive_onehot` (M,
     drives) each reading's drive, `every` the model reading every electrode
@@ -3693,10 +3695,8 @@ def _press_readings_jacobian(
         # work of weighing the (drives * L, E) Jacobian by `spread` first, in every tangent.
         return ((fractions * conductivity) @ moved.jacobian(conductivity).T) @ spread.T
 
-    coefficients = jnp.zeros(terms.shape[1])
-    if every.electrode_shift is None:  # electrodes that cannot move: their columns are zero
-        along = jax.jacfwd(lambda c: readings(None, c))(coefficients)
-        return jnp.concatenate([jnp.zeros((*along.shape[:2], n_electrodes), along.dtype), along], axis=2)
+    if not positions:
+        return jax.jacfwd(lambda c: readings(None, c))(jnp.zeros(terms.shape[1]))
     parameters = jnp.zeros(n_electrodes + terms.shape[1])
     return jax.jacfwd(lambda p: readings(p[:n_electrodes, None], p[n_electrodes:]))(parameters)
 
