@@ -1163,8 +1163,9 @@ class SkinCalibration(eqx.Module):
         standard_errors: Group -> (n,) standard errors of the fitted parameters, as `values`
             (those the presses fit raised to their spread over the held-out folds where that
             is larger: `_with_fold_spread`).
-        values: Group -> (n,) the fitted parameters: "level" (ln c), "contact_impedance"
-            (ln z / z_first), "mixing" (source, sink, offsets), "drive_gains" and
+        values: Group -> (n,) the fitted parameters: "level" (ln c: `conductivity` is the
+            first stage's over c), "contact_impedance" (ln of each z / (c z_first), z_first
+            the first stage's), "mixing" (source, sink, offsets), "drive_gains" and
             "channel_gains" (ln g), "electrode_positions" (the centres' shifts, m along the
             boundary), "electrode_widths" (the change of each electrode's length, m),
             "background" (the background map's coefficients).
@@ -3343,7 +3344,14 @@ def _fit_presses(
         reading_sign[first.used] = sign
     undetermined = tuple(f"mixing[{i}]" for i in np.flatnonzero(weighed) if spread[i] > _UNDETERMINED * prior)
     misfit = _relative(data - factor * readings, data)
-    values_by_group = {**calibration.values, "mixing": values, "press_depths": depth}
+    # As the reference's refinement has them: contact = z_first exp(ln z / z_first) c, level = sigma_first / c.
+    values_by_group = {
+        **calibration.values,
+        "level": calibration.values["level"] + math.log(factor),
+        "contact_impedance": calibration.values["contact_impedance"] + math.log(contact_factor),
+        "mixing": values,
+        "press_depths": depth,
+    }
     errors_by_group = {**calibration.standard_errors, "mixing": spread, "press_depths": np.full(len(depth), np.nan)}
     groups = ("mixing", "press depths")
     if gains_prior is not None:
@@ -4367,7 +4375,7 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
     undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors > _UNDETERMINED * _SHEET_PRIOR))
     # The contacts' ln z (from the first stage's) moved with the map, their errors the joint fit's.
-    contact_values, contact_errors = {}, {}
+    contact_values, contact_errors = {"level": calibration.values["level"] + theta[0]}, {}
     if "contact_impedance" in calibration.values:
         contact_values["contact_impedance"] = calibration.values["contact_impedance"] + theta[1 : 1 + electrodes]
         contact_errors["contact_impedance"] = all_errors[1 : 1 + electrodes]
