@@ -156,10 +156,10 @@ labelled instant, and a frame a board garbled are then no rest.
   fold read at the mixing (and positions) fitted to the other four, through a position map fitted
   on those (each fold's fit starts where the fit of all the presses ended and takes at most two
   Gauss-Newton steps: a third less time, the same choices on the calibration benchmark). When
-  the reference's calibration with a position map fitted on the same four folds reads significantly more of
-  the presses closer than farther (a one-sided sign test, p < 0.05), the presses' fit made
-  unseen presses worse: the reference's calibration is kept instead, with a warning giving both
-  (`_kept_if_it_generalises`). Short of that the physical fit is kept. Kept, its press errors are
+  the reference's calibration with a position map fitted on the same four folds reads
+  significantly more of the presses closer than farther (a one-sided sign test, p < 0.05), the
+  presses' fit made unseen presses worse: the reference's calibration is kept instead, with a
+  warning giving both (`_kept_if_it_generalises`). Short of that the physical fit is kept. Kept, its press errors are
   these held-out ones. With fewer than 20 presses (folds under four) nothing can show it: the
   reference's calibration is kept, with a warning (with 10, folds of two passed fits that read
   the benchmark's test presses worse), and the presses' fit is not made unless the memory is
@@ -3344,7 +3344,8 @@ def _fit_presses(
         reading_sign[first.used] = sign
     undetermined = tuple(f"mixing[{i}]" for i in np.flatnonzero(weighed) if spread[i] > _UNDETERMINED * prior)
     misfit = _relative(data - factor * readings, data)
-    # As the reference's refinement has them: contact = z_first exp(ln z / z_first) c, level = sigma_first / c.
+    # As the reference's refinement keeps them: with c = exp(values["level"]), the level is sigma_first / c
+    # and the contacts z_first exp(values["contact_impedance"]) c.
     values_by_group = {
         **calibration.values,
         "level": calibration.values["level"] + math.log(factor),
@@ -4202,10 +4203,10 @@ def _held_out_errors(
 
     Each fold's fit starts where the fit of all the presses ended (`start`), a fifth of its
     presses away, and takes at most `_FOLD_ROUNDS` Gauss-Newton steps (the one-step jackknife
-    takes one). On the calibration benchmark's 50-press sessions this read the test presses,
-    kept the same sets and placed the electrodes exactly as folds fitted from the reference's
-    calibration (up to `_POSITION_ROUNDS` steps each), and the positions' errors in their
-    standard errors moved by at most 0.09 (RMS), in a third less time."""
+    takes one). On the calibration benchmark's sessions (25 to 100 presses) this read the test
+    presses, kept the same sets and placed the electrodes exactly as folds fitted from the
+    reference's calibration (up to `_POSITION_ROUNDS` steps each) did, and the positions'
+    errors in their standard errors moved by at most 0.09 (RMS), in a third less time."""
     if presses.n_presses < _LEAST_HELD_OUT:
         return None, []
     fold = np.arange(presses.n_presses) % _HELD_OUT_FOLDS
