@@ -2956,20 +2956,12 @@ def _label_frame(
     mesh = calibration.model.mesh
     if mesh.nodes.shape[1] != 2:
         return None
-    unmoved = _ElectrodeResponse.of_calibration(calibration, None)
+    start = _PressState(_ElectrodeResponse.of_calibration(calibration, None))
 
     def misfit(frame: np.ndarray) -> float:
         try:
             return _fit_presses(
-                calibration,
-                recording,
-                presses,
-                frame,
-                reference,
-                prior,
-                polarity,
-                _PressState(unmoved),
-                changes=changes,
+                calibration, recording, presses, frame, reference, prior, polarity, start, changes=changes
             )[1]
         except _ContradictsReference:
             return math.inf
