@@ -159,13 +159,14 @@ labelled instant, and a frame a board garbled are then no rest.
   the reference's calibration with a position map fitted on the same four folds reads
   significantly more of the presses closer than farther (a one-sided sign test, p < 0.05), the
   presses' fit made unseen presses worse: the reference's calibration is kept instead, with a
-  warning giving both (`_kept_if_it_generalises`). Short of that the physical fit is kept. Kept, its press errors are
-  these held-out ones. With fewer than 20 presses (folds under four) nothing can show it: the
-  reference's calibration is kept, with a warning (with 10, folds of two passed fits that read
-  the benchmark's test presses worse), and the presses' fit is not made unless the memory is
-  fitted, which needs the labels' frame it finds. The presses' mixing fits every weight to a
-  linearised disc model; a board or sheet the model does not capture can pull it anywhere,
-  and only presses it did not see show it (measured in docs/tutorials/calibration.md).
+  warning giving both (`_kept_if_it_generalises`). Short of that the physical fit is kept.
+  Kept, its press errors are these held-out ones. With fewer than 20 presses (folds under
+  four) nothing can show it: the reference's calibration is kept, with a warning (with 10,
+  folds of two passed fits that read the benchmark's test presses worse), and the presses'
+  fit is not made unless the memory is fitted, which needs the labels' frame it finds. The
+  presses' mixing fits every weight to a linearised disc model; a board or sheet the model
+  does not capture can pull it anywhere, and only presses it did not see show it (measured
+  in docs/tutorials/calibration.md).
 - **A position map**: each press's frames are imaged at the calibrated model, its touch read
   (`diffeit.touch.read`), and a smooth map from read positions to labelled ones fitted: the
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
@@ -2956,12 +2957,12 @@ def _label_frame(
     mesh = calibration.model.mesh
     if mesh.nodes.shape[1] != 2:
         return None
-    start = _PressState(_ElectrodeResponse.of_calibration(calibration, None))
+    unmoved = _PressState(_ElectrodeResponse.of_calibration(calibration, None))
 
     def misfit(frame: np.ndarray) -> float:
         try:
             return _fit_presses(
-                calibration, recording, presses, frame, reference, prior, polarity, start, changes=changes
+                calibration, recording, presses, frame, reference, prior, polarity, unmoved, changes=changes
             )[1]
         except _ContradictsReference:
             return math.inf
@@ -4368,10 +4369,11 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
     undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors > _UNDETERMINED * _SHEET_PRIOR))
     # The contacts' ln z (from the first stage's) moved with the map, their errors the joint fit's.
-    contact_values, contact_errors = {"level": calibration.values["level"] + theta[0]}, {}
-    if "contact_impedance" in calibration.values:
-        contact_values["contact_impedance"] = calibration.values["contact_impedance"] + theta[1 : 1 + electrodes]
-        contact_errors["contact_impedance"] = all_errors[1 : 1 + electrodes]
+    contact_values = {
+        "level": calibration.values["level"] + theta[0],
+        "contact_impedance": calibration.values["contact_impedance"] + theta[1 : 1 + electrodes],
+    }
+    contact_errors = {"contact_impedance": all_errors[1 : 1 + electrodes]}
     return eqx.tree_at(
         lambda c: (
             c.model,
