@@ -3624,8 +3624,10 @@ def _residual_scale(residual: np.ndarray, data: np.ndarray) -> np.ndarray:
 
 
 def _press_patterns(mesh: Mesh, presses: Presses) -> np.ndarray:
-    """(K, E) the fraction of each element inside each press's disc (its footprint)."""
-    return disc_fractions(mesh, presses.centres, presses.radius).T.toarray()
+    """(K, E) the fraction of each element inside each press's disc (its footprint), exact:
+    the frame's central differences (`_FRAME_DELTA`) differentiate it, and a sampled footprint
+    moves in steps (docs/tutorials/calibration.md: fewer trial steps, the same errors)."""
+    return disc_fractions(mesh, presses.centres, presses.radius, level=None).T.toarray()
 
 
 def _every_electrode(protocol: Protocol) -> Protocol:

@@ -191,6 +191,28 @@ def test_disc_fraction_integrates_the_disc_area():
 
 
 @pytest.mark.parametrize("surface", [False, True], ids=["flat", "dome"])
+def test_exact_disc_fractions_are_sampling_s_limit_and_smooth_in_the_centre(surface):
+    """`level=None`: the exact area, which the midpoint rule approaches as O(1/level) (measured:
+    2.4e-4 at level 200), 1 on a disc holding the whole mesh, the disc's area on the flat mesh to
+    rounding, and a footprint that moves smoothly with its centre (sampled, it moves in steps of
+    1/level^2)."""
+    mesh = de.mesh.sphere_cap(1.0, 1.0, 8, 0.2) if surface else de.mesh.disc(h=0.1)
+    rng = np.random.default_rng(3)
+    centres = mesh.element_centroids[rng.choice(mesh.n_elements, 5, replace=False)]
+    radii = np.array([0.05, 0.1, 0.2, 0.3, 2.0])
+    exact = de.mesh.disc_fractions(mesh, centres, radii, level=None).toarray()
+    assert np.abs(exact - de.mesh.disc_fractions(mesh, centres, radii, level=200).toarray()).max() < 1e-3
+    assert np.abs(exact - de.mesh.disc_fractions(mesh, centres, radii).toarray()).max() > 5e-3  # level 8 differs
+    np.testing.assert_allclose(exact[:, -1], 1.0, atol=1e-12)
+    step = 1e-7 * np.eye(mesh.nodes.shape[1])[0]
+    moved = de.mesh.disc_fractions(mesh, centres + step, radii, level=None).toarray()
+    assert 0 < np.abs(moved - exact).max() < 1e-5
+    if not surface:
+        inside = de.mesh.disc_fraction(mesh, (0.3, -0.2), 0.25, level=None)
+        np.testing.assert_allclose(inside @ mesh.element_areas, np.pi * 0.25**2, rtol=1e-12)
+
+
+@pytest.mark.parametrize("surface", [False, True], ids=["flat", "dome"])
 def test_disc_fractions_equal_testing_every_triangles_sample_points(surface):
     """The batched fractions sample only the triangles near each disc; testing every triangle's
     sample points against each disc gives the same numbers."""

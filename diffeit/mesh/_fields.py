@@ -248,18 +248,20 @@ def onto_sheet(mesh: Mesh, points: ArrayLike) -> np.ndarray:
     return flat.reshape(positions.shape)
 
 
-def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level: int = 8) -> np.ndarray:
+def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level: int | None = 8) -> np.ndarray:
     """(E,) fraction of each triangle's area inside the disc |x - centre| < radius.
 
-    Midpoint rule on `level`^2 equal sub-triangles: exact for triangles wholly inside or
-    outside, error O(1/level) of the area of a triangle the circle cuts. For many discs at
-    once, `disc_fractions`.
+    With `level`, the midpoint rule on `level`^2 equal sub-triangles: exact for triangles
+    wholly inside or outside, error O(1/level) of the area of a triangle the circle cuts, and
+    a staircase in the centre and the radius. With `level=None`, the exact area (piecewise
+    smooth in the centre and the radius: what a derivative of the footprint needs). For many
+    discs at once, `disc_fractions`.
 
     Arguments:
         mesh: The mesh.
         centre: (x, y), metres.
         radius: Metres, positive.
-        level: The subdivision of each side, a positive integer.
+        level: The subdivision of each side, a positive integer, or None for exact areas.
 
     Returns:
         (E,) fractions in [0, 1].
@@ -270,19 +272,21 @@ def disc_fraction(mesh: Mesh, centre: tuple[float, float], radius: float, level:
     return disc_fractions(mesh, np.asarray(centre, dtype=float)[None], radius, level)[:, [0]].toarray().ravel()
 
 
-def disc_fractions(mesh: Mesh, centres: ArrayLike, radius: ArrayLike, level: int = 8) -> scipy.sparse.csc_array:
+def disc_fractions(mesh: Mesh, centres: ArrayLike, radius: ArrayLike, level: int | None = 8) -> scipy.sparse.csc_array:
     """The fraction of each triangle's area inside each of K discs, as `disc_fraction`.
 
     Only the triangles whose centroid lies within a radius and the largest triangle's reach of
-    a disc's centre are sampled: the others hold no sample point inside it, so the result is
-    the same as sampling every triangle.
+    a disc's centre are computed: no other triangle comes within a radius of the centre, so
+    the result is the same as computing every triangle.
 
     Arguments:
         mesh: The mesh.
         centres: (K, d) the discs' centres, metres, d the mesh's dimension (3 on a surface
-            mesh: distances are then straight lines in space).
+            mesh: the disc is then the ball of the radius about the centre, and each triangle's
+            part inside it is the disc where the ball cuts the triangle's plane).
         radius: Scalar or (K,), metres, positive.
-        level: The subdivision of each side, a positive integer.
+        level: The subdivision of each side, a positive integer (the midpoint rule), or None
+            (exact areas).
 
     Returns:
         (E, K) sparse fractions in [0, 1].
@@ -296,15 +300,59 @@ def disc_fractions(mesh: Mesh, centres: ArrayLike, radius: ArrayLike, level: int
     radii = np.broadcast_to(np.asarray(radius, dtype=float), (len(centres),))
     if np.any(~(radii > 0)):
         raise ValueError(f"radius must be positive; got {radius}")
-    samples = element_sample_points(mesh, level)
     near = _centroid_tree(mesh).query_ball_point(centres, radii + _largest_reach(mesh))
     disc = np.repeat(np.arange(len(centres)), [len(n) for n in near])
     element = np.concatenate([np.zeros(0, int), *(np.asarray(n, dtype=int) for n in near)])
-    offsets = samples[element] - centres[disc][:, None]
-    inside = np.einsum("psx,psx->ps", offsets, offsets) < radii[disc][:, None] ** 2
-    fraction = inside.mean(axis=1)
+    if level is None:
+        fraction = _exact_disc_fractions(mesh.nodes[mesh.triangles[element]] - centres[disc][:, None], radii[disc])
+    else:
+        offsets = element_sample_points(mesh, level)[element] - centres[disc][:, None]
+        fraction = (np.einsum("psx,psx->ps", offsets, offsets) < radii[disc][:, None] ** 2).mean(axis=1)
     kept = fraction > 0
     return scipy.sparse.csc_array((fraction[kept], (element[kept], disc[kept])), shape=(mesh.n_elements, len(centres)))
+
+
+def _exact_disc_fractions(corners: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(P,) the fraction of each triangle inside a disc about the origin: corners (P, 3, d)
+    relative to the disc's centre, m, radii (P,), m.
+
+    The area is the signed sum, over the triangle's sides, of the disc's part of the triangle
+    the side makes with the centre: a circular sector where the side runs outside the circle,
+    a straight triangle where inside. In 3D each triangle is first taken into its own plane: the
+    ball cuts it in a disc about the centre's projection, of radius sqrt(r^2 - distance^2)."""
+    if corners.shape[2] == 3:
+        first, second = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+        normal = np.cross(first, second)
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        across = np.einsum("px,px->p", corners[:, 0], normal)
+        along = first / np.linalg.norm(first, axis=1, keepdims=True)
+        axes = np.stack([along, np.cross(normal, along)], axis=1)  # (P, 2, 3) the plane's directions
+        corners = np.einsum("pcx,pax->pca", corners - across[:, None, None] * normal[:, None], axes)
+        radii_squared = radii**2 - across**2
+    else:
+        radii_squared = radii**2
+    r2 = np.maximum(radii_squared, 0.0)[:, None]
+    start, side = corners, np.roll(corners, -1, axis=1) - corners
+    a = np.einsum("psx,psx->ps", side, side)
+    b = np.einsum("psx,psx->ps", start, side)
+    c = np.einsum("psx,psx->ps", start, start) - r2
+    discriminant = b * b - a * c
+    root = np.sqrt(np.maximum(discriminant, 0.0))
+    crosses = discriminant > 0  # the side's line cuts the circle: its chord's ends, clipped to the side
+    enter = np.where(crosses, np.clip((-b - root) / a, 0.0, 1.0), 1.0)[..., None]
+    leave = np.where(crosses, np.clip((-b + root) / a, 0.0, 1.0), 1.0)[..., None]
+    inside_from, inside_to = start + enter * side, start + leave * side
+
+    def cross(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return p[..., 0] * q[..., 1] - p[..., 1] * q[..., 0]
+
+    def sector(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        return 0.5 * r2 * np.arctan2(cross(p, q), np.einsum("psx,psx->ps", p, q))
+
+    area = sector(start, inside_from) + 0.5 * cross(inside_from, inside_to) + sector(inside_to, start + side)
+    whole = 0.5 * cross(side[:, 0], -side[:, 2])
+    fraction = np.clip(np.sum(area, axis=1) / whole, 0.0, 1.0)
+    return np.where(radii_squared > 0, fraction, 0.0)
 
 
 @functools.lru_cache(maxsize=16)
