@@ -82,6 +82,11 @@ def readonly(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def frame_period(times: np.ndarray) -> float:
+    """The frames' median period, s, from their `times` (T,); 0 for fewer than two frames."""
+    return float(np.median(np.diff(times))) if len(times) >= 2 else 0.0
+
+
 def is_concrete(x) -> bool:
     """Whether `x` holds values (not a tracer under jit, vmap or grad): values are checked
     with messages naming the offenders only then."""

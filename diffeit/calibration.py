@@ -243,7 +243,7 @@ import scipy.ndimage
 import scipy.stats
 from numpy.typing import ArrayLike
 
-from ._arrays import per_element
+from ._arrays import frame_period, per_element
 from ._messages import name_indices
 from ._threads import host_algebra
 from .fit import memory_from_press_readings
@@ -1835,7 +1835,7 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
         long[first:last] = True
     if not len(touched) or not long.any():
         return still
-    step = _frame_period(times)
+    step = frame_period(times)
     near = touched[_time_to_nearest(times, long)[touched] <= (_DRIFT_WINDOW + 0.5) * step]
     if len(near) < _LEAST_NEAR:
         return still
@@ -1889,7 +1889,7 @@ def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
     """(T,) the touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
     frame (`still`, (T,) bool, some true): presses one after another with no untouched frame
     between them, whose drift the untouched frames' gains no longer follow."""
-    step = _frame_period(times)
+    step = frame_period(times)
     return ~still & (_time_to_nearest(times, still) > (_DRIFT_WINDOW // 2 + 0.5) * step)
 
 
@@ -2075,11 +2075,6 @@ def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
 def _skin_size(mesh: Mesh) -> float:
     """The skin's size, m: its farthest node from the nodes' mean."""
     return float(np.max(np.linalg.norm(mesh.nodes - mesh.nodes.mean(axis=0), axis=1)))
-
-
-def _frame_period(times: np.ndarray) -> float:
-    """The frames' median period, s, from their `times` (T,); 0 for fewer than two frames."""
-    return float(np.median(np.diff(times))) if len(times) >= 2 else 0.0
 
 
 def _with_warnings(calibration: Any, *notes: str) -> Any:
@@ -2315,7 +2310,7 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
                 "changes far more than the other presses do: a board's glitch)"
             )
         left_out |= damaged
-    step = _frame_period(times)
+    step = frame_period(times)
     if step > 0:  # else no period to tell a lost frame by (times of a coarse clock repeat)
         missing = np.array(
             [
@@ -2384,7 +2379,7 @@ def _presses_unseen(
         f"press(es) {name_indices(np.flatnonzero(unseen))} left out: their frames show no touch (their change "
         "from the reference stands within the readings' noise)"
     )
-    step = _frame_period(times)
+    step = frame_period(times)
     starts = np.sort(presses.times[:, 0])
     spacing = float(np.median(np.diff(starts))) if len(starts) >= 2 else 0.0
     reach = int(0.5 * spacing / step) if step > 0 else 0
@@ -2492,7 +2487,7 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
     times = recording.times
     if len(times) == 0:
         raise ValueError("presses need the recording's frames; the recording holds none")
-    step = _frame_period(times)
+    step = frame_period(times)
     late = (presses.times[:, 1] < times[0] - step) | (presses.times[:, 0] > times[-1] + step)
     if late.any():
         raise ValueError(
@@ -3807,7 +3802,7 @@ def _unlabelled_steps(calibration: SkinCalibration, recording: Recording, presse
     pairs = 0.5 * (signed[2:-1] + signed[3:]) - 0.5 * (signed[:-3] + signed[1:-2])
     stands_out = (_statistic(steps, noise, count, 2.0) > DETECTION) & (_statistic(pairs, noise, count, 1.0) > DETECTION)
     times = recording.times[2:-1]
-    margin = _LABELLED_MARGIN * _frame_period(recording.times)
+    margin = _LABELLED_MARGIN * frame_period(recording.times)
     held = np.zeros(len(times), bool)
     for start, end in presses.times:
         held |= (times >= start - margin) & (times <= end + margin)

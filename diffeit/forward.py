@@ -433,13 +433,14 @@ class _Solves:
 
 
 class _ProtocolArrays(NamedTuple):
-    """A protocol's arrays (`Protocol` for their meaning), traced by the compiled programs."""
+    """A protocol's arrays (`Protocol` for their meaning), traced by the compiled programs:
+    NumPy arrays when built (`of`), JAX arrays (tracers) inside them."""
 
-    drive: np.ndarray  # (n_drives, L)
-    measure: np.ndarray  # (M, L)
-    drive_index: np.ndarray  # (M,)
-    measure_patterns: np.ndarray  # (P, L)
-    pattern_index: np.ndarray  # (M,)
+    drive: np.ndarray | jax.Array  # (n_drives, L)
+    measure: np.ndarray | jax.Array  # (M, L)
+    drive_index: np.ndarray | jax.Array  # (M,)
+    measure_patterns: np.ndarray | jax.Array  # (P, L)
+    pattern_index: np.ndarray | jax.Array  # (M,)
 
     @classmethod
     def of(cls, protocol: Protocol) -> _ProtocolArrays:

@@ -6,6 +6,8 @@ import equinox as eqx
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .._arrays import frame_period
+
 
 class Presses(eqx.Module):
     """Presses at known places (a robot or an indenter), for `diffeit.calibrate`.
@@ -92,7 +94,7 @@ class Presses(eqx.Module):
             K arrays of frame indices, one per press, none empty.
         """
         times = np.asarray(times, np.float64)
-        slack = 1e-6 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+        slack = 1e-6 * frame_period(times)
         chosen = []
         for start, end in self.times:
             inside = np.flatnonzero((times >= start - slack) & (times <= end + slack))
