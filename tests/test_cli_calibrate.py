@@ -3,12 +3,14 @@
 
 import csv
 
+import equinox as eqx
 import numpy as np
 import pytest
 from skin_sessions import calibrated_session
 
 import diffeit as de
 from diffeit.cli import main
+from diffeit.cli._calibrate import _calibration_figure
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +42,27 @@ def test_calibrate_writes_a_calibration_file_and_its_figure(session, calibrated,
     # An existing output is refused, with the other commands' one-line error.
     assert main(["calibrate", str(path), "-o", str(output)]) == 2
     assert "diffeit calibrate: error:" in capsys.readouterr().err
+
+
+def test_the_figure_names_the_mixing_weights_and_says_which_groups_were_not_fitted(session, calibrated):
+    """The mixing panel's ticks name each weight (the source's, the sink's, then offset j's), a
+    panel of gains not fitted is titled so, and the presses' panel has its units."""
+    path, presses_file, _ = session
+    skin = de.calibration.load(calibrated[1], recording=de.io.read_frames(path))
+    figure = _calibration_figure(skin, de.io.read_presses(presses_file))
+    mixing, gains, presses = figure.axes[1:4]
+    names = [label.get_text() for label in mixing.get_xticklabels()]
+    assert names == ["source", "sink", *map(str, range(16))]
+    # The board's gains are not among the reference's default groups (its mixing's pair offsets
+    # take the channel gains).
+    assert skin.fitted["reference"] == ("level", "contact_impedance", "mixing")
+    assert gains.get_title() == "gains (not fitted: 1)"
+    requested = eqx.tree_at(lambda c: c.fitted, skin, {"reference": ("level", "drive_gains")})
+    assert [axes.get_title() for axes in _calibration_figure(requested, None).axes[1:3]] == [
+        "readout mixing weights (not fitted)",
+        "gains",
+    ]
+    assert (presses.get_xlabel(), presses.get_ylabel()) == ("x (m)", "y (m)")
 
 
 def test_calibrate_fits_a_background_map_on_request_and_draws_it(session, tmp_path):

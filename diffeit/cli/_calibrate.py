@@ -12,6 +12,8 @@ import numpy as np
 from ._errors import reporting_user_errors
 
 if TYPE_CHECKING:
+    import matplotlib.figure
+
     from ..calibration import SkinCalibration
     from ..io import Presses
 
@@ -74,6 +76,11 @@ def _calibrate_file(arguments: argparse.Namespace) -> int:
     return 0
 
 
+def _fitted(calibration: SkinCalibration, group: str) -> bool:
+    """Whether the calibration fitted `group` at some stage (the reference's or the presses')."""
+    return any(group in groups for groups in calibration.fitted.values())
+
+
 def plot_calibration(
     path: str | Path,
     calibration: SkinCalibration,
@@ -81,10 +88,10 @@ def plot_calibration(
 ) -> Path:
     """The figure of a calibration: its mesh with the electrodes (coloured by the background map
     when it has one; the fitted electrode centres marked on it when the positions were fitted),
-    the readout's mixing weights and
-    the drive and channel gains (with one-standard-error bars), and, with `presses`, every
-    labelled position with an arrow to its read position (through the position map). A curved
-    skin is drawn seen along z (its x and y).
+    the readout's mixing weights and the drive and channel gains (with one-standard-error bars;
+    a group not fitted is titled so), and, with `presses`, every labelled position with an
+    arrow to its read position (through the position map). A curved skin is drawn seen along z
+    (its x and y).
 
     Arguments:
         path: The PNG to write.
@@ -94,6 +101,12 @@ def plot_calibration(
     Returns:
         The path written.
     """
+    _calibration_figure(calibration, presses).savefig(path, dpi=110)
+    return Path(path)
+
+
+def _calibration_figure(calibration: SkinCalibration, presses: Presses | None) -> matplotlib.figure.Figure:
+    """`plot_calibration`'s figure."""
     import matplotlib.ticker
     from matplotlib.figure import Figure
 
@@ -117,7 +130,7 @@ def plot_calibration(
     if "electrode_positions" in values:  # the fitted centres against the mesh's electrodes
         points = calibration.electrode_points
         axes[0].plot(points[:, 0], points[:, 1], "o", color="C3", markersize=4, label="fitted centres")
-        axes[0].legend(fontsize=7, loc="lower left")
+        axes[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 0.0))  # below: clear of the numbers
         title += f"\nfitted centres moved by up to {1e3 * np.max(np.abs(values['electrode_positions'])):.2g} mm"
     axes[0].set_aspect("equal")
     axes[0].set_axis_off()
@@ -125,8 +138,12 @@ def plot_calibration(
 
     mixing = np.asarray(values["mixing"])
     axes[1].bar(np.arange(len(mixing)), mixing, yerr=np.asarray(errors["mixing"]), capsize=2, color="C0")
-    axes[1].set_xlabel("weight (source, sink, offsets)")
-    axes[1].set_title("readout mixing weights")
+    # Weights 0 and 1 are the drive's source's and sink's, then offset j's (`diffeit.readout.roles`).
+    axes[1].set_xticks(np.arange(len(mixing)), ["source", "sink", *map(str, range(len(mixing) - 2))], fontsize=7)
+    for label in axes[1].get_xticklabels()[:2]:
+        label.set_rotation(90)
+    axes[1].set_xlabel("source, sink, then offset j: j electrodes on from the pair's +", fontsize=8)
+    axes[1].set_title("readout mixing weights" + ("" if _fitted(calibration, "mixing") else " (not fitted)"))
     axes[1].axhline(0.0, color="0.5", linewidth=0.5)
 
     for name, offset, colour in (("drive_gains", -0.2, "C1"), ("channel_gains", 0.2, "C2")):
@@ -144,7 +161,8 @@ def plot_calibration(
         )
     axes[2].axhline(1.0, color="0.5", linewidth=0.5)
     axes[2].set_xlabel("electrode")
-    axes[2].set_title("gains")
+    gains_fitted = [name for name in ("drive_gains", "channel_gains") if _fitted(calibration, name)]
+    axes[2].set_title("gains" if gains_fitted else "gains (not fitted: 1)")
     axes[2].legend(fontsize=8)
 
     if presses is not None:
@@ -162,8 +180,9 @@ def plot_calibration(
             else (f": median error {1e3 * np.nanmedian(calibration.press_errors):.1f} mm (left out)")
         )
         ax.set_title(f"{presses.n_presses} presses{median}", fontsize=9)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
         ax.set_aspect("equal")
         ax.legend(fontsize=8)
     figure.suptitle(f"calibration: misfit {calibration.misfit:.3g}, correlation {calibration.correlation:.4f}")
-    figure.savefig(path, dpi=110)
-    return Path(path)
+    return figure
