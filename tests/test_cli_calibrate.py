@@ -53,14 +53,13 @@ def test_the_figure_names_the_mixing_weights_and_says_which_groups_were_not_fitt
     mixing, gains, presses = figure.axes[1:4]
     names = [label.get_text() for label in mixing.get_xticklabels()]
     assert names == ["source", "sink", *map(str, range(16))]
-    # The board's gains are not among the reference's default groups (its mixing's pair offsets
-    # take the channel gains).
+    # Drive and channel gains are fitted on request only (`diffeit.calibration.REFERENCE_GROUPS`).
     assert skin.fitted["reference"] == ("level", "contact_impedance", "mixing")
-    assert gains.get_title() == "gains (not fitted: 1)"
+    assert gains.get_title() == "drive and channel gains (not fitted: 1)"
     requested = eqx.tree_at(lambda c: c.fitted, skin, {"reference": ("level", "drive_gains")})
     assert [axes.get_title() for axes in _calibration_figure(requested, None).axes[1:3]] == [
         "readout mixing weights (not fitted)",
-        "gains",
+        "drive and channel gains",
     ]
     assert (presses.get_xlabel(), presses.get_ylabel()) == ("x (m)", "y (m)")
 

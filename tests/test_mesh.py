@@ -191,7 +191,7 @@ def test_disc_fraction_integrates_the_disc_area():
 
 
 @pytest.mark.parametrize("surface", [False, True], ids=["flat", "dome"])
-def test_exact_disc_fractions_are_sampling_s_limit_and_smooth_in_the_centre(surface):
+def test_exact_disc_fractions_are_what_sampling_tends_to_and_move_smoothly(surface):
     """`level=None`: the exact area, which the midpoint rule approaches as O(1/level) (measured:
     2.4e-4 at level 200), 1 on a disc holding the whole mesh, the disc's area on the flat mesh to
     rounding, and a footprint that moves smoothly with its centre (sampled, it moves in steps of

@@ -161,8 +161,8 @@ def _calibration_figure(calibration: SkinCalibration, presses: Presses | None) -
         )
     axes[2].axhline(1.0, color="0.5", linewidth=0.5)
     axes[2].set_xlabel("electrode")
-    gains_fitted = [name for name in ("drive_gains", "channel_gains") if _fitted(calibration, name)]
-    axes[2].set_title("gains" if gains_fitted else "gains (not fitted: 1)")
+    gains_fitted = any(_fitted(calibration, name) for name in ("drive_gains", "channel_gains"))
+    axes[2].set_title("drive and channel gains" + ("" if gains_fitted else " (not fitted: 1)"))
     axes[2].legend(fontsize=8)
 
     if presses is not None:
