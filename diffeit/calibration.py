@@ -1352,6 +1352,23 @@ class SkinCalibration(eqx.Module):
             )
         return "size map (touches' radius and depth as the presses'): " + "; ".join(parts)
 
+    def in_mesh_frame(self, points: ArrayLike) -> np.ndarray:
+        """Points in the labels' frame (`diffeit.touches`' positions, the presses' labels) taken
+        into the mesh's frame, to draw them on the mesh.
+
+        Arguments:
+            points: (..., D) positions, m; NaN stays NaN.
+
+        Returns:
+            (..., D) the positions in the mesh's frame, m: moved by the labels' frame
+            (`values["label_frame"]`) on a flat skin calibrated with presses, else a copy.
+        """
+        points = np.array(points, np.float64)
+        if "label_frame" not in self.values or points.shape[-1] != 2:
+            return points
+        frame = np.asarray(self.values["label_frame"], np.float64)
+        return _in_mesh_frame(points, frame if len(frame) == 5 else np.append(frame, 1.0))  # versions 1-4: unmirrored
+
     @property
     def electrode_points(self) -> np.ndarray:
         """(L, D) each electrode's centre, m: `electrode_centres` taken onto the boundary (NaN

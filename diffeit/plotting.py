@@ -214,12 +214,14 @@ def plot_image_strip(
     max_panels: int = 12,
     title: str | None = None,
     label: str = "dsigma (S/sq)",
+    points: np.ndarray | None = None,
 ) -> np.ndarray:
     """Save a strip of element-wise images on a mesh as a PNG.
 
     Every k-th frame, at most `max_panels` panels, six to a row, one colour scale centred on 0
     for all. Panel titles give the frame index and, with `times`, its time. A surface mesh is
-    drawn in 3D panels (see `plot_elements`).
+    drawn in 3D panels (see `plot_elements`). With `points`, each panel marks its frame's
+    points with a +.
 
     Arguments:
         path: The PNG file to write.
@@ -229,16 +231,22 @@ def plot_image_strip(
         max_panels: The most panels, at least 1.
         title: The figure's title; None for none.
         label: The colour bar's label.
+        points: (T, K, d) points to mark on each frame (`Touches.position`: metres, d the mesh's
+            dimension), NaN where a frame has fewer; None marks none.
 
     Returns:
         The indices of the frames shown.
 
     Raises:
-        ValueError: For images not of shape (T, E), no frame, or `max_panels` below 1.
+        ValueError: For images not of shape (T, E), no frame, `max_panels` below 1, or points
+            not of shape (T, K, d).
     """
     images = np.asarray(images, dtype=float)
     if images.ndim != 2 or images.shape[1] != mesh.n_elements:
         raise ValueError(f"images have shape {images.shape}; expected (T, {mesh.n_elements})")
+    dimension = mesh.nodes.shape[1]
+    if points is not None and (np.ndim(points) != 3 or np.shape(points)[::2] != (len(images), dimension)):
+        raise ValueError(f"points have shape {np.shape(points)}; expected ({len(images)}, K, {dimension})")
     if max_panels < 1 or len(images) == 0:
         raise ValueError("an image strip needs at least one panel and one frame")
     shown = np.arange(0, len(images), math.ceil(len(images) / max_panels))
@@ -253,6 +261,10 @@ def plot_image_strip(
         artist.colorbar.remove()  # one shared colour bar for the strip instead of one per panel
         when = f", {times[frame]:.2f} s" if times is not None else ""
         ax.set_title(f"frame {frame}{when}", fontsize=7)
+        if points is not None:
+            marked = np.asarray(points[frame], dtype=float)
+            marked = marked[np.all(np.isfinite(marked), axis=1)]
+            ax.plot(*marked.T, "+", color="k", markersize=8, markeredgewidth=1.2)
     for ax in axes[len(shown) :]:
         ax.set_axis_off()
     figure.colorbar(artist, ax=list(axes), shrink=0.8, label=label)

@@ -1375,6 +1375,14 @@ def test_labels_in_another_frame_are_moved_onto_the_mesh_and_mapped_back(mixing_
     # to 10%).
     beyond = 3.0 * recording.mesh.nodes
     assert np.max(np.linalg.norm(moved.position_map(beyond) - offset, axis=1)) < 1.1 * scale
+    # `in_mesh_frame` takes the labels back onto the mesh, where the presses were made, as far as
+    # the frame was found (measured: at most 0.5% of the skin's radius off, and 1.3% for labels
+    # in the mesh's own frame); NaN stays NaN, and a curved skin's 3D points are left as they are.
+    for skin, points in ((moved, labels.centres), (calibrated, presses.centres)):
+        off = np.linalg.norm(skin.in_mesh_frame(points) - presses.centres, axis=1)
+        assert off.max() < 0.02, off.max()
+    np.testing.assert_array_equal(moved.in_mesh_frame(np.full((2, 3, 2), np.nan)), np.nan)
+    np.testing.assert_array_equal(moved.in_mesh_frame(np.ones((4, 3))), np.ones((4, 3)))
 
 
 def test_presses_that_raise_the_conductivity_set_the_touches_polarity():

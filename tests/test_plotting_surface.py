@@ -108,6 +108,14 @@ def test_an_image_strip_of_a_curved_skin_has_3d_panels(dome, tmp_path):
     np.testing.assert_array_equal(shown, [0, 1, 2])
     picture = matplotlib.image.imread(tmp_path / "strip.png")
     assert picture.shape[1] > 2 * picture.shape[0]
+    # Touches marked in 3D: points on the dome (NaN where a frame has fewer), drawn as +.
+    points = np.full((3, 2, 3), np.nan)
+    points[1:, 0] = mesh.element_centroids[np.argmax(image)]
+    marked = tmp_path / "marked.png"
+    plot_image_strip(marked, mesh, images, times=np.arange(3.0), title="dome", points=points)
+    assert np.abs(matplotlib.image.imread(marked) - matplotlib.image.imread(tmp_path / "strip.png")).max() > 0.1
+    with pytest.raises(ValueError, match=r"points have shape \(3, 2, 2\); expected \(3, K, 3\)"):
+        plot_image_strip(marked, mesh, images, points=points[..., :2])
 
 
 @dataclasses.dataclass

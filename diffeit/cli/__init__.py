@@ -20,6 +20,7 @@ from ._model import ModelSettings, _hyperparameter
 if TYPE_CHECKING:
     from ..io import Recording
     from ..mesh import Mesh
+    from ..touch import Touches
 
 
 def _demo(arguments: argparse.Namespace) -> int:
@@ -117,18 +118,25 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     chosen = f"auto: {chosen}" if hyperparameter == "auto" else chosen
     prior = "" if arguments.method in ("total_variation", "greit") else f" {arguments.prior}"  # they have none
     described = arguments.method.replace("_", " ") + prior
+    found = None
+    if arguments.touches:
+        from ..touch import touches
+
+        found = touches(reconstructed, skin)
     shown = plot_image_strip(
         outputs[0],
         mesh,
         images,
         times=reconstructed.times,
         max_panels=arguments.panels,
-        title=f"{source.name}: {described}, hyperparameter {value:.3g}; {quantity}",
+        title=f"{source.name}: {described}, hyperparameter {value:.3g}; {quantity}"
+        + ("; + the touches read" if found is not None else ""),
         label="dsigma / sigma" if relative else "dsigma (S/sq)",
+        points=None if found is None else (found.position if skin is None else skin.in_mesh_frame(found.position)),
     )
     io.write_frames(outputs[1], reconstructed, overwrite=arguments.overwrite)
-    if arguments.touches:
-        _report_touches(reconstructed, skin, outputs[2])
+    if found is not None:
+        _report_touches(reconstructed, found, outputs[2])
     calibration = metadata["calibration"]
     peak = images.flat[np.argmax(np.abs(images))]
     print(
@@ -176,14 +184,11 @@ def _reconstruct_file(arguments: argparse.Namespace) -> int:
     return 1 if metadata["frames_failed"] or map_failed else 0
 
 
-def _report_touches(reconstructed: Recording, calibration: Any, path: Path) -> None:
-    """Print every frame's touches (`diffeit.touches`, through the calibration's position map when
-    it has one) and write them to the CSV file `path`: a header, then one row per touch (frame,
-    time_s, count, touch, x_m, y_m (and z_m on a curved skin), radius_m, depth); a frame without
-    touches has no row."""
-    from ..touch import touches
-
-    found = touches(reconstructed, calibration)
+def _report_touches(reconstructed: Recording, found: Touches, path: Path) -> None:
+    """Print every frame's touches (`found`: `diffeit.touches` of the images, through the
+    calibration's position map when it has one) and write them to the CSV file `path`: a header,
+    then one row per touch (frame, time_s, count, touch, x_m, y_m (and z_m on a curved skin),
+    radius_m, depth); a frame without touches has no row."""
     axes = "xyz"[: found.position.shape[-1]]  # a curved skin's touches are points in 3D
     rows = ["frame,time_s,count,touch," + ",".join(f"{axis}_m" for axis in axes) + ",radius_m,depth"]
     for frame in range(reconstructed.n_frames):
@@ -406,7 +411,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="read the touches of every frame (diffeit.touches), print them frame by frame and write "
         "OUT.touches.csv: a header, then one row per touch: frame,time_s,count,touch,x_m,y_m,radius_m,depth "
-        "(metres; depth the peak relative change; a frame without touches has no row)",
+        "(metres; depth the peak relative change; a frame without touches has no row), and mark them with a + "
+        "on OUT.png",
     )
     reconstruct.add_argument("--overwrite", action="store_true", help="replace existing output files")
     reconstruct.set_defaults(run=reporting_user_errors("reconstruct", _reconstruct_file))
