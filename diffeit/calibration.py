@@ -4382,12 +4382,13 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
     sheet = level * np.exp(np.asarray(fit.terms) @ theta[1 + electrodes :])
     fitted = np.asarray(fit.readings(jnp.asarray(theta)))
     undetermined = tuple(f"background[{i}]" for i in np.flatnonzero(errors > _UNDETERMINED * _SHEET_PRIOR))
-    # The contacts' ln z (from the first stage's) moved with the map, their errors the joint fit's.
-    contact_values = {
+    # The level's ln c and the contacts' ln z (from the first stage's) moved with the map; the
+    # contacts' errors are the joint fit's.
+    moved_values = {
         "level": calibration.values["level"] + theta[0],
         "contact_impedance": calibration.values["contact_impedance"] + theta[1 : 1 + electrodes],
     }
-    contact_errors = {"contact_impedance": all_errors[1 : 1 + electrodes]}
+    moved_errors = {"contact_impedance": all_errors[1 : 1 + electrodes]}
     return eqx.tree_at(
         lambda c: (
             c.model,
@@ -4407,8 +4408,8 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
             float(level),
             sheet,
             contact,
-            {**calibration.values, **contact_values, "background": theta[1 + electrodes :]},
-            {**calibration.standard_errors, **contact_errors, "background": errors},
+            {**calibration.values, **moved_values, "background": theta[1 + electrodes :]},
+            {**calibration.standard_errors, **moved_errors, "background": errors},
             (*calibration.undetermined, *undetermined),
             {**calibration.fitted, "reference": (*calibration.fitted["reference"], "background_map")},
             _relative(data - fitted, data),
