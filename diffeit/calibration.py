@@ -2504,19 +2504,25 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
     times = recording.times
     if len(times) == 0:
         raise ValueError("presses need the recording's frames; the recording holds none")
-    step = frame_period(times)
-    late = (presses.times[:, 1] < times[0] - step) | (presses.times[:, 0] > times[-1] + step)
+    step, first, last = frame_period(times), times.min(), times.max()
+    late = (presses.times[:, 1] < first - step) | (presses.times[:, 0] > last + step)
     if late.any():
         raise ValueError(
             f"press(es) {name_indices(np.flatnonzero(late))} are outside the recording's time "
-            f"({times[0]:.3f} to {times[-1]:.3f} s)"
+            f"({first:.3f} to {last:.3f} s)"
         )
-    size = _skin_size(mesh)
-    outside = np.linalg.norm(presses.centres - mesh.nodes.mean(axis=0), axis=1) > 1.5 * size
+    size, middle = _skin_size(mesh), mesh.nodes.mean(axis=0)
+    outside = np.linalg.norm(presses.centres - middle, axis=1) > 1.5 * size
     if outside.any():
+        # Labels in millimetres on a skin meshed in metres (a thousandth of them spread over
+        # the skin and on it): said so, as the likeliest cause.
+        metres = presses.centres / 1000
+        spread = np.linalg.norm(metres - metres.mean(axis=0), axis=1).max()
+        millimetres = 0.05 * size < spread and np.all(np.linalg.norm(metres - middle, axis=1) <= 1.5 * size)
         raise ValueError(
             f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
             f"radius ({size:.3g} m) from its centre (centres are in metres, about the mesh's centre)"
+            + ("; in millimetres they lie on the skin: give their centres and radius in metres" if millimetres else "")
         )
 
 

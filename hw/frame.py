@@ -39,6 +39,7 @@ from __future__ import annotations
 import binascii
 import math
 import struct
+import time
 import zlib
 from dataclasses import dataclass
 
@@ -56,6 +57,16 @@ MAX_VALUES = 4096
 _HEADER = struct.Struct("<BBBBHIQf")
 _HEADER_CRC = struct.Struct("<H")
 _FRAME_CRC = struct.Struct("<I")
+
+# The Unix time at the monotonic clock's zero, taken once: host times are this plus the
+# monotonic clock, so a recording's times never step back when the wall clock is set back (NTP).
+_UNIX_AT_MONOTONIC_ZERO = time.time() - time.monotonic()
+
+
+def host_time() -> float:
+    """Now, seconds since the Unix epoch, from the monotonic clock: never earlier than before."""
+    return _UNIX_AT_MONOTONIC_ZERO + time.monotonic()
+
 
 LAYOUT_DECLARED = 0
 LAYOUT_ADJACENT = 1

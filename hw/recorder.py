@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -47,7 +46,7 @@ from diffeit.io import (
 )
 from diffeit.protocol import Protocol
 
-from .frame import Frame
+from .frame import Frame, host_time
 from .parser import DropStatistics
 
 _KINDS = tuple(field.name for field in dataclasses.fields(DropStatistics))
@@ -83,10 +82,12 @@ class Recorder:
         overwrite: bool = False,
         durable: bool = True,
     ) -> None:
+        if not isinstance(protocol, Protocol):
+            raise ValueError(f"protocol must be a diffeit.protocol.Protocol; got {type(protocol).__name__}")
         self.path = Path(path)
         self.protocol = protocol
         self.durable = durable
-        self.host_time_origin = time.time()
+        self.host_time_origin = host_time()
         self._metadata = {**(metadata or {}), "host_time_origin": self.host_time_origin, "recorder": "hw.Recorder"}
         n_meas = protocol.n_measurements
         write_frames(
@@ -134,7 +135,7 @@ class Recorder:
         if statistics is not None:
             self._statistics = statistics
         if batch:
-            now = time.time()
+            now = host_time()
             host_times = [now if f.host_time is None else f.host_time for f in batch]
             device_times = [np.nan if f.device_time is None else f.device_time for f in batch]
             rows = {

@@ -10,7 +10,7 @@ from typing import Any
 
 import serial
 
-from .frame import Frame
+from .frame import Frame, host_time
 from .parser import AbstractParser, BinaryParser, DropStatistics
 
 
@@ -38,7 +38,8 @@ class SerialSource:
     - `serial_options`: passed on to pyserial (bytesize, parity, rtscts, ...).
 
     `frames(max_frames=None, duration=None)` iterates over frames as they arrive, each with
-    `host_time` (seconds since the Unix epoch when the read that completed it returned);
+    `host_time` (seconds since the Unix epoch when the read that completed it returned, on
+    `hw.frame.host_time`'s clock, which never steps back);
     `run(callback, ...)` calls `callback(frame)` for each. Both end after `max_frames` frames,
     `duration` seconds or `stop()` (from another thread or the callback), and raise `DeviceLost`
     when the device is gone for good. Frames already parsed when an iteration ends are kept for
@@ -121,8 +122,8 @@ class SerialSource:
                 self._reconnect()
                 continue
             if data:
-                host_time = time.time()
-                self._pending.extend(replace(frame, host_time=host_time) for frame in self.parser.feed(data))
+                read_at = host_time()
+                self._pending.extend(replace(frame, host_time=read_at) for frame in self.parser.feed(data))
 
     def run(
         self, callback: Callable[[Frame], object], *, max_frames: int | None = None, duration: float | None = None

@@ -1326,7 +1326,11 @@ def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda p: de.io.Presses(p.centres + 5.0, p.radius, p.times[:, 0]), "outside the skin"),
+        (lambda p: de.io.Presses(p.centres + 5.0, p.radius, p.times[:, 0]), r"outside the skin: [^;]*\)$"),
+        (
+            lambda p: de.io.Presses(1000 * p.centres, 1000 * p.radius, p.times[:, 0]),
+            "outside the skin: .*; in millimetres they lie on the skin: give their centres and radius in metres",
+        ),
         (lambda p: de.io.Presses(p.centres, p.radius, p.times[:, 0] + 100.0), "outside the recording's time"),
     ],
 )

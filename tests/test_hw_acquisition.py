@@ -234,6 +234,8 @@ def test_source_and_emulator_refuse_bad_arguments(tmp_path):
     assert read_frames(tmp_path / "r.h5").n_frames == 0
     with pytest.raises(FileExistsError):
         hw.Recorder(tmp_path / "r.h5", adjacent(16))
+    with pytest.raises(ValueError, match=r"protocol must be a diffeit\.protocol\.Protocol; got int"):
+        hw.Recorder(tmp_path / "other.h5", 208)
 
 
 def test_fault_plans_are_seeded():
@@ -243,3 +245,21 @@ def test_fault_plans_are_seeded():
     counts = {kind: sum(f.kind == kind for f in plan) for kind in FAULTS}
     assert 15 <= counts["bit_flip"] <= 45 and 2 <= counts["disconnect"] <= 20
     assert all(0 <= f.offset < 864 and (f.kind != "dropped_bytes" or 1 <= f.size <= 16) for f in plan)
+
+
+def test_a_wall_clock_set_back_mid_recording_does_not_send_the_times_back(tmp_path, monkeypatch):
+    """Host times come from the monotonic clock: an NTP step back of the wall clock while frames
+    arrive leaves the recorded times in order (the calibration and the memory fit read them so)."""
+    values = ", ".join(["1.5"] * 208)
+    with (
+        hw.SerialSource("loop://", hw.TextParser(208), read_timeout=0.01) as source,
+        hw.Recorder(tmp_path / "run.h5", adjacent(16)) as recorder,
+    ):
+        source._serial.write(f"{values}\n".encode())
+        recorder.append(next(source.frames()))
+        monkeypatch.setattr(time, "time", lambda: 1e9)  # 2001: set back by decades
+        source._serial.write(f"{values}\n".encode())
+        recorder.append(next(source.frames()))
+        recorder.append(hw.Frame(np.full(208, 1.5)))  # no host time: the recorder's own clock
+    times = read_frames(tmp_path / "run.h5").times
+    assert len(times) == 3 and np.all(np.diff(times) >= 0) and times[-1] < 60

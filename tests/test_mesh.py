@@ -193,7 +193,7 @@ def test_disc_fraction_integrates_the_disc_area():
 @pytest.mark.parametrize("surface", [False, True], ids=["flat", "dome"])
 def test_exact_disc_fractions_are_what_sampling_tends_to_and_move_smoothly(surface):
     """`level=None`: the exact area, which the midpoint rule approaches as O(1/level) (measured:
-    2.4e-4 at level 200), 1 on a disc holding the whole mesh, the disc's area on the flat mesh to
+    5.5e-4 at level 100), 1 on a disc holding the whole mesh, the disc's area on the flat mesh to
     rounding, and a footprint that moves smoothly with its centre (sampled, it moves in steps of
     1/level^2)."""
     mesh = de.mesh.sphere_cap(1.0, 1.0, 8, 0.2) if surface else de.mesh.disc(h=0.1)
@@ -201,7 +201,9 @@ def test_exact_disc_fractions_are_what_sampling_tends_to_and_move_smoothly(surfa
     centres = mesh.element_centroids[rng.choice(mesh.n_elements, 5, replace=False)]
     radii = np.array([0.05, 0.1, 0.2, 0.3, 2.0])
     exact = de.mesh.disc_fractions(mesh, centres, radii, level=None).toarray()
-    assert np.abs(exact - de.mesh.disc_fractions(mesh, centres, radii, level=200).toarray()).max() < 1e-3
+    # The disc holding the mesh is left out of the fine sampling (its 1 is checked exactly below).
+    fine = de.mesh.disc_fractions(mesh, centres[:-1], radii[:-1], level=100).toarray()
+    assert np.abs(exact[:, :-1] - fine).max() < 1e-3
     assert np.abs(exact - de.mesh.disc_fractions(mesh, centres, radii).toarray()).max() > 5e-3  # level 8 differs
     np.testing.assert_allclose(exact[:, -1], 1.0, atol=1e-12)
     step = 1e-7 * np.eye(mesh.nodes.shape[1])[0]
