@@ -10,7 +10,7 @@ import diffeit as de
 from diffeit.scene import _touches
 from diffeit.scene._shapes import Disc, Ellipse, default_edge_width, shape_fraction
 from diffeit.scene._time_courses import Path, Press, Ramp
-from diffeit.scene._touches import Touch, check_touches, combine_changes, stimulus, touch_field
+from diffeit.scene._touches import Touch, check_touches, stimulus, touch_field
 
 CENTRE, RADIUS = np.array([0.23, -0.11]), 0.31  # off the mesh's symmetries, well inside the unit disc
 
@@ -217,11 +217,17 @@ def test_overlapping_touches_add_resistance(mesh):
     rho = -single / (1 + single)  # relative resistance change of one touch
     np.testing.assert_allclose(double, -2 * rho / (1 + 2 * rho), rtol=1e-13, atol=1e-16)
     assert double.min() == pytest.approx(-(2 * 0.7 / 0.3) / (1 + 2 * 0.7 / 0.3), abs=1e-9)  # -0.8235, not -1.4
-    # Symmetric and associative, and small changes simply add.
-    a, b, c = jnp.array(-0.3), jnp.array(-0.6), jnp.array(0.2)
-    assert combine_changes(a, b) == combine_changes(b, a)
-    assert combine_changes(combine_changes(a, b), c) == pytest.approx(float(combine_changes(a, combine_changes(b, c))))
-    assert combine_changes(1e-6, -2e-6) == pytest.approx(-1e-6, rel=1e-5)
+    # In any order, touches alike (computed together) or not, and small changes simply add.
+    first, third = (Touch(Disc(CENTRE, RADIUS), amplitude) for amplitude in (-0.3, 0.2))
+    second = Touch(Ellipse(CENTRE, (0.3, 0.15), 0.4), -0.6, Press(0.0, 1.0))
+    together = np.asarray(stimulus(mesh, [first, second, third], [0.5])[0])
+    np.testing.assert_allclose(stimulus(mesh, [third, second, first], [0.5])[0], together, rtol=1e-14, atol=1e-17)
+    a, b, c = (np.asarray(touch_field(mesh, touch, 0.5)) for touch in (first, second, third))
+    assert np.sum((np.abs(a) > 0.1) & (np.abs(b) > 0.1)) > 10  # the ellipse pressed, over the disc
+    ab = (a + b + 2 * a * b) / (1 - a * b)  # pairwise, twice
+    np.testing.assert_allclose(together, (ab + c + 2 * ab * c) / (1 - ab * c), rtol=1e-13, atol=1e-16)
+    small = [Touch(Disc(CENTRE, RADIUS), amplitude) for amplitude in (1e-6, -2e-6)]
+    assert float(stimulus(mesh, small, [0.0])[0].min()) == pytest.approx(-1e-6, rel=1e-5)
 
 
 def test_zero_amplitude_is_exactly_nothing(mesh):

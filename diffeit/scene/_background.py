@@ -4,6 +4,7 @@ function of position. Sheet conductivity in S/sq, lengths in metres."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import equinox as eqx
@@ -13,7 +14,7 @@ import numpy as np
 
 from .._arrays import concrete_floats, is_concrete
 from ..mesh import Mesh, element_sample_points
-from ._shapes import AbstractShape, covered_fraction, default_edge_width
+from ._shapes import AbstractShape, check_level, covered_fraction, default_edge_width
 from ._time_courses import ArrayLike, as_float
 
 
@@ -91,15 +92,12 @@ class Background(eqx.Module):
             ValueError: When a concrete element value is not positive and finite (naming the
                 first such element).
         """
-        points = element_sample_points(mesh, level)
-        if self.function is None:
-            values = jnp.broadcast_to(as_float(self.conductivity), (mesh.n_elements,))
-        else:
-            values = jnp.mean(jnp.asarray(self.function(jnp.asarray(points)), dtype=float), axis=1)
-        width = default_edge_width(mesh, level)
-        for region in self.regions:
-            fraction = covered_fraction(points, width, region.shape, region.edge_width, as_float(0.0))
-            values = values + fraction * (region.conductivity - values)
+        check_level(level)
+        function_values = None
+        if self.function is not None:  # called outside the program: it may be a NumPy function
+            points = jnp.asarray(element_sample_points(mesh, level))
+            function_values = jnp.mean(jnp.asarray(self.function(points), dtype=float), axis=1)
+        values = _values_on(self.conductivity, self.regions, function_values, mesh, level)
         if is_concrete(values):
             bad = np.flatnonzero(~(np.asarray(values) > 0))
             if bad.size:
@@ -108,6 +106,26 @@ class Background(eqx.Module):
                     f"{float(values[bad[0]])}"
                 )
         return values
+
+
+@partial(jax.jit, static_argnames=("mesh", "level"))
+def _values_on(
+    conductivity: ArrayLike,
+    regions: tuple[Region, ...],
+    function_values: jax.Array | None,
+    mesh: Mesh,
+    level: int,
+) -> jax.Array:
+    # One program: op by op, a polygon region's distances compiled some 20 programs for each mesh.
+    if function_values is None:
+        values = jnp.broadcast_to(as_float(conductivity), (mesh.n_elements,))
+    else:
+        values = function_values
+    points, width = element_sample_points(mesh, level), default_edge_width(mesh, level)
+    for region in regions:
+        fraction = covered_fraction(points, width, region.shape, region.edge_width, as_float(0.0))
+        values = values + fraction * (region.conductivity - values)
+    return values
 
 
 def _check_positive(value: Any, name: str, unit: str) -> None:

@@ -257,13 +257,20 @@ class Forward(eqx.Module):
             measure = jax.vmap(lambda sigma, z: self.model.potentials(sigma, z).electrode)
         else:
             measure = jax.vmap(self.model.measure)
+        count = len(conductivity)
+        if count > _SOLVES_PER_BATCH:
+            # The last batch padded with copies of the last state: every batch then has one shape,
+            # and the solves compile once, not again for the remainder.
+            padding = -count % _SOLVES_PER_BATCH
+            conductivity = jnp.concatenate([conductivity, jnp.repeat(conductivity[-1:], padding, axis=0)])
+            z = jnp.concatenate([z, jnp.repeat(z[-1:], padding, axis=0)])
         starts = range(0, len(conductivity), _SOLVES_PER_BATCH)
         bar = tqdm(
             starts, desc="forward solves", unit="batch", disable=True if len(starts) < 8 or not self.progress else None
         )
         return jnp.concatenate(
             [measure(conductivity[k : k + _SOLVES_PER_BATCH], z[k : k + _SOLVES_PER_BATCH]) for k in bar]
-        )
+        )[:count]
 
 
 class MixReadout(eqx.Module):

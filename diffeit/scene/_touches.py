@@ -12,10 +12,10 @@ with `fraction_e` in [0, 1] the part of element e under the footprint, smooth-ed
 ## Several touches
 Overlapping touches add their strains, and R = R0 (1 + GF strain) makes their relative
 resistance changes add: with rho_i = -a_i / (1 + a_i) the resistance change of stimulus a_i,
-the combined stimulus is a = -rho / (1 + rho), rho = sum_i rho_i. Pairwise,
-a (+) b = (a + b + 2 a b) / (1 - a b): exactly a where b = 0 (a touch whose field is 0 there,
-unpressed or of amplitude 0, changes nothing, bit for bit), a + b to first order (touches apart
-sum to rounding), and always above -1 for touches lowering the conductivity (two touches of -0.7
+the combined stimulus is a = -rho / (1 + rho), rho = sum_i rho_i (pairwise,
+a (+) b = (a + b + 2 a b) / (1 - a b)): a touch whose field is 0 somewhere (unpressed or of
+amplitude 0) changes nothing there, bit for bit; touches apart sum to rounding (a + b to first
+order); and the result stays above -1 for touches lowering the conductivity (two touches of -0.7
 on one spot give -0.82, not -1.4). Conductivity increases (a > 0) combine
 by the same rule; `stimulus` refuses those whose resistance drops could together reach 100%.
 
@@ -201,25 +201,6 @@ def project_to_surface(surface: tuple[str, float], points: ArrayLike) -> jax.Arr
     return points * scale
 
 
-def combine_changes(first: ArrayLike, second: ArrayLike) -> jax.Array:
-    """Two relative conductivity changes of overlapping touches, combined: (a + b + 2 a b) / (1 - a b).
-
-    Their relative resistance changes add (strains add; module docstring). Exactly `first`
-    where `second` is 0 and vice versa; symmetric and associative; above -1 whenever
-    1 - a b > 0 (always when neither is positive).
-
-    Arguments:
-        first: a, dsigma/sigma, > -1; any shape broadcasting with `second`.
-        second: b, dsigma/sigma, > -1.
-
-    Returns:
-        The combined dsigma/sigma, the broadcast shape.
-    """
-    a, b = as_float(first), as_float(second)
-    product = a * b
-    return (a + b + 2 * product) / (1 - product)
-
-
 def stimulus(
     mesh: Mesh,
     touches: Sequence[Touch],
@@ -230,10 +211,12 @@ def stimulus(
 ) -> jax.Array:
     """The stimulus of several touches: dsigma/sigma per frame and element.
 
-    Each touch's `touch_field`, overlaps combined by `combine_changes` in order (zeros without
-    touches). Pure JAX in the touches' parameters and the times (jit, grad and vmap work);
-    frames are mapped in batches (`jax.lax.map` with `batch_size`, vmap within a batch) so
-    memory stays bounded on long scenes.
+    Each touch's `touch_field`, overlaps combined as their relative resistance changes add
+    (module docstring; zeros without touches). Pure JAX in the touches' parameters and the
+    times (jit, grad and vmap work); frames are mapped in batches (`jax.lax.map` with
+    `batch_size`, vmap within a batch) so memory stays bounded on long scenes, and touches
+    alike (the same footprint and time course) in one vmapped program each, so compiling does
+    not grow with their number.
 
     Arguments:
         mesh: The skin's mesh.
@@ -277,20 +260,33 @@ def _stimulus(
     surface: tuple[str, float] | None,
 ) -> jax.Array:
     points, default_width = element_sample_points(mesh, level), default_edge_width(mesh, level)
+    groups = _stacked_alike(touches)
 
     def frame(t: jax.Array) -> jax.Array:
-        field = jnp.zeros(mesh.n_elements, dtype=jnp.result_type(float))
-        for index, touch in enumerate(touches):
-            change = _touch_field(points, default_width, touch, t, surface)
-            field = change if index == 0 else combine_changes(field, change)
-        return field
+        # The touches' relative resistance changes add (module docstring), a sum over each group.
+        resistance = jnp.zeros(mesh.n_elements, dtype=jnp.result_type(float))
+        for group in groups:
+            changes = jax.vmap(lambda touch: _touch_field(points, default_width, touch, t, surface))(group)
+            resistance = resistance + jnp.sum(-changes / (1 + changes), axis=0)
+        return -resistance / (1 + resistance)
 
     return jax.lax.map(frame, times, batch_size=batch)
 
 
+def _stacked_alike(touches: tuple[Touch, ...]) -> list[Touch]:
+    """The touches in groups of one structure (footprint and time course alike), each stacked
+    into one `Touch` of leading axis K_g, in order of their first touch: the stimulus maps a
+    group's fields in one program, so compiling it does not grow with the number of touches
+    (unrolled, 200 presses had taken 11 s to compile, 0.3 s to run)."""
+    groups: dict[jax.tree_util.PyTreeDef, list[Touch]] = {}
+    for touch in touches:
+        groups.setdefault(jax.tree_util.tree_structure(touch), []).append(touch)
+    return [jax.tree.map(lambda *leaves: jnp.stack(leaves), *group) for group in groups.values()]
+
+
 def _check_increases(touches: tuple[Touch, ...]) -> None:
     """Refuse conductivity increases that, pressed at once, lower the resistance by 100% or more
-    together (`combine_changes` then leaves the conductivity positive nowhere they overlap). A
+    together (their combination then leaves the conductivity positive nowhere they overlap). A
     touch whose envelope is a `Press` is pressed from its start to its end only (presses one
     after another never add up); any other, always."""
     increases = []  # (start, end, amplitude) of each increase
