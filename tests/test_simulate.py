@@ -160,6 +160,17 @@ def test_memory_truth_is_the_integrated_response(plain):
     assert np.all(response[8][stimulus[4] < -0.29] < -0.01)
 
 
+def test_more_states_than_a_batch_of_solves_are_each_solved_once():
+    """Memory makes every frame from the press on a state of its own: 2.5 s at 10 Hz is 24
+    states (the reference and the two frames before the press one), two batches of 16 solves,
+    the second padded (one shape, one compilation); every frame is its own state's voltages."""
+    simulation = de.simulate(scene_with(de.scene.bare_skin(), duration=2.5), progress=False)
+    assert simulation.solves == 24 and simulation.frames.shape == (25, 208)
+    model = de.ForwardModel(simulation.mesh, de.protocol.adjacent(16), contact_impedance=0.01)
+    expected = jax.vmap(model.measure)(simulation.truth)
+    np.testing.assert_allclose(np.asarray(simulation.frames), np.asarray(expected), rtol=1e-12)
+
+
 def test_noise_has_the_declared_level():
     static = scene_with(touches=(), duration=20.0)
     exact = de.simulate(static)
