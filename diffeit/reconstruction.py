@@ -67,18 +67,9 @@ from tqdm.auto import tqdm
 from ._messages import name_indices
 from ._threads import host_algebra
 from .calibration import (
-    _LEAST_CORRELATION,
-    _NOISE_FRAMES,
-    _SKIN_LEAST_CORRELATION,
-    _UNCERTAIN_SIGN,
     CalibrationWarning,
     DrivenReadings,
     SkinCalibration,
-    _drift_note,
-    _glitched,
-    _refine_to_reference,
-    _rms,
-    _with,
     auto_hyperparameter,
     calibrate_to_reference,
     calibrated_reference_frames,
@@ -86,6 +77,10 @@ from .calibration import (
     drift_corrected,
     reference_frames,
 )
+from .calibration._frames import _NOISE_FRAMES, _drift_note, _glitched
+from .calibration._held_out import _SKIN_LEAST_CORRELATION
+from .calibration._reference import _LEAST_CORRELATION, _UNCERTAIN_SIGN, _rms, _with
+from .calibration._refine import _refine_to_reference
 from .fit import JointImaging
 from .fit import background as fit_background
 from .forward import ForwardModel

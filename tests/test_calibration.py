@@ -24,9 +24,20 @@ from skin_sessions import (
 )
 
 import diffeit as de
-from diffeit import calibration as calibration_module
 from diffeit import touch as touch_module
-from diffeit.calibration import PositionMap, SizeMap
+from diffeit.calibration import (
+    PositionMap,
+    SizeMap,
+    _background,
+    _calibrate,
+    _frames,
+    _held_out,
+    _press_fit,
+    _presses,
+    _reference,
+    _refine,
+    _skin,
+)
 from diffeit.inverse import OneStep
 
 
@@ -297,8 +308,8 @@ def test_a_frame_whose_readings_a_board_moved_along_is_damaged_and_read_as_no_to
     frames[untouched] = np.roll(frames[untouched], 1)
     frames[touched, 100:] = np.roll(frames[touched], -1)[100:]
     moved = [untouched, touched]
-    assert np.flatnonzero(calibration_module._damaged(frames)).tolist() == moved
-    assert np.flatnonzero(calibration_module._damaged(recording.frames)).tolist() == []
+    assert np.flatnonzero(_frames._damaged(frames)).tolist() == moved
+    assert np.flatnonzero(_frames._damaged(recording.frames)).tolist() == []
     images = de.reconstruct(dataclasses.replace(recording, frames=frames), progress=False)
     assert images.provenance["metadata"]["damaged_frames"] == moved
     found, clean = de.touches(images), de.touches(de.reconstruct(recording, progress=False))
@@ -329,7 +340,7 @@ def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibrat
     assert np.all(np.isnan(skin.press_errors[[5, 7]])) and np.all(np.isnan(skin.press_positions[[5, 7]]))
     # A clock of whole seconds repeats its times: no period to tell a lost frame by, none told.
     coarse = dataclasses.replace(session, times=np.floor(session.times))
-    _, notes = calibration_module._presses_left_out(presses.select(np.arange(22)), coarse)
+    _, notes = _calibrate._presses_left_out(presses.select(np.arange(22)), coarse)
     assert not any("no frame lies" in note for note in notes), notes
     assert np.isfinite(np.delete(skin.press_errors, [5, 7])).sum() >= 18 and skin.press_positions.shape == (22, 2)
     assert not any("correlation with the reference" in w for w in skin.warnings), skin.warnings
@@ -630,7 +641,7 @@ def test_presses_that_pass_for_untouched_among_presses_one_after_another_are_no_
         return de.io.Recording(frames=values, times=0.1 * np.arange(len(values)), protocol=PROTOCOL)
 
     together = np.concatenate([reference, pressed])
-    drift = calibration_module._DriftReference.of(reference)
+    drift = _frames._DriftReference.of(reference)
     still = drift.untouched(together, drift.gains(together))
     np.testing.assert_array_equal(still[20:], weak)  # the weak presses pass for untouched
     assert de.calibration.drift_corrected(recording(together), reference)[1] is None
@@ -686,7 +697,7 @@ def test_presses_determine_the_readouts_mixing(calibrated):
     points = calibrated.electrode_points
     np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=0.01)
     nominal = dataclasses.replace(
-        calibrated, electrode_centres=calibration_module._electrode_centres(calibrated.model.mesh)
+        calibrated, electrode_centres=_skin._electrode_centres(calibrated.model.mesh)
     ).electrode_points
     turn = np.angle(np.exp(1j * (np.arctan2(points[:, 1], points[:, 0]) - np.arctan2(nominal[:, 1], nominal[:, 0]))))
     shift = calibrated.values["electrode_positions"]
@@ -830,13 +841,13 @@ def test_a_faint_press_among_a_recordings_first_frames_is_left_out_of_its_refere
     recording, presses = mixing_skin.recording, mixing_skin.presses
     pressed = np.array([frames[0] for frames in presses.frames(recording.times)])
     own = np.concatenate([recording.frames[: UNTOUCHED - 1], recording.frames[pressed[12]][None]])
-    monkeypatch.setattr(calibration_module, "reference_frames", lambda recording: (own, "the own frames"))
-    frames, source, count = calibration_module.calibrated_reference_frames(recording, calibrated)
+    monkeypatch.setattr(_frames, "reference_frames", lambda recording: (own, "the own frames"))
+    frames, source, count = _frames.calibrated_reference_frames(recording, calibrated)
     np.testing.assert_array_equal(frames, recording.frames[: UNTOUCHED - 1])
     assert count == UNTOUCHED - 1
     assert source == "the own frames, but 1 that look touched against the calibration's reference"
-    monkeypatch.setattr(calibration_module, "reference_frames", lambda recording: (own[-4:], "the own frames"))
-    frames, source, count = calibration_module.calibrated_reference_frames(recording, calibrated)
+    monkeypatch.setattr(_frames, "reference_frames", lambda recording: (own[-4:], "the own frames"))
+    frames, source, count = _frames.calibrated_reference_frames(recording, calibrated)
     assert source.startswith(f"the {count} frames of the first ones within the noise") and count >= UNTOUCHED
     assert not any((frames == recording.frames[p]).all(axis=1).any() for p in pressed), "a pressed frame kept"
 
@@ -999,13 +1010,13 @@ def test_the_presses_groups_standard_errors_are_raised_to_their_spread_over_the_
             for s in signs
         ]
 
-    raised = calibration_module._with_fold_spread(calibrated, folds(3.0))
+    raised = _held_out._with_fold_spread(calibrated, folds(3.0))
     np.testing.assert_allclose(raised.standard_errors["electrode_positions"], 3.0 * positions)
     np.testing.assert_array_equal(raised.standard_errors["mixing"], errors["mixing"])  # the folds agree on it
-    kept = calibration_module._with_fold_spread(calibrated, folds(0.5))
+    kept = _held_out._with_fold_spread(calibrated, folds(0.5))
     np.testing.assert_array_equal(kept.standard_errors["electrode_positions"], positions)
     for fewer in (folds(3.0)[:4], [{"mixing": f["mixing"]} for f in folds(3.0)]):
-        same = calibration_module._with_fold_spread(calibrated, fewer)
+        same = _held_out._with_fold_spread(calibrated, fewer)
         np.testing.assert_array_equal(same.standard_errors["electrode_positions"], positions)
 
 
@@ -1024,13 +1035,13 @@ def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_
     mixing = de.calibrate(recording, presses.select(np.arange(20)), press_groups=("mixing",))
     assert mixing.fitted["presses"] == ("mixing", "press depths")
     assert not any(w.startswith("the presses' fit") for w in mixing.warnings)
-    reference_only = calibration_module._too_few_to_hold_out(mixing, ())  # any other calibration
+    reference_only = _held_out._too_few_to_hold_out(mixing, ())  # any other calibration
     held_out = np.linspace(0.01, 0.02, 20)
-    kept = calibration_module._kept_if_it_generalises(mixing, reference_only, held_out, held_out + 0.001)
+    kept = _held_out._kept_if_it_generalises(mixing, reference_only, held_out, held_out + 0.001)
     assert kept.fitted == mixing.fitted and np.array_equal(kept.press_errors, held_out)
     closer = np.where(np.arange(20) < 16, held_out - 0.002, held_out + 0.001)
     closer[0] = np.nan  # not read: the farthest (15 closer, 5 farther: p = 0.021)
-    refused = calibration_module._kept_if_it_generalises(mixing, reference_only, held_out, closer)
+    refused = _held_out._kept_if_it_generalises(mixing, reference_only, held_out, closer)
     assert refused.warnings[:-1] == reference_only.warnings
     pattern = r"read 15\.0 mm off \(median\) against 13\.5 mm .* 15 of them closer and 5 farther \(sign test p = 0\.021"
     assert re.search(pattern, refused.warnings[-1]), refused.warnings[-1]
@@ -1040,7 +1051,7 @@ def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_
     # Its sheet is uniform: a background map reads as many presses closer as farther, and goes.
     assert calibrated.background_map is None
     assert any(w.startswith("the background map") and "sign test" in w for w in calibrated.warnings)
-    found, *_ = calibration_module._read_presses(
+    found, *_ = _presses._read_presses(
         calibrated,
         recording,
         presses.select(np.arange(20, 30)),
@@ -1056,14 +1067,14 @@ def test_the_default_keeps_the_positions_unless_the_mixing_alone_reads_held_out_
     """Of the default sets, the fuller (last) is kept unless a smaller one reads significantly
     more of the held-out presses closer (one-sided sign test, p < 0.05; a press not read counts
     as the farthest): a lower median alone does not choose."""
-    fit = calibration_module._PressFit
+    fit = _held_out._PressFit
     held_out = np.linspace(0.010, 0.030, 20)
     positions = fit(None, held_out, 0.1, ("mixing", "electrode_positions"))
 
     def mixing(errors):
         return fit(None, errors, 0.2, ("mixing",))
 
-    chose = calibration_module._fullest_unless_beaten
+    chose = _held_out._fullest_unless_beaten
     # 11 of 20 closer, 9 farther, the median lower: p = 0.41, the positions stay.
     nearer = held_out + np.where(np.arange(20) % 2 == 0, -0.004, 0.001)
     nearer[1] -= 0.002
@@ -1132,15 +1143,15 @@ def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_ref
     frames[16:] += 0.05 * rng.uniform(0.0, 1.0, 50)
     presses = de.io.Presses(np.zeros((2, 2)), 0.1, times[[15, 25]])
     at_rest, noise = frames[:10].mean(axis=0), frames[:10].std(axis=0, ddof=1)
-    changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
+    changes = _presses._press_changes(frames, at_rest, presses, times, noise, 10)
     np.testing.assert_array_equal(changes[0], frames[15] - at_rest)
     np.testing.assert_allclose(changes[1], frames[25] - frames[22:25].mean(axis=0), rtol=1e-12, atol=1e-12)
     garbled = frames.copy()
     garbled[23] = np.roll(garbled[23], 1)
-    changes = calibration_module._press_changes(garbled, at_rest, presses, times, noise, 10)
+    changes = _presses._press_changes(garbled, at_rest, presses, times, noise, 10)
     expected = garbled[25] - garbled[[21, 22, 24]].mean(axis=0)
     np.testing.assert_allclose(changes[1], expected, rtol=1e-12, atol=1e-12)
-    unknown = calibration_module._press_changes(frames, at_rest, presses, times, None, 10)
+    unknown = _presses._press_changes(frames, at_rest, presses, times, None, 10)
     np.testing.assert_array_equal(unknown, frames[[15, 25]] - at_rest)
 
 
@@ -1161,7 +1172,7 @@ def test_a_press_is_read_against_the_frames_before_it_that_no_press_changes():
     holds = de.io.Presses(np.zeros((2, 2)), 0.1, times[[[14, 18], [28, 32]]])
     for presses in (instants, holds):
         first, second = (frames[chosen].mean(axis=0) for chosen in presses.frames(times))
-        changes = calibration_module._press_changes(frames, at_rest, presses, times, noise, 10)
+        changes = _presses._press_changes(frames, at_rest, presses, times, noise, 10)
         np.testing.assert_allclose(changes[0], first - at_rest, rtol=1e-12, atol=1e-12)
         expected = second - frames[[23, 24, 27]].mean(axis=0)
         np.testing.assert_allclose(changes[1], expected, rtol=1e-12, atol=1e-12)
@@ -1200,16 +1211,16 @@ def test_the_size_map_recovers_gains_that_vary_over_the_sheet_and_holds_them_bey
 def test_a_size_map_the_presses_cannot_give_is_said_and_not_made(mixing_skin, calibrated, monkeypatch):
     """Model depths of the other sign than every press's read depth (a model that contradicts
     its presses): the calibration says why it has no size map, and is made."""
-    press_depths = calibration_module._press_depths
+    press_depths = _presses._press_depths
 
     def contradicted(*arguments):
         dv, depths, bends = press_depths(*arguments)
         return dv, -depths, bends
 
-    monkeypatch.setattr(calibration_module, "_press_depths", contradicted)
+    monkeypatch.setattr(_calibrate, "_press_depths", contradicted)
     unsized = eqx.tree_at(lambda c: c.size_map, calibrated, None, is_leaf=lambda node: node is None)
     recording = mixing_skin.recording
-    again = calibration_module._with_size_map(
+    again = _calibrate._with_size_map(
         unsized, recording, mixing_skin.presses.select(np.arange(20)), recording.frames[:UNTOUCHED]
     )
     assert again.size_map is None
@@ -1556,13 +1567,11 @@ def test_press_depths_for_the_memory_fit_leave_out_what_earlier_presses_left(coa
     to 0 or below, and `de.calibrate` raised from inside the forward model on a benchmark skin
     pressed once a second."""
     _, held, patterns, _, clean = _rapid_presses(coarse_model, 0)
-    before = calibration_module._before(held)
+    before = _presses._before(held)
     assert np.all(before.sum(axis=0) >= 2) and not np.any(before & held)
-    depths, _ = calibration_module._depths_and_bends(coarse_model, 1.0, patterns, clean - clean[0], held, before)
+    depths, _ = _presses._depths_and_bends(coarse_model, 1.0, patterns, clean - clean[0], held, before)
     np.testing.assert_allclose(depths, -0.3, atol=0.05)
-    deep, bends = calibration_module._depths_and_bends(
-        coarse_model, 1.0, patterns, 4 * (clean - clean[0]), held, before
-    )
+    deep, bends = _presses._depths_and_bends(coarse_model, 1.0, patterns, 4 * (clean - clean[0]), held, before)
     assert np.all(deep >= -0.9) and np.all(1 + bends * deep > 0), (deep, bends)
 
 
@@ -1687,7 +1696,7 @@ def test_a_domes_presses_are_points_on_its_surface_and_mapped_along_it(tmp_path,
     # A fit that takes the model under the correlation at which the frames' calibrated differences
     # are imaged is refused by name (kept, such a fit's presses, read at the normalised differences
     # `de.reconstruct` then took, had been 140 mm off): here with that correlation raised to 0.9999.
-    monkeypatch.setattr(calibration_module, "_SKIN_LEAST_CORRELATION", 0.9999)
+    monkeypatch.setattr(_held_out, "_SKIN_LEAST_CORRELATION", 0.9999)
     positions = ("mixing", "electrode_positions")
     refused = de.calibrate(recording, presses.select(np.arange(25)), reference_groups=groups, press_groups=positions)
     (note,) = [w for w in refused.warnings if "electrode_positions" in w]
@@ -1711,16 +1720,16 @@ def test_the_presses_mixing_and_depths_are_solved_together_and_an_unconverged_so
     truth, depths = rng.normal(scale=0.1, size=count), rng.uniform(0.5, 1.5, presses)
     differences = depths[:, None] * (base + columns @ truth)
     basis, weights = np.zeros((count, readings, electrodes)), np.zeros((readings, electrodes))
-    linear = calibration_module._BilinearPresses(
+    linear = _press_fit._BilinearPresses(
         differences, base, columns, basis, weights, np.ones((readings, electrodes)), False
     )
-    solve = calibration_module._mixing_and_depths
+    solve = _press_fit._mixing_and_depths
     mixing, depth, sign, curvature, residual, step = solve(linear, np.zeros(count), 1e3)
     np.testing.assert_allclose(mixing, truth, atol=1e-9)
     np.testing.assert_allclose(depth, depths, rtol=1e-9)
     assert np.all(sign == 1) and step < 1e-6 and np.max(np.abs(residual)) < 1e-9
     assert curvature.shape == (count, count) and np.all(np.linalg.eigvalsh(curvature) > 0)
-    monkeypatch.setattr(calibration_module, "_PRESS_ROUNDS", 1)
+    monkeypatch.setattr(_press_fit, "_PRESS_ROUNDS", 1)
     *_, step = solve(linear, np.zeros(count), 1e3)
     assert step > 1e-6
 
@@ -1738,10 +1747,10 @@ def test_the_presses_mixing_steps_are_halved_where_a_full_step_overshoots():
         basis = rng.normal(size=(count, readings, electrodes))
         base, columns = rng.normal(size=(presses, readings)), rng.normal(size=(presses, readings, count))
         truth, depths = rng.normal(scale=0.3, size=count), rng.uniform(0.5, 1.5, presses)
-        sign = calibration_module._signs(weights + np.einsum("p,pml->ml", truth, basis), potentials, True)
+        sign = _press_fit._signs(weights + np.einsum("p,pml->ml", truth, basis), potentials, True)
         differences = depths[:, None] * sign * (base + columns @ truth)
-        linear = calibration_module._BilinearPresses(differences, base, columns, basis, weights, potentials, True)
-        mixing, *_ = calibration_module._mixing_and_depths(linear, np.zeros(count), 1.0)
+        linear = _press_fit._BilinearPresses(differences, base, columns, basis, weights, potentials, True)
+        mixing, *_ = _press_fit._mixing_and_depths(linear, np.zeros(count), 1.0)
         found += np.max(np.abs(mixing - truth)) < 1e-6
     assert found >= 32
 
@@ -1759,10 +1768,10 @@ def test_a_gain_per_reading_is_fitted_with_the_presses_mixing_and_depths():
     gains = np.exp(rng.uniform(-0.2, 0.2, readings))
     differences = gains * depths[:, None] * (base + columns @ truth)
     basis, weights = np.zeros((count, readings, electrodes)), np.zeros((readings, electrodes))
-    linear = calibration_module._BilinearPresses(
+    linear = _press_fit._BilinearPresses(
         differences, base, columns, basis, weights, np.ones((readings, electrodes)), False
     )
-    solve = calibration_module._mixing_depths_and_gains
+    solve = _press_fit._mixing_depths_and_gains
     mixing, depth, _, _, residual, _, log_gain, errors = solve(linear, np.zeros(count), 1e3, 0.2, np.zeros(readings))
     true_log_gain = np.log(gains) - np.log(gains).mean()
     np.testing.assert_allclose(log_gain, true_log_gain, atol=1e-6)
@@ -1963,13 +1972,13 @@ def test_a_presses_fit_that_contradicts_the_reference_is_not_kept_and_stops_noth
     set of groups tried says so)."""
 
     def contradicted(*arguments, **options):
-        raise calibration_module._ContradictsReference(calibration_module._CONTRADICTS)
+        raise _press_fit._ContradictsReference(_press_fit._CONTRADICTS)
 
-    monkeypatch.setattr(calibration_module, "_fit_presses", contradicted)
+    monkeypatch.setattr(_held_out, "_fit_presses", contradicted)
     calibration = de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(20)), background_map=False)
     assert calibration.fitted["presses"] == () and calibration.position_map is not None
     notes = [w for w in calibration.warnings if w.startswith("the presses' fit")]
-    assert len(notes) == len(calibration_module.PRESS_GROUP_CHOICES)
+    assert len(notes) == len(de.calibration.PRESS_GROUP_CHOICES)
     assert all(note.endswith("anti-correlate with the recorded ones") for note in notes)
 
 
@@ -1978,7 +1987,8 @@ def test_a_background_map_the_reference_does_not_determine_is_not_made(monkeypat
     zero): asked for, no map is made, and a note says why."""
     from diffeit.readout import Readout
 
-    monkeypatch.setattr(calibration_module, "_UNDETERMINED", 0.0)
+    for module in (_refine, _press_fit, _background):  # each module that reads it, as it reads it
+        monkeypatch.setattr(module, "_UNDETERMINED", 0.0)
     skin = skin_session(4, lambda rng: Readout(PROTOCOL), n_presses=0)
     calibration = de.calibrate(skin.recording, background_map=True)
     assert calibration.background_map is None and "background_map" not in calibration.fitted["reference"]
@@ -1999,8 +2009,8 @@ def test_the_refinements_closed_form_jacobian_equals_forward_differentiation(mag
     rng = np.random.default_rng(0)
     protocol = de.protocol.opposite(16) if magnitude else de.protocol.adjacent(16)
     nominal = de.ForwardModel(de.mesh.disc(16, h=0.2), protocol, 0.02)
-    model = calibration_module._with(nominal, protocol, np.full(16, 0.02), 0.03)
-    fit = calibration_module._ReadoutFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)), magnitude)
+    model = _reference._with(nominal, protocol, np.full(16, 0.02), 0.03)
+    fit = _refine._ReadoutFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)), magnitude)
     size = 1 + 16 + 2 + 16 + protocol.n_drives + len(protocol.measure_patterns) + 2 * 16
     theta = jnp.asarray(rng.normal(0, 0.05, size))
     free = np.ones(size, bool)
@@ -2008,7 +2018,7 @@ def test_the_refinements_closed_form_jacobian_equals_forward_differentiation(mag
     closed = fit.jacobian(theta, free)
     forward = np.zeros_like(closed)
     index = np.flatnonzero(free)
-    forward[:, index] = np.asarray(calibration_module._readings_jacobian(fit, theta, jnp.asarray(index)))
+    forward[:, index] = np.asarray(_refine._readings_jacobian(fit, theta, jnp.asarray(index)))
     np.testing.assert_allclose(closed, forward, rtol=0, atol=1e-12 * np.max(np.abs(forward)))
     assert np.all(closed[:, ~free] == 0) and np.count_nonzero(closed[:, 1:17]) > 0
 
@@ -2019,9 +2029,9 @@ def test_the_background_maps_adjoint_jacobian_equals_forward_differentiation():
     point, every column alive."""
     rng = np.random.default_rng(1)
     model = de.ForwardModel(de.mesh.disc(16, h=0.2), PROTOCOL, 0.02)
-    fit = calibration_module._SheetFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)))
+    fit = _background._SheetFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)))
     theta = jnp.asarray(rng.normal(0, 0.1, 1 + 16 + fit.terms.shape[1]))
-    adjoint = np.asarray(calibration_module._sheet_jacobian(fit, theta))
-    forward = np.asarray(jax.jacfwd(lambda parameters: calibration_module._sheet_readings(fit, parameters))(theta))
+    adjoint = np.asarray(_background._sheet_jacobian(fit, theta))
+    forward = np.asarray(jax.jacfwd(lambda parameters: _background._sheet_readings(fit, parameters))(theta))
     np.testing.assert_allclose(adjoint, forward, rtol=0, atol=1e-12 * np.max(np.abs(forward)))
     assert np.all(np.any(adjoint != 0, axis=0))

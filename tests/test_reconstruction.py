@@ -9,6 +9,7 @@ import pytest
 
 import diffeit as de
 from diffeit.calibration import CalibrationWarning, calibrate_to_reference
+from diffeit.calibration._reference import _driven, _uses
 from diffeit.results import SolverError
 
 jax.config.update("jax_enable_x64", True)
@@ -225,7 +226,7 @@ def test_readings_on_driven_electrodes_are_kept_through_a_fitted_contact_impedan
 
     # Driven readings the model cannot reproduce (another instrument's convention) are dropped.
     mangled = np.array(recording.frames)
-    driven = np.flatnonzero(de.calibration._driven(protocol))
+    driven = np.flatnonzero(_driven(protocol))
     mangled[:, driven] = np.roll(mangled[:, driven], 1, axis=1)
     reference = np.array(recording.reference)
     reference[driven] = np.roll(reference[driven], 1)
@@ -245,7 +246,7 @@ def test_broken_readings_and_a_broken_electrode_are_masked_and_reported(adjacent
     reference[[40, 41]] = frames[:, [40, 41]] = 50 * largest  # a saturated rail
     reference[100] *= 4.0  # a wrong gain
     electrode = 7
-    uses = de.calibration._uses(protocol, np.arange(16) == electrode)
+    uses = _uses(protocol, np.arange(16) == electrode)
     noise = np.random.default_rng(5).normal(0, largest, (5, uses.sum()))
     reference[uses], frames[:, uses] = noise[0], noise[1:]  # a loose electrode
     result, caught = _reconstruct(

@@ -173,7 +173,7 @@ def _undamaged(reference: np.ndarray) -> np.ndarray:
     first frame after it connects: `diffeit.calibration`'s test, of 3 frames or more), which
     are said."""
     from .._messages import name_indices
-    from ..calibration import _damaged
+    from ..calibration._frames import _damaged
 
     damaged = _damaged(reference)
     if damaged.any():
@@ -570,7 +570,7 @@ class _LiveViewer:
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
         if self.touches:
-            from ..calibration import _glitched
+            from ..calibration._frames import _glitched
 
             # As `diffeit.reconstruct` and `diffeit.touches`: a board's glitch is not read (and
             # is passed over by the anchors).

@@ -1,0 +1,718 @@
+"""The frames a calibration stands on: a recording's untouched reference frames (`reference_frames`,
+`calibrated_reference_frames`), the frames a board damaged (`_damaged`, `_glitched`), and the
+common gain's drift taken out of a recording (`drift_corrected`) or of a stream (`LiveDrift`),
+the rests told from the presses by their gains.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import numpy as np
+import scipy.stats
+from numpy.typing import ArrayLike
+
+from .._arrays import frame_period
+from .._messages import name_indices
+from .._threads import host_algebra
+from ..io import Presses, Recording
+from ..touch import DETECTION, _noise_test, _statistic, touch_subspace
+from ._skin import SkinCalibration
+
+# A recording without a reference is calibrated on the mean of at most this many first frames;
+# a session without presses on those of its first _SESSION_FRAMES that look untouched.
+REFERENCE_FRAMES, _SESSION_FRAMES = 5, 200
+
+
+# `_within_noise_of` follows the untouched trend out from the first run in at most this many passes.
+_TREND_PASSES = 6
+
+
+# A frame whose difference from the frames about it (`_DAMAGE_REACH` each side) exceeds this
+# fraction of their norm is damaged, not touched (a board's glitch: a frame of zeros, one at
+# another gain, readings out of order): never a reference frame; `diffeit.reconstruct` chooses
+# the "auto" hyperparameter without a frame whose differences exceed it, and `diffeit.touches`
+# reads no touch there (a press changes the readings by a few percent).
+_LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
+
+
+# A frame whose readings, moved up to _MOVED_PLACES places along from some reading on, lie within
+# _MOVED_FIT of its distance from the frames about it is damaged (`_readings_moved`).
+_MOVED_PLACES, _MOVED_FIT = 2, 0.5
+
+
+# A recording's first frames that look touched are left out of its reference when they are at
+# most this many (a board's first frames after it connects; `reference_frames`).
+_LEADING_DAMAGED = 2
+
+
+_DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift_corrected`)
+
+
+_DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
+
+
+# Runs of untouched frames shorter than this among touched ones are rests only when their gains
+# stand apart from the presses beside them as a rest's do, where a press moves the gain by more
+# than this many times a gain's noise (`_rests_not_presses`).
+_LONG_REST, _PRESS_PART = 5, 4.0
+
+
+_LEAST_NEAR = 3  # touched frames near untouched ones that tell a press's part of the common gain (`drift_corrected`)
+
+
+_DRIFT_CHANCE = 1e-6  # the chance that the reference's own jitter passes for a drift (`drift_corrected`)
+
+
+_ROUND_OFF = 1e-12  # a reading's spread under this fraction of its value is round-off, not noise (`drift_corrected`)
+
+
+_LIVE_DRIFT_ERRORS = 3.0  # a stream's running gain is taken out beyond this many standard errors from 1 (`LiveDrift`)
+
+
+# The fewest reference frames whose spread gives the readings' noise (the touch test needs 5 degrees of freedom).
+_NOISE_FRAMES = 6
+
+
+def reference_frames(
+    recording: Recording,
+    reference_frame: int | None = None,
+    presses: Presses | None = None,
+    *,
+    every_frame: bool = False,
+) -> tuple[np.ndarray, str]:
+    """The frames a recording's model is calibrated on, and where they come from.
+
+    The recording's reference; else its frame `reference_frame`; else, with presses, the
+    frames before the first press (or, when there are none, those outside every hold) that
+    look untouched (`_untouched`, when more than `REFERENCE_FRAMES`: the presses labelled may
+    be some of the session's, the others kept to test on); else
+    the recording's first frames up to the first that looks touched (`_untouched`, among the
+    first `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames), however few; when its
+    first `_LEADING_DAMAGED` frames or fewer look touched (damaged), the untouched run after
+    them; when more do, those (the untouched trend is the frames' median, and most of such a
+    recording is one long press); the first `REFERENCE_FRAMES` when the recording holds no
+    more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched and
+    lies within the noise of the first untouched run, `_within_noise_of`). A
+    frame that looks damaged (`_damaged`: a frame of zeros, one at another gain) is never one
+    of them, of 3 frames or more.
+
+    Arguments:
+        recording: The recording.
+        reference_frame: A frame to use instead of the recording's reference.
+        presses: The session's labelled presses, if any.
+        every_frame: Without a reference or presses, take every frame of the first ones that
+            looks untouched (a session; `_within_noise_of`), not just the first run.
+
+    Returns:
+        (T, M) the reference frames, and a description of them.
+    """
+    if recording.reference is not None or reference_frame is not None:
+        source = "recording" if reference_frame is None else f"frame {reference_frame}"
+        return np.atleast_2d(recording.reference_values(reference_frame)), source
+    if presses is not None:
+        # The labelled presses may be some of the session's (the rest kept to test on): the
+        # frames outside them are the untouched ones among them.
+        before = recording.times < presses.times[:, 0].min()
+        if before.any():
+            return _looking_untouched(recording.frames[before], recording.times[before], "before the first press")
+        pressed = np.zeros(recording.n_frames, bool)
+        for frames in presses.frames(recording.times):
+            pressed[frames] = True
+        if (~pressed).any():
+            return _looking_untouched(recording.frames[~pressed], recording.times[~pressed], "outside the presses")
+    if recording.n_frames > REFERENCE_FRAMES:
+        session, session_times = recording.frames[:_SESSION_FRAMES], recording.times[:_SESSION_FRAMES]
+        still = _untouched(session, session_times)
+        # Only the first run: a light press later on can pass for untouched. A run shorter than
+        # `REFERENCE_FRAMES` is kept as it is: the first frames beyond it had put a press into the
+        # reference of a session with one untouched frame before its presses, and every
+        # untouched frame after them then read as touched.
+        first = int(np.argmax(still))  # `_untouched` passes some frames, the first ones when too few pass
+        run = still[first:]
+        end = first + (len(run) if run.all() else int(np.argmin(run)))
+        if every_frame:
+            leading = slice(first, end) if first <= _LEADING_DAMAGED else slice(0, first)
+            kept = _within_noise_of(session, session_times, still, leading)
+            return session[kept], f"the {int(kept.sum())} untouched frames of the first ones"
+        if first == 0:
+            return recording.frames[:end], f"mean of the first {end} frames (up to the first that looks touched)"
+        if first <= _LEADING_DAMAGED:
+            # A board's first frame or two after it connects can be damaged: left out.
+            return recording.frames[first:end], (
+                f"mean of frames {first} to {end - 1} (the first that look untouched; those before them look touched)"
+            )
+        # More leading frames than a glitch that look touched: the rest of the recording is most of
+        # it one long press (the untouched trend `_untouched` starts from is the frames' median),
+        # and the leading run is its reference.
+        return recording.frames[:first], f"mean of the first {first} frames (up to the first of a long press)"
+    whole = ~_damaged(recording.frames)
+    if whole.all():
+        return recording.frames, f"mean of the first {recording.n_frames} frames"
+    kept = np.flatnonzero(whole)
+    return recording.frames[kept], f"mean of frames {name_indices(kept)} (the others look damaged)"
+
+
+def calibrated_reference_frames(recording: Recording, calibration: SkinCalibration) -> tuple[np.ndarray, str, int]:
+    """The reference frames of a recording without a reference, imaged at a calibration of its
+    skin: its own first untouched frames (`reference_frames`), unless one of them looks touched
+    against the calibration's reference.
+
+    A recording may start pressed: a test recording cut from a session, or one begun with a
+    finger on the skin. Its own first frames then hold a press, and every frame is imaged
+    against it (simulated, 60 single-frame presses with no rest: 9 of them missed). Where the
+    calibration keeps its reference and the readings' noise, each of the recording's own first
+    untouched frames is tested against that reference in the touch subspace (the statistic of
+    `diffeit.touch.touched`; not their mean, in which a press among rests is diluted). Where one
+    stands out:
+    1. the others, when they are `REFERENCE_FRAMES` or more (a faint press the first frames'
+       own test let pass: on a benchmark skin 3 of the first 26 frames);
+    2. else the frames of the first `_SESSION_FRAMES` (not damaged) that lie within the noise of
+       the calibration's reference, when there are any;
+    3. else, where every frame differs from it: a skin that drifted since its calibration (a
+       hydrogel dries, contacts change) still rests, and its frames at rest agree with each
+       other: the own frames are kept when they are two or more and each lies within the noise
+       of their mean;
+    4. else the calibration's reference (the mean of its `noise_frames` frames).
+
+    Arguments:
+        recording: The recording (no reference of its own).
+        calibration: The skin's calibration.
+
+    Returns:
+        (R, M) the reference frames, as recorded; a description of them; how many frames their
+        mean stands for (R, or the calibration's `noise_frames` for its reference).
+    """
+    own, source = reference_frames(recording)
+    stored, noise = calibration.reference, calibration.noise
+    if stored is None or noise is None:
+        return own, source, len(own)
+    subspace = touch_subspace(calibration)
+    count = calibration.noise_frames
+
+    def statistic(frames: np.ndarray, against: np.ndarray, variance: float) -> np.ndarray:
+        return _statistic(calibration.signed(frames) - calibration.signed(against), noise, count, variance, subspace)
+
+    touched = statistic(own, stored, 1.0 + 1.0 / count) > DETECTION
+    if not touched.any():
+        return own, source, len(own)
+    if np.sum(~touched) >= REFERENCE_FRAMES:
+        return (
+            own[~touched],
+            f"{source}, but {int(touched.sum())} that look touched against the calibration's reference",
+            int(np.sum(~touched)),
+        )
+    session = recording.frames[:_SESSION_FRAMES]
+    quiet = ~_damaged(session) & (statistic(session, stored, 1.0 + 1.0 / count) <= DETECTION)
+    if quiet.any():
+        return (
+            session[quiet],
+            (
+                f"the {int(quiet.sum())} frames of the first ones within the noise of the calibration's reference "
+                f"(the recording's own, {source}, look touched against it)"
+            ),
+            int(quiet.sum()),
+        )
+    if len(own) >= 2 and np.all(statistic(own, own.mean(axis=0), 1.0 - 1.0 / len(own)) <= DETECTION):
+        return own, f"{source}: every frame differs from the calibration's reference (a drift since)", len(own)
+    return (
+        stored[None],
+        (
+            f"the calibration's reference (the recording's own, {source}, look touched against it and differ from "
+            "each other, and no frame lies within its noise)"
+        ),
+        count,
+    )
+
+
+def _looking_untouched(frames: np.ndarray, times: np.ndarray, where: str) -> tuple[np.ndarray, str]:
+    """Those of `frames` (T, M), recorded at `times` (T,), that look untouched (`_untouched`,
+    when there are more than `REFERENCE_FRAMES`; else those not damaged, `_damaged`), and
+    their description, the frames `where` they are."""
+    still = _untouched(frames, times) if len(frames) > REFERENCE_FRAMES else ~_damaged(frames)
+    if still.all():
+        return frames, f"the {len(frames)} frames {where}"
+    return frames[still], f"the {int(still.sum())} frames {where} that look untouched (of {len(frames)})"
+
+
+def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames (T, M) recorded at `times` (T,) that look untouched. Noise alone
+    puts a frame at a distance from the untouched frames' trend that varies by about
+    1 / sqrt(2 M) of itself (M readings); a frame further than (1 + 5 / sqrt(2 M)) times the
+    median distance is touched. A skin drifts (a hydrogel dries, a board warms), so the
+    distance is measured after the frame's own common gain against the trend is taken out, and
+    the trend is each reading's straight line in time (seconds, not frame numbers: a test
+    recording joins a session's first frames to its later ones), least squares over the frames
+    kept. From the frames' median, a drift of 2% over a simulated session put the first frames
+    among the touched ones, leaving a reference of 5 frames and no noise to test frames
+    against; a line alone did so for a drift that levels off (5% with a 5 s time constant:
+    single presses on a benchmark skin then read 41 mm off from the reference alone, 5 mm with
+    the gain taken out). Three times: first against the frames' median (robust to the touched
+    ones), then against the line through those kept; the first `REFERENCE_FRAMES` when fewer
+    pass. A damaged frame (`_damaged`) is never untouched: with its gain taken out, a frame of
+    zeros stood on the trend, and a reference holding one read no press of a session."""
+    factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
+    design = _time_line(times)
+    whole = ~_damaged(frames)
+
+    def near(trend: np.ndarray, still: np.ndarray) -> np.ndarray:
+        distance = _off_trend(frames, trend)
+        return whole & (distance <= factor * np.median(distance[still]))
+
+    still = near(np.median(frames[whole], axis=0), whole)
+    for _ in range(2):
+        if still.sum() < 3:  # no line through fewer
+            break
+        still = near(design @ np.linalg.lstsq(design[still], frames[still], rcond=None)[0], still)
+    if still.sum() < REFERENCE_FRAMES:
+        still = whole & (np.cumsum(whole) <= REFERENCE_FRAMES)
+    return still
+
+
+def _time_line(times: np.ndarray) -> np.ndarray:
+    """(T, 2) the design of a straight line in time through frames at `times` (T,): ones, and
+    the times about their mean over their largest distance from it."""
+    time = np.asarray(times, np.float64) - np.mean(times)
+    time = time / max(float(np.max(np.abs(time))), 1e-300)
+    return np.column_stack([np.ones_like(time), time])
+
+
+def _off_trend(frames: np.ndarray, trend: np.ndarray) -> np.ndarray:
+    """(T,) each frame's (T, M) distance from the `trend` ((T, M) or (M,)) once the frame's own
+    common gain against it is taken out (a drift's)."""
+    trend = np.broadcast_to(trend, frames.shape)
+    gains = np.sum(frames * trend, axis=1) / np.maximum(np.sum(trend * trend, axis=1), 1e-300)
+    return np.linalg.norm(frames - gains[:, None] * trend, axis=1)
+
+
+def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, leading: slice) -> np.ndarray:
+    """(T,) bool: those of the frames (T, M) of the untouched run `leading` and of `still`
+    (`_untouched`) that lie within the noise of the untouched trend through them, the noise
+    measured on the run alone (3 frames or more; with fewer, or fewer than 3 passing, the run).
+
+    `_untouched` measures the noise on the frames it passes: when most of a session's frames
+    are presses (one after another, no rest between them), faint ones pass, and the noise they
+    set lets more pass. On the calibration benchmark's skin, a session of 20 untouched frames
+    then 110 presses back to back gave 60 "untouched" frames, 40 of them faint presses, and a
+    calibration from them missed 15 of 60 presses (none now). The run's noise is the median
+    distance of its frames from their mean, squared, over (1 - 1/n) (sigma^2 M, a faint press
+    ending the run left out); a frame passes when its distance from the trend, its common gain
+    taken out (as `_untouched`), is within (1 + 5 / sqrt(2 M)) times that of an untouched frame
+    from a mean of the frames kept. The trend is the run's mean, then each reading's straight
+    line in time through the frames kept once some lie outside the run: a rest level that
+    drifts is followed outwards from the run."""
+    run = np.zeros(len(frames), bool)
+    run[leading] = True
+    n = int(run.sum())
+    if n < 3:
+        return run
+    variance = float(np.median(np.sum((frames[run] - frames[run].mean(axis=0)) ** 2, axis=1))) / (1.0 - 1.0 / n)
+    factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
+    candidates = still | run
+    line = _time_line(times)
+    kept = run
+    for _ in range(_TREND_PASSES):
+        design = line if (kept & ~run).any() else line[:, :1]
+        trend = design @ np.linalg.lstsq(design[kept], frames[kept], rcond=None)[0]
+        distance = _off_trend(frames, trend)
+        passed = candidates & (distance**2 <= factor**2 * variance * (1.0 + 1.0 / kept.sum()))
+        if passed.sum() < 3:
+            return run
+        if np.array_equal(passed, kept):
+            break
+        kept = passed
+    return kept
+
+
+def _damaged(frames: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames (T, M), in time order, whose change from the frames about them
+    (`_change_from_about`) exceeds `_LARGEST_CHANGE`, or whose readings are theirs moved along
+    (`_readings_moved`): a board's glitch (a frame of zeros, one at another gain, readings out
+    of place), not a touch, and not a drift over so few frames.
+    None of fewer than 3 frames (nothing to tell which is damaged), nor of frames that all
+    look so."""
+    if len(frames) < 3:
+        return np.zeros(len(frames), bool)
+    about = _about(frames)
+    damaged = (_change_from(frames, about) > _LARGEST_CHANGE) | _readings_moved(frames, about)
+    return np.zeros(len(frames), bool) if damaged.all() else damaged
+
+
+def _glitched(differences: np.ndarray, reference: np.ndarray, frames: np.ndarray, recorded: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames that are a board's glitch, not a touch (`diffeit.reconstruct` and
+    `diffeit live`): their `differences` (T, M') exceed `_LARGEST_CHANGE` of the `reference`
+    (M') they are from, or their readings as recorded, `frames` (T, M), are the `recorded`
+    reference's (M,) moved along (`_readings_moved`)."""
+    large = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(reference)
+    return large | _readings_moved(frames, recorded)
+
+
+def _readings_moved(frames: np.ndarray, about: np.ndarray) -> np.ndarray:
+    """(T,) bool, the frames (T, M) whose readings are those of `about` ((T, M) or (M,)) moved
+    one or two places along, from some reading on to the frame's end or from its start up to
+    some reading: a board's stream that lost or gained a reading within a frame puts every
+    reading after it in its neighbour's place. A frame is so when the readings moved fit it
+    within `_MOVED_FIT` of its distance from `about` as they are. Neighbouring readings differ by
+    far more than a press changes them (one place along changes a frame by 0.26 of its norm on an
+    opposition board of magnitudes, 0.48 on an adjacent one; a press by a few percent), so a
+    touched frame fits no moved readings; under adjacent drive a whole frame one place along
+    changes it by less than `_LARGEST_CHANGE`, and was imaged as a touch."""
+    frames = np.asarray(frames, np.float64)
+    about = np.broadcast_to(np.asarray(about, np.float64), frames.shape)
+
+    def running(squares: np.ndarray) -> np.ndarray:  # (T, M + 1): the sums over readings before j
+        return np.concatenate([np.zeros((len(squares), 1)), np.cumsum(squares, axis=1)], axis=1)
+
+    before = running((frames - about) ** 2)
+    total = before[:, -1]
+    best = total
+    for places in (k for k in range(-_MOVED_PLACES, _MOVED_PLACES + 1) if k):
+        moved_before = running((frames - np.roll(about, places, axis=1)) ** 2)
+        # Moved from reading j on (j = 0: the whole frame), or up to reading j.
+        from_j = before + (moved_before[:, -1:] - moved_before)
+        up_to_j = moved_before + (total[:, None] - before)
+        best = np.minimum(best, np.minimum(from_j.min(axis=1), up_to_j.min(axis=1)))
+    return best < _MOVED_FIT**2 * total
+
+
+def _change_from_about(frames: np.ndarray) -> np.ndarray:
+    """(T,) each frame's (T, M, in time order; at least 3) distance from the median of the
+    frames about it (`_about`), a fraction of that median's norm."""
+    return _change_from(frames, _about(frames))
+
+
+def _about(frames: np.ndarray) -> np.ndarray:
+    """(T, M) the median of the frames (T, M, in time order) about each one (`_DAMAGE_REACH`
+    each side; all of them, up to 9)."""
+    if len(frames) <= 2 * _DAMAGE_REACH + 1:
+        return np.broadcast_to(np.median(frames, axis=0), frames.shape)
+    return scipy.ndimage.median_filter(frames, size=(2 * _DAMAGE_REACH + 1, 1), mode="reflect")
+
+
+def _change_from(frames: np.ndarray, about: np.ndarray) -> np.ndarray:
+    """(T,) each frame's (T, M) distance from `about` (T, M), a fraction of its norm."""
+    return np.linalg.norm(frames - about, axis=1) / np.maximum(np.linalg.norm(about, axis=1), 1e-300)
+
+
+@host_algebra
+def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Recording, np.ndarray | None]:
+    """The recording with each frame divided by its common gain against the reference, and
+    the gains (T,); the recording as it is and None when `reference_set` holds fewer than
+    `_NOISE_FRAMES` frames, or ones identical to round-off (no noise to tell untouched frames by).
+
+    A skin drifts: a hydrogel dries, a sheet and a board warm, and every reading moves with a
+    common gain g(t). Untouched, the differences are then g(t) - 1 times the reference, far
+    above the noise over a session, and every frame looks touched. Each frame's gain c_t is its
+    least-squares multiple of the reference (the readings weighed by their noise); a frame is
+    untouched when what is left, frame - c_t reference, stands within the reference frames'
+    noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5), and its
+    gain does not mark it as a press that moved the common part alone (`_rests_not_presses`:
+    among presses one after another, those were all the untouched frames, and the drift followed
+    them). The gains are the running median of the untouched frames' c_t over `_DRIFT_WINDOW` of
+    them, interpolated in time to the touched frames (the nearest one's beyond them): a touch
+    moves the readings' common part too, and one that moves little else passes for untouched
+    (its own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were
+    then missed). Touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
+    one (presses one after another, which the untouched frames' gains no longer follow) take
+    their own c_t instead, less a press's typical part of it (the median, over the touched
+    frames near untouched ones, of their c_t less the untouched frames' gain there), in a
+    running median over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under 60
+    presses one after another, the test presses were read 19.5 mm off with the nearest untouched
+    gain held, 4.6 mm so). Gains are taken out only when the untouched frames' c_t spread beyond
+    the reference frames' own jitter from one frame to the next, or the far touched frames'
+    gains beyond the uncertainty of their running median and typical part (F tests at chance
+    `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the readings' common
+    part, and without drift dividing by them only adds that noise.
+
+    Arguments:
+        recording: The recording (frames as recorded).
+        reference_set: (N, M) the frames its reference is the mean of (`reference_frames`).
+
+    Returns:
+        The recording, its frames divided by the gains, and the gains; or the recording and
+        None (too few reference frames, or no drift beyond their jitter).
+
+    Raises:
+        ValueError: For reference frames that are not (N, M) finite readings of the
+            recording's M, or, with a drift to take out, times that go backwards.
+    """
+    reference_set = _checked_reference_set(reference_set, recording.frames.shape[1])
+    drift = _DriftReference.of(reference_set)
+    if drift is None or recording.n_frames == 0:
+        return recording, None
+    common = drift.gains(recording.frames)
+    ordered = not np.any(np.diff(recording.times) < 0)
+    still = drift.untouched(recording.frames, common)
+    if ordered:
+        still = _rests_not_presses(recording.times, common, still, drift.jitter)
+    gains = np.ones_like(common)
+    if still.any() and ordered:
+        # A running median over the untouched frames: a touch that moves the readings' common
+        # part alone passes for untouched, and its own gain would take the touch out of its frame.
+        smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
+        gains = np.interp(recording.times, recording.times[still], smooth)
+    # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
+    # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read.
+    drifts = still.any() and _departs(common[still] - 1.0, drift.jitter, 1, drift.frames - 1)
+    far = _beyond_untouched(recording.times, still) if ordered and still.any() else np.zeros_like(still)
+    near = ~still & ~far
+    if far.sum() > _DRIFT_WINDOW and near.sum() >= _LEAST_NEAR:
+        # Presses one after another: their own gains less a press's typical part of it (the
+        # median of the touched frames near untouched ones, less the untouched frames' gains
+        # there), in a running median over `_DRIFT_WINDOW` of them. A lowered conductivity raises
+        # a frame's common gain a little (a benchmark skin's presses of 10 mm at -30%: 0.39% +-
+        # 0.08%); the running median takes one press's departure from the typical out of it.
+        typical = float(np.median(common[near] - gains[near]))
+        gains[far] = scipy.ndimage.median_filter(common[far] - typical, size=_DRIFT_WINDOW, mode="nearest")
+        departure = common[far] - gains[far]
+        varying = (1.4826 * np.median(np.abs(departure - np.median(departure)))) ** 2
+        # Their level is as uncertain as the running median's and the typical part's medians.
+        uncertainty = varying * np.pi / 2 * (1 / _DRIFT_WINDOW + 1 / near.sum())
+        drifts = drifts or _departs(gains[far] - 1.0, uncertainty, far.sum(), far.sum() - 1)
+    if not drifts:
+        return recording, None
+    if not ordered:
+        backwards = np.flatnonzero(np.diff(recording.times) < 0)
+        raise ValueError(
+            f"the recording's times go backwards at frame {backwards[0] + 1}: its drift's gains cannot be "
+            "interpolated in time"
+        )
+    return dataclasses.replace(recording, frames=recording.frames / gains[:, None]), gains
+
+
+def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, jitter: float) -> np.ndarray:
+    """(T,) the frames `still` (T,) bool, at `times` (T,) in order, that are at rest, by their
+    gains (T,): those of long runs (`_LONG_REST` frames or more), and those of the short runs
+    among touched frames (and of the long runs next to a touched frame) whose gains stand nearer
+    a rest's than a press's against the presses beside them.
+
+    A press near the middle moves the readings' common part and little else, and its frame
+    minus its gain times the reference passes for untouched (25 of 110 presses on the
+    calibration benchmark's skin, 10 mm at -30%, each raising the gain 0.35%). Between rest
+    frames a running median outvotes them; with presses one after another and no rest between,
+    they were all the untouched frames after the reference, the drift followed them, and every
+    frame was divided by the presses' typical gain (9 of 60 presses then missed).
+
+    A press's part of the gain, p, is the median, over the touched frames within
+    `_DRIFT_WINDOW` frame steps of a long run, of their gain less the rest's there (`_trend_at`
+    of the `_DRIFT_WINDOW` long runs' frames nearest in time: a drift moves on from a run's
+    end). Against the mean gain of the nearest touched frames before and after it, a rest's
+    gain stands about -p off, a press's about 0 (a drift moves both alike): a short run's frame
+    is a press when its gain less theirs lies nearer 0 than -p. When p is unknown (fewer than
+    `_LEAST_NEAR` such frames: no long run, or a gap in time after it) or within
+    `_PRESS_PART` times a gain's noise (sqrt(`jitter`)) of 0, every frame `still` is kept: a
+    press that moves the gain by so little moves no drift."""
+    touched = np.flatnonzero(~still)
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0])).reshape(-1, 2)
+    long = np.zeros_like(still)
+    for first, last in edges[edges[:, 1] - edges[:, 0] >= _LONG_REST]:
+        long[first:last] = True
+    if not len(touched) or not long.any():
+        return still
+    step = frame_period(times)
+    near = touched[_time_to_nearest(times, long)[touched] <= (_DRIFT_WINDOW + 0.5) * step]
+    if len(near) < _LEAST_NEAR:
+        return still
+    rest = np.flatnonzero(long)
+    levels = []
+    for t in near:
+        nearest = rest[np.argsort(np.abs(times[rest] - times[t]), kind="stable")[:_DRIFT_WINDOW]]
+        levels.append(_trend_at(times[nearest], gains[nearest], times[t]))
+    part = float(np.median(gains[near] - np.asarray(levels)))
+    if abs(part) <= _PRESS_PART * math.sqrt(jitter):
+        return still
+    # The short runs' frames after the first touch, and the long runs' frames next to a touch
+    # (a press that passes for untouched, just before or after a run, joins it).
+    edge = np.zeros_like(still)
+    edge[touched[touched > 0] - 1] = edge[touched[touched < len(still) - 1] + 1] = True
+    frames = np.flatnonzero(still & ((~long & (np.arange(len(still)) > touched[0])) | (long & edge)))
+    before = touched[np.maximum(np.searchsorted(touched, frames) - 1, 0)]
+    following = touched[np.minimum(np.searchsorted(touched, frames), len(touched) - 1)]
+    beside = np.select(
+        [(before < frames) & (following > frames), before < frames],
+        [0.5 * (gains[before] + gains[following]), gains[before]],
+        gains[following],
+    )
+    offset = gains[frames] - beside
+    kept = still.copy()
+    kept[frames[np.abs(offset) < np.abs(offset + part)]] = False
+    return kept
+
+
+def _trend_at(times: np.ndarray, gains: np.ndarray, time: float) -> float:
+    """The gain at `time` of gains (n,) at `times` (n,): their median moved to `time` along their
+    Theil-Sen slope (the median of the slopes between pairs of them), robust to a touch among
+    them that passed for untouched; a median alone lags a steady drift by half their span."""
+    first, second = np.triu_indices(len(gains), k=1)
+    apart = times[second] - times[first]
+    slopes = (gains[second] - gains[first])[apart != 0] / apart[apart != 0]
+    slope = float(np.median(slopes)) if len(slopes) else 0.0
+    return float(np.median(gains)) + slope * (time - float(np.median(times)))
+
+
+def _departs(deviations: np.ndarray, variance: float, run: int, freedom: int) -> bool:
+    """Whether gains' `deviations` from 1 (n,) stand beyond their noise `variance`, estimated
+    with `freedom` degrees: an F test at chance `_DRIFT_CHANCE` on their robust mean square (the
+    median square over 0.455, chi-square's median with one degree of freedom), `run` successive
+    deviations counted as one (a running median's)."""
+    spread = np.median(deviations**2) / 0.455
+    return bool(spread > variance * scipy.stats.f.isf(_DRIFT_CHANCE, max(len(deviations) // run, 1), max(freedom, 1)))
+
+
+def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
+    """(T,) the touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
+    frame (`still`, (T,) bool, some true): presses one after another with no untouched frame
+    between them, whose drift the untouched frames' gains no longer follow."""
+    step = frame_period(times)
+    return ~still & (_time_to_nearest(times, still) > (_DRIFT_WINDOW // 2 + 0.5) * step)
+
+
+def _time_to_nearest(times: np.ndarray, marked: np.ndarray) -> np.ndarray:
+    """(T,) the time, s, from each of `times` (T,), in order, to the nearest frame `marked`
+    ((T,) bool, some true)."""
+    at = times[marked]
+    after = np.clip(np.searchsorted(at, times), 1, len(at)) - 1
+    return np.minimum(np.abs(times - at[after]), np.abs(times - at[np.minimum(after + 1, len(at) - 1)]))
+
+
+def _checked_reference_set(reference_set: ArrayLike, readings: int | None = None) -> np.ndarray:
+    """`reference_set` as (N, `readings`) finite float64 frames (None: any number of readings),
+    or a ValueError naming the problem."""
+    reference_set = np.asarray(reference_set, np.float64)
+    if reference_set.ndim != 2 or readings not in (None, reference_set.shape[1]):
+        expected = "M" if readings is None else readings
+        raise ValueError(
+            f"reference_set must be (N, {expected}) frames of the recording's readings; got shape {reference_set.shape}"
+        )
+    if not np.all(np.isfinite(reference_set)):
+        raise ValueError("reference_set holds non-finite values (NaN or inf)")
+    return reference_set
+
+
+class _DriftReference(NamedTuple):
+    """What tells a frame's common gain against a reference (`drift_corrected`, `LiveDrift`):
+    the reference (M,), the mean of `frames` frames, their noise (M,), the readings whose noise
+    is above round-off (`kept`) and their weights (the reference over the noise squared), and
+    `jitter`, the variance of one frame's gain (half the mean square of successive reference
+    frames' gains' differences: blind to a slow drift among the reference frames themselves)."""
+
+    reference: np.ndarray
+    noise: np.ndarray
+    frames: int
+    kept: np.ndarray
+    weighed: np.ndarray
+    jitter: float
+
+    @classmethod
+    def of(cls, reference_set: np.ndarray) -> _DriftReference | None:
+        """From the (N, M) reference frames; None for fewer than `_NOISE_FRAMES`, or frames
+        identical to round-off (no noise to weigh or test by)."""
+        if len(reference_set) < _NOISE_FRAMES:
+            return None
+        # The noise with each frame's own gain taken out first: the reference frames may drift too.
+        reference = reference_set.mean(axis=0)
+        norm = reference @ reference
+        own = reference_set @ reference / norm if norm > 0 else np.ones(len(reference_set))
+        noise = (reference_set / np.where(own > 0, own, 1.0)[:, None]).std(axis=0, ddof=1)
+        # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
+        # found a drift of 0% and divided the frames by it.
+        kept = noise > _ROUND_OFF * np.abs(reference)
+        if not kept.any():
+            return None
+        weighed = reference[kept] / noise[kept] ** 2
+        gains = reference_set[:, kept] @ weighed / (reference[kept] @ weighed)
+        return cls(reference, noise, len(reference_set), kept, weighed, float(0.5 * np.mean(np.diff(gains) ** 2)))
+
+    def gains(self, frames: np.ndarray) -> np.ndarray:
+        """(T,) each frame's least-squares multiple of the reference, the readings weighed by their noise."""
+        return frames[:, self.kept] @ self.weighed / (self.reference[self.kept] @ self.weighed)
+
+    def untouched(self, frames: np.ndarray, gains: np.ndarray) -> np.ndarray:
+        """(T,) whether frame - gain * reference stands within the reference frames' noise
+        (`diffeit.touch`'s test of differences against it, at z = `_DRIFT_DETECTION`)."""
+        left = frames - gains[:, None] * self.reference
+        return ~_noise_test(left, self.noise, self.frames, self.frames, _DRIFT_DETECTION)
+
+
+class LiveDrift(eqx.Module):
+    """A stream's drift, followed frame by frame (`diffeit live`): `drift_corrected` for frames
+    that come one batch at a time, the future unknown.
+
+    Each frame's common gain against the reference and its test for a touch are
+    `drift_corrected`'s. The gain a frame is divided by comes from the latest `_DRIFT_WINDOW`
+    untouched frames' gains (itself included when it is untouched): their median, moved to the
+    frame's time along their Theil-Sen slope (the median of the slopes between pairs of them:
+    a median alone lags a steady drift by half the window, and the frames then looked touched);
+    robust, as the offline running median, to a touch that passes for untouched. It is taken
+    as 1 while the median stands within `_LIVE_DRIFT_ERRORS` of its standard errors of 1
+    (1.25 sqrt(jitter / n) for n gains), so that a steady skin's frames are not divided by
+    noise. A frame that looks touched gets the untouched frames' gain at its time.
+
+    Attributes:
+        reference: What tells a frame's gain and touch (the reference frames'; `of`).
+        times: (n,) the latest untouched frames' times, s, n at most `_DRIFT_WINDOW`.
+        recent: (n,) their gains.
+    """
+
+    reference: _DriftReference
+    times: np.ndarray
+    recent: np.ndarray
+
+    @classmethod
+    def of(cls, reference_set: ArrayLike) -> LiveDrift | None:
+        """The drift of a stream whose reference is the mean of `reference_set` (N, M), as
+        streamed; None for fewer than 6 frames (no noise to tell untouched frames by).
+
+        Raises:
+            ValueError: For reference frames that are not (N, M) finite values.
+        """
+        reference = _DriftReference.of(_checked_reference_set(reference_set))
+        return None if reference is None else cls(reference, np.zeros(0), np.zeros(0))
+
+    def step(self, frames: ArrayLike, times: ArrayLike) -> tuple[np.ndarray, np.ndarray, LiveDrift]:
+        """The frames (B, M), taken at `times` (B,) s, divided by their gains; the gains (B,);
+        and the drift after them.
+
+        Raises:
+            ValueError: For frames that are not (B, M) with the reference's M readings, or
+                times that are not (B,) finite.
+        """
+        frames = np.atleast_2d(np.asarray(frames, np.float64))
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        if frames.ndim != 2 or frames.shape[1] != len(self.reference.reference):
+            raise ValueError(
+                f"frames must be (B, {len(self.reference.reference)}), the reference's readings; got {frames.shape}"
+            )
+        if times.shape != (len(frames),) or not np.all(np.isfinite(times)):
+            raise ValueError(f"times must be {len(frames)} finite values, one per frame; got shape {times.shape}")
+        common = self.reference.gains(frames)
+        # A frame that is not finite (reported by its caller) must not poison the gains to come.
+        still = self.reference.untouched(frames, common) & np.all(np.isfinite(frames), axis=1)
+        kept_times, recent, gains = self.times, self.recent, np.ones(len(frames))
+        for t in range(len(frames)):
+            if still[t]:
+                kept_times = np.append(kept_times, times[t])[-_DRIFT_WINDOW:]
+                recent = np.append(recent, common[t])[-_DRIFT_WINDOW:]
+            gains[t] = self._gain_at(kept_times, recent, times[t])
+        return frames / gains[:, None], gains, eqx.tree_at(lambda d: (d.times, d.recent), self, (kept_times, recent))
+
+    def _gain_at(self, times: np.ndarray, gains: np.ndarray, time: float) -> float:
+        """The gain at `time` from untouched frames' `gains` at `times` (class docstring)."""
+        if not len(gains):
+            return 1.0
+        median = float(np.median(gains))
+        if abs(median - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(self.reference.jitter / len(gains)):
+            return 1.0
+        return _trend_at(times, gains, time)
+
+
+def _drift_note(gains: np.ndarray) -> str:
+    """The warning that a recording's frames were divided by their drifting common gains (T,)."""
+    low, high = float(np.min(gains)), float(np.max(gains))
+    return (
+        f"the frames' common gain drifts over the recording, from {low:.4g} to {high:.4g} times the reference's "
+        f"({100 * (high - low):.2g}%): each frame is divided by it (diffeit.calibration.drift_corrected)"
+    )
