@@ -29,7 +29,7 @@ def _with_background_map(
     reference: np.ndarray,
     required: bool = True,
 ) -> SkinCalibration:
-    """`calibration` with a background map fitted to the reference frames (module docstring,
+    """`calibration` with a background map fitted to the reference frames (package docstring,
     "Background map"). With `presses`, they are read at the map through a position map fitted
     again; unless `required`, the map is kept only when their leave-one-out errors are smaller
     than those of `calibration` read the same way at significantly more presses than they are
@@ -60,7 +60,7 @@ def _with_background_map(
 
 def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> SkinCalibration:
     """`calibration` with its level and a smooth map of ln sigma fitted to the mean `reference`
-    (module docstring, "Background map") with each contact impedance (ln z, the reference's
+    (package docstring, "Background map") with each contact impedance (ln z, the reference's
     prior about the calibration's), the readout and gains held; the
     calibration itself, with a note, when the data determine none of the map's terms."""
     data = calibration.signed(np.atleast_2d(reference).mean(axis=0))

@@ -129,7 +129,7 @@ def calibrate(
     of the session's first 200 that look untouched; with 6 or more, a drift of the frames'
     common gain is first taken out, `drift_corrected`, and warned of): the first stage (`calibrate_to_reference`:
     level and voltage unit, orientation, signs of magnitudes, driven readings, broken
-    channels), then the refinement (module docstring): contact impedance per electrode, the
+    channels), then the refinement (package docstring): contact impedance per electrode, the
     readout's mixing, drive and channel gains, electrode positions and widths (the groups
     `reference_groups` names), with standard errors. No gain per reading is fitted to the
     reference: it cannot tell one from the model's error at that reading (presses can:
@@ -172,7 +172,7 @@ def calibrate(
             reference the first stage's model correlates with under 0.5. The presses fit
             every mixing weight.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
-            "electrode_positions", "background_map" (module docstring) and "reading_gains" (a
+            "electrode_positions", "background_map" (package docstring) and "reading_gains" (a
             gain per reading, prior standard deviation 0.2 of its relative change). None: each
             set of `PRESS_GROUP_CHOICES` (the mixing; the mixing and the positions) in turn,
             the positions kept unless the mixing alone reads significantly more of the
@@ -182,7 +182,7 @@ def calibrate(
         memory: With presses held over at least `_HELD_FRAMES` frames each, fit the skin's
             memory to the session's readings, the presses' holds known
             (`diffeit.fit.memory_from_press_readings`).
-        background_map: Fit a smooth map of the sheet's conductivity (module docstring,
+        background_map: Fit a smooth map of the sheet's conductivity (package docstring,
             "Background map"). None: with at least 20 labelled presses, the presses' map when
             `press_groups` names it and their fit is kept, else the reference's, kept when it
             reads significantly more of them closer to their labels than farther

@@ -55,7 +55,7 @@ def _label_frame(
     read_positions: np.ndarray,
     changes: np.ndarray,
 ) -> np.ndarray | None:
-    """The labels' frame (ln scale, angle, offset, handedness; `_moved`; module docstring,
+    """The labels' frame (ln scale, angle, offset, handedness; `_moved`; package docstring,
     "Presses") the presses' fits start from: of the mesh's own and the similarities, turning
     and mirrored, that map the labels onto the positions read, the one in which the readout's
     mixing fitted to the presses (their differences `changes`, `_fitted_changes`; the
@@ -222,7 +222,7 @@ def _with_position_map(
     polarity: int,
 ) -> SkinCalibration:
     """`calibration` with the position map fitted on the presses' touches `found`, and the
-    ringing from their images' further hills `further` (`_read_presses`; module docstring,
+    ringing from their images' further hills `further` (`_read_presses`; package docstring,
     "Presses")."""
     seen = found.count > 0
     notes = list(calibration.warnings)

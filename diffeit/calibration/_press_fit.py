@@ -60,7 +60,7 @@ _SIGN_ERRORS = 3.0
 
 
 # The prior standard deviation of each of the background map's coefficients (ln sigma, on
-# terms of unit size over the sheet: module docstring, "Background map").
+# terms of unit size over the sheet: package docstring, "Background map").
 _SHEET_PRIOR = 0.3
 
 
@@ -135,7 +135,7 @@ def _fit_presses(
     changes: np.ndarray,
     rounds: int = _POSITION_ROUNDS,
 ) -> tuple[SkinCalibration, float, _PressState]:
-    """`calibration` with the readout's mixing fitted to the presses (module docstring,
+    """`calibration` with the readout's mixing fitted to the presses (package docstring,
     "Presses"), the relative misfit of the presses' differences, and where the fit ended (the
     held-out folds start there: `_held_out_errors`); the labelled `presses` in
     the labels' `frame` (`_moved`; None: the mesh's); with `free`, the groups it names too

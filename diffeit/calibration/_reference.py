@@ -67,7 +67,7 @@ class CalibrationWarning(UserWarning):
 
 
 class ReferenceCalibration(eqx.Module):
-    """The model calibrated to a recording's reference (module docstring, "First stage").
+    """The model calibrated to a recording's reference (package docstring, "First stage").
 
     - `model`: the calibrated `ForwardModel`: the orientation's protocol restricted to the
       readings used, with the fitted contact impedance `contact_impedance` (ohm m, per electrode).
@@ -140,7 +140,7 @@ def calibrate_to_reference(
 
     Fits the conductivity level (with the voltage unit), the orientation, the signs of
     magnitudes, the readings on driven electrodes and the broken channels, in the order of the
-    module docstring ("First stage"); docs/tutorials/calibration.md shows it at work.
+    package docstring ("First stage"); docs/tutorials/calibration.md shows it at work.
 
     Arguments:
         model: The nominal model: the sheet's mesh, the recording's protocol, the nominal
@@ -257,7 +257,7 @@ def calibrate_to_reference(
 
 def _mask_outliers(protocol, data, voltages, used, usable, masked) -> np.ndarray:
     """`used` less the outliers of `data` against the model's `voltages` and the readings of
-    broken electrodes (module docstring, step 5); records them in `masked`."""
+    broken electrodes (package docstring, step 5); records them in `masked`."""
     residual = data - voltages
     deviation = 1.4826 * np.median(np.abs(residual[used] - np.median(residual[used])))
     floor = np.maximum(np.abs(voltages), _OUTLIER_FLOOR * _rms(voltages[used]))

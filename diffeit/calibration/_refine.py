@@ -24,7 +24,7 @@ from ._frames import _NOISE_FRAMES
 from ._reference import _LEAST_CORRELATION, _NOT_REPRODUCED, ReferenceCalibration, _relative, _rms, _with
 from ._skin import SkinCalibration, _electrode_centres
 
-# Prior standard deviations of the refined groups (module docstring, "Refinement").
+# Prior standard deviations of the refined groups (package docstring, "Refinement").
 PRIORS = {
     "contact_impedance": 1.0,
     "mixing": 0.3,
@@ -77,7 +77,7 @@ def _refine_to_reference(
     priors: Mapping[str, float] | None = None,
     groups: tuple[str, ...] = REFERENCE_GROUPS,
 ) -> SkinCalibration:
-    """The refinement of a first stage on its reference frames (module docstring): the level
+    """The refinement of a first stage on its reference frames (package docstring): the level
     and the parameter `groups`, without mixing (and a warning noted) when the first stage's
     model correlates with the reference under 0.5.
 
@@ -114,7 +114,7 @@ def _refine(
     recording: Recording,
     groups: tuple[str, ...],
 ) -> SkinCalibration:
-    """The refinement (module docstring): regularised Levenberg-Marquardt from the first stage,
+    """The refinement (package docstring): regularised Levenberg-Marquardt from the first stage,
     of the level and the parameter `groups` (the others stay nominal)."""
     model = first.model
     protocol = model.protocol
@@ -254,7 +254,7 @@ def _mixing_start(fit: _ReadoutFit, data: np.ndarray) -> tuple[float, float]:
 
 
 class _ReadoutFit(eqx.Module):
-    """The refined model's readings as a function of the refined parameters (module docstring)."""
+    """The refined model's readings as a function of the refined parameters (package docstring)."""
 
     model: ForwardModel
     every: ForwardModel  # the same model reading every electrode's potential (`_every_electrode`)
@@ -449,7 +449,7 @@ def _electrode_end_errors(covariance: np.ndarray, ends: np.ndarray, margin: floa
 
 def _position_prior(model: ForwardModel, fraction: float) -> tuple[float, float]:
     """The electrode positions' prior standard deviation, m (`fraction` of the mean spacing
-    between electrodes), and how far they may move (module docstring)."""
+    between electrodes), and how far they may move (package docstring)."""
     spacing, gap = _electrode_spacing(model)
     return fraction * spacing, min(_POSITION_REACH * fraction * spacing, _POSITION_GAP * gap)
 

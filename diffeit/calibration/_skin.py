@@ -46,7 +46,7 @@ class SkinCalibration(eqx.Module):
             impedances, in the recording's voltage unit at `conductivity`.
         conductivity: sigma_h, the fitted level, S/sq in the recording's voltage unit.
         background_map: (E,) the sheet's conductivity fitted to the reference (or by the
-            presses) on the mesh's elements, S/sq in the same unit (module docstring,
+            presses) on the mesh's elements, S/sq in the same unit (package docstring,
             "Background map"), or None: the
             sheet is taken uniform at `conductivity`. `background` is the one imaged at.
         contact_impedance: (L,) ohm m, in the same unit.
