@@ -1343,12 +1343,33 @@ def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
             "outside the skin: .*; in millimetres they lie on the skin: give their centres and radius in metres",
         ),
         (lambda p: de.io.Presses(p.centres, p.radius, p.times[:, 0] + 100.0), "outside the recording's time"),
+        (
+            lambda p: de.io.Presses(p.centres[:1] + 1e-3 * p.centres, p.radius, p.times[:, 0]),
+            r"labelled at one place \(their centres spread .* mm about their mean",
+        ),
     ],
 )
 def test_presses_the_recording_cannot_hold_are_refused(mixing_skin, change, message):
     recording, presses = mixing_skin.recording, mixing_skin.presses
     with pytest.raises(ValueError, match=message):
         de.calibrate(recording, change(presses))
+
+
+def test_the_labels_frame_from_reads_is_a_similarity_or_none_where_labels_coincide():
+    """Umeyama's similarity takes the labels onto the positions read (turned 30 degrees, scaled
+    by 2, offset, one read NaN); labels at one place have no similarity (its scale is 0), the
+    frame search then starts from the mesh's frame alone."""
+    rng = np.random.default_rng(0)
+    labels = rng.uniform(-0.5, 0.5, (8, 2))
+    angle = np.deg2rad(30.0)
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    read = 2.0 * labels @ rotation.T + [0.1, -0.2]
+    read[3] = np.nan
+    presses = de.io.Presses(labels, 0.1, np.arange(8.0))
+    frame = _held_out._frame_from_reads(read, presses, mirror=False)
+    np.testing.assert_allclose(frame, [np.log(2.0), angle, 0.1, -0.2, 1.0], atol=1e-12)
+    coincident = de.io.Presses(np.zeros((8, 2)), 0.1, np.arange(8.0))
+    assert _held_out._frame_from_reads(read, coincident, mirror=False) is None
 
 
 def test_presses_check_their_shapes_and_values():

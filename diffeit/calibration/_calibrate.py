@@ -74,6 +74,11 @@ _PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains", "bac
 # warned of (`_far_from_labels_noted`).
 _FAR_FROM_LABELS = 0.25
 
+# Three or more presses whose labels spread (RMS about their mean) less than this fraction of the
+# skin's size are labelled at one place (`_check_presses`): fitted, their frame's scale was 0
+# and the position map sent every touch to their place.
+_LEAST_LABEL_SPREAD = 0.05
+
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
     """The sheet a recording is imaged on.
@@ -193,8 +198,9 @@ def calibrate(
         The `SkinCalibration`.
 
     Raises:
-        ValueError: For a recording without frames, presses outside the skin or outside the
-            recording's time, presses that are all left out or whose times look off the
+        ValueError: For a recording without frames, presses outside the skin (labels in
+            millimetres said so) or outside the recording's time, three or more presses
+            labelled at one place, presses that are all left out or whose times look off the
             recording's clock (`_presses_unseen`), an unknown prior group,
             `press_groups` without "mixing" or with a group the presses cannot fit (or
             "background_map" with `background_map=False`),
@@ -521,4 +527,12 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
             f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
             f"radius ({size:.3g} m) from its centre (centres are in metres, about the mesh's centre)"
             + ("; in millimetres they lie on the skin: give their centres and radius in metres" if millimetres else "")
+        )
+    spread = np.sqrt(np.mean(np.sum((presses.centres - presses.centres.mean(axis=0)) ** 2, axis=1)))
+    if presses.n_presses >= 3 and spread < _LEAST_LABEL_SPREAD * size:
+        # No frame or position map is determined by them: fitted, every touch was read at their place.
+        raise ValueError(
+            f"the {presses.n_presses} presses are labelled at one place (their centres spread {1e3 * spread:.3g} mm "
+            f"about their mean, under {_LEAST_LABEL_SPREAD:.0%} of the skin's radius): they cannot place touches; "
+            "label presses spread over the skin, or calibrate from the reference alone (presses=None)"
         )

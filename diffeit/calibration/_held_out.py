@@ -75,7 +75,8 @@ def _label_frame(
         except _ContradictsReference:
             return math.inf
 
-    starts = [_IDENTITY_FRAME, *(_frame_from_reads(read_positions, presses, mirror) for mirror in (False, True))]
+    similar = (_frame_from_reads(read_positions, presses, mirror) for mirror in (False, True))
+    starts = [_IDENTITY_FRAME, *(start for start in similar if start is not None)]
     return starts[int(np.argmin([misfit(start) for start in starts]))]
 
 
@@ -180,11 +181,12 @@ def _with_fold_spread(calibration: SkinCalibration, folds: list[dict[str, np.nda
     return eqx.tree_at(lambda c: c.standard_errors, calibration, errors)
 
 
-def _frame_from_reads(read_positions: np.ndarray, presses: Presses, mirror: bool) -> np.ndarray:
+def _frame_from_reads(read_positions: np.ndarray, presses: Presses, mirror: bool) -> np.ndarray | None:
     """(5,) the frame (`_moved`) of the similarity, mirrored (y -> -y first) when `mirror`, that
     best maps the presses' labelled centres onto the positions read (Umeyama's least squares,
     once more without the presses read more than three robust deviations off; NaN reads left
-    out); the identity with fewer than 3 reads."""
+    out); the identity with fewer than 3 reads; None where no similarity maps them (labels at
+    one place: its scale would be 0)."""
     seen = np.all(np.isfinite(read_positions), axis=1)
     if seen.sum() < 3:
         return _IDENTITY_FRAME
@@ -199,6 +201,8 @@ def _frame_from_reads(read_positions: np.ndarray, presses: Presses, mirror: bool
         keep = seen & (miss <= np.median(miss[seen]) + 3 * deviation)
         if keep.sum() < 3:
             keep = seen
+    if not scale > 0:
+        return None
     return np.array([math.log(scale), math.atan2(rotation[1, 0], rotation[0, 0]), *offset, handedness])
 
 
