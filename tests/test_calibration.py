@@ -342,6 +342,20 @@ def test_a_press_whose_frame_a_board_garbled_or_lost_is_left_out_of_the_calibrat
     coarse = dataclasses.replace(session, times=np.floor(session.times))
     _, notes = _calibrate._presses_left_out(presses.select(np.arange(22)), coarse)
     assert not any("no frame lies" in note for note in notes), notes
+    # Labels timed at another press's instant: those whose every frame another press labelled
+    # elsewhere has; holds that share a frame at their ends are not such.
+    first = presses.select(np.arange(22))
+    times = first.times[:, 0].copy()
+    times[3:5] = times[2]
+    left_out, notes = _calibrate._presses_left_out(de.io.Presses(first.centres, first.radius, times), recording)
+    assert np.flatnonzero(left_out).tolist() == [2, 3, 4], notes
+    assert notes == (
+        "press(es) [2, 3, 4] left out: each of their frames is also the frame of a press labelled "
+        "elsewhere (their times overlap; which label the frame shows cannot be told)",
+    )
+    ends = np.r_[first.times[1:, 0], first.times[-1, 0] + 1.0]
+    holds = de.io.Presses(first.centres, first.radius, np.stack([first.times[:, 0], ends], axis=1))
+    assert not _calibrate._presses_left_out(holds, recording)[0].any()
     assert np.isfinite(np.delete(skin.press_errors, [5, 7])).sum() >= 18 and skin.press_positions.shape == (22, 2)
     assert not any("correlation with the reference" in w for w in skin.warnings), skin.warnings
     assert skin.fitted["presses"] == ("mixing", "press depths") and skin.correlation > 0.8
@@ -1345,7 +1359,7 @@ def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
         (lambda p: de.io.Presses(p.centres, p.radius, p.times[:, 0] + 100.0), "outside the recording's time"),
         (
             lambda p: de.io.Presses(p.centres[:1] + 1e-3 * p.centres, p.radius, p.times[:, 0]),
-            r"labelled at one place \(their centres spread .* mm about their mean",
+            r"labelled at one place \(their centres spread .* about their mean, under 0.5 of their mean radius",
         ),
     ],
 )

@@ -74,10 +74,10 @@ _PRESS_GROUPS_POSSIBLE = ("mixing", "electrode_positions", "reading_gains", "bac
 # warned of (`_far_from_labels_noted`).
 _FAR_FROM_LABELS = 0.25
 
-# Three or more presses whose labels spread (RMS about their mean) less than this fraction of the
-# skin's size are labelled at one place (`_check_presses`): fitted, their frame's scale was 0
-# and the position map sent every touch to their place.
-_LEAST_LABEL_SPREAD = 0.05
+# Three or more presses whose labels spread (RMS about their mean) less than this fraction of
+# their mean radius (their footprints all overlap) are labelled at one place (`_check_presses`):
+# fitted, their frame's scale was 0 and the position map sent every touch to their place.
+_LEAST_LABEL_SPREAD = 0.5
 
 
 def default_mesh(recording: Recording, h: float | None = None) -> Mesh:
@@ -318,7 +318,8 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
     glitch on one press's frame, its readings one place out of order, had cost a session its
     presses' fit, and a press changes the readings by a few percent); and those timed at an
     instant no frame lies within `_LOST_FRAME` of the frames' median period of (a frame
-    missing: the nearest one is another's, or the rest's)."""
+    missing: the nearest one is another's, or the rest's); and those whose every frame is
+    another's, labelled elsewhere (`_frames_of_another`)."""
     frames, times = presses.frames(recording.times), recording.times
     left_out, notes = np.zeros(len(frames), bool), []
     if recording.n_frames >= 3:
@@ -346,9 +347,36 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
                 "period of their time (a frame missing; the nearest is another's)"
             )
         left_out |= missing
+    shared = _frames_of_another(presses, frames)
+    if shared.any():
+        notes.append(
+            f"press(es) {name_indices(np.flatnonzero(shared))} left out: each of their frames is also the frame of a "
+            "press labelled elsewhere (their times overlap; which label the frame shows cannot be told)"
+        )
+    left_out |= shared
     if left_out.all():
         raise ValueError(f"every labelled press is left out: {'; '.join(notes)}")
     return left_out, tuple(notes)
+
+
+def _frames_of_another(presses: Presses, frames: list[np.ndarray]) -> np.ndarray:
+    """(K,) bool, the presses each of whose `frames` (`Presses.frames`) is also a frame of a
+    press labelled elsewhere (centres farther apart than the larger radius): labels timed at
+    another press's instant (five of 25 on a benchmark skin were kept, read 27 to 73 mm off,
+    and the position map was refused). A frame shared at a hold's end is not one: the press
+    has others of its own."""
+    owners: dict[int, list[int]] = {}
+    for k, chosen in enumerate(frames):
+        for frame in chosen:
+            owners.setdefault(int(frame), []).append(k)
+    centres, radius = presses.centres, presses.radius
+
+    def elsewhere(k: int, j: int) -> bool:
+        return j != k and np.linalg.norm(centres[k] - centres[j]) > max(radius[k], radius[j])
+
+    return np.array(
+        [all(any(elsewhere(k, j) for j in owners[int(frame)]) for frame in chosen) for k, chosen in enumerate(frames)]
+    )
 
 
 def _presses_unseen(
@@ -497,8 +525,8 @@ def _with_size_map(
 
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
-    """ValueError for presses outside the recording's time, far outside the skin, or of another
-    dimension than the mesh's."""
+    """ValueError for presses outside the recording's time, far outside the skin, of another
+    dimension than the mesh's, or (three or more) labelled at one place."""
     if presses.centres.shape[1] != mesh.nodes.shape[1]:
         raise ValueError(
             f"presses have {presses.centres.shape[1]}-dimensional centres; the mesh's nodes have "
@@ -528,11 +556,13 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
             f"radius ({size:.3g} m) from its centre (centres are in metres, about the mesh's centre)"
             + ("; in millimetres they lie on the skin: give their centres and radius in metres" if millimetres else "")
         )
+    # In the labels' own units: their frame's scale against the mesh's is fitted.
     spread = np.sqrt(np.mean(np.sum((presses.centres - presses.centres.mean(axis=0)) ** 2, axis=1)))
-    if presses.n_presses >= 3 and spread < _LEAST_LABEL_SPREAD * size:
+    if presses.n_presses >= 3 and spread < _LEAST_LABEL_SPREAD * np.mean(presses.radius):
         # No frame or position map is determined by them: fitted, every touch was read at their place.
         raise ValueError(
-            f"the {presses.n_presses} presses are labelled at one place (their centres spread {1e3 * spread:.3g} mm "
-            f"about their mean, under {_LEAST_LABEL_SPREAD:.0%} of the skin's radius): they cannot place touches; "
-            "label presses spread over the skin, or calibrate from the reference alone (presses=None)"
+            f"the {presses.n_presses} presses are labelled at one place (their centres spread {spread:.3g} about "
+            f"their mean, under {_LEAST_LABEL_SPREAD} of their mean radius, {np.mean(presses.radius):.3g}): they "
+            "cannot place touches; label presses spread over the skin, or calibrate from the reference alone "
+            "(presses=None)"
         )
