@@ -1359,7 +1359,11 @@ def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(
         (lambda p: de.io.Presses(p.centres, p.radius, p.times[:, 0] + 100.0), "outside the recording's time"),
         (
             lambda p: de.io.Presses(p.centres[:1] + 1e-3 * p.centres, p.radius, p.times[:, 0]),
-            r"labelled at one place \(their centres spread .* about their mean, under 0.5 of their mean radius",
+            r"presses' centres spread .* about their mean, under 0.5 of their mean radius .*: labelled at one place",
+        ),
+        (
+            lambda p: de.io.Presses(p.centres, 1000 * p.radius, p.times[:, 0]),
+            r"under 0.5 of their mean radius .*: labelled at one place, or the radius given in another unit",
         ),
     ],
 )

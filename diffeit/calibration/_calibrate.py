@@ -200,12 +200,12 @@ def calibrate(
     Raises:
         ValueError: For a recording without frames, presses outside the skin (labels in
             millimetres said so) or outside the recording's time, three or more presses
-            labelled at one place, presses that are all left out or whose times look off the
-            recording's clock (`_presses_unseen`), an unknown prior group,
-            `press_groups` without "mixing" or with a group the presses cannot fit (or
-            "background_map" with `background_map=False`),
-            a `background_map` other than None, True or False, a reference the model
-            cannot be calibrated on.
+            labelled at one place (or with a radius in another unit), presses that
+            are all left out or whose times look off the recording's clock
+            (`_presses_unseen`), an unknown prior group, `press_groups` without "mixing" or
+            with a group the presses cannot fit (or "background_map" with
+            `background_map=False`), a `background_map` other than None, True or False, a
+            reference the model cannot be calibrated on.
     """
     if not isinstance(recording, Recording):
         raise ValueError(f"calibrate takes a diffeit.io.Recording; got {type(recording).__name__}")
@@ -526,7 +526,8 @@ def _with_size_map(
 
 def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
     """ValueError for presses outside the recording's time, far outside the skin, of another
-    dimension than the mesh's, or (three or more) labelled at one place."""
+    dimension than the mesh's, or (three or more) spread less than their radius (at one place,
+    or a radius in another unit)."""
     if presses.centres.shape[1] != mesh.nodes.shape[1]:
         raise ValueError(
             f"presses have {presses.centres.shape[1]}-dimensional centres; the mesh's nodes have "
@@ -549,8 +550,8 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
         # Labels in millimetres on a skin meshed in metres (a thousandth of them spread over
         # the skin and on it): said so, as the likeliest cause.
         metres = presses.centres / 1000
-        spread = np.linalg.norm(metres - metres.mean(axis=0), axis=1).max()
-        millimetres = 0.05 * size < spread and np.all(np.linalg.norm(metres - middle, axis=1) <= 1.5 * size)
+        reach = np.linalg.norm(metres - metres.mean(axis=0), axis=1).max()
+        millimetres = 0.05 * size < reach and np.all(np.linalg.norm(metres - middle, axis=1) <= 1.5 * size)
         raise ValueError(
             f"press(es) {name_indices(np.flatnonzero(outside))} are outside the skin: more than 1.5 times its "
             f"radius ({size:.3g} m) from its centre (centres are in metres, about the mesh's centre)"
@@ -561,8 +562,8 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
     if presses.n_presses >= 3 and spread < _LEAST_LABEL_SPREAD * np.mean(presses.radius):
         # No frame or position map is determined by them: fitted, every touch was read at their place.
         raise ValueError(
-            f"the {presses.n_presses} presses are labelled at one place (their centres spread {spread:.3g} about "
-            f"their mean, under {_LEAST_LABEL_SPREAD} of their mean radius, {np.mean(presses.radius):.3g}): they "
-            "cannot place touches; label presses spread over the skin, or calibrate from the reference alone "
-            "(presses=None)"
+            f"the {presses.n_presses} presses' centres spread {spread:.3g} about their mean, under "
+            f"{_LEAST_LABEL_SPREAD} of their mean radius ({np.mean(presses.radius):.3g}): labelled at one place, or "
+            "the radius given in another unit than the centres (metres both); such labels cannot place touches: "
+            "label presses spread over the skin, or calibrate from the reference alone (presses=None)"
         )
