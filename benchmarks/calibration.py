@@ -1,7 +1,7 @@
 """Calibrating a simulated skin from a calibration session: the median position error of touches
 read on presses the calibration did not use, against the number of labelled presses.
 
-    python benchmarks/calibration.py [--seeds 5] [--presses 0 10 25 50 100] [--test 60]
+    python benchmarks/calibration.py [--seeds 5] [--presses 0 10 25 50 100] [--test 60] [--reach 0.8]
 
 The skin: a disc of radius 80 mm with 16 electrodes, opposition drive, a board that reports
 magnitudes only, and the artefacts real boards have (`diffeit.scene` effects): electrode positions
@@ -9,7 +9,7 @@ off by up to 5 degrees, a readout that mixes in the source electrode's and the f
 potentials with weights up to 0.3 of the pair's, gains per reading of +-20%, contact impedances
 spread 3x, a sheet 30% more conductive on one side than the other, medium noise. A session
 holds 20 untouched frames, then presses (radius 10 mm, dsigma/sigma = -0.3) at random places
-within 80% of the radius, one frame each. For each seed the calibration uses the first K presses
+within 80% of the radius (`--reach`), one frame each. For each seed the calibration uses the first K presses
 of the session (K = 0: the reference alone) and the touches are read (`de.reconstruct(...,
 calibration=...)`, `de.touches`) on `--test` other presses, against:
 
@@ -51,11 +51,12 @@ FRAME_RATE, REFERENCE_FRAMES = 10.0, 20
 ELECTRODE_ERROR = np.deg2rad(5.0)  # the largest electrode position error, rad
 
 
-def session(seed: int, n_presses: int, *, hold: int = 1, period: int = 2, memory=None):
+def session(seed: int, n_presses: int, *, hold: int = 1, period: int = 2, memory=None, reach: float = 0.8):
     """A simulated calibration session: the recording (magnitudes), the presses (labelled), and
     the truth (the scene and its artefacts). Each press is held `hold` frames, one every `period`
     frames, labelled with their holds (start and end) when longer than a frame, else an instant;
-    with `memory` (a `diffeit.memory.MemoryParameters`), the skin has that memory."""
+    the presses lie within `reach` of the skin's radius; with `memory` (a
+    `diffeit.memory.MemoryParameters`), the skin has that memory."""
     import diffeit as de
     from diffeit.scene import (
         Background,
@@ -75,7 +76,7 @@ def session(seed: int, n_presses: int, *, hold: int = 1, period: int = 2, memory
 
     rng = np.random.default_rng(seed)
     angle = rng.uniform(0, 2 * np.pi, n_presses)
-    distance = 0.8 * RADIUS * np.sqrt(rng.uniform(0, 1, n_presses))
+    distance = reach * RADIUS * np.sqrt(rng.uniform(0, 1, n_presses))
     centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
     step = 1.0 / FRAME_RATE
     starts = (REFERENCE_FRAMES + period * np.arange(n_presses)) * step - 0.5 * step
@@ -222,6 +223,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5, help="simulated sessions")
     parser.add_argument("--presses", type=int, nargs="+", default=[0, 10, 25, 50, 100])
     parser.add_argument("--test", type=int, default=60, help="presses the errors are measured on")
+    parser.add_argument("--reach", type=float, default=0.8, help="presses lie within this fraction of the radius")
     started = skin_benchmark(parser, __file__)
     if started is None:
         return
@@ -249,7 +251,7 @@ def main() -> None:
     ours_by_count: dict[int, list[np.ndarray]] = {count: [] for count in options.presses}
     true_by_seed: list[np.ndarray] = []
     for seed in range(options.seeds):
-        recording, presses, truth = session(seed, most + options.test)
+        recording, presses, truth = session(seed, most + options.test, reach=options.reach)
         reference = recording.frames[:REFERENCE_FRAMES]
         used = recording.frames[: REFERENCE_FRAMES + 2 * most]
         # The test recording: the untouched frames, then the test presses (the calibration's
