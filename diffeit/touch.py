@@ -1129,7 +1129,9 @@ def subspace_statistic(dv: np.ndarray, calibration: Any) -> np.ndarray | None:
     jacobian = _calibrated_jacobian(calibration)
     readings = np.abs(np.asarray(model.measure(per_element(calibration.background, model.n_elements))))
     scale = np.maximum(readings, _UNCERTAIN_READING * np.sqrt(np.mean(readings**2)))
-    statistics = [_split_statistic(dv, jacobian), _split_statistic(dv / scale, jacobian / scale[:, None])]
+    # Differences beyond float range (a damaged frame, imaged as non-finite) stand at NaN: no touch.
+    with np.errstate(over="ignore", invalid="ignore"):
+        statistics = [_split_statistic(dv, jacobian), _split_statistic(dv / scale, jacobian / scale[:, None])]
     found = [statistic for statistic in statistics if statistic is not None]
     return np.min(found, axis=0) if found else None
 

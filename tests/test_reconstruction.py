@@ -469,6 +469,7 @@ def test_total_variation_gives_each_frame_its_code():
     assert result.provenance["metadata"]["results"] == ["successful", "max_iterations_reached"]
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # a frame of 1e308 V is marked, no overflow warned of
 def test_a_direct_method_marks_a_non_finite_image_and_a_selection_at_its_boundary_does_not_raise():
     recording, mesh = _coarse_touch()
     overflowing = de.io.Recording(

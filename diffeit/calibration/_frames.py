@@ -346,8 +346,11 @@ def _glitched(differences: np.ndarray, reference: np.ndarray, frames: np.ndarray
     `diffeit live`): their `differences` (T, M') exceed `_LARGEST_CHANGE` of the `reference`
     (M') they are from, or their readings as recorded, `frames` (T, M), are the `recorded`
     reference's (M,) moved along (`_readings_moved`)."""
-    large = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(reference)
-    return large | _readings_moved(frames, recorded)
+    with np.errstate(over="ignore"):  # readings beyond float range: a norm of inf, large
+        large = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(reference)
+    moved = np.zeros_like(large)
+    moved[~large] = _readings_moved(frames[~large], recorded)
+    return large | moved
 
 
 def _readings_moved(frames: np.ndarray, about: np.ndarray) -> np.ndarray:
