@@ -98,7 +98,8 @@ def test_the_tanks_through_a_skin_calibration_follow_the_rod_round(name, frames,
     # Montreal: its channel gains, not mixing, are what the model lacks (its first stage correlates -0.48).
     mixing_fitted = "mixing" in calibration.fitted["reference"]
     assert mixing_fitted == (difference == "calibrated")
-    assert mixing_fitted or any("mixing was not fitted to the reference" in note for note in calibration.warnings)
+    dropped = "mixing and electrode_positions not fitted to the reference"
+    assert mixing_fitted or any(note.startswith(dropped) for note in calibration.warnings), calibration.warnings
     found = de.touches(result, calibration)  # the polarity from the images: the rod is non-conductive
     assert np.all(found.count >= 1) and np.all(found.depth[:, 0] < 0)  # the rod is in every frame
     _, radius, spread = _circle(found.position[:, 0])

@@ -51,7 +51,9 @@ every group; the Jacobian in closed form from the electrode potentials and the c
 impedances' adjoint derivative, the electrode positions' and widths' columns by `jax.jacfwd`
 through the forward model) refines the level (a factor c
 with the voltage unit) and the groups `reference_groups` names, against the reference's
-readings in use:
+readings in use (by default `REFERENCE_GROUPS`, the contact impedances and the mixing, before
+labelled presses or a background map, and `REFERENCE_ONLY_GROUPS`, the electrode positions too,
+without them):
 
 - "contact_impedance": one per electrode, ln z, prior standard deviation 1 (the default);
 - "mixing": the readout's (`diffeit.readout.Readout`: source, sink and offset weights), prior
@@ -59,8 +61,8 @@ readings in use:
   source electrode's and the far electrode's weights, started from the best of a grid of
   the two: a magnitude board's readings flip sign along the way, where small steps from no
   mixing stop short. Not fitted (with a warning) to a reference the first stage's model
-  correlates with under 0.5: what the model lacks is then something else, gains per reading
-  or the wiring, that mixing would only mask;
+  correlates with under 0.5, nor are the electrodes' positions and widths: what the model
+  lacks is then something else, gains per reading or the wiring, that they would only mask;
 - "drive_gains", "channel_gains": ln g per drive and per measuring channel, prior 0.5;
 - "electrode_positions": how far each electrode's centre lies from the mesh's, along the
   boundary, prior standard deviation 0.1 of the mean spacing between electrode centres
@@ -241,6 +243,7 @@ from ._reference import ReferenceCalibration as ReferenceCalibration
 from ._reference import calibrate_to_reference as calibrate_to_reference
 from ._refine import PRIORS as PRIORS
 from ._refine import REFERENCE_GROUPS as REFERENCE_GROUPS
+from ._refine import REFERENCE_ONLY_GROUPS as REFERENCE_ONLY_GROUPS
 from ._skin import SCHEMA as SCHEMA
 from ._skin import SCHEMA_VERSION as SCHEMA_VERSION
 from ._skin import SkinCalibration as SkinCalibration

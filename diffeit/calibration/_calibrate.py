@@ -44,7 +44,7 @@ from ._presses import (
     _with_memory,
 )
 from ._reference import DrivenReadings, calibrate_to_reference
-from ._refine import PRIORS, REFERENCE_GROUPS, _refine_to_reference, _with_warnings
+from ._refine import PRIORS, REFERENCE_GROUPS, REFERENCE_ONLY_GROUPS, _refine_to_reference, _with_warnings
 from ._skin import SkinCalibration
 
 # A labelled press whose frame changes more than this, and more than this factor times the
@@ -122,7 +122,7 @@ def calibrate(
     contact_impedance: float = 0.01,
     driven_readings: DrivenReadings = "auto",
     priors: Mapping[str, float] | None = None,
-    reference_groups: tuple[str, ...] = REFERENCE_GROUPS,
+    reference_groups: tuple[str, ...] | None = None,
     press_groups: tuple[str, ...] | None = None,
     hyperparameter: float | None = None,
     memory: bool = True,
@@ -170,12 +170,13 @@ def calibrate(
         priors: Prior standard deviations replacing those of `PRIORS` (by group name; the
             electrode positions' as a fraction of the mean spacing between electrodes).
         reference_groups: The groups of `PRIORS` fitted to the reference (the level always
-            is); the default, the contact impedances and the mixing's source and far
-            electrode weights, is what a reference determines on a skin whose electrode
-            positions and sheet the model does not know (measured in
-            docs/tutorials/calibration.md). Mixing is not fitted (a warning says so) to a
-            reference the first stage's model correlates with under 0.5. The presses fit
-            every mixing weight.
+            is). None: with presses or a background map, `REFERENCE_GROUPS`, the contact
+            impedances and the mixing's source and far electrode weights (the presses fit
+            every mixing weight and the electrode positions; the map takes the sheet's part
+            that positions fitted to the reference would); otherwise `REFERENCE_ONLY_GROUPS`,
+            the electrode positions too (measured in docs/tutorials/calibration.md). Mixing and the
+            electrodes' positions and widths are not fitted (a warning says so) to a reference
+            the first stage's model correlates with under 0.5.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
             "electrode_positions", "background_map" (package docstring) and "reading_gains" (a
             gain per reading, prior standard deviation 0.2 of its relative change). None: each
@@ -235,6 +236,9 @@ def calibrate(
     )
     if gains is not None:  # said with every later stage's warnings
         first = _with_warnings(first, _drift_note(gains))
+    if reference_groups is None:
+        # The positions trade with the sheet's gradient, the map's share (and the presses' fit their own).
+        reference_groups = REFERENCE_ONLY_GROUPS if presses is None and not background_map else REFERENCE_GROUPS
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")
