@@ -1119,9 +1119,11 @@ def test_with_too_few_presses_to_hold_out_the_references_calibration_is_kept(mix
 @pytest.mark.parametrize("count", [1, 2])
 def test_one_or_two_presses_calibrate_without_a_position_map(mixing_skin, count):
     """Fewer than 3 presses make no position map, and say so; the calibration still takes their
-    polarity (before, setting it on the calibration without a map raised from inside equinox)."""
+    polarity (before, setting it on the calibration without a map raised from inside equinox).
+    Too few to fit the electrode positions (20), they leave them to the reference."""
     few = de.calibrate(mixing_skin.recording, mixing_skin.presses.select(np.arange(count)))
     assert few.position_map is None and few.polarity == -1
+    assert few.fitted["reference"] == ("level", *de.calibration.REFERENCE_ONLY_GROUPS)
     assert "fewer than 3 presses read: no position map" in few.warnings
     images = de.reconstruct(mixing_skin.recording, calibration=few, progress=False)
     found = de.touches(images, few)

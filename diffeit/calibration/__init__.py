@@ -51,9 +51,9 @@ every group; the Jacobian in closed form from the electrode potentials and the c
 impedances' adjoint derivative, the electrode positions' and widths' columns by `jax.jacfwd`
 through the forward model) refines the level (a factor c
 with the voltage unit) and the groups `reference_groups` names, against the reference's
-readings in use (by default `REFERENCE_GROUPS`, the contact impedances and the mixing, before
-labelled presses or a background map, and `REFERENCE_ONLY_GROUPS`, the electrode positions too,
-without them):
+readings in use (by default `REFERENCE_GROUPS`, the contact impedances and the mixing, where
+20 or more labelled presses fit the positions or a background map is fitted, and
+`REFERENCE_ONLY_GROUPS`, the electrode positions too, otherwise):
 
 - "contact_impedance": one per electrode, ln z, prior standard deviation 1 (the default);
 - "mixing": the readout's (`diffeit.readout.Readout`: source, sink and offset weights), prior

@@ -170,11 +170,12 @@ def calibrate(
         priors: Prior standard deviations replacing those of `PRIORS` (by group name; the
             electrode positions' as a fraction of the mean spacing between electrodes).
         reference_groups: The groups of `PRIORS` fitted to the reference (the level always
-            is). None: with presses or a background map, `REFERENCE_GROUPS`, the contact
-            impedances and the mixing's source and far electrode weights (the presses fit
-            every mixing weight and the electrode positions; the map takes the sheet's part
-            that positions fitted to the reference would); otherwise `REFERENCE_ONLY_GROUPS`,
-            the electrode positions too (measured in docs/tutorials/calibration.md). Mixing and the
+            is). None: `REFERENCE_GROUPS`, the contact impedances and the mixing's source and
+            far electrode weights, where the presses fit the electrode positions (20 presses
+            or more, or `press_groups` naming them) or a background map is fitted (it takes the
+            sheet's part that positions fitted to the reference would); otherwise
+            `REFERENCE_ONLY_GROUPS`, the electrode positions too (measured in
+            docs/tutorials/calibration.md). Mixing and the
             electrodes' positions and widths are not fitted (a warning says so) to a reference
             the first stage's model correlates with under 0.5.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
@@ -237,8 +238,12 @@ def calibrate(
     if gains is not None:  # said with every later stage's warnings
         first = _with_warnings(first, _drift_note(gains))
     if reference_groups is None:
-        # The positions trade with the sheet's gradient, the map's share (and the presses' fit their own).
-        reference_groups = REFERENCE_ONLY_GROUPS if presses is None and not background_map else REFERENCE_GROUPS
+        # Positions fitted to the reference trade with the sheet's gradient, which a background
+        # map takes; presses enough for their own fit place them better.
+        enough = presses is not None and presses.n_presses >= _LEAST_HELD_OUT
+        positions_by_presses = enough if press_groups is None else "electrode_positions" in press_groups
+        mapped = background_map or (background_map is None and enough)
+        reference_groups = REFERENCE_GROUPS if positions_by_presses or mapped else REFERENCE_ONLY_GROUPS
     unknown = set(reference_groups) - set(PRIORS)
     if unknown:
         raise ValueError(f"unknown reference group(s) {sorted(unknown)}; the groups are {list(PRIORS)}")

@@ -41,10 +41,10 @@ PRIORS = {
 _POSITION_REACH, _POSITION_GAP = 3.0, 0.45
 
 
-# The groups fitted to the reference before labelled presses, which fit every mixing weight and
-# the electrode positions better (docs/tutorials/calibration.md).
+# The groups fitted to the reference before presses enough to fit every mixing weight and the
+# electrode positions, or a background map (docs/tutorials/calibration.md).
 REFERENCE_GROUPS = ("contact_impedance", "mixing")
-# ... and without presses (nor a background map), the electrode positions too: on the calibration benchmark's skins (8
+# ... and otherwise, the electrode positions too: on the calibration benchmark's skins (8
 # seeds) their RMS error went from 2.2-3.2 to 1.0-1.4 degrees and the touches read from 1.44 to
 # 1.10 times the true model's median error; with presses, the positions fitted to the reference
 # took up a sheet's gradient that the background map would have (30 presses: 13.0 against 10.1 mm).
