@@ -175,9 +175,9 @@ def calibrate(
             or more, or `press_groups` naming them) or a background map is fitted (it takes the
             sheet's part that positions fitted to the reference would); otherwise
             `REFERENCE_ONLY_GROUPS`, the electrode positions too (measured in
-            docs/tutorials/calibration.md). Mixing and the
-            electrodes' positions and widths are not fitted (a warning says so) to a reference
-            the first stage's model correlates with under 0.5.
+            docs/tutorials/calibration.md). Mixing and the electrodes' positions and widths
+            are not fitted (a warning says so) to a reference the first stage's model
+            correlates with under 0.5.
         press_groups: The groups fitted to the presses' differences: "mixing" (always),
             "electrode_positions", "background_map" (package docstring) and "reading_gains" (a
             gain per reading, prior standard deviation 0.2 of its relative change). None: each

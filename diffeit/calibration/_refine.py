@@ -69,7 +69,7 @@ _MIXING_REACH, _MIXING_GRID = 0.5, 41
 
 # Mixing and the electrodes' geometry are fitted to a reference the first stage's model correlates
 # with at least this well: they would explain the rest of what it lacks, wrongly.
-_MIXING_LEAST_CORRELATION = 0.5
+_MASKING_LEAST_CORRELATION = 0.5
 _MASKING_GROUPS = ("mixing", "electrode_positions", "electrode_widths")
 
 
@@ -101,7 +101,7 @@ def _refine_to_reference(
     """
     priors = PRIORS if priors is None else priors
     masking = [group for group in groups if group in _MASKING_GROUPS]
-    if masking and first.correlation < _MIXING_LEAST_CORRELATION:
+    if masking and first.correlation < _MASKING_LEAST_CORRELATION:
         # A reference the nominal model does not follow at all (the Montreal tank's, its channel
         # gains spanning 12x) is explained by mixing or moved electrodes only in part, and
         # wrongly: fitted there, they mislead the images.
@@ -109,7 +109,7 @@ def _refine_to_reference(
         calibration = _refine(first, reference, priors, recording, others)
         note = (
             f"{' and '.join(masking)} not fitted to the reference: the nominal model correlates with it at "
-            f"{first.correlation:.3f} (< {_MIXING_LEAST_CORRELATION}), so it departs from the model in ways they "
+            f"{first.correlation:.3f} (< {_MASKING_LEAST_CORRELATION}), so it departs from the model in ways they "
             "would only mask (gains per reading, the wiring)"
         )
         return _with_warnings(calibration, note)
