@@ -31,7 +31,7 @@ from ._held_out import (
     _too_few_to_hold_out,
     _with_position_map,
 )
-from ._maps import SizeMap
+from ._maps import SizeMap, _spread
 from ._press_fit import _moved, _skin_size
 from ._presses import (
     _fitted_changes,
@@ -567,7 +567,7 @@ def _check_presses(presses: Presses, recording: Recording, mesh: Mesh) -> None:
             + ("; in millimetres they lie on the skin: give their centres and radius in metres" if millimetres else "")
         )
     # In the labels' own units: their frame's scale against the mesh's is fitted.
-    spread = np.sqrt(np.mean(np.sum((presses.centres - presses.centres.mean(axis=0)) ** 2, axis=1)))
+    spread = _spread(presses.centres)
     if presses.n_presses >= 3 and spread < _LEAST_LABEL_SPREAD * np.mean(presses.radius):
         # No frame or position map is determined by them: fitted, every touch was read at their place.
         raise ValueError(
