@@ -55,7 +55,7 @@ class Potentials(eqx.Module):
 # float32 is an opt-in for throughput; beyond this estimated relative voltage error it is not.
 FLOAT32_TOLERANCE = 1e-3
 
-JacobianVariable = Literal["conductivity", "log_conductivity", "contact_impedance"]
+JacobianVariable = Literal["conductivity", "log_conductivity", "contact_impedance", "electrode_shift"]
 
 
 def _name_elements(mask: np.ndarray) -> str:
@@ -248,21 +248,32 @@ class ForwardModel(IdentityModule):
             conductivity: (E,) sheet conductivity per element, S/sq, finite and positive.
             contact_impedance: Scalar or (L,), ohm m, overriding the model's; None uses the
                 model's.
-            wrt: What to differentiate by: "conductivity", "log_conductivity" or
-                "contact_impedance".
+            wrt: What to differentiate by: "conductivity", "log_conductivity",
+                "contact_impedance" or "electrode_shift" (a model built with an
+                `electrode_shift` or `electrode_margin`).
 
         Returns:
             For `wrt="conductivity"`, (n_measurements, E) in V/(S/sq); for
             `wrt="log_conductivity"`, (n_measurements, E) in V, dV/d(ln sigma) =
             sigma dV/dsigma; for `wrt="contact_impedance"`, (n_measurements, L) in V/(ohm m),
             one column per electrode (sum the columns for a shared scalar z), zero for point
-            electrodes.
+            electrodes; for `wrt="electrode_shift"`, (n_measurements, L, 2) in V/m, by the
+            shift of each electrode's start and end along the boundary (the shape of
+            `electrode_shift`): an end moving outward lengthens the electrode. It costs no
+            solve beyond the others': the electrode terms' derivative in the ends, contracted
+            with the same fields.
 
         Raises:
-            ValueError: For an unknown `wrt`, and as `potentials` for the inputs.
+            ValueError: For an unknown `wrt`, `wrt="electrode_shift"` of a model whose
+                electrodes may not move, and as `potentials` for the inputs.
         """
         if wrt not in JacobianVariable.__args__:
             raise ValueError(f"wrt must be one of {JacobianVariable.__args__}; got {wrt!r}")
+        if wrt == "electrode_shift" and self.electrode_shift is None:
+            raise ValueError(
+                'wrt="electrode_shift" needs a model whose electrodes may move: build it with electrode_margin '
+                "(metres) or an electrode_shift"
+            )
         sigma, z = self._checked_inputs(conductivity, contact_impedance)
         return _jacobian(_Solves.of(self), _ProtocolArrays.of(self.protocol), sigma, z, wrt)
 
@@ -564,11 +575,19 @@ def _jacobian_of_fields(
 ) -> jax.Array:
     """The Jacobian by reciprocity from the drive and measurement fields (`_adjoint_fields`)."""
     system = solves.system
-    if wrt == "contact_impedance":
-        forms = system.contact_forms(
-            drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index], *_ends(solves, z.dtype)
-        )  # (n_measurements, L)
-        return forms / z**2
+    if wrt in ("contact_impedance", "electrode_shift"):
+        drives, patterns = drive_fields[:, protocol.drive_index], measure_fields[:, protocol.pattern_index]
+        ends = _ends(solves, z.dtype)
+        if wrt == "contact_impedance":
+            return system.contact_forms(drives, patterns, *ends) / z**2  # (n_measurements, L)
+        # The electrode terms hold weights(ends) / z: dV/d end = -(d forms / d end) / z. Electrode l's
+        # forms depend on its own ends alone, so one tangent moves every start (then every end).
+        shift = ends[0]
+        along = [
+            jax.jvp(lambda e: system.contact_forms(drives, patterns, e), (shift,), (tangent,))[1]
+            for tangent in (jnp.zeros_like(shift).at[:, side].set(1.0) for side in (0, 1))
+        ]
+        return -jnp.stack(along, axis=-1) / z[:, None]  # (n_measurements, L, 2)
     drive_gradients = _element_gradients(system, system.split(drive_fields)[0])  # each (n_drives, E)
     measure_gradients = _element_gradients(system, system.split(measure_fields)[0])  # each (n_patterns, E)
     products = sum(

@@ -1,6 +1,8 @@
 """Electrodes moved along the boundary (`ForwardModel(electrode_shift=...)`): a shift that moves
 an electrode's ends onto other nodes gives the model of the mesh whose electrodes are those
-nodes, exactly; its derivative agrees with finite differences; bad shifts are refused by name."""
+nodes, exactly; its derivative agrees with finite differences, and the adjoint Jacobian
+(`jacobian(wrt="electrode_shift")`) with forward differentiation through the solves; bad shifts
+are refused by name."""
 
 import equinox as eqx
 import jax
@@ -76,6 +78,34 @@ def test_the_derivative_in_the_shift_agrees_with_finite_differences(mesh):
             backward = voltages(jnp.asarray(start).at[electrode, end].add(-step))
             difference = (forward - backward) / (2 * step)
             np.testing.assert_allclose(derivative[:, electrode, end], difference, atol=1e-4 * np.abs(difference).max())
+
+
+def test_the_adjoint_jacobian_in_the_shift_is_forward_differentiation_through_the_solves(mesh):
+    """At zero and between nodes, with a contact impedance per electrode (the 1/z of each
+    electrode's terms), on the adjacent protocol and on one reading every electrode."""
+    conductivity = jnp.asarray(np.random.default_rng(3).uniform(0.5, 2.0, mesh.n_elements))
+    z = np.linspace(0.005, 0.05, 16)
+    every = de.Protocol(np.eye(16)[:1] - np.eye(16)[8:9], [np.eye(16) - 1 / 16])
+    for protocol in (PROTOCOL, every):
+        for start in (np.zeros((16, 2)), np.random.default_rng(4).uniform(-0.03, 0.03, (16, 2))):
+            model = de.ForwardModel(mesh, protocol, z, electrode_shift=start, electrode_margin=0.04)
+            expected = jax.jacfwd(
+                lambda shift, model=model: eqx.tree_at(lambda m: m.electrode_shift, model, shift).measure(conductivity)
+            )(model.electrode_shift)
+            adjoint = model.jacobian(conductivity, wrt="electrode_shift")
+            assert adjoint.shape == (protocol.n_measurements, 16, 2)
+            np.testing.assert_allclose(adjoint, expected, atol=1e-11 * np.abs(expected).max())
+    # Lengthening the electrode the current enters by, at either end, lowers the resistance it
+    # meets: its potential falls.
+    model = de.ForwardModel(mesh, every, z, electrode_margin=0.04)
+    voltages, adjoint = model.measure(conductivity), model.jacobian(conductivity, wrt="electrode_shift")
+    assert voltages[0] > 0 and adjoint[0, 0, 0] > 0 and adjoint[0, 0, 1] < 0
+
+
+def test_the_shift_jacobian_of_a_model_whose_electrodes_may_not_move_is_refused(mesh):
+    model = de.ForwardModel(mesh, PROTOCOL, 0.02)
+    with pytest.raises(ValueError, match="electrodes may move"):
+        model.jacobian(jnp.ones(mesh.n_elements), wrt="electrode_shift")
 
 
 @pytest.mark.parametrize(

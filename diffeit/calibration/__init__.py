@@ -47,9 +47,8 @@ The first stage fits no gains; the refinement below can.
 ## Refinement (`calibrate`)
 
 After the first stage, one regularised least-squares fit (Levenberg-Marquardt, priors on
-every group; the Jacobian in closed form from the electrode potentials and the contact
-impedances' adjoint derivative, the electrode positions' and widths' columns by `jax.jacfwd`
-through the forward model) refines the level (a factor c
+every group; the Jacobian in closed form from the electrode potentials and their adjoint
+derivatives in the contact impedances and the electrodes' ends) refines the level (a factor c
 with the voltage unit) and the groups `reference_groups` names, against the reference's
 readings in use (by default `REFERENCE_GROUPS`, the contact impedances and the mixing, where
 20 or more labelled presses fit the positions or a background map is fitted, and

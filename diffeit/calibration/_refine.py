@@ -7,6 +7,7 @@ Levenberg-Marquardt fit of the level and the groups `reference_groups` names (`P
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -311,21 +312,11 @@ class _ReadoutFit(eqx.Module):
         """(M, n) the derivative of `readings` at `theta` (n,), in the parameters where `free`
         (n,) is True (zero in the others: held, they are not differentiated).
 
-        The level, contact impedances, mixing weights and gains in closed form from the
-        electrode potentials and their adjoint derivative in the contact impedances
-        (`_readout_jacobian`: one solve per electrode, against one per parameter and drive
-        by forward differentiation, 8 times slower on a 32-electrode tank); the electrode
-        positions and widths by `jax.jacfwd`."""
-        n = self.model.protocol.n_electrodes
-        moves = free.copy()
-        moves[: -2 * n] = False
-        if np.any(free & ~moves):
-            design = np.array(_readout_jacobian(self, theta))
-        else:
-            design = np.zeros((self.model.n_measurements, len(theta)))
-        if np.any(moves):
-            index = np.flatnonzero(moves)
-            design[:, index] = np.asarray(_readings_jacobian(self, theta, jnp.asarray(index)))
+        In closed form from the electrode potentials and their adjoint derivatives in the
+        contact impedances and the electrodes' ends (`_readout_jacobian`: one solve per
+        electrode, against one per parameter and drive by forward differentiation, 8 times
+        slower on a 32-electrode tank)."""
+        design = np.array(_readout_jacobian(self, theta))
         design[:, ~free] = 0.0
         return design
 
@@ -361,13 +352,13 @@ def _readout_at(
 
 @eqx.filter_jit
 def _readout_jacobian(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
-    """(M, n) the derivative of `_readings` at `theta` in every parameter but the electrode
-    positions and widths (zero there), in closed form. Reading m of drive d(m) is
-    s_m = G_m sum_l W'_ml U_d(m)l with G_m the gains' product exp(ln c + ln g_d + ln g_p) and
-    W' the weights with the mixing: d s / d ln c = s, d s / d ln g = s where the gain applies,
-    d s / d weight = G (the potential it weighs), d s / d ln z_k = G W' dU/dz_k z_k (the
-    contact impedances' adjoint Jacobian of the model reading every electrode); a magnitude
-    board's |s| takes sign(s)."""
+    """(M, n) the derivative of `_readings` at `theta`, in closed form. Reading m of drive d(m)
+    is s_m = G_m sum_l W'_ml U_d(m)l with G_m the gains' product exp(ln c + ln g_d + ln g_p)
+    and W' the weights with the mixing: d s / d ln c = s, d s / d ln g = s where the gain
+    applies, d s / d weight = G (the potential it weighs), d s / d ln z_k = G W' dU/dz_k z_k
+    and d s / d (centre, width)_k = G W' dU/d ends_k d ends_k / d (centre, width)_k (the
+    adjoint Jacobians of the model reading every electrode; the position columns are zero
+    for a model whose electrodes do not move); a magnitude board's |s| takes sign(s)."""
     protocol = fit.model.protocol
     n, drives = protocol.n_electrodes, protocol.n_drives
     every, z, weights, gain = _readout_at(fit, fit.every, theta)
@@ -375,21 +366,29 @@ def _readout_jacobian(fit: _ReadoutFit, theta: jax.Array) -> jax.Array:
     # (M, L, L): dU_d(m)l / dz_k of every electrode l, by k.
     along_z = every.jacobian(fit.conductivity, z, wrt="contact_impedance").reshape(drives, n, n)[protocol.drive_index]
     signed = gain * jnp.sum(weights * potentials, axis=-1)
+    moves = jnp.zeros((len(signed), 2 * n), signed.dtype)
+    if every.electrode_shift is not None:
+        # (M, L, 2): dU_d(m)l / d ends_k, by electrode k and its start and end, weighed by W'.
+        along_ends = every.jacobian(fit.conductivity, z, wrt="electrode_shift").reshape(drives, n, n, 2)
+        along_ends = jnp.einsum("ml,mlks->mks", weights, along_ends[protocol.drive_index])
+        # Electrode k's ends depend on its own centre and width alone: one tangent for each.
+        bounded = functools.partial(_electrode_ends, margin=every.system.electrode_margin)
+        centre, width = theta[-2 * n : -n], theta[-n:]
+        by_centre = jax.jvp(bounded, (centre, width), (jnp.ones(n), jnp.zeros(n)))[1]
+        by_width = jax.jvp(bounded, (centre, width), (jnp.zeros(n), jnp.ones(n)))[1]
+        moves = gain[:, None] * jnp.concatenate(
+            [jnp.sum(along_ends * by_centre, axis=-1), jnp.sum(along_ends * by_width, axis=-1)], axis=1
+        )
     columns = [
         signed[:, None],
         gain[:, None] * jnp.einsum("ml,mlk->mk", weights, along_z) * z,
         gain[:, None] * jnp.einsum("jml,ml->mj", fit.placed, potentials),
         signed[:, None] * jax.nn.one_hot(protocol.drive_index, drives, dtype=signed.dtype),
         signed[:, None] * jax.nn.one_hot(protocol.pattern_index, len(protocol.measure_patterns), dtype=signed.dtype),
-        jnp.zeros((len(signed), 2 * n), signed.dtype),
+        moves,
     ]
     design = jnp.concatenate(columns, axis=1)
     return jnp.sign(signed)[:, None] * design if fit.magnitude else design
-
-
-@eqx.filter_jit
-def _readings_jacobian(fit: _ReadoutFit, theta: jax.Array, index: jax.Array) -> jax.Array:
-    return jax.jacfwd(lambda part: _readings(fit, theta.at[index].set(part)))(theta[index])
 
 
 def _levenberg_marquardt(
