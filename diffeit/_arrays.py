@@ -23,6 +23,21 @@ def fingerprint(*parts: np.ndarray | bytes) -> bytes:
     return digest.digest()
 
 
+def rms(values: np.ndarray) -> float:
+    """The root mean square of `values`."""
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+# A reading under this fraction of its readings' RMS has an uncertain sign: noise or the
+# model's error can flip it, and a ratio to it blows up.
+UNCERTAIN_SIGN = 0.05
+
+
+def uncertain_sign(readings: np.ndarray) -> np.ndarray:
+    """(M,) bool, the `readings` (M,) under `UNCERTAIN_SIGN` of their RMS."""
+    return np.abs(readings) < UNCERTAIN_SIGN * rms(readings)
+
+
 def per_element(background: float | np.ndarray, n_elements: int) -> jax.Array:
     """(E,) a background conductivity given as one level or per element (a calibration's
     `background`), as a float array of one value per element."""

@@ -174,6 +174,49 @@ class ForwardModel(IdentityModule):
         self.system = _system(mesh, "complete", float(electrode_margin))
         self.electrode_shift = _within_margin(shift, self.system)
 
+    def replace(
+        self,
+        *,
+        protocol: Protocol | None = None,
+        contact_impedance: float | jax.Array | None = None,
+        electrode_margin: float | None = None,
+    ) -> ForwardModel:
+        """This model with another protocol, contact impedance or electrode margin.
+
+        The mesh, the electrodes (their shift, when moved), the drive current, the solver and
+        the electrode model are this model's.
+
+        Arguments:
+            protocol: The drives and readings; None keeps this model's.
+            contact_impedance: z, ohm m, a scalar or (L,); None keeps this model's.
+            electrode_margin: How far, metres, the electrodes' ends may move from the mesh's
+                (complete model only): it frees a model's electrodes to move, or bounds a moved
+                model's anew. None keeps this model's (and a model whose electrodes may not
+                move stays so).
+
+        Returns:
+            The new model: one whose mesh and electrode margin are equal shares this one's
+            compiled programs.
+
+        Raises:
+            ValueError: As the constructor, for the values given.
+        """
+        moved = {}
+        if self.electrode_shift is not None or electrode_margin is not None:
+            moved = {
+                "electrode_shift": self.electrode_shift,
+                "electrode_margin": self.system.electrode_margin if electrode_margin is None else electrode_margin,
+            }
+        return ForwardModel(
+            self.mesh,
+            self.protocol if protocol is None else protocol,
+            self.contact_impedance if contact_impedance is None else contact_impedance,
+            drive_current=self.drive_current,
+            solver=self.solver,
+            electrode_model="point" if isinstance(self.system, PointElectrodeSystem) else "complete",
+            **moved,
+        )
+
     @property
     def n_measurements(self) -> int:
         """M, the number of readings of the protocol."""

@@ -64,23 +64,25 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from ._arrays import uncertain_sign
 from ._messages import name_indices
 from ._threads import host_algebra
 from .calibration import (
     CalibrationWarning,
     DrivenReadings,
     SkinCalibration,
+    auto_difference,
     auto_hyperparameter,
     calibrate_to_reference,
     calibrated_reference_frames,
     default_mesh,
     drift_corrected,
+    drift_note,
+    glitched_frames,
+    reading_spread,
     reference_frames,
+    refine_to_reference,
 )
-from .calibration._frames import _NOISE_FRAMES, _drift_note, _glitched
-from .calibration._held_out import _SKIN_LEAST_CORRELATION
-from .calibration._reference import _LEAST_CORRELATION, _UNCERTAIN_SIGN, _rms, _with
-from .calibration._refine import _refine_to_reference
 from .fit import JointImaging
 from .fit import background as fit_background
 from .forward import ForwardModel
@@ -262,14 +264,14 @@ def reconstruct(
     # The readings' spread over the reference frames, when the reference is the mean of enough of
     # the recording's own frames: `diffeit.touches` tests frames against it without a calibration.
     from_frames = recording.reference is None and reference_frame is None
-    spread = reference_set.std(axis=0, ddof=1) if from_frames and len(reference_set) >= _NOISE_FRAMES else None
+    spread = reading_spread(reference_set) if from_frames else None
     frame_gains = None
     if spread is not None:  # a drift's common gain out of every frame (`drift_corrected`)
         recording, frame_gains = drift_corrected(recording, reference_set)
         if frame_gains is not None:  # the reference frames, and their spread, without the drift
             reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
             reference = reference_set.mean(axis=0)
-            spread = reference_set.std(axis=0, ddof=1) if len(reference_set) >= _NOISE_FRAMES else None
+            spread = reading_spread(reference_set)
     if calibration is None:
         nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
         calibration = calibrate_to_reference(
@@ -281,8 +283,8 @@ def reconstruct(
             fit=calibrate,
         )
         if calibrate and not background_map:  # the map fits the level and contacts its own way
-            calibration = _refine_to_reference(calibration, reference_set, recording)
-    notes = calibration.warnings if frame_gains is None else (*calibration.warnings, _drift_note(frame_gains))
+            calibration = refine_to_reference(calibration, reference_set, recording)
+    notes = calibration.warnings if frame_gains is None else (*calibration.warnings, drift_note(frame_gains))
     for note in notes:
         warnings.warn(note, CalibrationWarning, stacklevel=2)
     model = calibration.model
@@ -304,7 +306,7 @@ def reconstruct(
         # best, as a hyperparameter at an end of its candidates is; a failed solve is no map.
         if throw and bool(fitted.result != RESULTS.selection_at_boundary):
             throw_if_failed(fitted, fitted.result, "the background map's fit (diffeit.fit.background)")
-        model, level = _with(model, model.protocol, fitted.contact_impedance), fitted.conductivity
+        model, level = model.replace(contact_impedance=fitted.contact_impedance), fitted.conductivity
         map_summary = {
             "misfit": fitted.misfit,
             "hyperparameter": fitted.hyperparameter,
@@ -313,14 +315,16 @@ def reconstruct(
         }
     dv = frames - signed_reference
     # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
-    damaged = _glitched(dv, signed_reference, recording.frames, reference)
+    damaged = glitched_frames(dv, signed_reference, recording.frames, reference)
     # The readings' noise in the calibration's units: its own, else the reference frames' spread.
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
     # Without it, how far each frame stands out of its own noise, for `diffeit.touches`; with it
     # and no calibration given, where this model puts a touch, for `diffeit.touches`' voltage test.
     statistic = None if noise is not None else subspace_statistic(frames - signed_reference, calibration)
     projection = None if given or noise is None else reading_projection(calibration, noise)
-    difference, difference_reason = _difference(difference, calibration, given)
+    difference, difference_reason = (
+        (difference, "given") if difference != "auto" else auto_difference(calibration, given=given)
+    )
     unsafe: list[int] = []
     if difference == "normalised":
         model, dv, unsafe, noise = _normalised(model, dv, signed_reference, level, calibration, noise)
@@ -407,8 +411,8 @@ def _reading_noise(calibration: Any, reference_set: np.ndarray | None) -> np.nda
     `SkinCalibration` from 6 or more reference frames), else the spread of the
     `reference_set` (R, M) when it holds 6 or more frames; None without either."""
     noise = getattr(calibration, "noise", None)
-    if noise is None and reference_set is not None and len(reference_set) >= _NOISE_FRAMES:
-        noise = np.std(calibration.signed(reference_set), axis=0, ddof=1)
+    if noise is None and reference_set is not None:
+        noise = reading_spread(calibration.signed(reference_set))
     return noise
 
 
@@ -431,26 +435,6 @@ def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh:
         raise ValueError("a calibration brings its mesh: give no mesh or h with it")
 
 
-def _difference(difference: str, calibration: Any, given: bool) -> tuple[str, str]:
-    """The differences imaged, and why (module docstring, "Which differences")."""
-    if difference != "auto":
-        return difference, "given"
-    if given and calibration.correlation >= _SKIN_LEAST_CORRELATION:
-        return "calibrated", (
-            f"a skin calibration whose model follows the reference (correlation {calibration.correlation:.3f}): a "
-            "ratio per reading would carry the model's remaining error into every difference"
-        )
-    if calibration.correlation >= _LEAST_CORRELATION:
-        return (
-            "calibrated",
-            f"the calibrated model reproduces the reference (correlation {calibration.correlation:.3f})",
-        )
-    return "normalised", (
-        f"the calibrated model does not reproduce the reference (correlation {calibration.correlation:.3f} < "
-        f"{_LEAST_CORRELATION}): gains per reading are the explanation left"
-    )
-
-
 def _normalised(
     model, dv, reference, level, calibration, noise: np.ndarray | None
 ) -> tuple[ForwardModel, np.ndarray, list[int], np.ndarray | None]:
@@ -463,9 +447,7 @@ def _normalised(
     gain = reference / voltages
     positive = gain > 0
     # A ratio of two near-zero numbers says nothing: such readings go too, whatever their ratio.
-    small = (np.abs(voltages) < _UNCERTAIN_SIGN * _rms(voltages)) | (
-        np.abs(reference) < _UNCERTAIN_SIGN * _rms(reference)
-    )
+    small = uncertain_sign(voltages) | uncertain_sign(reference)
     off = np.abs(np.log(np.where(positive, gain, 1.0) / np.median(gain[positive]))) > np.log(_LARGEST_GAIN)
     safe = positive & ~off & ~small
     if not safe.any():
@@ -478,7 +460,7 @@ def _normalised(
             CalibrationWarning,
             stacklevel=3,
         )
-        model = _with(model, model.protocol.select(safe), model.contact_impedance)
+        model = model.replace(protocol=model.protocol.select(safe))
     return model, (dv / gain)[:, safe], unsafe, None if noise is None else (noise / gain)[safe]
 
 

@@ -34,7 +34,6 @@ from diffeit.calibration import (
     _held_out,
     _press_fit,
     _presses,
-    _reference,
     _refine,
     _skin,
 )
@@ -271,7 +270,7 @@ def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin, damage)
     on every untouched frame; with zeros in it (once each frame's own gain is taken out, as a
     drifting skin's must be, zeros stand on the trend), no touch at any of the 30 presses. Of
     the 3 frames before labelled presses, too few for the untouched test, a frame of zeros or
-    at another gain is told by its size alone (`_damaged`), and left out."""
+    at another gain is told by its size alone (`damaged_frames`), and left out."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
     frames = recording.frames.copy()
     frames[0] *= {
@@ -308,8 +307,8 @@ def test_a_frame_whose_readings_a_board_moved_along_is_damaged_and_read_as_no_to
     frames[untouched] = np.roll(frames[untouched], 1)
     frames[touched, 100:] = np.roll(frames[touched], -1)[100:]
     moved = [untouched, touched]
-    assert np.flatnonzero(_frames._damaged(frames)).tolist() == moved
-    assert np.flatnonzero(_frames._damaged(recording.frames)).tolist() == []
+    assert np.flatnonzero(_frames.damaged_frames(frames)).tolist() == moved
+    assert np.flatnonzero(_frames.damaged_frames(recording.frames)).tolist() == []
     images = de.reconstruct(dataclasses.replace(recording, frames=frames), progress=False)
     assert images.provenance["metadata"]["damaged_frames"] == moved
     found, clean = de.touches(images), de.touches(de.reconstruct(recording, progress=False))
@@ -2052,7 +2051,7 @@ def test_the_refinements_closed_form_jacobian_equals_forward_differentiation(mag
     rng = np.random.default_rng(0)
     protocol = de.protocol.opposite(16) if magnitude else de.protocol.adjacent(16)
     nominal = de.ForwardModel(de.mesh.disc(16, h=0.2), protocol, 0.02)
-    model = _reference._with(nominal, protocol, np.full(16, 0.02), 0.03)
+    model = nominal.replace(protocol=protocol, contact_impedance=np.full(16, 0.02), electrode_margin=0.03)
     fit = _refine._ReadoutFit.of(model, 1.3, 0.02 * np.exp(rng.normal(0, 0.3, 16)), magnitude)
     size = 1 + 16 + 2 + 16 + protocol.n_drives + len(protocol.measure_patterns) + 2 * 16
     theta = jnp.asarray(rng.normal(0, 0.05, size))
@@ -2078,3 +2077,18 @@ def test_the_background_maps_adjoint_jacobian_equals_forward_differentiation():
     forward = np.asarray(jax.jacfwd(lambda parameters: _background._sheet_readings(fit, parameters))(theta))
     np.testing.assert_allclose(adjoint, forward, rtol=0, atol=1e-12 * np.max(np.abs(forward)))
     assert np.all(np.any(adjoint != 0, axis=0))
+
+
+def test_the_readings_spread_needs_six_frames_and_the_auto_difference_follows_the_correlation():
+    frames = np.random.default_rng(0).normal(1.0, 0.1, (6, 4))
+    assert de.calibration.reading_spread(frames[:5]) is None
+    np.testing.assert_allclose(de.calibration.reading_spread(frames), frames.std(axis=0, ddof=1))
+
+    class Fitted:
+        correlation = 0.7
+
+    assert de.calibration.auto_difference(Fitted(), given=True)[0] == "calibrated"
+    assert de.calibration.auto_difference(Fitted(), given=False)[0] == "normalised"
+    Fitted.correlation = 0.95
+    kind, reason = de.calibration.auto_difference(Fitted(), given=False)
+    assert kind == "calibrated" and "0.950" in reason

@@ -123,3 +123,24 @@ def test_the_shift_jacobian_of_a_model_whose_electrodes_may_not_move_is_refused(
 def test_bad_shifts_are_refused_by_name(mesh, options, message):
     with pytest.raises(ValueError, match=message):
         de.ForwardModel(mesh, PROTOCOL, 0.02, **options)
+
+
+def test_a_replaced_model_keeps_its_electrodes_and_all_it_is_not_given(mesh):
+    conductivity = jnp.asarray(np.random.default_rng(5).uniform(0.5, 2.0, mesh.n_elements))
+    shift = np.random.default_rng(6).uniform(-0.02, 0.02, (16, 2))
+    model = de.ForwardModel(mesh, PROTOCOL, 0.02, electrode_shift=shift, electrode_margin=0.03, drive_current=2e-3)
+    opposite = de.protocol.opposite(16)
+    replaced = model.replace(protocol=opposite, contact_impedance=np.linspace(0.01, 0.03, 16))
+    expected = de.ForwardModel(
+        mesh, opposite, np.linspace(0.01, 0.03, 16), electrode_shift=shift, electrode_margin=0.03, drive_current=2e-3
+    )
+    np.testing.assert_array_equal(replaced.measure(conductivity), expected.measure(conductivity))
+    assert replaced.system.electrode_margin == 0.03
+    np.testing.assert_array_equal(model.replace().measure(conductivity), model.measure(conductivity))
+    # A margin frees a model's electrodes, unmoved; a point model stays one.
+    freed = de.ForwardModel(mesh, PROTOCOL, 0.02).replace(electrode_margin=0.01)
+    assert np.all(np.asarray(freed.electrode_shift) == 0) and freed.system.electrode_margin == 0.01
+    point = de.ForwardModel(mesh, PROTOCOL, electrode_model="point").replace(protocol=opposite)
+    assert isinstance(point.system, de.assembly.PointElectrodeSystem) and point.electrode_shift is None
+    with pytest.raises(ValueError, match="complete electrode model"):
+        de.ForwardModel(mesh, PROTOCOL, electrode_model="point").replace(electrode_margin=0.01)

@@ -144,35 +144,8 @@ def private_imports(root: Path, trees: tuple[str, ...] = CHECKED) -> list[str]:
     return found
 
 
-# diffeit.calibration was one module until it became a package: the private helpers of it that
-# diffeit.reconstruction and the command line used then (a module's private names are its
-# package's, diffeit's) they import from its private modules now. These alone, each by name: any
-# other private import across packages fails.
-CALIBRATION_INTERNALS = {
-    "diffeit/cli/_hardware.py": {"_frames._damaged", "_frames._glitched"},
-    "diffeit/reconstruction.py": {
-        "_frames._NOISE_FRAMES",
-        "_frames._drift_note",
-        "_frames._glitched",
-        "_held_out._SKIN_LEAST_CORRELATION",
-        "_reference._LEAST_CORRELATION",
-        "_reference._UNCERTAIN_SIGN",
-        "_reference._rms",
-        "_reference._with",
-        "_refine._refine_to_reference",
-    },
-}
-
-
-def _carried_over(entry: str) -> bool:
-    """Whether an entry of `private_imports` is one of `CALIBRATION_INTERNALS`."""
-    pattern = r"(.+):\d+ imports diffeit\.calibration\.(\S+) \(private to diffeit\.calibration\)"
-    match = re.fullmatch(pattern, entry)
-    return match is not None and match.group(2) in CALIBRATION_INTERNALS.get(match.group(1), ())
-
-
 def test_no_module_imports_another_packages_private_modules():
-    assert [entry for entry in private_imports(ROOT) if not _carried_over(entry)] == []
+    assert private_imports(ROOT) == []
 
 
 def test_the_private_module_check_finds_a_private_import(tmp_path):

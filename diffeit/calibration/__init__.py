@@ -231,7 +231,11 @@ from ._calibrate import default_mesh as default_mesh
 from ._frames import REFERENCE_FRAMES as REFERENCE_FRAMES
 from ._frames import LiveDrift as LiveDrift
 from ._frames import calibrated_reference_frames as calibrated_reference_frames
+from ._frames import damaged_frames as damaged_frames
 from ._frames import drift_corrected as drift_corrected
+from ._frames import drift_note as drift_note
+from ._frames import glitched_frames as glitched_frames
+from ._frames import reading_spread as reading_spread
 from ._frames import reference_frames as reference_frames
 from ._maps import PositionMap as PositionMap
 from ._maps import SizeMap as SizeMap
@@ -239,10 +243,12 @@ from ._presses import auto_hyperparameter as auto_hyperparameter
 from ._reference import CalibrationWarning as CalibrationWarning
 from ._reference import DrivenReadings as DrivenReadings
 from ._reference import ReferenceCalibration as ReferenceCalibration
+from ._reference import auto_difference as auto_difference
 from ._reference import calibrate_to_reference as calibrate_to_reference
 from ._refine import PRIORS as PRIORS
 from ._refine import REFERENCE_GROUPS as REFERENCE_GROUPS
 from ._refine import REFERENCE_ONLY_GROUPS as REFERENCE_ONLY_GROUPS
+from ._refine import refine_to_reference as refine_to_reference
 from ._skin import SCHEMA as SCHEMA
 from ._skin import SCHEMA_VERSION as SCHEMA_VERSION
 from ._skin import SkinCalibration as SkinCalibration

@@ -12,12 +12,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._arrays import rms
 from ..forward import ForwardModel
 from ..io import Presses, Recording
 from ._held_out import _SHEET_SIGNIFICANCE, _closer, _median_read, _with_position_map
 from ._press_fit import _SHEET_PRIOR, _sheet_terms
 from ._presses import _read_presses
-from ._reference import _relative, _rms, _with
+from ._reference import _relative
 from ._refine import _REFINE_ROUNDS, _UNDETERMINED, PRIORS, _levenberg_marquardt, _with_warnings
 from ._skin import SkinCalibration
 
@@ -68,12 +69,12 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
     n, electrodes = fit.terms.shape[1], len(fit.contact_impedance)
     spread = np.r_[1.0, np.full(electrodes, PRIORS["contact_impedance"]), np.full(n, _SHEET_PRIOR)]
     fixed = np.zeros(len(spread), bool)
-    scale = max(calibration.misfit, 1e-4) * _rms(data)
+    scale = max(calibration.misfit, 1e-4) * rms(data)
     theta = np.zeros(len(spread))
     for _ in range(_REFINE_ROUNDS):
         theta, curvature = _levenberg_marquardt(fit, theta, data, scale, spread, fixed)
         residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
-        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - len(theta), 1))), 1e-9 * _rms(data))
+        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - len(theta), 1))), 1e-9 * rms(data))
     all_errors = np.sqrt(np.diag(np.linalg.inv(curvature)))
     errors = all_errors[1 + electrodes :]
     if np.all(errors > _UNDETERMINED * _SHEET_PRIOR):
@@ -108,7 +109,7 @@ def _background_fitted(calibration: SkinCalibration, reference: np.ndarray) -> S
         ),
         calibration,
         (
-            _with(calibration.model, calibration.model.protocol, contact),
+            calibration.model.replace(contact_impedance=contact),
             float(level),
             sheet,
             contact,

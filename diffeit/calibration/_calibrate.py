@@ -19,7 +19,7 @@ from ..io import Presses, Recording, mesh_from_geometry
 from ..mesh import Mesh, disc
 from ..touch import SIGNIFICANCE, _statistic, subspace_statistic, touch_subspace
 from ._background import _with_background_map
-from ._frames import _change_from_about, _drift_note, drift_corrected, reference_frames
+from ._frames import _change_from_about, drift_corrected, drift_note, reference_frames
 from ._held_out import (
     _LEAST_HELD_OUT,
     _fullest_unless_beaten,
@@ -44,7 +44,7 @@ from ._presses import (
     _with_memory,
 )
 from ._reference import DrivenReadings, calibrate_to_reference
-from ._refine import PRIORS, REFERENCE_GROUPS, REFERENCE_ONLY_GROUPS, _refine_to_reference, _with_warnings
+from ._refine import PRIORS, REFERENCE_GROUPS, REFERENCE_ONLY_GROUPS, _with_warnings, refine_to_reference
 from ._skin import SkinCalibration
 
 # A labelled press whose frame changes more than this, and more than this factor times the
@@ -236,7 +236,7 @@ def calibrate(
         nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
     )
     if gains is not None:  # said with every later stage's warnings
-        first = _with_warnings(first, _drift_note(gains))
+        first = _with_warnings(first, drift_note(gains))
     if reference_groups is None:
         # Positions fitted to the reference trade with the sheet's gradient, which a background
         # map takes; presses enough for their own fit place them better.
@@ -255,7 +255,7 @@ def calibrate(
         )
     if background_map is False and press_groups is not None and "background_map" in press_groups:
         raise ValueError("press_groups names 'background_map' but background_map=False: fit the map or not")
-    calibration = _refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
+    calibration = refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
     left_out, notes = _presses_left_out(presses, recording)

@@ -1,5 +1,5 @@
 """The frames a calibration stands on: a recording's untouched reference frames (`reference_frames`,
-`calibrated_reference_frames`), the frames a board damaged (`_damaged`, `_glitched`), and the
+`calibrated_reference_frames`), the frames a board damaged (`damaged_frames`, `glitched_frames`), and the
 common gain's drift taken out of a recording (`drift_corrected`) or of a stream (`LiveDrift`),
 the rests told from the presses by their gains.
 """
@@ -77,6 +77,20 @@ _LIVE_DRIFT_ERRORS = 3.0  # a stream's running gain is taken out beyond this man
 _NOISE_FRAMES = 6
 
 
+def reading_spread(frames: np.ndarray) -> np.ndarray | None:
+    """Each reading's noise, from its spread over untouched frames.
+
+    Arguments:
+        frames: (N, M) untouched frames (the reference frames), in any one unit.
+
+    Returns:
+        (M,) each reading's sample standard deviation over the frames, in their unit; None for
+        fewer than `_NOISE_FRAMES` (6) frames, too few to test a touch against (its test needs
+        5 degrees of freedom).
+    """
+    return np.std(frames, axis=0, ddof=1) if len(frames) >= _NOISE_FRAMES else None
+
+
 def reference_frames(
     recording: Recording,
     reference_frame: int | None = None,
@@ -97,7 +111,7 @@ def reference_frames(
     recording is one long press); the first `REFERENCE_FRAMES` when the recording holds no
     more (`every_frame`: every frame of the first `_SESSION_FRAMES` that looks untouched and
     lies within the noise of the first untouched run, `_within_noise_of`). A
-    frame that looks damaged (`_damaged`: a frame of zeros, one at another gain) is never one
+    frame that looks damaged (`damaged_frames`: a frame of zeros, one at another gain) is never one
     of them, of 3 frames or more.
 
     Arguments:
@@ -149,7 +163,7 @@ def reference_frames(
         # it one long press (the untouched trend `_untouched` starts from is the frames' median),
         # and the leading run is its reference.
         return recording.frames[:first], f"mean of the first {first} frames (up to the first of a long press)"
-    whole = ~_damaged(recording.frames)
+    whole = ~damaged_frames(recording.frames)
     if whole.all():
         return recording.frames, f"mean of the first {recording.n_frames} frames"
     kept = np.flatnonzero(whole)
@@ -206,7 +220,7 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
             int(np.sum(~touched)),
         )
     session = recording.frames[:_SESSION_FRAMES]
-    quiet = ~_damaged(session) & (statistic(session, stored, 1.0 + 1.0 / count) <= DETECTION)
+    quiet = ~damaged_frames(session) & (statistic(session, stored, 1.0 + 1.0 / count) <= DETECTION)
     if quiet.any():
         return (
             session[quiet],
@@ -230,9 +244,9 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
 
 def _looking_untouched(frames: np.ndarray, times: np.ndarray, where: str) -> tuple[np.ndarray, str]:
     """Those of `frames` (T, M), recorded at `times` (T,), that look untouched (`_untouched`,
-    when there are more than `REFERENCE_FRAMES`; else those not damaged, `_damaged`), and
+    when there are more than `REFERENCE_FRAMES`; else those not damaged, `damaged_frames`), and
     their description, the frames `where` they are."""
-    still = _untouched(frames, times) if len(frames) > REFERENCE_FRAMES else ~_damaged(frames)
+    still = _untouched(frames, times) if len(frames) > REFERENCE_FRAMES else ~damaged_frames(frames)
     if still.all():
         return frames, f"the {len(frames)} frames {where}"
     return frames[still], f"the {int(still.sum())} frames {where} that look untouched (of {len(frames)})"
@@ -252,11 +266,11 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
     single presses on a benchmark skin then read 41 mm off from the reference alone, 5 mm with
     the gain taken out). Three times: first against the frames' median (robust to the touched
     ones), then against the line through those kept; the first `REFERENCE_FRAMES` when fewer
-    pass. A damaged frame (`_damaged`) is never untouched: with its gain taken out, a frame of
+    pass. A damaged frame (`damaged_frames`) is never untouched: with its gain taken out, a frame of
     zeros stood on the trend, and a reference holding one read no press of a session."""
     factor = 1.0 + 5.0 / math.sqrt(2.0 * frames.shape[1])
     design = _time_line(times)
-    whole = ~_damaged(frames)
+    whole = ~damaged_frames(frames)
 
     def near(trend: np.ndarray, still: np.ndarray) -> np.ndarray:
         distance = _off_trend(frames, trend)
@@ -327,13 +341,21 @@ def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, l
     return kept
 
 
-def _damaged(frames: np.ndarray) -> np.ndarray:
-    """(T,) bool, the frames (T, M), in time order, whose change from the frames about them
-    (`_change_from_about`) exceeds `_LARGEST_CHANGE`, or whose readings are theirs moved along
-    (`_readings_moved`): a board's glitch (a frame of zeros, one at another gain, readings out
-    of place), not a touch, and not a drift over so few frames.
-    None of fewer than 3 frames (nothing to tell which is damaged), nor of frames that all
-    look so."""
+def damaged_frames(frames: np.ndarray) -> np.ndarray:
+    """The frames a board damaged, told from the frames about them.
+
+    A frame is damaged when its change from the frames about it (`_change_from_about`)
+    exceeds `_LARGEST_CHANGE` (half their size), or when its readings are theirs moved one or
+    two places along (`_readings_moved`): a board's glitch (a frame of zeros, one at another
+    gain, a stream that lost a reading), not a touch, and not a drift over so few frames.
+
+    Arguments:
+        frames: (T, M) frames in time order, as recorded.
+
+    Returns:
+        (T,) bool, True for a damaged frame; none of fewer than 3 frames (nothing to tell
+        which is damaged), nor of frames that all look so.
+    """
     if len(frames) < 3:
         return np.zeros(len(frames), bool)
     about = _about(frames)
@@ -341,11 +363,24 @@ def _damaged(frames: np.ndarray) -> np.ndarray:
     return np.zeros(len(frames), bool) if damaged.all() else damaged
 
 
-def _glitched(differences: np.ndarray, reference: np.ndarray, frames: np.ndarray, recorded: np.ndarray) -> np.ndarray:
-    """(T,) bool, the frames that are a board's glitch, not a touch (`diffeit.reconstruct` and
-    `diffeit live`): their `differences` (T, M') exceed `_LARGEST_CHANGE` of the `reference`
-    (M') they are from, or their readings as recorded, `frames` (T, M), are the `recorded`
-    reference's (M,) moved along (`_readings_moved`)."""
+def glitched_frames(
+    differences: np.ndarray, reference: np.ndarray, frames: np.ndarray, recorded: np.ndarray
+) -> np.ndarray:
+    """The frames that are a board's glitch, not a touch, told against their reference.
+
+    What `diffeit.reconstruct` lists as "damaged_frames" and `diffeit live` leaves unread: frames
+    whose differences exceed half the reference's size (`_LARGEST_CHANGE`), or whose readings
+    are the reference's moved one or two places along (`_readings_moved`).
+
+    Arguments:
+        differences: (T, M') the frames' differences from `reference`, in its unit.
+        reference: (M') the reference they are differences from.
+        frames: (T, M) the frames as recorded.
+        recorded: (M,) the reference as recorded.
+
+    Returns:
+        (T,) bool, True for a glitch.
+    """
     with np.errstate(over="ignore"):  # readings beyond float range: a norm of inf, large
         large = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(reference)
     moved = np.zeros_like(large)
@@ -712,8 +747,15 @@ class LiveDrift(eqx.Module):
         return _trend_at(times, gains, time)
 
 
-def _drift_note(gains: np.ndarray) -> str:
-    """The warning that a recording's frames were divided by their drifting common gains (T,)."""
+def drift_note(gains: np.ndarray) -> str:
+    """The warning that a recording's frames were divided by their drifting common gains.
+
+    Arguments:
+        gains: (T,) each frame's common gain, as `drift_corrected` returns them.
+
+    Returns:
+        The sentence, with the gains' range, that `calibrate` and `diffeit.reconstruct` warn.
+    """
     low, high = float(np.min(gains)), float(np.max(gains))
     return (
         f"the frames' common gain drifts over the recording, from {low:.4g} to {high:.4g} times the reference's "

@@ -20,6 +20,7 @@ from ..mesh import Mesh, surface_distance
 from ._maps import PositionMap, _leave_one_out_errors
 from ._press_fit import _CONTRADICTS, _ContradictsReference, _ElectrodeResponse, _fit_presses, _PressGroups, _PressState
 from ._presses import _read_presses
+from ._reference import _SKIN_LEAST_CORRELATION
 from ._refine import _with_warnings
 from ._skin import _IDENTITY_FRAME, _RINGING_CAP, _RINGING_QUANTILE, SkinCalibration
 
@@ -32,12 +33,6 @@ _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
 # The Gauss-Newton steps of each fold's fit, from where the fit of all the presses ended
 # (`_held_out_errors`).
 _FOLD_ROUNDS = 2
-
-
-# `diffeit.reconstruct` images a skin calibration's calibrated differences when its model
-# correlates with the reference at least this well (else normalised ones): a presses' fit that
-# takes a model below it is refused, its presses having been read at calibrated differences.
-_SKIN_LEAST_CORRELATION = 0.5
 
 
 # Kept by default when the presses are read closer with it at more presses than farther, at

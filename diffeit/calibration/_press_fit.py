@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import per_element
+from .._arrays import per_element, rms
 from .._threads import host_algebra
 from ..forward import ForwardModel
 from ..io import Presses, Recording
@@ -25,7 +25,7 @@ from ..mesh import Mesh
 from ..readout import Readout, roles
 from ._maps import _in_mesh_frame, _spread
 from ._presses import _press_patterns
-from ._reference import _contact_factor, _relative, _rms, _scale, _with
+from ._reference import _contact_factor, _relative, _scale
 from ._refine import _UNDETERMINED, _every_electrode, _position_prior, _ReadoutFit
 from ._skin import SkinCalibration, _electrode_centres
 
@@ -333,11 +333,11 @@ def _fit_presses(
     if refit_contacts:
         everything = np.ones(len(data), bool)
         contact_factor = _contact_factor(every, folded, data, everything, sigma, calibration.contact_impedance)
-        refitted = _with(every, folded, calibration.contact_impedance * contact_factor)
+        refitted = every.replace(protocol=folded, contact_impedance=calibration.contact_impedance * contact_factor)
         readings = np.asarray(refitted.measure(jnp.asarray(sigma)))
     factor = _scale(readings, data)
     contact = calibration.contact_impedance * contact_factor * factor
-    fitted_model = _with(every, folded, contact)
+    fitted_model = every.replace(protocol=folded, contact_impedance=contact)
     reading_sign = first.reading_sign.copy()
     if magnitude:
         reading_sign[first.used] = sign
@@ -626,7 +626,7 @@ def _residual_scale(residual: np.ndarray, data: np.ndarray) -> np.ndarray:
     residuals ten times the median's, pulled the positions fit their way (measured on a
     noise-free benchmark skin with the true electrode positions)."""
     per_press = np.sqrt(np.mean(residual**2, axis=1))
-    return np.maximum(per_press, max(float(np.median(per_press)), 1e-12 * _rms(data)))[:, None]
+    return np.maximum(per_press, max(float(np.median(per_press)), 1e-12 * rms(data)))[:, None]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -650,8 +650,10 @@ class _ElectrodeResponse:
         """At the calibration's level and contact impedance, its electrodes free to move by
         `margin`, m (None: as they are)."""
         protocol = calibration.first_stage.model.protocol
-        model = _with(calibration.model, protocol, calibration.contact_impedance, margin)
-        every = _with(model, _every_electrode(protocol), calibration.contact_impedance)
+        model = calibration.model.replace(
+            protocol=protocol, contact_impedance=calibration.contact_impedance, electrode_margin=margin
+        )
+        every = model.replace(protocol=_every_electrode(protocol), contact_impedance=calibration.contact_impedance)
         return cls.of(every, per_element(calibration.background, model.n_elements))
 
     def changes(self, patterns: jax.Array) -> np.ndarray:
@@ -721,7 +723,7 @@ def _signs(
         return sign
     projection = np.sum(changes * differences, axis=0)
     residual = differences - np.where(projection < 0, -1.0, 1.0) * changes
-    error = _rms(residual) * np.sqrt(np.sum(changes**2, axis=0))
+    error = rms(residual) * np.sqrt(np.sum(changes**2, axis=0))
     return np.where(np.abs(projection) > _SIGN_ERRORS * error, np.sign(projection), sign)
 
 

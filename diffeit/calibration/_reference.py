@@ -1,8 +1,8 @@
 """The first stage of a calibration, `calibrate_to_reference` (a `ReferenceCalibration`): the
 level with the voltage unit, the orientation, the signs of magnitudes, the readings on driven
 electrodes and the outliers, fitted to a recording's reference frame (the package's docstring,
-"First stage"); with the model's helpers the later stages share (`_with`, `_scale`, `_relative`,
-`_rms`, `_contact_factor`, `_batched_readings`).
+"First stage"); with the model's helpers the later stages share (`_scale`, `_relative`,
+`_contact_factor`, `_batched_readings`).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._arrays import per_element
+from .._arrays import per_element, rms, uncertain_sign
 from .._messages import name_indices
 from .._threads import host_algebra
 from ..forward import ForwardModel
@@ -27,10 +27,6 @@ DrivenReadings = Literal["auto", "keep", "drop"]
 
 # Adopt another orientation when it cuts the misfit as recorded by at least this factor.
 _ORIENTATION_GAIN = 2.0
-
-
-# A magnitude's sign is uncertain where the model's reading is under this fraction of its RMS.
-_UNCERTAIN_SIGN = 0.05
 
 
 # Outliers: a residual above this many robust standard deviations and above this fraction of the
@@ -48,6 +44,12 @@ _DRIVEN_FACTOR, _DRIVEN_FLOOR = 2.0, 0.05
 
 # The model does not reproduce the reference below this correlation (the warning begins so).
 _LEAST_CORRELATION = 0.9
+
+
+# `diffeit.reconstruct` images a skin calibration's calibrated differences when its model
+# correlates with the reference at least this well (else normalised ones): a presses' fit that
+# takes a model below it is refused, its presses having been read at calibrated differences.
+_SKIN_LEAST_CORRELATION = 0.5
 
 
 _NOT_REPRODUCED = "the model does not reproduce the reference"
@@ -201,7 +203,7 @@ def calibrate_to_reference(
     nominal = _voltages(model, protocol, background, z0)
     if magnitude:
         sign = np.where(nominal < 0, -1.0, 1.0)
-        masked["uncertain sign"] = np.abs(nominal) < _UNCERTAIN_SIGN * _rms(nominal)
+        masked["uncertain sign"] = uncertain_sign(nominal)
     else:
         sign = np.full(len(v), orientation_sign)
     signed = sign * v
@@ -260,7 +262,7 @@ def _mask_outliers(protocol, data, voltages, used, usable, masked) -> np.ndarray
     broken electrodes (package docstring, step 5); records them in `masked`."""
     residual = data - voltages
     deviation = 1.4826 * np.median(np.abs(residual[used] - np.median(residual[used])))
-    floor = np.maximum(np.abs(voltages), _OUTLIER_FLOOR * _rms(voltages[used]))
+    floor = np.maximum(np.abs(voltages), _OUTLIER_FLOOR * rms(voltages[used]))
     outlier = (
         used & (np.abs(residual) > _OUTLIER_DEVIATIONS * deviation) & (np.abs(residual) > _OUTLIER_RELATIVE * floor)
     )
@@ -279,7 +281,7 @@ def _calibration(
     """Assemble the `ReferenceCalibration` of a fitted scale c and contact factor."""
     contact_impedance = z0 * factor * scale
     conductivity = background / scale
-    calibrated = _with(model, protocol.select(used), contact_impedance)
+    calibrated = model.replace(protocol=protocol.select(used), contact_impedance=contact_impedance)
     voltages = np.asarray(calibrated.measure(jnp.full(model.n_elements, conductivity)))
     data = (sign * v)[used]
     misfit = _relative(data - voltages, data)
@@ -337,23 +339,41 @@ def _reference_mean(reference: np.ndarray, n_measurements: int) -> np.ndarray:
 
 def _voltages(model: ForwardModel, protocol: Protocol, background: float, contact_impedance: np.ndarray) -> np.ndarray:
     """(M,) the voltages of a uniform sheet of `background` S/sq under `protocol`."""
-    return np.asarray(_with(model, protocol, contact_impedance).measure(jnp.full(model.n_elements, background)))
+    uniform = model.replace(protocol=protocol, contact_impedance=contact_impedance)
+    return np.asarray(uniform.measure(jnp.full(model.n_elements, background)))
 
 
-def _with(
-    model: ForwardModel, protocol: Protocol, contact_impedance: np.ndarray, margin: float | None = None
-) -> ForwardModel:
-    """`model` under another protocol and contact impedance (same mesh, electrodes, drive
-    current and solver); with `margin`, its electrodes free to move that far, m, from where
-    they are."""
-    moved = {}
-    if model.electrode_shift is not None or margin is not None:
-        moved = {
-            "electrode_shift": model.electrode_shift,
-            "electrode_margin": model.system.electrode_margin if margin is None else margin,
-        }
-    return ForwardModel(
-        model.mesh, protocol, contact_impedance, drive_current=model.drive_current, solver=model.solver, **moved
+def auto_difference(calibration: Any, *, given: bool) -> tuple[Literal["calibrated", "normalised"], str]:
+    """The differences `diffeit.reconstruct` images with `difference="auto"`, and why.
+
+    With a skin calibration given (`given`), "calibrated" when its model follows the reference
+    at all (correlation at least 0.5): the calibration fitted what its session determines, and
+    a ratio per reading would carry the model's remaining error into every difference.
+    Otherwise "calibrated" when the calibrated model reproduces the reference (correlation at
+    least 0.9), else "normalised": gains per reading are the explanation left.
+
+    Arguments:
+        calibration: A `ReferenceCalibration` or `SkinCalibration` (its `correlation` with
+            the reference, as fitted).
+        given: Whether it is a skin calibration the user gave (`diffeit.calibrate`'s), rather
+            than the reference's own.
+
+    Returns:
+        "calibrated" or "normalised", and the reason (for the images' provenance).
+    """
+    if given and calibration.correlation >= _SKIN_LEAST_CORRELATION:
+        return "calibrated", (
+            f"a skin calibration whose model follows the reference (correlation {calibration.correlation:.3f}): a "
+            "ratio per reading would carry the model's remaining error into every difference"
+        )
+    if calibration.correlation >= _LEAST_CORRELATION:
+        return (
+            "calibrated",
+            f"the calibrated model reproduces the reference (correlation {calibration.correlation:.3f})",
+        )
+    return "normalised", (
+        f"the calibrated model does not reproduce the reference (correlation {calibration.correlation:.3f} < "
+        f"{_LEAST_CORRELATION}): gains per reading are the explanation left"
     )
 
 
@@ -371,10 +391,6 @@ def _scale(voltages: np.ndarray, data: np.ndarray) -> float:
 
 def _relative(residual: np.ndarray, data: np.ndarray) -> float:
     return float(np.linalg.norm(residual) / max(np.linalg.norm(data), 1e-300)) if len(data) else 0.0
-
-
-def _rms(values: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(values))))
 
 
 def _driven(protocol: Protocol) -> np.ndarray:
@@ -451,7 +467,7 @@ def _orientation(model, protocol, v, usable, magnitude, background, z0):
 def _contact_factor(model, protocol, data, used, background, z0) -> float:
     """The common factor f of the contact impedances minimising min_c ||data - c V(z0 f)|| on
     `used`, V at the conductivity `background` (S/sq, one value or one per element)."""
-    uniform = _with(model, protocol, z0)
+    uniform = model.replace(protocol=protocol, contact_impedance=z0)
     sigma = jnp.asarray(per_element(background, model.n_elements))
 
     def misfits(factors: np.ndarray) -> np.ndarray:
@@ -488,7 +504,7 @@ def _electrode_contact_impedances(
     ||data - c V(z)|| on `used`, from `start`: Levenberg-Marquardt on ln z, c in closed form at
     every step. The readings on driven electrodes determine each z; a weak pull (1% of the
     curvature's mean) towards `start` keeps an electrode they do not see where it was."""
-    uniform = _with(model, protocol, start)
+    uniform = model.replace(protocol=protocol, contact_impedance=start)
     sigma = jnp.full(model.n_elements, background)
     log_z, anchor = np.log(start), np.log(start)
 

@@ -17,12 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._arrays import rms
 from ..forward import ForwardModel
 from ..io import Recording
 from ..protocol import Protocol
 from ..readout import Readout, roles
-from ._frames import _NOISE_FRAMES
-from ._reference import _LEAST_CORRELATION, _NOT_REPRODUCED, ReferenceCalibration, _relative, _rms, _with
+from ._frames import reading_spread
+from ._reference import _LEAST_CORRELATION, _NOT_REPRODUCED, ReferenceCalibration, _relative
 from ._skin import SkinCalibration, _electrode_centres
 
 # Prior standard deviations of the refined groups (package docstring, "Refinement").
@@ -79,16 +80,20 @@ def _with_warnings(calibration: Any, *notes: str) -> Any:
     return eqx.tree_at(lambda c: c.warnings, calibration, (*calibration.warnings, *notes))
 
 
-def _refine_to_reference(
+def refine_to_reference(
     first: ReferenceCalibration,
     reference: np.ndarray,
     recording: Recording,
     priors: Mapping[str, float] | None = None,
     groups: tuple[str, ...] = REFERENCE_ONLY_GROUPS,
 ) -> SkinCalibration:
-    """The refinement of a first stage on its reference frames (package docstring): the level
-    and the parameter `groups`, without mixing and the electrodes' positions and widths (and a
-    warning noted) when the first stage's model correlates with the reference under 0.5.
+    """The second stage of a calibration from the reference: the first stage refined on its frames.
+
+    One regularised least-squares fit (package docstring, "Refinement") of the level and the
+    parameter `groups`, with their standard errors and a report of what the frames left
+    undetermined; without mixing and the electrodes' positions and widths (and a warning noted)
+    when the first stage's model correlates with the reference under 0.5. What `calibrate`
+    does without presses, and `diffeit.reconstruct` with no calibration given.
 
     Arguments:
         first: The first stage (`calibrate_to_reference`).
@@ -137,7 +142,7 @@ def _refine(
     prior = dict(priors, electrode_positions=position_prior, electrode_widths=width_prior)
     moves = "electrode_positions" in groups or "electrode_widths" in groups
     if moves:
-        model = _with(model, protocol, model.contact_impedance, margin)
+        model = model.replace(protocol=protocol, electrode_margin=margin)
     fit = _ReadoutFit.of(model, first.conductivity, first.contact_impedance, magnitude)
     sizes = {
         "level": 1,
@@ -160,12 +165,12 @@ def _refine(
         held = np.ones(2 + n, bool)
         held[[0, 2 + n // 2]] = False
         fixed[1 + n : 3 + 2 * n] |= held
-    scale = max(first.misfit, 1e-4) * _rms(data)
+    scale = max(first.misfit, 1e-4) * rms(data)
     for _ in range(_REFINE_ROUNDS):
         theta, curvature = _levenberg_marquardt(fit, theta, data, scale, spread, fixed)
         residual = data - np.asarray(fit.readings(jnp.asarray(theta)))
         free = int(np.count_nonzero(~fixed))
-        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - free, 1))), 1e-9 * _rms(data))
+        scale = max(float(np.sqrt(np.sum(residual**2) / max(len(data) - free, 1))), 1e-9 * rms(data))
     values = dict(zip(sizes, np.split(theta, np.cumsum(list(sizes.values()))[:-1]), strict=True))
     covariance = np.zeros((len(theta), len(theta)))
     covariance[np.ix_(~fixed, ~fixed)] = np.linalg.inv(curvature[np.ix_(~fixed, ~fixed)])
@@ -202,7 +207,8 @@ def _refine(
     )
     if moves:
         model = eqx.tree_at(lambda m: m.electrode_shift, model, jnp.asarray(ends))
-    calibrated = _with(model, readout.folded(protocol), contact)
+    calibrated = model.replace(protocol=readout.folded(protocol), contact_impedance=contact)
+    spread = reading_spread(frames)
     return SkinCalibration(
         model=calibrated,
         conductivity=float(level),
@@ -222,7 +228,7 @@ def _refine(
         press_errors=None,
         press_positions=None,
         hyperparameter=None,
-        noise=np.abs(first.signed(frames.std(axis=0, ddof=1))) / structured if len(frames) >= _NOISE_FRAMES else None,
+        noise=None if spread is None else np.abs(first.signed(spread)) / structured,
         noise_frames=len(frames),
         polarity=None,
         memory=None,
@@ -283,7 +289,7 @@ class _ReadoutFit(eqx.Module):
         on_pair = np.all(np.sum(offset * (model.protocol.measure != 0), axis=2) > 0, axis=1)
         return cls(
             model,
-            _with(model, _every_electrode(model.protocol), model.contact_impedance),
+            model.replace(protocol=_every_electrode(model.protocol)),
             jnp.full(model.n_elements, level),
             jnp.asarray(contact_impedance, float),
             jnp.asarray(source),

@@ -173,9 +173,9 @@ def _undamaged(reference: np.ndarray) -> np.ndarray:
     first frame after it connects: `diffeit.calibration`'s test, of 3 frames or more), which
     are said."""
     from .._messages import name_indices
-    from ..calibration._frames import _damaged
+    from ..calibration import damaged_frames
 
-    damaged = _damaged(reference)
+    damaged = damaged_frames(reference)
     if damaged.any():
         print(
             f"reference frame(s) {name_indices(np.flatnonzero(damaged))} left out: they differ from the others by "
@@ -570,11 +570,11 @@ class _LiveViewer:
             images = self._corrected(images / np.asarray(self.fit.background), batch)
         finite = np.all(np.isfinite(images), axis=1)
         if self.touches:
-            from ..calibration._frames import _glitched
+            from ..calibration import glitched_frames
 
             # As `diffeit.reconstruct` and `diffeit.touches`: a board's glitch is not read (and
             # is passed over by the anchors).
-            damaged = _glitched(differences, self.reference, values, self.recorded_reference)
+            damaged = glitched_frames(differences, self.reference, values, self.recorded_reference)
             self._print_touches(batch, values, images, finite, damaged)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
         self.imaged += len(batch)
