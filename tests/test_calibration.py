@@ -32,6 +32,7 @@ from diffeit.calibration import (
     _calibrate,
     _frames,
     _held_out,
+    _maps,
     _press_fit,
     _presses,
     _refine,
@@ -1145,6 +1146,46 @@ def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
     assert PositionMap.fit(read[:4], labelled[:4]).degree in (None, 0)
 
 
+def test_beyond_its_presses_the_position_map_fades_to_the_labels_frame():
+    """50 presses in the lower half of a unit disc alone, read pulled towards the centre by
+    0.15 r^2 (an image's bias) with noise 0.02, in labels turned 20 degrees, scaled 2 and offset:
+    the map (degree 3) corrects the pull where the presses are; beyond them its polynomial had
+    thrown the upper half's touches 5 times as far off as the labels' frame alone reads them,
+    and the map held to that frame reads them as it does. Without a frame held, it fades to the
+    presses' affine fit."""
+    rng = np.random.default_rng(2)
+    frame = np.array([np.log(0.5), np.deg2rad(20.0), 0.1, -0.2, 1.0])  # labels onto the mesh
+    scale, angle = np.exp(frame[0]), frame[1]
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+
+    def labels_of(on_mesh):
+        return (on_mesh - frame[2:4]) @ rotation / scale
+
+    def read_of(on_mesh):
+        pulled = on_mesh * (1 - 0.15 * np.linalg.norm(on_mesh, axis=1, keepdims=True))
+        return pulled + rng.normal(0, 0.02, on_mesh.shape)
+
+    radius, turn = 0.85 * np.sqrt(rng.uniform(0, 1, 400)), rng.uniform(0, 2 * np.pi, 400)
+    truth = np.stack([radius * np.cos(turn), radius * np.sin(turn)], axis=1)
+    lower, upper = truth[truth[:, 1] < -0.1][:50], truth[truth[:, 1] > 0.3]
+    read_lower, read_upper = read_of(lower), read_of(upper)
+    mapping = PositionMap.fit(read_lower, labels_of(lower))
+    held = mapping.held_to(de.mesh.disc(16, h=0.1), frame)
+    assert mapping.degree == 3 and held.region is not None
+
+    def error(mapped, points):
+        return np.median(np.linalg.norm(mapped - labels_of(points), axis=1)) * scale  # in the mesh's units
+
+    assert error(held(read_lower), lower) < 0.5 * error(labels_of(read_lower), lower)
+    frame_alone = error(labels_of(read_upper), upper)
+    assert error(dataclasses.replace(held, region=None)(read_upper), upper) > 3 * frame_alone
+    assert error(held(read_upper), upper) < 1.02 * frame_alone
+    # Unheld, far from the presses the map is their affine fit's.
+    far = np.array([[0.0, 0.8], [0.6, 0.6]])
+    affine = far + _maps._terms(far / mapping.length, 1) @ mapping.slope * mapping.length
+    np.testing.assert_allclose(mapping(far), affine, atol=1e-9)
+
+
 def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_reference():
     """Readings with noise 0.01: a press at frame 15 on a rest at the reference, one at frame 25
     on a rest that holds what the first left (a lasting change from frame 16 on). The first is
@@ -1259,7 +1300,7 @@ def test_a_position_map_held_to_the_skin_takes_what_it_maps_off_the_skin_onto_th
     mapping = PositionMap.fit(read, labels_of(read))
     held = mapping.held_to(de.mesh.disc(16, h=0.1), frame)
     inside = np.vstack([read, [[0.9, 0.0], [np.nan, np.nan]]])
-    np.testing.assert_array_equal(held(inside), mapping(inside))
+    np.testing.assert_allclose(held(inside), mapping(inside), rtol=0, atol=1e-12 / scale)
     beyond = np.array([[1.5, 0.0], [0.0, -3.0], [-2.0, 2.0]])
     outline = labels_of(beyond / np.linalg.norm(beyond, axis=1, keepdims=True))
     assert np.all(np.linalg.norm(mapping(beyond) - outline, axis=1) > 0.4 / scale)
@@ -1304,6 +1345,13 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         file.create_dataset("size_map/depth_coefficients", data=coefficients[:-1], fletcher32=True)
     with pytest.raises(ValueError, match="size_map/depth_coefficients has shape"):
         de.calibration.load(shorter)
+    assert again.position_map.region is not None
+    unsloped = tmp_path / "unsloped.cal.h5"
+    unsloped.write_bytes(path.read_bytes())
+    with h5py.File(unsloped, "r+") as file:
+        del file["position_map/slope"]
+    with pytest.raises(ValueError, match="position_map/region and slope are not a region"):
+        de.calibration.load(unsloped)
     with pytest.raises(ValueError, match="another protocol"):
         de.reconstruct(other, calibration=calibrated)
 
@@ -1327,6 +1375,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         ("dataset", "values/label_frame", np.nan, "values/label_frame holds values that are not finite"),
         ("dataset", "size_map/limits", np.nan, "size_map/limits holds values that are not finite"),
         ("dataset", "size_map/limits", 9.0, "size_map/limits is not two ranges"),
+        ("dataset", "position_map/region", np.inf, "position_map/region holds values that are not finite"),
     ],
 )
 def test_a_calibration_file_with_numbers_out_of_range_is_refused_by_name(

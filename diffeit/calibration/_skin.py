@@ -362,8 +362,11 @@ SCHEMA = "diffeit.calibration"
 # (size_map), without which a reader of version 5 would read touches' radii and depths other than
 # the calibration's. Versions 1 to 5 read (their -1 without presses stays -1). The reference
 # (reference) came within version 6, optional: a reader without it images every recording
-# against the recording's own first frames, as a calibration without it does.
-SCHEMA_VERSION = 6
+# against the recording's own first frames, as a calibration without it does. Version 7: the
+# position map's region and slope (position_map/region, position_map/slope), without which a
+# reader of version 6 would extrapolate its polynomial beyond the presses; a map read from
+# versions 1 to 6 has none, and is evaluated everywhere as it was.
+SCHEMA_VERSION = 7
 
 
 def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
@@ -403,6 +406,9 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         arrays["background_map"] = calibration.background_map
     if calibration.position_map is not None:
         arrays["position_map/coefficients"] = calibration.position_map.coefficients
+        if calibration.position_map.region is not None:
+            arrays["position_map/region"] = calibration.position_map.region
+            arrays["position_map/slope"] = calibration.position_map.slope
     if calibration.size_map is not None:
         arrays["size_map/radius_coefficients"] = calibration.size_map.radius_coefficients
         arrays["size_map/depth_coefficients"] = calibration.size_map.depth_coefficients
@@ -536,6 +542,8 @@ _STORED_ARRAYS = {
     "reference": "",
     "model/electrode_shift": "",
     "position_map/coefficients": "",
+    "position_map/region": "",
+    "position_map/slope": "",
     "values/label_frame": "",
     "size_map/radius_coefficients": "",
     "size_map/depth_coefficients": "",
@@ -570,6 +578,18 @@ def _check_stored(arrays: dict, attributes: dict) -> None:
             raise ValueError(f"its {name} holds values that are not {kind}")
     if not np.all(np.abs(np.asarray(arrays["reading_sign"], float)) == 1):
         raise ValueError("its reading_sign holds values other than +-1")
+    if ("position_map/region" in arrays) != ("position_map/slope" in arrays) or (
+        "position_map/region" in arrays
+        and (
+            np.ndim(arrays["position_map/region"]) != 2
+            or np.shape(arrays["position_map/region"])[0] < 2
+            or np.shape(arrays["position_map/region"])[1] != 2
+            or np.shape(arrays["position_map/slope"]) not in ((1, 2), (3, 2))
+        )
+    ):
+        raise ValueError(
+            "its position_map/region and slope are not a region (H, 2) and a shift (1, 2) or affine slope (3, 2)"
+        )
     frame = np.asarray(arrays.get("values/label_frame", _IDENTITY_FRAME), float)
     if frame.shape not in ((4,), (5,)) or (len(frame) == 5 and abs(frame[4]) != 1):
         raise ValueError(
@@ -652,6 +672,8 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
             mapping["length"],
             mapping["errors"],
             mesh if mesh.nodes.shape[1] == 3 else None,  # a curved skin's map takes touches onto it
+            region=arrays.get("position_map/region"),  # none before version 7
+            slope=arrays.get("position_map/slope"),
         )
     values = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("values/")}
     errors = {name.split("/", 1)[1]: value for name, value in arrays.items() if name.startswith("standard_errors/")}
