@@ -51,12 +51,22 @@ FRAME_RATE, REFERENCE_FRAMES = 10.0, 20
 ELECTRODE_ERROR = np.deg2rad(5.0)  # the largest electrode position error, rad
 
 
-def session(seed: int, n_presses: int, *, hold: int = 1, period: int = 2, memory=None, reach: float = 0.8):
+def session(
+    seed: int,
+    n_presses: int,
+    *,
+    hold: int = 1,
+    period: int = 2,
+    memory=None,
+    reach: float = 0.8,
+    rows: bool = False,
+):
     """A simulated calibration session: the recording (magnitudes), the presses (labelled), and
     the truth (the scene and its artefacts). Each press is held `hold` frames, one every `period`
     frames, labelled with their holds (start and end) when longer than a frame, else an instant;
     the presses lie within `reach` of the skin's radius; with `memory` (a
-    `diffeit.memory.MemoryParameters`), the skin has that memory."""
+    `diffeit.memory.MemoryParameters`), the skin has that memory; with `rows`, the presses come
+    in rows from the bottom up (a robot's raster: the first of them cover the lower part alone)."""
     import diffeit as de
     from diffeit.scene import (
         Background,
@@ -78,6 +88,8 @@ def session(seed: int, n_presses: int, *, hold: int = 1, period: int = 2, memory
     angle = rng.uniform(0, 2 * np.pi, n_presses)
     distance = reach * RADIUS * np.sqrt(rng.uniform(0, 1, n_presses))
     centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
+    if rows:
+        centres = centres[np.argsort(centres[:, 1])]
     step = 1.0 / FRAME_RATE
     starts = (REFERENCE_FRAMES + period * np.arange(n_presses)) * step - 0.5 * step
     geometry = {"kind": "disc", "radius": RADIUS, "n_electrodes": 16, "electrode_width": 0.15 * RADIUS}

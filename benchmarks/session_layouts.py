@@ -13,7 +13,10 @@ labelled presses and `--test` more, one frame each. The layouts:
 - **one untouched frame**: the first frame untouched, then the presses one after another (no
   noise to test frames against: each is tested against its own, `subspace_statistic`);
 - **a separate reference**: the recording's reference is one untouched frame, its frames the
-  presses one after another.
+  presses one after another;
+- **in rows**: as "rests between", the presses in rows from the bottom up (a robot's raster),
+  so that the 50 the calibration uses cover the lower part of the skin alone (its lower 45%),
+  and the test presses the rest: what the labelled presses teach must carry beyond them.
 
 Each is read three ways: with no calibration (`de.reconstruct`, `de.touches` at their
 defaults), after `de.calibrate` from the reference alone, and after `de.calibrate` with the
@@ -33,7 +36,7 @@ from _common import MarkdownTable, skin_benchmark, write_tables
 from calibration import REFERENCE_FRAMES, cell, errors, session
 
 CALIBRATION_PRESSES = 50
-LAYOUTS = ("rests between", "back to back", "one untouched frame", "a separate reference")
+LAYOUTS = ("rests between", "back to back", "one untouched frame", "a separate reference", "in rows")
 
 
 def laid_out(layout: str, seed: int, n_presses: int):
@@ -41,8 +44,9 @@ def laid_out(layout: str, seed: int, n_presses: int):
     the presses."""
     import diffeit as de
 
-    recording, presses, _ = session(seed, n_presses, period=2 if layout == "rests between" else 1)
-    if layout in ("rests between", "back to back"):
+    period = 2 if layout in ("rests between", "in rows") else 1
+    recording, presses, _ = session(seed, n_presses, period=period, rows=layout == "in rows")
+    if layout in ("rests between", "back to back", "in rows"):
         return recording, presses
     frames, times = np.asarray(recording.frames), np.asarray(recording.times)
     kept = slice(REFERENCE_FRAMES - 1, None) if layout == "one untouched frame" else slice(REFERENCE_FRAMES, None)
