@@ -195,8 +195,8 @@ class ForwardModel(IdentityModule):
                 move stays so).
 
         Returns:
-            The new model: one whose mesh and electrode margin are equal shares this one's
-            compiled programs.
+            The new model. It compiles nothing new where its electrode margin and its
+            protocol's shapes are this model's.
 
         Raises:
             ValueError: As the constructor, for the values given.
