@@ -3,6 +3,7 @@ from labelled presses, and the calibration file."""
 
 import dataclasses
 import re
+import types
 import warnings
 
 import equinox as eqx
@@ -1184,6 +1185,30 @@ def test_beyond_its_presses_the_position_map_fades_to_the_labels_frame():
     far = np.array([[0.0, 0.8], [0.6, 0.6]])
     affine = far + _maps._terms(far / mapping.length, 1) @ mapping.slope * mapping.length
     np.testing.assert_allclose(mapping(far), affine, atol=1e-9)
+    # Presses read in the lower half lie near half the skin.
+    assert 0.4 < _maps._coverage(held.sheet, read_lower) < 0.6
+
+
+def test_a_calibration_says_when_its_presses_lie_in_one_part_of_the_skin(calibrated):
+    """40 presses read anywhere within 0.8 of the radius lie near most of the skin, and nothing is
+    said; 40 read in one quarter of it are said to tell about that part alone, with what it means
+    for the touches."""
+    rng = np.random.default_rng(5)
+    size = float(np.max(np.linalg.norm(calibrated.model.mesh.nodes, axis=1)))
+    radius, turn = 0.8 * size * np.sqrt(rng.uniform(0, 1, 40)), rng.uniform(0, 2 * np.pi, 40)
+    spread = np.stack([radius * np.cos(turn), radius * np.sin(turn)], axis=1)
+    cornered = np.abs(spread)  # folded into the first quadrant
+
+    def new_notes(read):
+        found = types.SimpleNamespace(count=np.ones(len(read), int), position=read[:, None])
+        presses = de.io.Presses(read, 0.05 * size, np.arange(float(len(read))))
+        mapped = _held_out._with_position_map(calibrated, presses, found, np.zeros(len(read)), 0.1, -1)
+        return [note for note in mapped.warnings if note not in calibrated.warnings]
+
+    assert _maps._coverage(calibrated.model.mesh, spread) > _held_out._LEAST_COVERAGE
+    assert new_notes(spread) == []
+    (note,) = new_notes(cornered)
+    assert note.startswith("the presses read lie near ") and note.endswith("label presses all over the skin")
 
 
 def test_a_press_is_read_against_the_rest_before_it_where_that_rest_left_the_reference():

@@ -17,7 +17,7 @@ import scipy.stats
 from .._messages import name_indices
 from ..io import Presses, Recording
 from ..mesh import Mesh, surface_distance
-from ._maps import PositionMap, _leave_one_out_errors
+from ._maps import _COVERED_RADII, PositionMap, _coverage, _leave_one_out_errors
 from ._press_fit import _CONTRADICTS, _ContradictsReference, _ElectrodeResponse, _fit_presses, _PressGroups, _PressState
 from ._presses import _read_presses
 from ._reference import _SKIN_LEAST_CORRELATION
@@ -212,6 +212,12 @@ def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarr
     return scale, rotation, mean_target - scale * rotation @ mean_source
 
 
+# With less of the skin near the presses read (`_coverage`), the calibration says so. On a
+# benchmark skin, 50 presses anywhere within 0.8 of its radius lie near 92% of it, 25 near 71%,
+# 10 near 55%; 50 in rows from the bottom up (a raster cut short) near 58%, 25 near 41%.
+_LEAST_COVERAGE = 0.65
+
+
 def _with_position_map(
     calibration: SkinCalibration,
     presses: Presses,
@@ -234,6 +240,13 @@ def _with_position_map(
         )
     read_positions, labelled = found.position[seen, 0], presses.centres[seen]
     mapping = PositionMap.fit(read_positions, labelled, calibration.model.mesh)
+    coverage = _coverage(calibration.model.mesh, read_positions)
+    if coverage < _LEAST_COVERAGE:
+        notes.append(
+            f"the presses read lie near {100 * coverage:.0f}% of the skin (within {_COVERED_RADII} of its radius): "
+            "the position map corrects touches there alone, beyond them the labels' frame alone places them; label "
+            "presses all over the skin"
+        )
     errors = np.full(presses.n_presses, np.nan)
     errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree, mapping.surface)
     ringing = min(float(np.quantile(further[seen], _RINGING_QUANTILE)), _RINGING_CAP)

@@ -16,6 +16,10 @@ import scipy.spatial
 
 from ..mesh import Mesh, onto_sheet, onto_surface, surface_distance
 
+# A press read tells about the skin within this fraction of its radius (`_coverage`).
+_COVERED_RADII = 0.3
+
+
 # Degrees of the position map tried by cross-validation (None: no map).
 _MAP_DEGREES = (None, 0, 1, 2, 3)
 
@@ -312,6 +316,16 @@ def _nearest_in(region: np.ndarray, points: np.ndarray) -> np.ndarray:
     nearest = np.argmin(np.nan_to_num(np.sum((flat[:, None] - feet) ** 2, axis=-1), nan=np.inf), axis=1)
     outline = feet[np.arange(len(flat)), nearest]
     return np.where(inside[:, None], flat, outline).reshape(points.shape)
+
+
+def _coverage(mesh: Mesh, points: np.ndarray) -> float:
+    """The fraction of the skin `mesh`'s area (its elements, by centroid) within
+    `_COVERED_RADII` of its equivalent radius (that of a disc of its area) of some point of
+    `points` (K, D), m: how much of the skin presses read there tell about."""
+    reach = _COVERED_RADII * math.sqrt(mesh.element_areas.sum() / math.pi)
+    centroids = mesh.nodes[mesh.triangles].mean(axis=1)
+    near = scipy.spatial.cKDTree(points).query(centroids, distance_upper_bound=reach)[0] < reach
+    return float(mesh.element_areas[near].sum() / mesh.element_areas.sum())
 
 
 def _spread(points: np.ndarray) -> float:
