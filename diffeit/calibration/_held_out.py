@@ -244,8 +244,8 @@ def _with_position_map(
     if coverage < _LEAST_COVERAGE:
         notes.append(
             f"the presses read lie near {100 * coverage:.0f}% of the skin (within {_COVERED_RADII} of its radius): "
-            "the position map corrects touches there alone, beyond them the labels' frame alone places them; label "
-            "presses all over the skin"
+            "the position map corrects touches near them alone, and beyond them moves touches as a whole (the labels' "
+            "frame, or the presses' affine fit); label presses all over the skin"
         )
     errors = np.full(presses.n_presses, np.nan)
     errors[seen] = _leave_one_out_errors(read_positions, labelled, mapping.degree, mapping.surface)
