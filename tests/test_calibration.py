@@ -1189,6 +1189,38 @@ def test_beyond_its_presses_the_position_map_fades_to_the_labels_frame():
     assert 0.4 < _maps._coverage(held.sheet, read_lower) < 0.6
 
 
+def test_beyond_its_presses_a_curved_skins_position_map_fades_to_none():
+    """A dome's (a sphere cap of 60 degrees, radius 1 m) presses on one side of it alone, read
+    pulled towards its apex by 0.15 of their distance from it, with noise 0.02: the map (degree
+    3) corrects the pull where the presses are; beyond them its polynomial had thrown touches
+    1.2 m off, and the map reads them as unmapped touches are (curved skins' labels are in the
+    mesh's frame), on the surface."""
+    mesh = de.mesh.sphere_cap(1.0, np.deg2rad(60.0), 16, h=0.1, electrode_width=0.2)
+    rng = np.random.default_rng(0)
+    apex = mesh.nodes[np.argmax(mesh.nodes[:, 2])]
+
+    def read_of(points):
+        pulled = apex + (points - apex) * (1 - 0.15 * np.linalg.norm(points - apex, axis=1, keepdims=True))
+        return de.mesh.onto_surface(mesh, pulled + rng.normal(0, 0.02, points.shape))
+
+    inner = mesh.element_centroids[np.linalg.norm(mesh.element_centroids[:, :2], axis=1) < 0.75]
+    shuffled = inner[rng.permutation(len(inner))]
+    lower, upper = shuffled[shuffled[:, 1] < -0.1][:50], shuffled[shuffled[:, 1] > 0.3][:100]
+    read_lower, read_upper = read_of(lower), read_of(upper)
+    mapping = PositionMap.fit(read_lower, lower, mesh)
+    assert mapping.degree == 3 and mapping.region.shape[1] == 2
+
+    def error(mapped, points):
+        return np.median(np.linalg.norm(mapped - points, axis=1))
+
+    assert error(mapping(read_lower), lower) < 0.5 * error(read_lower, lower)
+    unmapped = error(read_upper, upper)
+    assert error(dataclasses.replace(mapping, region=None)(read_upper), upper) > 5 * unmapped
+    mapped = mapping(read_upper)
+    assert error(mapped, upper) < 1.02 * unmapped
+    np.testing.assert_allclose(de.mesh.onto_surface(mesh, mapped), mapped, atol=1e-12)
+
+
 def test_a_calibration_says_when_its_presses_lie_in_one_part_of_the_skin(calibrated):
     """40 presses read anywhere within 0.8 of the radius lie near most of the skin, and nothing is
     said; 40 read in one quarter of it are said to tell about that part alone, with what it means

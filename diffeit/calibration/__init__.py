@@ -176,9 +176,10 @@ labelled instant, and a frame a board garbled are then no rest.
   With the labels' frame found (20 presses or more, on a flat skin), a touch the polynomial
   takes off the skin (it extrapolates beyond the presses) is taken to the nearest point of the
   skin's outline in that frame: a rim hill beside a press had been placed 1.2 radii from the
-  centre. On a flat skin the polynomial is trusted within the presses alone (their read
-  positions' convex hull); beyond, a touch takes the labels' frame (else the presses' shift or
-  affine fit) and the nearest press's correction, fading with its distance (`PositionMap`).
+  centre. The polynomial is trusted within the presses alone (their read positions' convex
+  hull); beyond, a touch takes the labels' frame (else the presses' shift or affine fit; on a
+  curved skin, no global move) and the nearest press's correction, fading with its distance
+  (`PositionMap`).
   How high the further hills of the presses' images stand beside each one's highest (95% of
   the presses' below it) is the calibration's `ringing`, above which alone `diffeit.touches`
   reads a further touch: a single press is one touch.

@@ -41,13 +41,14 @@ class PositionMap(eqx.Module):
     is known (`held_to`), a point the polynomial takes off the skin (it extrapolates beyond the
     presses it was fitted on) is taken to the nearest point of the skin's outline in that frame.
 
-    On a flat skin the polynomial is trusted only within the presses (`region`, their read
-    positions' convex hull). It is the skin's global map (the labels' frame, held with
-    `held_to`; else the presses' shift or affine fit, `slope`) plus a local correction, the
-    images' own bias; beyond the region a point takes the global map and the nearest point's
-    local correction, fading as exp(-(d / l)^2) with its distance d from the region, l a
-    quarter of `length`: what the presses taught about the images' bias holds near them, and
-    the global map beyond. Extrapolated as a polynomial, the map had read touches 42 mm off
+    The polynomial is trusted only within the presses (`region`, their read positions' convex
+    hull; on a curved skin in the plane of its mesh's two widest directions, `_chart`). It is
+    the skin's global map (the labels' frame, held with `held_to`; else the presses' shift or
+    affine fit, `slope`; on a curved skin, whose labels are in the mesh's frame, none) plus a
+    local correction, the images' own bias; beyond the region a point takes the global map and
+    the nearest point's local correction, fading as exp(-(d / l)^2) with its distance d from
+    the region, l a quarter of `length`: what the presses taught about the images' bias holds
+    near them, and the global map beyond. Extrapolated as a polynomial, the map had read touches 42 mm off
     (degree 3; 8 mm at degree 1) against 3.7 mm unmapped on simulated skins whose calibration
     presses lay in half of them alone, a robot's raster cut short.
 
@@ -65,12 +66,13 @@ class PositionMap(eqx.Module):
         frame: (5,) the labels' frame onto the mesh's (`SkinCalibration.values["label_frame"]`:
             ln scale, angle (rad), offset x and y (m), handedness), with `sheet`; else None.
         region: (H, 2) the convex hull of the presses' read positions, m, counter-clockwise
-            (two points where they lie on a line), within which the polynomial is evaluated;
-            None where it is evaluated everywhere (curved skins, maps read from files of
-            schema version 6 or older).
-        slope: (1, 2) or (3, 2) the coefficients (as `coefficients`) of the presses' shift
-            (degree 0) or affine displacement (degree 1 and above), the global map where the
-            labels' frame is not held; with `region`.
+            (two points where they lie on a line; on a curved skin in its chart's plane),
+            within which the polynomial is evaluated; None where it is evaluated everywhere
+            (maps read from files of schema version 6 or older).
+        slope: (1, D) or (1 + D, D) the coefficients (as `coefficients`) of the global map's
+            displacement where the labels' frame is not held: the presses' shift (degree 0)
+            or affine fit (degree 1 and above) on a flat skin, zero on a curved one; with
+            `region`.
     """
 
     degree: int | None = eqx.field(static=True)
@@ -90,20 +92,29 @@ class PositionMap(eqx.Module):
         if self.degree is None:
             return self.within(points)
         if self.region is None:
-            moved = points + _terms(points / self.length, self.degree) @ self.coefficients * self.length
+            moved = points + self._displacement(points)
             return self.within(moved) if self.surface is None else onto_surface(self.surface, moved)
-        nearest = _nearest_in(self.region, points)
+        if self.surface is None:
+            nearest = _nearest_in(self.region, points)
+            distance = np.linalg.norm(points - nearest, axis=-1, keepdims=True)
+        else:
+            origin, axes = _chart(self.surface)
+            charted = (points - origin) @ axes.T
+            on_chart = _nearest_in(self.region, charted)
+            distance = np.linalg.norm(charted - on_chart, axis=-1, keepdims=True)
+            nearest = np.where(distance > 0, onto_surface(self.surface, origin + on_chart @ axes), points)
         local = self._displacement(nearest) - self._global_displacement(nearest)
-        fade = np.exp(-((np.linalg.norm(points - nearest, axis=-1, keepdims=True) / (0.25 * self.length)) ** 2))
-        return self.within(points + self._global_displacement(points) + fade * local)
+        fade = np.exp(-((distance / (0.25 * self.length)) ** 2))
+        moved = points + self._global_displacement(points) + fade * local
+        return self.within(moved) if self.surface is None else onto_surface(self.surface, moved)
 
     def _displacement(self, points: np.ndarray) -> np.ndarray:
         """(..., D) the polynomial's displacement, m, at `points` (..., D) in the mesh's frame."""
         return _terms(points / self.length, self.degree) @ self.coefficients * self.length
 
     def _global_displacement(self, points: np.ndarray) -> np.ndarray:
-        """(..., 2) the displacement, m, of the labels' frame at `points` (..., 2) in the mesh's
-        frame; the presses' affine fit's where the frame is not held."""
+        """(..., D) the displacement, m, of the labels' frame at `points` (..., D) in the mesh's
+        frame; `slope`'s where the frame is not held."""
         if self.frame is None:
             return _terms(points / self.length, 1 if len(self.slope) > 1 else 0) @ self.slope * self.length
         scale, rotation = _similarity_of(self.frame)
@@ -160,6 +171,9 @@ class PositionMap(eqx.Module):
             if surface is None:
                 region = _hull(read)
                 slope, *_ = np.linalg.lstsq(_terms(read / length, min(degree, 1)), shift, rcond=_MAP_RCOND)
+            else:
+                origin, axes = _chart(surface)
+                region, slope = _hull((read - origin) @ axes.T), np.zeros((1, 3))
         return cls(degree, coefficients, length, errors, surface, region=region, slope=slope)
 
 
@@ -290,6 +304,14 @@ def _held_out_residuals(terms: np.ndarray, targets: np.ndarray) -> np.ndarray:
     hat = np.einsum("ij,ji->i", terms, np.linalg.pinv(terms))
     leverage = np.maximum(1.0 - hat, 1e-9).reshape((-1,) + (1,) * (targets.ndim - 1))
     return (targets - terms @ coefficients) / leverage
+
+
+def _chart(surface: Mesh) -> tuple[np.ndarray, np.ndarray]:
+    """The plane a curved skin's presses are bounded in: its mesh's nodes' mean (3,) and the
+    two directions (2, 3) they spread widest along (a forearm's patch or a cap seen from above:
+    one point of the plane to each point of the skin)."""
+    origin = surface.nodes.mean(axis=0)
+    return origin, np.linalg.svd(surface.nodes - origin, full_matrices=False)[2][:2]
 
 
 def _hull(points: np.ndarray) -> np.ndarray:

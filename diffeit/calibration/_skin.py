@@ -584,11 +584,11 @@ def _check_stored(arrays: dict, attributes: dict) -> None:
             np.ndim(arrays["position_map/region"]) != 2
             or np.shape(arrays["position_map/region"])[0] < 2
             or np.shape(arrays["position_map/region"])[1] != 2
-            or np.shape(arrays["position_map/slope"]) not in ((1, 2), (3, 2))
+            or np.shape(arrays["position_map/slope"]) not in ((1, 2), (3, 2), (1, 3))
         )
     ):
         raise ValueError(
-            "its position_map/region and slope are not a region (H, 2) and a shift (1, 2) or affine slope (3, 2)"
+            "its position_map/region and slope are not a region (H, 2) and a shift (1, D) or affine slope (3, 2)"
         )
     frame = np.asarray(arrays.get("values/label_frame", _IDENTITY_FRAME), float)
     if frame.shape not in ((4,), (5,)) or (len(frame) == 5 and abs(frame[4]) != 1):
