@@ -1219,6 +1219,9 @@ def test_beyond_its_presses_a_curved_skins_position_map_fades_to_none():
     mapped = mapping(read_upper)
     assert error(mapped, upper) < 1.02 * unmapped
     np.testing.assert_allclose(de.mesh.onto_surface(mesh, mapped), mapped, atol=1e-12)
+    # The region's plane: the dome seen from above, its directions fixed by its normal alone (a
+    # dome spreads alike across it, where the singular vectors are any pair).
+    np.testing.assert_allclose(_maps._chart(mesh)[1], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], atol=0.01)
 
 
 def test_a_calibration_says_when_its_presses_lie_in_one_part_of_the_skin(calibrated):

@@ -48,9 +48,9 @@ class PositionMap(eqx.Module):
     local correction, the images' own bias; beyond the region a point takes the global map and
     the nearest point's local correction, fading as exp(-(d / l)^2) with its distance d from
     the region, l a quarter of `length`: what the presses taught about the images' bias holds
-    near them, and the global map beyond. Extrapolated as a polynomial, the map had read touches 42 mm off
-    (degree 3; 8 mm at degree 1) against 3.7 mm unmapped on simulated skins whose calibration
-    presses lay in half of them alone, a robot's raster cut short.
+    near them, and the global map beyond. Extrapolated as a polynomial, the map had read
+    touches 42 mm off (degree 3; 8 mm at degree 1) against 3.7 mm unmapped on simulated skins
+    whose calibration presses lay in half of them alone, a robot's raster cut short.
 
     Attributes:
         degree: The polynomial's degree, or None for the identity.
@@ -307,11 +307,22 @@ def _held_out_residuals(terms: np.ndarray, targets: np.ndarray) -> np.ndarray:
 
 
 def _chart(surface: Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """The plane a curved skin's presses are bounded in: its mesh's nodes' mean (3,) and the
-    two directions (2, 3) they spread widest along (a forearm's patch or a cap seen from above:
-    one point of the plane to each point of the skin)."""
+    """The plane a curved skin's presses are bounded in: its mesh's nodes' mean (3,) and two
+    directions (2, 3) across the one they spread least along (a forearm's patch or a cap seen
+    from above: one point of the plane to each point of the skin).
+
+    The in-plane directions are made from that normal alone, each sign fixed: a dome spreads
+    alike along every direction across it, where the singular vectors are any pair, and a file's
+    region must meet the same chart on another machine."""
     origin = surface.nodes.mean(axis=0)
-    return origin, np.linalg.svd(surface.nodes - origin, full_matrices=False)[2][:2]
+    normal = np.linalg.svd(surface.nodes - origin, full_matrices=False)[2][2]
+    # The first clearly large component sets the sign, the first clearly small one the first
+    # direction (|normal| = 1: one of each exists), away from ties that rounding could break.
+    normal = normal * np.sign(normal[np.flatnonzero(np.abs(normal) > 0.5)[0]])
+    first = np.eye(3)[np.flatnonzero(np.abs(normal) < 0.6)[0]]
+    first = first - (first @ normal) * normal
+    first = first / np.linalg.norm(first)
+    return origin, np.stack([first, np.cross(normal, first)])
 
 
 def _hull(points: np.ndarray) -> np.ndarray:
