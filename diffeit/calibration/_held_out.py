@@ -218,6 +218,10 @@ def _similarity(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarr
 _LEAST_COVERAGE = 0.65
 
 
+# How the notes `_with_position_map` adds begin.
+_POSITION_MAP_NOTES = ("no touch read at press(es) ", "fewer than 3 presses read", "the presses read lie near ")
+
+
 def _with_position_map(
     calibration: SkinCalibration,
     presses: Presses,
@@ -228,9 +232,10 @@ def _with_position_map(
 ) -> SkinCalibration:
     """`calibration` with the position map fitted on the presses' touches `found`, and the
     ringing from their images' further hills `further` (`_read_presses`; package docstring,
-    "Presses")."""
+    "Presses"). The notes of a position map `calibration` already holds are replaced by this
+    one's (a background map's calibration fits the map again)."""
     seen = found.count > 0
-    notes = list(calibration.warnings)
+    notes = [note for note in calibration.warnings if not note.startswith(_POSITION_MAP_NOTES)]
     if not seen.all():
         notes.append(f"no touch read at press(es) {name_indices(np.flatnonzero(~seen))}: left out of the position map")
     if seen.sum() < 3:
