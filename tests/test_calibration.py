@@ -2195,6 +2195,20 @@ def test_the_readings_spread_needs_six_frames_and_the_auto_difference_follows_th
     frames = np.random.default_rng(0).normal(1.0, 0.1, (6, 4))
     assert de.calibration.reading_spread(frames[:5]) is None
     np.testing.assert_allclose(de.calibration.reading_spread(frames), frames.std(axis=0, ddof=1))
+    with pytest.raises(ValueError, match=r"frames must be \(N, M\) frames"):
+        de.calibration.reading_spread(frames[0])
+    with pytest.raises(ValueError, match="frames holds non-finite values"):
+        de.calibration.reading_spread(np.where(frames > 1.05, np.nan, frames))
+    with pytest.raises(ValueError, match=r"frames must be \(N, M\)"):
+        de.calibration.damaged_frames(frames[0])
+    with pytest.raises(ValueError, match=r"differences must be \(N, 3\)"):
+        de.calibration.glitched_frames(frames, frames[0, :3], frames, frames[0])
+    with pytest.raises(ValueError, match="glitched_frames takes"):
+        de.calibration.glitched_frames(frames[:2], frames[0], frames, frames[0])
+    with pytest.raises(ValueError, match="got none"):
+        de.calibration.drift_note(np.array([]))
+    with pytest.raises(ValueError, match="not finite"):
+        de.calibration.drift_note(np.array([1.0, np.nan]))
 
     class Fitted:
         correlation = 0.7

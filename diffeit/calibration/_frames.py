@@ -87,7 +87,11 @@ def reading_spread(frames: np.ndarray) -> np.ndarray | None:
         (M,) each reading's sample standard deviation over the frames, in their unit; None for
         fewer than `_NOISE_FRAMES` (6) frames, too few to test a touch against (its test needs
         5 degrees of freedom).
+
+    Raises:
+        ValueError: For frames that are not (N, M), or hold NaN or inf.
     """
+    frames = _checked_frames(frames, name="frames")
     return np.std(frames, axis=0, ddof=1) if len(frames) >= _NOISE_FRAMES else None
 
 
@@ -355,7 +359,11 @@ def damaged_frames(frames: np.ndarray) -> np.ndarray:
     Returns:
         (T,) bool, True for a damaged frame; none of fewer than 3 frames (nothing to tell
         which is damaged), nor of frames that all look so.
+
+    Raises:
+        ValueError: For frames that are not (T, M).
     """
+    frames = _checked_frames(frames, name="frames", finite=False)
     if len(frames) < 3:
         return np.zeros(len(frames), bool)
     about = _about(frames)
@@ -380,7 +388,17 @@ def glitched_frames(
 
     Returns:
         (T,) bool, True for a glitch.
+
+    Raises:
+        ValueError: For arrays whose shapes do not fit together as above.
     """
+    differences = _checked_frames(differences, len(np.atleast_1d(reference)), "differences", finite=False)
+    frames = _checked_frames(frames, len(np.atleast_1d(recorded)), "frames", finite=False)
+    if len(frames) != len(differences) or np.ndim(reference) != 1 or np.ndim(recorded) != 1:
+        raise ValueError(
+            f"glitched_frames takes (T, M') differences with their (M',) reference and (T, M) frames with their (M,) "
+            f"recorded reference; got {differences.shape}, {np.shape(reference)}, {frames.shape}, {np.shape(recorded)}"
+        )
     with np.errstate(over="ignore"):  # readings beyond float range: a norm of inf, large
         large = np.linalg.norm(differences, axis=1) > _LARGEST_CHANGE * np.linalg.norm(reference)
     moved = np.zeros_like(large)
@@ -477,7 +495,7 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
         ValueError: For reference frames that are not (N, M) finite readings of the
             recording's M, or, with a drift to take out, times that go backwards.
     """
-    reference_set = _checked_reference_set(reference_set, recording.frames.shape[1])
+    reference_set = _checked_frames(reference_set, recording.frames.shape[1])
     drift = _DriftReference.of(reference_set)
     if drift is None or recording.n_frames == 0:
         return recording, None
@@ -616,18 +634,19 @@ def _time_to_nearest(times: np.ndarray, marked: np.ndarray) -> np.ndarray:
     return np.minimum(np.abs(times - at[after]), np.abs(times - at[np.minimum(after + 1, len(at) - 1)]))
 
 
-def _checked_reference_set(reference_set: ArrayLike, readings: int | None = None) -> np.ndarray:
-    """`reference_set` as (N, `readings`) finite float64 frames (None: any number of readings),
-    or a ValueError naming the problem."""
-    reference_set = np.asarray(reference_set, np.float64)
-    if reference_set.ndim != 2 or readings not in (None, reference_set.shape[1]):
+def _checked_frames(
+    frames: ArrayLike, readings: int | None = None, name: str = "reference_set", finite: bool = True
+) -> np.ndarray:
+    """`frames` as (N, `readings`) float64 frames (None: any number of readings), finite where
+    `finite` (a board's glitch may hold infinities its test must see), or a ValueError naming
+    the problem by `name`."""
+    frames = np.asarray(frames, np.float64)
+    if frames.ndim != 2 or readings not in (None, frames.shape[1]):
         expected = "M" if readings is None else readings
-        raise ValueError(
-            f"reference_set must be (N, {expected}) frames of the recording's readings; got shape {reference_set.shape}"
-        )
-    if not np.all(np.isfinite(reference_set)):
-        raise ValueError("reference_set holds non-finite values (NaN or inf)")
-    return reference_set
+        raise ValueError(f"{name} must be (N, {expected}) frames of the recording's readings; got shape {frames.shape}")
+    if finite and not np.all(np.isfinite(frames)):
+        raise ValueError(f"{name} holds non-finite values (NaN or inf)")
+    return frames
 
 
 class _DriftReference(NamedTuple):
@@ -707,7 +726,7 @@ class LiveDrift(eqx.Module):
         Raises:
             ValueError: For reference frames that are not (N, M) finite values.
         """
-        reference = _DriftReference.of(_checked_reference_set(reference_set))
+        reference = _DriftReference.of(_checked_frames(reference_set))
         return None if reference is None else cls(reference, np.zeros(0), np.zeros(0))
 
     def step(self, frames: ArrayLike, times: ArrayLike) -> tuple[np.ndarray, np.ndarray, LiveDrift]:
@@ -755,7 +774,15 @@ def drift_note(gains: np.ndarray) -> str:
 
     Returns:
         The sentence, with the gains' range, that `calibrate` and `diffeit.reconstruct` warn.
+
+    Raises:
+        ValueError: For gains that are empty or not finite.
     """
+    gains = np.asarray(gains, np.float64)
+    if gains.size == 0:
+        raise ValueError("drift_note takes the frames' common gains; got none")
+    if not np.all(np.isfinite(gains)):
+        raise ValueError("drift_note takes the frames' common gains; some are not finite (NaN or inf)")
     low, high = float(np.min(gains)), float(np.max(gains))
     return (
         f"the frames' common gain drifts over the recording, from {low:.4g} to {high:.4g} times the reference's "

@@ -653,7 +653,7 @@ class _ElectrodeResponse:
         model = calibration.model.replace(
             protocol=protocol, contact_impedance=calibration.contact_impedance, electrode_margin=margin
         )
-        every = model.replace(protocol=_every_electrode(protocol), contact_impedance=calibration.contact_impedance)
+        every = model.replace(protocol=_every_electrode(protocol))
         return cls.of(every, per_element(calibration.background, model.n_elements))
 
     def changes(self, patterns: jax.Array) -> np.ndarray:
