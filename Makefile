@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/memory_bound.py
 	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/session_layouts.py
+	$(BIN)/python benchmarks/contact_drift.py
 	$(BIN)/python benchmarks/touches.py
 	$(BIN)/python benchmarks/rest_anchors.py
 	$(BIN)/python benchmarks/surface.py

@@ -249,15 +249,23 @@ def record_output() -> _Tee:
     return tee
 
 
-def skin_benchmark(parser: argparse.ArgumentParser, script: str) -> tuple[argparse.Namespace, _Tee] | None:
+def skin_benchmark(
+    parser: argparse.ArgumentParser, script: str, *, seeds: int | None = None, test: int | None = None
+) -> tuple[argparse.Namespace, _Tee] | None:
     """Start a benchmark of simulated skins (calibration, touches, rest anchors) run as `script`:
-    parse its options, with the internal `--describe`. In the child that describes the machine,
+    parse its options, with the internal `--describe` (and `--seeds`, the simulated sessions, and
+    `--test`, the presses errors are measured on, with these defaults when given). In the child
+    that describes the machine,
     print the description and return None; else leave out diffeit's calibration warnings, start
     keeping what it prints (`record_output`), print the machine line, and return the options and
     what is kept, for `write_tables`."""
     import warnings
 
     parser.add_argument("--describe", action="store_true", help=argparse.SUPPRESS)  # internal: the machine
+    if seeds is not None:
+        parser.add_argument("--seeds", type=int, default=seeds, help="simulated sessions (seeds 0 to N-1)")
+    if test is not None:
+        parser.add_argument("--test", type=int, default=test, help="presses the errors are measured on")
     options = parser.parse_args()
     if options.describe:
         print(json.dumps(describe()))

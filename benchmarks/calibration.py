@@ -59,17 +59,22 @@ def session(
     period: int = 2,
     memory=None,
     reach: float = 0.8,
+    inner: float = 0.0,
     rows: bool = False,
+    contact_drift: float = 0.0,
 ):
     """A simulated calibration session: the recording (magnitudes), the presses (labelled), and
     the truth (the scene and its artefacts). Each press is held `hold` frames, one every `period`
     frames, labelled with their holds (start and end) when longer than a frame, else an instant;
-    the presses lie within `reach` of the skin's radius; with `memory` (a
+    the presses lie between `inner` and `reach` of the skin's radius; with `memory` (a
     `diffeit.memory.MemoryParameters`), the skin has that memory; with `rows`, the presses come
-    in rows from the bottom up (a robot's raster: the first of them cover the lower part alone)."""
+    in rows from the bottom up (a robot's raster: the first of them cover the lower part alone);
+    with `contact_drift` d, each electrode's contact impedance drifts exponentially, to a factor
+    exp(u d) by the session's end, u uniform in [-1, 1] (`diffeit.scene.ContactDrift`)."""
     import diffeit as de
     from diffeit.scene import (
         Background,
+        ContactDrift,
         Disc,
         ElectrodePositionError,
         MeasurementNoise,
@@ -86,7 +91,7 @@ def session(
 
     rng = np.random.default_rng(seed)
     angle = rng.uniform(0, 2 * np.pi, n_presses)
-    distance = reach * RADIUS * np.sqrt(rng.uniform(0, 1, n_presses))
+    distance = RADIUS * np.sqrt(rng.uniform(inner**2, reach**2, n_presses))
     centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
     if rows:
         centres = centres[np.argsort(centres[:, 1])]
@@ -103,6 +108,9 @@ def session(
         ReadingGains.random(measurements, 0.2, seed=seed),
         MeasurementNoise(Noise.level("medium"), seed=seed),
     ) + (() if memory is None else (memory,))
+    duration = (REFERENCE_FRAMES + period * n_presses) * step
+    if contact_drift:  # drawn last: the sessions without it are as before
+        effects += (ContactDrift(rng.uniform(-1, 1, 16) * contact_drift / duration),)
     touches = tuple(
         Touch(Disc(tuple(c), PRESS_RADIUS), PRESS_CHANGE, Press(start=s, hold=hold * step))
         for c, s in zip(centres, starts, strict=True)
@@ -114,7 +122,7 @@ def session(
         background=background,
         touches=touches,
         frame_rate=FRAME_RATE,
-        duration=(REFERENCE_FRAMES + period * n_presses) * step,
+        duration=duration,
         effects=effects,
     )
     simulation = de.simulate(scene)
@@ -175,11 +183,13 @@ def true_calibration(fitted, truth, reference: np.ndarray):
     return eqx.tree_at(lambda c: c.noise, true, noise, is_leaf=lambda node: node is None)
 
 
-def errors(recording, presses, calibration) -> np.ndarray:
-    """(K,) the distance, m, between the strongest touch read and each press (NaN: missed)."""
+def errors(recording, presses, calibration, solver=None) -> np.ndarray:
+    """(K,) the distance, m, between the strongest touch read and each press (NaN: missed); the
+    images `de.reconstruct`'s defaults, or `solver`'s at the "auto" hyperparameter."""
     import diffeit as de
 
-    images = de.reconstruct(recording, calibration=calibration, progress=False, throw=False)
+    chosen = {} if solver is None else {"solver": solver, "hyperparameter": "auto"}
+    images = de.reconstruct(recording, calibration=calibration, progress=False, throw=False, **chosen)
     found = de.touches(images, calibration)
     chosen = np.array([frames[0] for frames in presses.frames(recording.times)])
     return np.linalg.norm(found.position[chosen, 0] - presses.centres, axis=1)
@@ -214,6 +224,38 @@ def cell(distance: np.ndarray) -> str:
     return f"{1e3 * np.nanmedian(distance):.1f} ({int(np.isnan(distance).sum())})"
 
 
+def split(recording, presses, calibration_presses: int, test_presses: int):
+    """A session's test recording (the untouched frames, then the presses after the first
+    `calibration_presses`, which are left out; `de.reconstruct` takes its reference from the
+    first frames) and its `test_presses` presses."""
+    import diffeit as de
+
+    after = REFERENCE_FRAMES + 2 * calibration_presses
+    tested = np.r_[np.arange(REFERENCE_FRAMES), np.arange(after, recording.n_frames)]
+    test = de.io.Recording(
+        frames=recording.frames[tested],
+        times=recording.times[tested],
+        protocol=recording.protocol,
+        geometry=recording.geometry,
+        readings="magnitude",
+    )
+    return test, presses.select(np.arange(calibration_presses, calibration_presses + test_presses))
+
+
+def calibration_session(recording, count: int):
+    """The session's recording up to its `count`-th press (its untouched frames alone for 0)."""
+    import diffeit as de
+
+    kept = slice(0, REFERENCE_FRAMES + 2 * count)
+    return de.io.Recording(
+        frames=recording.frames[kept],
+        times=recording.times[kept],
+        protocol=recording.protocol,
+        geometry=recording.geometry,
+        readings="magnitude",
+    )
+
+
 def pooled_ratio(ours: list[np.ndarray], true: list[np.ndarray], draws: int = 2000) -> tuple[float, float, float]:
     """The ratio of the pooled medians (over every seed's test presses, misses left out) of our
     errors to the true model's, and its 95% bootstrap interval: the test presses resampled
@@ -232,11 +274,9 @@ def pooled_ratio(ours: list[np.ndarray], true: list[np.ndarray], draws: int = 20
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, default=5, help="simulated sessions")
     parser.add_argument("--presses", type=int, nargs="+", default=[0, 10, 25, 50, 100])
-    parser.add_argument("--test", type=int, default=60, help="presses the errors are measured on")
     parser.add_argument("--reach", type=float, default=0.8, help="presses lie within this fraction of the radius")
-    started = skin_benchmark(parser, __file__)
+    started = skin_benchmark(parser, __file__, seeds=5, test=60)
     if started is None:
         return
     options, printed = started
@@ -265,30 +305,14 @@ def main() -> None:
     for seed in range(options.seeds):
         recording, presses, truth = session(seed, most + options.test, reach=options.reach)
         reference = recording.frames[:REFERENCE_FRAMES]
-        used = recording.frames[: REFERENCE_FRAMES + 2 * most]
-        # The test recording: the untouched frames, then the test presses (the calibration's
-        # presses left out); `de.reconstruct` takes its reference from the first frames.
-        tested = np.r_[np.arange(REFERENCE_FRAMES), np.arange(REFERENCE_FRAMES + 2 * most, recording.n_frames)]
-        test = de.io.Recording(
-            frames=recording.frames[tested],
-            times=recording.times[tested],
-            protocol=recording.protocol,
-            geometry=recording.geometry,
-            readings="magnitude",
-        )
-        test_presses = presses.select(np.arange(most, most + options.test))
+        test, test_presses = split(recording, presses, most, options.test)
         nominal = errors(test, test_presses, None)
         true = None
         for count in options.presses:
-            session_recording = de.io.Recording(
-                frames=used[: REFERENCE_FRAMES + 2 * count] if count else reference,
-                times=recording.times[: REFERENCE_FRAMES + 2 * count] if count else recording.times[:REFERENCE_FRAMES],
-                protocol=recording.protocol,
-                geometry=recording.geometry,
-                readings="magnitude",
-            )
             start = time.perf_counter()
-            calibration = de.calibrate(session_recording, presses.select(np.arange(count)) if count else None)
+            calibration = de.calibrate(
+                calibration_session(recording, count), presses.select(np.arange(count)) if count else None
+            )
             seconds = time.perf_counter() - start
             if true is None:
                 true = errors(test, test_presses, true_calibration(calibration, truth, reference))

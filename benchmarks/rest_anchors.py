@@ -53,9 +53,7 @@ def read(images, calibration, presses, between: np.ndarray, baseline: str) -> tu
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--test", type=int, default=40, help="presses the errors are measured on")
-    started = skin_benchmark(parser, __file__)
+    started = skin_benchmark(parser, __file__, seeds=2, test=40)
     if started is None:
         return
     options, printed = started

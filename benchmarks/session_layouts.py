@@ -67,9 +67,7 @@ def laid_out(layout: str, seed: int, n_presses: int):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--test", type=int, default=60, help="presses the errors are measured on")
-    started = skin_benchmark(parser, __file__)
+    started = skin_benchmark(parser, __file__, seeds=2, test=60)
     if started is None:
         return
     options, printed = started

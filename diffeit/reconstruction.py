@@ -87,6 +87,7 @@ from .fit import JointImaging
 from .fit import background as fit_background
 from .forward import ForwardModel
 from .inverse import (
+    CONTACT_IMPEDANCE_SPREAD,
     GREIT,
     AbsoluteGaussNewton,
     AbstractSolver,
@@ -171,7 +172,11 @@ def reconstruct(
 
     Arguments:
         recording: The frames, with their protocol (and reference, mesh or geometry).
-        method: A shorthand for a solver: "one_step" (`OneStep` with `prior`, the default),
+        method: A shorthand for a solver: "one_step" (`OneStep` with `prior`, the default,
+            each electrode's contact impedance free to change between the reference and a
+            frame with the prior spread `diffeit.inverse.CONTACT_IMPEDANCE_SPREAD` in ln z,
+            so that a contact's drift is not imaged; a `OneStep` solver object brings its own,
+            0 unless given),
             "gauss_newton" (`GaussNewton` with `prior`), "total_variation" (`TotalVariation`)
             or "greit" (`GREIT`, 32 x 32 pixels, designed for noise figure 0.5 when the
             hyperparameter is "auto"). Not together with `solver`.
@@ -191,9 +196,10 @@ def reconstruct(
             without presses); False keeps the nominal model, signing magnitudes only.
         calibration: A `diffeit.calibration.SkinCalibration` of this skin and board (from
             `diffeit.calibrate`): images at its model, mesh and gains; with a position map
-            from labelled presses, one-step images by default at the hyperparameter the map
-            was fitted at (without one, where the presses' cross-validation chose no map,
-            the hyperparameter is chosen from the recording's own frames as usual: measured on
+            from labelled presses, one-step images at the contact spread the map was fitted
+            at and by default at its hyperparameter (without one, where the presses'
+            cross-validation chose no map, the hyperparameter is chosen from the recording's
+            own frames as usual: measured on
             `benchmarks/calibration.py`'s skins, the presses' choice then read test presses
             worse in four of five sessions, by up to 1.2 mm).
         mesh: The sheet to image on; None for `default_mesh(recording, h)`.
@@ -291,8 +297,11 @@ def reconstruct(
     level = calibration.background  # the level, or a calibration's background map (E,)
     frames = calibration.signed(recording.frames)
     signed_reference = calibration.signed(reference)
-    if shorthand and hyperparameter == "auto" and method == "one_step" and _maps_positions(calibration):
-        hyperparameter = calibration.hyperparameter  # the position map was fitted on images made at it
+    if shorthand and method == "one_step" and _maps_positions(calibration):
+        # The position map was fitted on images made at its hyperparameter and contact spread.
+        if hyperparameter == "auto":
+            hyperparameter = calibration.hyperparameter
+        solver = OneStep(prior=solver.prior, contact_impedance_spread=calibration.contact_impedance_spread)
     map_summary = None
     if background_map:
         fitted = fit_background(
@@ -329,7 +338,11 @@ def reconstruct(
     if difference == "normalised":
         model, dv, unsafe, noise = _normalised(model, dv, signed_reference, level, calibration, noise)
     # A one-step solver images with the linearisation the hyperparameter is chosen on: built once.
-    problem = LinearisedProblem(model, solver.prior, level) if isinstance(solver, OneStep) else None
+    problem = (
+        LinearisedProblem(model, solver.prior, level, contact_impedance_spread=solver.contact_impedance_spread)
+        if isinstance(solver, OneStep)
+        else None
+    )
     chosen_on = dv[~damaged] if (~damaged).any() else dv
     value, choice = _hyperparameter_of(
         solver, model, chosen_on, hyperparameter, "noser" if prior is None else prior, level, problem
@@ -339,7 +352,14 @@ def reconstruct(
     if isinstance(solver, GREIT) and hyperparameter == "auto":
         solver = solver.bound(model, level, noise_figure=_GREIT_NOISE_FIGURE)
     elif problem is not None:
-        solver = OneStep(model, solver.prior, solver.hyperparameter if value is None else value, level, problem=problem)
+        solver = OneStep(
+            model,
+            solver.prior,
+            solver.hyperparameter if value is None else value,
+            level,
+            contact_impedance_spread=solver.contact_impedance_spread,
+            problem=problem,
+        )
     else:
         solver = solver.bound(model, level, hyperparameter=value)
     images, codes = _images(solver, dv, progress)
@@ -358,6 +378,8 @@ def reconstruct(
         "prior": prior if prior is None or isinstance(prior, str) else repr(prior),
         "hyperparameter": value,
         "hyperparameter_choice": choice,
+        # One-step images: each contact's prior spread in ln z (0: the contacts held).
+        "contact_impedance_spread": solver.contact_impedance_spread if isinstance(solver, OneStep) else None,
         "max_iterations": max_iterations if shorthand else getattr(solver, "max_iterations", None),
         "results": names(codes),
         "frames_failed": int(failed(codes).sum()),
@@ -511,7 +533,7 @@ def _unbound_solver(
     limit = {} if max_iterations is None else {"max_iterations": int(max_iterations)}
     prior = "noser" if prior is None else prior
     if method == "one_step":
-        return OneStep(prior=prior), method
+        return OneStep(prior=prior, contact_impedance_spread=CONTACT_IMPEDANCE_SPREAD), method
     if method == "gauss_newton":
         return GaussNewton(prior=prior, **limit), method
     if method == "total_variation":

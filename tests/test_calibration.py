@@ -431,13 +431,17 @@ def test_a_recording_mostly_of_one_long_press_takes_its_leading_frames_as_the_re
 
 def test_damaged_frames_do_not_choose_the_hyperparameter(mixing_skin):
     """Two frames a board damaged (one of zeros, one at three times the gain) are imaged, but
-    the "auto" hyperparameter is chosen without them: it is the clean recording's, and presses
-    read as well. Measured before: with the frame at three times the gain alone, the median
-    press error went from 0.044 to 0.147 (radius 0.15 on the unit disc)."""
+    the "auto" hyperparameter is chosen without them: it is that of the clean recording without
+    those two frames, and presses read as well. Measured before: with the frame at three times
+    the gain alone, the median press error went from 0.044 to 0.147 (radius 0.15 on the unit
+    disc)."""
     recording, presses = mixing_skin.recording, mixing_skin.presses
     frames = recording.frames.copy()
     frames[41], frames[43] = 0.0, 3 * frames[43]
-    clean = de.reconstruct(recording, progress=False)
+    kept = np.setdiff1d(np.arange(recording.n_frames), [41, 43])
+    clean = de.reconstruct(
+        dataclasses.replace(recording, frames=recording.frames[kept], times=recording.times[kept]), progress=False
+    )
     images = de.reconstruct(dataclasses.replace(recording, frames=frames), progress=False)
     choice = images.provenance["metadata"]["hyperparameter_choice"]
     assert choice["frames_left_out"] == [41, 43]
@@ -1381,6 +1385,8 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     np.testing.assert_allclose(again.position_map(beyond), calibrated.position_map(beyond))
     assert again.lines() == calibrated.lines()
     assert again.ringing == calibrated.ringing and 0.1 < again.ringing <= 0.5
+    # Its presses were imaged as `de.reconstruct` images by default, and will be read so.
+    assert again.contact_impedance_spread == calibrated.contact_impedance_spread == de.inverse.CONTACT_IMPEDANCE_SPREAD
     assert (again.size_map.radius_degree, again.size_map.depth_degree) == (
         calibrated.size_map.radius_degree,
         calibrated.size_map.depth_degree,
@@ -1415,6 +1421,14 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
         del file["position_map/slope"]
     with pytest.raises(ValueError, match="position_map/region and slope are not a region"):
         de.calibration.load(unsloped)
+    older = tmp_path / "older.cal.h5"  # written before the spread was kept: imaged with the contacts held
+    older.write_bytes(path.read_bytes())
+    with h5py.File(older, "r+") as file:
+        del file.attrs["contact_impedance_spread"]
+    held = de.calibration.load(older)
+    assert held.contact_impedance_spread == 0.0
+    images = de.reconstruct(recording, calibration=held, progress=False)
+    assert images.provenance["metadata"]["contact_impedance_spread"] == 0.0
     with pytest.raises(ValueError, match="another protocol"):
         de.reconstruct(other, calibration=calibrated)
 
@@ -1424,6 +1438,7 @@ def test_a_calibration_file_round_trips_and_refuses_other_data(mixing_skin, cali
     [
         ("attribute", "ringing", np.nan, "ringing is nan"),
         ("attribute", "ringing", 0.9, "ringing is 0.9"),
+        ("attribute", "contact_impedance_spread", np.nan, "contact_impedance_spread is nan"),
         ("attribute", "conductivity", -1.0, "conductivity is -1.0"),
         ("attribute", "conductivity", np.inf, "conductivity is inf"),
         ("attribute", "correlation", 1.5, "correlation is 1.5"),

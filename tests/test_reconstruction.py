@@ -501,18 +501,26 @@ def test_a_direct_method_marks_a_non_finite_image_and_a_selection_at_its_boundar
 
 def test_a_solver_object_is_bound_to_the_calibrated_model_with_its_own_settings():
     """`solver=` takes any difference solver, built without a model (or on another one): its
-    settings, the calibrated model and level. The method's shorthand gives the same images."""
+    settings, the calibrated model and level. The method's shorthand gives the same images
+    (its contacts free to drift, `CONTACT_IMPEDANCE_SPREAD`); a solver's own spread is kept."""
     recording, mesh = _coarse_touch()
     options = {"mesh": mesh, "progress": False}
+    spread = de.inverse.CONTACT_IMPEDANCE_SPREAD
     shorthand = de.reconstruct(recording, method="one_step", prior="laplace", hyperparameter=0.05, **options)
-    unbound = de.reconstruct(recording, solver=de.inverse.OneStep(prior="laplace", hyperparameter=0.05), **options)
+    assert shorthand.provenance["metadata"]["contact_impedance_spread"] == spread
+    solver = de.inverse.OneStep(prior="laplace", hyperparameter=0.05, contact_impedance_spread=spread)
+    unbound = de.reconstruct(recording, solver=solver, **options)
     np.testing.assert_allclose(unbound.images, shorthand.images, rtol=1e-10, atol=1e-15)
+    held = de.reconstruct(recording, solver=de.inverse.OneStep(prior="laplace", hyperparameter=0.05), **options)
+    assert held.provenance["metadata"]["contact_impedance_spread"] == 0.0
+    assert not np.allclose(held.images, shorthand.images, rtol=1e-6, atol=0)
     metadata = unbound.provenance["metadata"]
     assert metadata["method"] == "one_step" and metadata["prior"] == repr(de.inverse.Laplace())
     assert metadata["hyperparameter"] == 0.05 and metadata["hyperparameter_choice"] == {"rule": "the solver's own"}
     # Built on another model: re-bound; a hyperparameter given to reconstruct replaces the solver's.
     other = de.ForwardModel(de.mesh.disc(16, h=0.3), recording.protocol)
-    bound = de.reconstruct(recording, solver=de.inverse.OneStep(other, "laplace", 0.3), hyperparameter=0.05, **options)
+    solver = de.inverse.OneStep(other, "laplace", 0.3, contact_impedance_spread=spread)
+    bound = de.reconstruct(recording, solver=solver, hyperparameter=0.05, **options)
     np.testing.assert_allclose(bound.images, shorthand.images, rtol=1e-10, atol=1e-15)
     # An iterative solver's own limit, and its codes.
     capped = de.reconstruct(

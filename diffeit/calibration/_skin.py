@@ -107,6 +107,9 @@ class SkinCalibration(eqx.Module):
             (the mean of `noise_frames` frames), or None (a file written before it was kept):
             `diffeit.reconstruct` images a recording without untouched first frames against
             it (`calibrated_reference_frames`).
+        contact_impedance_spread: The one-step contact spread the presses were imaged at
+            (`diffeit.inverse.LinearisedProblem`; 0 in files written before it was kept, whose
+            presses were imaged with the contacts held), as `hyperparameter`; None without.
     """
 
     model: ForwardModel
@@ -138,6 +141,7 @@ class SkinCalibration(eqx.Module):
     ringing: float | None = None
     size_map: SizeMap | None = None
     reference: np.ndarray | None = None
+    contact_impedance_spread: float | None = None
 
     @property
     def driven_readings(self) -> str:
@@ -365,7 +369,9 @@ SCHEMA = "diffeit.calibration"
 # against the recording's own first frames, as a calibration without it does. Version 7: the
 # position map's region and slope (position_map/region, position_map/slope), without which a
 # reader of version 6 would extrapolate its polynomial beyond the presses; a map read from
-# versions 1 to 6 has none, and is evaluated everywhere as it was.
+# versions 1 to 6 has none, and is evaluated everywhere as it was. The contact spread the presses
+# were imaged at (contact_impedance_spread) came within version 7, optional: a file without it had
+# them imaged with the contacts held, and is read so.
 SCHEMA_VERSION = 7
 
 
@@ -429,6 +435,9 @@ def _save(calibration: SkinCalibration, path: Path, overwrite: bool) -> Path:
         "noise_frames": calibration.noise_frames,
         "polarity": 0 if calibration.polarity is None else calibration.polarity,  # 0: none
         "ringing": -1.0 if calibration.ringing is None else calibration.ringing,
+        "contact_impedance_spread": -1.0
+        if calibration.contact_impedance_spread is None
+        else calibration.contact_impedance_spread,
         "json": json.dumps(
             {
                 "undetermined": list(calibration.undetermined),
@@ -528,6 +537,7 @@ _STORED_NUMBERS = {
     "hyperparameter": (0.0, math.inf, -1.0),
     "noise_frames": (0.0, math.inf, None),
     "ringing": (0.0, _RINGING_CAP, -1.0),
+    "contact_impedance_spread": (0.0, math.inf, -1.0),
 }
 
 
@@ -700,6 +710,8 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
     )
     hyperparameter = float(attributes["hyperparameter"])
     ringing = float(attributes.get("ringing", -1.0))  # none before it was kept
+    # Kept within version 7: before, the presses were imaged with the contacts held.
+    spread = float(attributes.get("contact_impedance_spread", -1.0 if hyperparameter < 0 else 0.0))
     return SkinCalibration(
         model=model,
         conductivity=float(attributes["conductivity"]),
@@ -732,4 +744,5 @@ def _from_stored(arrays: dict, attributes: dict, recording: Recording | None, pa
         ringing=None if ringing < 0 else ringing,
         size_map=size_map,
         reference=_stored_reference(arrays, protocol),
+        contact_impedance_spread=None if spread < 0 else spread,
     )

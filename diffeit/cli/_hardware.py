@@ -518,7 +518,7 @@ class _LiveViewer:
     ) -> None:
         """The calibrated model and its solver (class docstring); prints what the calibration found."""
         from ..calibration import calibrate_to_reference
-        from ..inverse import OneStep
+        from ..inverse import CONTACT_IMPEDANCE_SPREAD, OneStep
 
         if skin is None:
             calibration = calibrate_to_reference(
@@ -536,7 +536,15 @@ class _LiveViewer:
         else:
             hyperparameter = settings.hyperparameter_at(model, level)
             chosen = "noise figure" if settings.hyperparameter == "auto" else "given"
-        self.solver = OneStep(model, prior=settings.prior, hyperparameter=hyperparameter, background=level)
+        # Each contact free to drift, as `diffeit reconstruct` images (at the spread a position map was fitted at).
+        spread = CONTACT_IMPEDANCE_SPREAD if skin is None else skin.contact_impedance_spread
+        self.solver = OneStep(
+            model,
+            prior=settings.prior,
+            hyperparameter=hyperparameter,
+            background=level,
+            contact_impedance_spread=CONTACT_IMPEDANCE_SPREAD if spread is None else spread,
+        )
         used = f"{int(calibration.used.sum())} of {len(calibration.used)} readings"
         if skin is None:
             print(

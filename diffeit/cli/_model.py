@@ -12,7 +12,6 @@ import numpy as np
 
 if TYPE_CHECKING:
     from ..forward import ForwardModel
-    from ..inverse import OneStep
     from ..mesh import Mesh
     from ..protocol import Protocol
 
@@ -71,14 +70,6 @@ class ModelSettings:
 
         silent = np.zeros((1, model.n_measurements))
         return select_hyperparameter(model, silent, "noise_figure", prior=self.prior, background=background).value
-
-    def solver(self, model: ForwardModel, *, hyperparameter: float | None = None) -> OneStep:
-        """The one-step solver on `model`; `hyperparameter`: the value a selection method chose,
-        when the settings name one."""
-        from ..inverse import OneStep
-
-        value = self.hyperparameter if hyperparameter is None else hyperparameter
-        return OneStep(model, prior=self.prior, hyperparameter=value, background=self.background)
 
 
 _DEFAULTS = ModelSettings()

@@ -12,6 +12,7 @@ from .hyperparameter import HyperparameterSelection as HyperparameterSelection
 from .hyperparameter import from_external_hyperparameter as from_external_hyperparameter
 from .hyperparameter import select_hyperparameter as select_hyperparameter
 from .hyperparameter import to_external_hyperparameter as to_external_hyperparameter
+from .linearised import CONTACT_IMPEDANCE_SPREAD as CONTACT_IMPEDANCE_SPREAD
 from .linearised import LinearisedProblem as LinearisedProblem
 from .one_step import OneStep as OneStep
 from .priors import Laplace as Laplace

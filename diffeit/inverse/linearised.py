@@ -16,6 +16,12 @@ from .._threads import host_algebra
 from ..forward import ForwardModel
 from .priors import AbstractPrior, prior_named
 
+# `diffeit.reconstruct`'s one-step prior spread of each electrode's change in ln z between the
+# reference and a frame: as loose as the conductivity's prior per element (about 1.8), since the
+# balance between the two decides how much of a contact's drift is imaged. 1 left a drift's
+# artefacts, 3 and 10 blurred touches at the rim (docs/science.md#contact-impedance-drift).
+CONTACT_IMPEDANCE_SPREAD = 2.0
+
 
 class LinearisedProblem(eqx.Module):
     """The linearisation of a model at a background, normalised so that hyperparameters are unit-free.
@@ -33,6 +39,14 @@ class LinearisedProblem(eqx.Module):
     the prior, the mesh, the drive current or the background level
     (docs/science.md#linearised-reconstruction).
 
+    With `contact_impedance_spread` q > 0, each electrode's contact impedance may also change
+    between the reference and a frame: the unknowns are x and w = d(ln z) (L,), w with prior
+    covariance q^2 I, and the data-space covariance becomes G = J_n P J_n^T / c + q^2 Z_n Z_n^T,
+    Z_n = diag(1/s) dV/dz diag(z) (M, L). The solvers' x is then the conductivity part of the
+    joint estimate: the readings a contact change explains are not imaged as conductivity
+    (an electrode's contact drying or wetting during a session would otherwise show as a hill
+    at the rim beside it; docs/science.md#contact-impedance-drift).
+
     Eigenvalues of G below M eps max(G) are set to exactly 0: adjacent data are
     rank-deficient (reciprocity pairs readings), and in the null space of G no change x can
     explain the data (J^T u = 0 there), so the solvers leave those components out instead of
@@ -44,31 +58,37 @@ class LinearisedProblem(eqx.Module):
             `diffeit.inverse.priors` (default "noser").
         background: The background conductivity, S/sq, scalar or (E,), finite and positive.
         normalised: Normalised differences dV / V_ref (True) rather than absolute ones.
+        contact_impedance_spread: q, the prior standard deviation of each electrode's change in
+            ln z between the reference and a frame (unit-free, >= 0); 0 holds the contact
+            impedances (no nuisance).
 
     Attributes:
         model: The forward model.
         prior: The prior.
         background: (E,) the background conductivity, S/sq.
         normalised: Whether data are normalised differences (static).
+        contact_impedance_spread: q (static).
         reference: (M,) V_0, the model's voltages at the background, volts.
         data_scale: (M,) s, volts (signed for normalised differences).
         jacobian: (M, E) J_n, the normalised Jacobian (unit-free).
         prior_jacobian: (E, M) P J_n^T / c.
-        gram: (M, M) G = J_n P J_n^T / c, the data-space prior covariance.
+        gram: (M, M) G = J_n P J_n^T / c (+ q^2 Z_n Z_n^T), the data-space prior covariance.
         prior_scale: c = trace(J_n P J_n^T) / M.
         eigenvalues: (M,) the eigenvalues of G, ascending, those below rounding set to 0.
         eigenvectors: (M, M) the eigenvectors of G, one per column.
 
     Raises:
         ValueError: For a prior that is not a name or a prior, a background of the wrong
-            shape or not finite and positive, or (normalised differences) reference voltages
-            near zero at this background.
+            shape or not finite and positive, a `contact_impedance_spread` that is negative or
+            not finite, or (normalised differences) reference voltages near zero at this
+            background.
     """
 
     model: ForwardModel
     prior: AbstractPrior
     background: np.ndarray
     normalised: bool = eqx.field(static=True)
+    contact_impedance_spread: float = eqx.field(static=True)
     reference: np.ndarray = eqx.field(repr=False)
     data_scale: np.ndarray = eqx.field(repr=False)
     jacobian: np.ndarray = eqx.field(repr=False)
@@ -86,13 +106,17 @@ class LinearisedProblem(eqx.Module):
         background: float | np.ndarray = 1.0,
         *,
         normalised: bool = False,
+        contact_impedance_spread: float = 0.0,
     ) -> None:
+        if not (np.isfinite(contact_impedance_spread) and contact_impedance_spread >= 0):
+            raise ValueError(f"contact_impedance_spread must be finite and >= 0; got {contact_impedance_spread}")
         self.model = model
         self.prior = prior_named(prior) if isinstance(prior, str) else prior
         if not isinstance(self.prior, AbstractPrior):
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
         self.background = _checked_background(background, model.n_elements)
         self.normalised = bool(normalised)
+        self.contact_impedance_spread = float(contact_impedance_spread)
         self.reference = np.asarray(model.measure(jnp.asarray(self.background)))
         self.data_scale = _data_scale(self.reference, self.normalised)
         self.jacobian = (
@@ -102,7 +126,11 @@ class LinearisedProblem(eqx.Module):
         gram = self.jacobian @ prior_jacobian
         self.prior_scale = float(np.trace(gram) / len(gram))
         self.prior_jacobian = prior_jacobian / self.prior_scale
-        self.gram = 0.5 * (gram + gram.T) / self.prior_scale  # symmetric up to rounding; make it exactly so
+        gram = gram / self.prior_scale
+        if self.contact_impedance_spread > 0:
+            contact = _contact_jacobian(model, self.background, self.data_scale)
+            gram = gram + self.contact_impedance_spread**2 * (contact @ contact.T)
+        self.gram = 0.5 * (gram + gram.T)  # symmetric up to rounding; make it exactly so
         eigenvalues, self.eigenvectors = scipy.linalg.eigh(self.gram)
         eigenvalues[eigenvalues < len(eigenvalues) * np.finfo(float).eps * eigenvalues[-1]] = 0.0
         self.eigenvalues = eigenvalues
@@ -124,6 +152,14 @@ class LinearisedProblem(eqx.Module):
         if not self.normalised:
             return voltage_difference / self.data_scale
         return voltage_difference / (self.reference if reference is None else reference)
+
+
+def _contact_jacobian(model: ForwardModel, background: np.ndarray, data_scale: np.ndarray) -> np.ndarray:
+    """(M, L) Z_n = diag(1/s) dV/dz diag(z): the normalised readings' derivative in each
+    electrode's ln z (zero for point electrodes)."""
+    contact = np.broadcast_to(np.asarray(model.contact_impedance, np.float64), (model.mesh.n_electrodes,))
+    derivative = np.asarray(model.jacobian(jnp.asarray(background), wrt="contact_impedance"))
+    return derivative * contact / data_scale[:, None]
 
 
 def _checked_background(background: float | np.ndarray, n_elements: int) -> np.ndarray:

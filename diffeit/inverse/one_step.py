@@ -40,15 +40,21 @@ class OneStep(AbstractSolver):
             per-channel gain errors of an instrument; needs `reference`.
         reference: The measured reference voltages V_ref (M,), volts, that normalised
             differences divide by.
-        problem: The `LinearisedProblem` of `model` with this prior, background and
-            normalisation, when one is already built (choosing the hyperparameter builds it:
-            `diffeit.inverse.select_hyperparameter`): used rather than built again.
+        contact_impedance_spread: q >= 0, the prior spread of each electrode's change in ln z
+            between the reference and a frame (`LinearisedProblem`): the readings a contact
+            change explains are not imaged. 0 (the default here) holds the contacts;
+            `diffeit.reconstruct` images with `CONTACT_IMPEDANCE_SPREAD`.
+        problem: The `LinearisedProblem` of `model` with this prior, background,
+            normalisation and contact spread, when one is already built (choosing the
+            hyperparameter builds it: `diffeit.inverse.select_hyperparameter`): used rather
+            than built again.
 
     Attributes:
         prior: The prior.
         hyperparameter: lambda (static).
         background: The background conductivity as given (S/sq, scalar or (E,)).
         normalised: Whether data are normalised differences (static).
+        contact_impedance_spread: q (static).
         reference: The measured reference V_ref (M,) of normalised differences, volts; else
             None (and None when unbound).
         problem: The `LinearisedProblem` on the model (None when unbound).
@@ -61,14 +67,15 @@ class OneStep(AbstractSolver):
             differences on a model without a `reference`, a reference that is not one finite
             frame (M,) or is zero at some reading, a background that is not finite and
             positive or of the wrong shape, reference voltages of the model near zero
-            (normalised differences), or a `problem` of another model, prior, background or
-            normalisation.
+            (normalised differences), a contact spread that is negative or not finite, or a
+            `problem` of another model, prior, background, normalisation or contact spread.
     """
 
     prior: AbstractPrior
     hyperparameter: float = eqx.field(static=True)
     background: float | np.ndarray = eqx.field(repr=False)
     normalised: bool = eqx.field(static=True)
+    contact_impedance_spread: float = eqx.field(static=True)
     reference: jax.Array | None = eqx.field(repr=False)
     problem: LinearisedProblem | None = eqx.field(repr=False)
     matrix: jax.Array | None = eqx.field(repr=False)
@@ -82,6 +89,7 @@ class OneStep(AbstractSolver):
         *,
         normalised: bool = False,
         reference: jax.Array | np.ndarray | None = None,
+        contact_impedance_spread: float = 0.0,
         problem: LinearisedProblem | None = None,
     ) -> None:
         if not (np.isfinite(hyperparameter) and hyperparameter > 0):
@@ -92,6 +100,9 @@ class OneStep(AbstractSolver):
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
         self.background = background
         self.normalised = bool(normalised)
+        if not (np.isfinite(contact_impedance_spread) and contact_impedance_spread >= 0):
+            raise ValueError(f"contact_impedance_spread must be finite and >= 0; got {contact_impedance_spread}")
+        self.contact_impedance_spread = float(contact_impedance_spread)
         if reference is not None and not normalised:
             raise ValueError("a reference is only used for normalised differences (normalised=True)")
         self.reference = None if model is None or reference is None else _checked_reference(reference, model)
@@ -101,9 +112,15 @@ class OneStep(AbstractSolver):
         if normalised and reference is None:
             raise ValueError("normalised differences divide by the measured reference: pass reference=V_ref (volts)")
         if problem is None:
-            problem = LinearisedProblem(model, self.prior, background, normalised=normalised)
+            problem = LinearisedProblem(
+                model,
+                self.prior,
+                background,
+                normalised=normalised,
+                contact_impedance_spread=self.contact_impedance_spread,
+            )
         else:
-            _check_problem(problem, model, self.prior, background, normalised)
+            _check_problem(problem, model, self.prior, background, normalised, self.contact_impedance_spread)
         self.problem = problem
         matrix = self.problem.background[:, None] * regularised_inverse(self.problem, self.hyperparameter)
         if not normalised:
@@ -142,6 +159,7 @@ class OneStep(AbstractSolver):
             self.background if background is None else background,
             normalised=self.normalised,
             reference=self.reference,
+            contact_impedance_spread=self.contact_impedance_spread,
         )
 
     def solve(self, data: jax.Array, *, throw: bool = True) -> Solution:
@@ -185,9 +203,10 @@ def _check_problem(
     prior: AbstractPrior,
     background: float | np.ndarray,
     normalised: bool,
+    contact_impedance_spread: float,
 ) -> None:
-    """Refuse a linearisation built for another model, prior, background or normalisation
-    than the solver's: its matrix would reconstruct another problem."""
+    """Refuse a linearisation built for another model, prior, background, normalisation or
+    contact spread than the solver's: its matrix would reconstruct another problem."""
     same_background = np.array_equal(
         problem.background, np.broadcast_to(np.asarray(background, float), problem.background.shape)
     )
@@ -196,9 +215,11 @@ def _check_problem(
         or problem.normalised != normalised
         or not (problem.prior is prior or eqx.tree_equal(problem.prior, prior))
         or not same_background
+        or problem.contact_impedance_spread != contact_impedance_spread
     ):
         raise ValueError(
-            "problem is the linearisation of another model, prior, background or normalisation than this solver's"
+            "problem is the linearisation of another model, prior, background, normalisation or contact spread "
+            "than this solver's"
         )
 
 
