@@ -79,6 +79,7 @@ from .calibration import (
     drift_corrected,
     drift_note,
     glitched_frames,
+    lost_electrodes,
     reading_spread,
     reference_frames,
     refine_to_reference,
@@ -155,7 +156,11 @@ def reconstruct(
     (`diffeit.touch.image_noise`), on which `diffeit.touches` finds the hills. Without either,
     how far each frame stands out of its own noise is kept as
     "touch_statistic" (`diffeit.touch.subspace_statistic`, at the calibrated model), on which
-    `diffeit.touches` tells touched frames. Where the frames drift beyond the reference's
+    `diffeit.touches` tells touched frames. An electrode lost during the recording (half the
+    readings on it broken from some frame on, the others not: `lost_electrodes`) is warned of,
+    and the readings on it are masked in every frame ("lost_electrodes", "lost_frames" and
+    "lost_readings" in the provenance; `diffeit.touches` leaves them out); without that, each
+    frame after it went would be a glitch, read as no touch. Where the frames drift beyond the reference's
     jitter, every frame is divided by its common gain against the reference
     (`drift_corrected`), the gains kept as "frame_gains", their range warned of, and the
     returned recording's frames the corrected ones. The model
@@ -265,6 +270,16 @@ def reconstruct(
         _check_calibration(calibration, recording, mesh, h)
         mesh = calibration.model.mesh
     mesh = default_mesh(recording, h) if mesh is None else mesh
+    # Electrodes lost during the recording (come off the skin, a connector come loose), found
+    # against its first frames: the readings on them keep their values from before in every
+    # frame they are lost in (so that they move neither the choice of the reference frames nor
+    # the drift's gains, and each frame after they went is no glitch), and are masked below.
+    recorded = recording
+    before = recording.reference if recording.reference is not None else np.median(recording.frames[:3], axis=0)
+    lost, lost_frames, on_lost = lost_electrodes(recording.frames - before, before, recording.protocol)
+    if lost:
+        held = np.where(lost_frames[:, None] & on_lost, before, recording.frames)
+        recording = dataclasses.replace(recording, frames=held)
     reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
     reference = reference_set.mean(axis=0)
     # The readings' spread over the reference frames, when the reference is the mean of enough of
@@ -273,7 +288,7 @@ def reconstruct(
     spread = reading_spread(reference_set) if from_frames else None
     frame_gains = None
     if spread is not None:  # a drift's common gain out of every frame (`drift_corrected`)
-        recording, frame_gains = drift_corrected(recording, reference_set)
+        recording, frame_gains = drift_corrected(recording, reference_set, ~on_lost)
         if frame_gains is not None:  # the reference frames, and their spread, without the drift
             reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
             reference = reference_set.mean(axis=0)
@@ -322,21 +337,38 @@ def reconstruct(
             "result": names(fitted.result)[0],
             "range": [float(level.min()), float(level.max())],
         }
-    dv = frames - signed_reference
+    differences = frames - signed_reference
+    readings = np.flatnonzero(calibration.used)  # the recording's index of each reading imaged
+    on_lost = on_lost[calibration.used]  # the readings imaged that are on a lost electrode
+    if lost:
+        warnings.warn(
+            f"electrode(s) {name_indices(np.array(lost))} lost during the recording (half their readings changed by "
+            f"more than half, in {int(lost_frames.sum())} frames from frame {int(np.argmax(lost_frames))} on): the "
+            f"{int(on_lost.sum())} readings on them are masked in every frame",
+            CalibrationWarning,
+            stacklevel=2,
+        )
+        model = model.replace(protocol=model.protocol.select(~on_lost))
+    dv, signed_reference, readings = differences[:, ~on_lost], signed_reference[~on_lost], readings[~on_lost]
     # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
-    damaged = glitched_frames(dv, signed_reference, recording.frames, reference)
-    # The readings' noise in the calibration's units: its own, else the reference frames' spread.
+    intact = np.ones(len(reference), bool)
+    intact[np.flatnonzero(calibration.used)[on_lost]] = False
+    damaged = glitched_frames(dv, signed_reference, recording.frames[:, intact], reference[intact])
+    # The readings' noise in the calibration's units: its own, else the reference frames' spread
+    # (a lost electrode's readings with none: no test looks at them).
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
+    noise = None if noise is None else np.where(on_lost, 0.0, noise)
     # Without it, how far each frame stands out of its own noise, for `diffeit.touches`; with it
     # and no calibration given, where this model puts a touch, for `diffeit.touches`' voltage test.
-    statistic = None if noise is not None else subspace_statistic(frames - signed_reference, calibration)
+    statistic = None if noise is not None else subspace_statistic(differences, calibration)
     projection = None if given or noise is None else reading_projection(calibration, noise)
+    noise = None if noise is None else noise[~on_lost]
     difference, difference_reason = (
         (difference, "given") if difference != "auto" else auto_difference(calibration, given=given)
     )
     unsafe: list[int] = []
     if difference == "normalised":
-        model, dv, unsafe, noise = _normalised(model, dv, signed_reference, level, calibration, noise)
+        model, dv, unsafe, noise = _normalised(model, dv, signed_reference, level, readings, noise)
     # A one-step solver images with the linearisation the hyperparameter is chosen on: built once.
     problem = (
         LinearisedProblem(model, solver.prior, level, contact_impedance_spread=solver.contact_impedance_spread)
@@ -385,6 +417,11 @@ def reconstruct(
         "frames_failed": int(failed(codes).sum()),
         # Frames whose differences exceed half the reference: a glitch; `diffeit.touches` reads none.
         "damaged_frames": np.flatnonzero(damaged).tolist(),
+        # Electrodes lost during the recording, the frames they were lost in, and the readings on
+        # them (the recording's indices), masked in every frame; `diffeit.touches` leaves them out.
+        "lost_electrodes": list(lost),
+        "lost_frames": np.flatnonzero(lost_frames).tolist(),
+        "lost_readings": np.flatnonzero(calibration.used)[on_lost].tolist(),
         "difference": difference,
         "difference_reason": difference_reason,
         "unsafe_ratio_readings": unsafe,
@@ -406,6 +443,9 @@ def reconstruct(
         "input_source": recording.provenance.get("source", ""),
         "seconds": round(time.perf_counter() - start, 3),
     }
+    if lost:  # the frames as recorded (divided by the drift's gains where taken out)
+        frames = recorded.frames if frame_gains is None else recorded.frames / frame_gains[:, None]
+        recording = dataclasses.replace(recording, frames=frames)
     return dataclasses.replace(
         recording,
         reference=reference if recording.reference is None else recording.reference,  # the recorded one is kept
@@ -458,13 +498,14 @@ def _check_calibration(calibration: SkinCalibration, recording: Recording, mesh:
 
 
 def _normalised(
-    model, dv, reference, level, calibration, noise: np.ndarray | None
+    model, dv, reference, level, readings: np.ndarray, noise: np.ndarray | None
 ) -> tuple[ForwardModel, np.ndarray, list[int], np.ndarray | None]:
     """The model and data of normalised differences: dV / V_ref times the calibrated model's
     voltages V_h, a gain g = V_ref / V_h per reading. Readings whose gain is not positive or is
     more than `_LARGEST_GAIN` times off the median gain, or where V_ref or V_h is under 5% of
     its RMS, are masked (their indices in the recording returned): there the ratio would blow
-    up, flip a sign or divide noise by noise. The readings' `noise` (or None) as the data's."""
+    up, flip a sign or divide noise by noise. The readings' `noise` (or None) as the data's;
+    `readings` the recording's index of each."""
     voltages = np.asarray(model.measure(jnp.broadcast_to(jnp.asarray(level), (model.n_elements,))))
     gain = reference / voltages
     positive = gain > 0
@@ -474,7 +515,7 @@ def _normalised(
     safe = positive & ~off & ~small
     if not safe.any():
         raise ValueError("no reading of the reference has the model's sign: normalised differences are meaningless")
-    unsafe = np.flatnonzero(calibration.used)[~safe].tolist()
+    unsafe = readings[~safe].tolist()
     if unsafe:
         warnings.warn(
             f"normalised differences: readings {name_indices(np.array(unsafe))} masked, their reference is near zero "

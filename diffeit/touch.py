@@ -466,7 +466,7 @@ def touches(
             damaged=damaged,
         )
     if method == "fit":
-        found = _refined(calibration, signed[0], found, mapping, stack)
+        found = _refined(calibration, signed[0], found, mapping, stack, _lost_readings(recording)[calibration.used])
     if spans is not None:
         found = eqx.tree_at(lambda t: t.anchor, found, spans, is_leaf=lambda node: node is None)
     return found
@@ -779,6 +779,7 @@ def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None
     """
     metadata = recording.provenance.get("metadata", {})
     spread = metadata.get("reading_noise")
+    lost = _lost_readings(recording)
     if getattr(calibration, "noise", None) is None:
         if spread is None:
             return None
@@ -789,6 +790,7 @@ def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None
                 f"the recording's reading_noise (provenance) must hold {frames.shape[1]} finite values, one per "
                 f"reading; got shape {spread.shape}"
             )
+        spread = np.where(lost, 0.0, spread)  # zero: left out
         reference = np.asarray(recording.reference, np.float64)
         counts = metadata["noise_frames"], metadata["reference_frames"]
         projection = metadata.get("touch_projection")
@@ -803,14 +805,31 @@ def _voltage_test(recording: Recording, calibration: Any) -> _VoltageTest | None
         # `reading_projection` whitens in the model's units: the raw differences enter as they are.
         return _VoltageTest(frames, reference, np.ones(frames.shape[1]), *counts, projection)
     averaged = metadata.get("reference_frames") or calibration.noise_frames  # the reference's own frames, where known
+    noise = np.where(lost[calibration.used], 0.0, calibration.noise)  # zero: left out
     return _VoltageTest(
         calibration.signed(np.atleast_2d(recording.frames)),
         calibration.signed(recording.reference),
-        calibration.noise,
+        noise,
         calibration.noise_frames,
         averaged,
-        touch_subspace(calibration),
+        _whitened_subspace(calibration, noise),
     )
+
+
+def _lost_readings(recording: Recording) -> np.ndarray:
+    """(M,) bool, the readings on the electrodes `diffeit.reconstruct` found lost during the
+    recording ("lost_readings" in the provenance): no test or fit looks at them.
+
+    Raises:
+        ValueError: For indices that are not readings of the recording.
+    """
+    indices = np.asarray(recording.provenance.get("metadata", {}).get("lost_readings") or [], int)
+    readings = recording.frames.shape[-1]
+    if indices.size and (indices.ndim != 1 or indices.min() < 0 or indices.max() >= readings):
+        raise ValueError(f"the recording's lost_readings (provenance) must be indices of its {readings} readings")
+    lost = np.zeros(readings, bool)
+    lost[indices] = True
+    return lost
 
 
 class _Anchor(NamedTuple):
@@ -1433,9 +1452,12 @@ def _disc_readings(fit: _DiscFit, theta: jax.Array, planes: jax.Array) -> tuple[
     return readings - fit.base, jacobian @ (fit.level * tangents).T, jnp.min(1.0 + change)
 
 
-def _refined(calibration: Any, dv: np.ndarray, found: Touches, mapping: Any, stack: FoamStack | None) -> Touches:
+def _refined(
+    calibration: Any, dv: np.ndarray, found: Touches, mapping: Any, stack: FoamStack | None, lost: np.ndarray
+) -> Touches:
     """The image method's touches `found` (in the mesh's frame) refined by fitting discs to
-    each touched frame's differences `dv` (T, M; module docstring, "Refinement by the model")."""
+    each touched frame's differences `dv` (T, M; module docstring, "Refinement by the model"),
+    the readings `lost` (M,) bool (on a lost electrode) weighing nothing."""
     model = calibration.model
     fit = _DiscFit.of(model, calibration.background)
     noise = getattr(calibration, "noise", None)
@@ -1447,6 +1469,10 @@ def _refined(calibration: Any, dv: np.ndarray, found: Touches, mapping: Any, sta
         noise = np.asarray(noise, np.float64)
         # A reading of no measured spread would take all the weight: floored at 1e-3 of the median.
         weights = 1.0 / np.maximum(noise, 1e-3 * np.median(noise))
+    noise_known = weights is not None
+    if lost.any():
+        weights = np.where(lost, 0.0, 1.0 if weights is None else weights)
+        dv = np.where(lost, 0.0, dv)
     nodes = model.mesh.nodes
     middle = nodes.mean(axis=0)
     size = float(np.max(np.linalg.norm(nodes - middle, axis=1)))
@@ -1470,7 +1496,7 @@ def _refined(calibration: Any, dv: np.ndarray, found: Touches, mapping: Any, sta
                 np.clip(found.depth[t, :k], -0.9, 10.0),
             ]
         )
-        theta, planes, covariance, misfit[t] = _fit_discs(fit, dv[t], weights, start, planes, limits)
+        theta, planes, covariance, misfit[t] = _fit_discs(fit, dv[t], weights, noise_known, start, planes, limits)
         count[t] = len(theta)
         if not len(theta):
             continue
@@ -1504,9 +1530,16 @@ def _tangent_plane(mesh: Mesh, point: np.ndarray) -> np.ndarray:
 
 
 def _fit_discs(
-    fit: _DiscFit, dv: np.ndarray, weights: np.ndarray | None, start: np.ndarray, planes: np.ndarray, limits: tuple
+    fit: _DiscFit,
+    dv: np.ndarray,
+    weights: np.ndarray | None,
+    noise_known: bool,
+    start: np.ndarray,
+    planes: np.ndarray,
+    limits: tuple,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Discs (K', 4) fitted to one frame's differences `dv` (M,) from `start` (K, 4), rows
+    """Discs (K', 4) fitted to one frame's differences `dv` (M,) (each reading weighed by
+    `weights`, 1 / its noise where `noise_known`) from `start` (K, 4), rows
     (u, v, radius, depth), u and v in each disc's plane of `planes` (K, 3, D), the
     insignificant dropped one at a time, never the last (module docstring); the planes (K', 3, D) of those
     kept, their (4K', 4K') covariance and the relative residual ||dv - dv(theta)|| / ||dv||."""
@@ -1515,8 +1548,8 @@ def _fit_discs(
     scale = np.ones(len(dv)) if weights is None else weights
     norm = float(np.linalg.norm(dv)) or 1.0
     while True:
-        theta, curvature, residual = _levenberg_marquardt(fit, dv, scale, weights is not None, theta, planes, limits)
-        covariance = _covariance(curvature, residual, weights is not None)
+        theta, curvature, residual = _levenberg_marquardt(fit, dv, scale, noise_known, theta, planes, limits)
+        covariance = _covariance(curvature, residual, noise_known)
         significance = _significance(theta, covariance)
         # The last disc stays: the frame stood out of the noise (a touch is there), and its
         # standard errors say how well the fit places it.

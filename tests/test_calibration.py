@@ -409,6 +409,78 @@ def test_labels_one_press_off_are_read_far_from_their_frames_and_warned_of(mixin
     assert np.nanmedian(calibrated.press_errors) < 0.1
 
 
+def test_an_electrode_lost_during_a_recording_is_found_named_and_its_readings_masked(mixing_skin):
+    """Electrode 5 comes off half way through the presses: the readings on it read zero, those
+    of the drives through it saturate. Every frame after had been a glitch, read as no touch
+    (all 15 presses after it missed); now the electrode is named, the readings on it masked in
+    every frame, and the presses after it read as those before (measured medians 0.051 after and
+    0.061 before, on the unit disc, presses of radius 0.15; 0.044 with every reading and no
+    electrode lost: the mask costs the frames before it a quarter of their readings). The
+    returned frames are the recorded ones."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    protocol = recording.protocol
+    on_five = (protocol.measure[:, 5] != 0) | (protocol.drive[protocol.drive_index, 5] != 0)
+    through_five = protocol.drive[protocol.drive_index, 5] != 0
+    pressed = np.array([chosen[0] for chosen in presses.frames(recording.times)])
+    cut = pressed[15]
+    frames = recording.frames.copy()
+    frames[cut:, on_five] = 0.0
+    frames[cut:, through_five] = 10 * np.abs(recording.frames).max()
+    broken = dataclasses.replace(recording, frames=frames)
+    with pytest.warns(de.calibration.CalibrationWarning, match=r"electrode\(s\) \[5\] lost during the recording"):
+        images = de.reconstruct(broken, progress=False)
+    metadata = images.provenance["metadata"]
+    assert metadata["lost_electrodes"] == [5] and metadata["lost_frames"][0] == cut
+    assert len(metadata["lost_frames"]) == recording.n_frames - cut
+    np.testing.assert_array_equal(metadata["lost_readings"], np.flatnonzero(on_five))
+    assert metadata["damaged_frames"] == []
+    np.testing.assert_array_equal(images.frames, frames)
+    found = de.touches(images)
+    distance = np.linalg.norm(found.position[pressed, 0] - presses.centres, axis=1)
+    assert np.all(np.isfinite(distance))
+    assert np.median(distance[15:]) < 0.075 and np.median(distance[:15]) < 0.075, distance
+    # The rests between the presses after it read no touch: the test leaves the readings out.
+    assert np.all(found.count[pressed[15:-1] + 1] == 0)
+    outside = dataclasses.replace(
+        images, provenance={"metadata": {**metadata, "lost_readings": [recording.n_measurements]}}
+    )
+    with pytest.raises(ValueError, match="lost_readings"):
+        de.touches(outside)
+    # A calibration from the frames before it reads them alike.
+    untouched = slice(0, pressed[0])
+    calibration = de.calibrate(
+        dataclasses.replace(recording, frames=frames[untouched], times=recording.times[untouched])
+    )
+    with pytest.warns(de.calibration.CalibrationWarning, match="lost during the recording"):
+        calibrated_images = de.reconstruct(broken, calibration=calibration, progress=False)
+    found = de.touches(calibrated_images, calibration)
+    distance = np.linalg.norm(found.position[pressed, 0] - presses.centres, axis=1)
+    assert np.median(distance[15:]) < 0.075 and np.all(found.count[pressed[15:-1] + 1] == 0), distance
+
+
+def test_lost_electrodes_are_told_from_glitches_and_touches():
+    """`lost_electrodes`: an electrode's readings broken from a frame on; not a frame at three
+    times the gain (every reading broken: a glitch), nor an electrode broken in two frames
+    alone, nor a press."""
+    protocol = de.protocol.adjacent(16)
+    rng = np.random.default_rng(3)
+    reference = 1.0 + rng.uniform(0, 1, protocol.n_measurements)
+    frames = reference * (1 + 0.01 * rng.standard_normal((20, protocol.n_measurements)))
+    frames[3] *= 1.05  # a press moves readings by a few percent
+    on_two = (protocol.measure[:, 2] != 0) | (protocol.drive[protocol.drive_index, 2] != 0)
+    on_nine = (protocol.measure[:, 9] != 0) | (protocol.drive[protocol.drive_index, 9] != 0)
+    frames[12:, on_two] = 0.0
+    frames[[5, 7], :] *= 3.0  # glitches
+    frames[[4, 6]] = np.where(on_nine, 0.0, frames[[4, 6]])  # electrode 9 broken twice only
+    lost, lost_frames, readings = de.calibration.lost_electrodes(frames - reference, reference, protocol)
+    assert lost == (2,)
+    np.testing.assert_array_equal(np.flatnonzero(lost_frames), np.arange(12, 20))
+    np.testing.assert_array_equal(readings, on_two)
+    assert de.calibration.lost_electrodes(frames[:12] - reference, reference, protocol)[0] == ()
+    with pytest.raises(ValueError, match="one value per reading"):
+        de.calibration.lost_electrodes(frames - reference, reference[:-1], protocol)
+
+
 @pytest.mark.parametrize("lead", [3, 10])
 def test_a_recording_mostly_of_one_long_press_takes_its_leading_frames_as_the_reference(lead):
     """`lead` untouched frames, then one press held 40 frames: most frames are pressed, so the

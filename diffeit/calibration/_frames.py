@@ -1,5 +1,6 @@
 """The frames a calibration stands on: a recording's untouched reference frames (`reference_frames`,
-`calibrated_reference_frames`), the frames a board damaged (`damaged_frames`, `glitched_frames`), and the
+`calibrated_reference_frames`), the frames a board damaged (`damaged_frames`, `glitched_frames`), the
+electrodes lost during a recording (`lost_electrodes`), and the
 common gain's drift taken out of a recording (`drift_corrected`) or of a stream (`LiveDrift`),
 the rests told from the presses by their gains.
 """
@@ -19,7 +20,9 @@ from .._arrays import frame_period
 from .._messages import name_indices
 from .._threads import host_algebra
 from ..io import Presses, Recording
+from ..protocol import Protocol
 from ..touch import DETECTION, _noise_test, _statistic, touch_subspace
+from ._reference import _broken_electrodes, _uses
 from ._skin import SkinCalibration
 
 # A recording without a reference is calibrated on the mean of at most this many first frames;
@@ -42,6 +45,17 @@ _LARGEST_CHANGE, _DAMAGE_REACH = 0.5, 4
 # A frame whose readings, moved up to _MOVED_PLACES places along from some reading on, lie within
 # _MOVED_FIT of its distance from the frames about it is damaged (`_readings_moved`).
 _MOVED_PLACES, _MOVED_FIT = 2, 0.5
+
+
+# An electrode is lost in a frame when half the readings on it changed by more than
+# _LARGEST_CHANGE of their reference (`_broken_electrodes`), and at most _STRAY_SHARE of the
+# readings on no lost electrode did (else the whole frame is a glitch); lost from the recording
+# when so in at least _LOST_FRAMES frames (one frame so is a damaged frame). A press changes a
+# reading by a few percent: a connector or electrode come loose sends those readings to zero,
+# saturation or noise.
+_STRAY_SHARE, _LOST_FRAMES = 0.1, 3
+# ... and when at least this share of the readings are on none of the frame's lost electrodes.
+_LEAST_LEFT = 0.25
 
 
 # A recording's first frames that look touched are left out of its reference when they are at
@@ -371,6 +385,54 @@ def damaged_frames(frames: np.ndarray) -> np.ndarray:
     return np.zeros(len(frames), bool) if damaged.all() else damaged
 
 
+def lost_electrodes(
+    differences: np.ndarray, reference: np.ndarray, protocol: Protocol
+) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
+    """The electrodes lost during a recording (an electrode come off the skin, a connector come
+    loose): the readings on them broken from some frame on, the others not.
+
+    A reading is broken in a frame when it changed by more than half of its reference (of half
+    the RMS reference, where the reading is smaller), or is not finite. In each frame the
+    electrodes half of whose readings (driven or measuring) are broken are found worst first, as
+    the reference's broken electrodes are (a lost electrode's readings are its neighbours' too);
+    they are lost there when a quarter of the readings or more are on none of them and at most
+    a tenth of those are broken (else the frame is a glitch as a whole: `glitched_frames`), and
+    lost from the recording when so in at least 3 frames (one frame so is a damaged frame).
+
+    Arguments:
+        differences: (T, M) the frames' differences from `reference`, in its unit.
+        reference: (M,) the reference.
+        protocol: The readings' protocol (M readings).
+
+    Returns:
+        The lost electrodes (indices, ascending); (T,) bool, the frames they are lost in; and
+        (M,) bool, the readings on them (driven or measuring).
+
+    Raises:
+        ValueError: For arrays whose shapes do not fit together as above.
+    """
+    reference = np.asarray(reference, np.float64)
+    differences = _checked_frames(differences, protocol.n_measurements, "differences", finite=False)
+    if reference.shape != (protocol.n_measurements,):
+        raise ValueError(
+            f"lost_electrodes takes the differences' reference of shape ({protocol.n_measurements},), one value per "
+            f"reading of the protocol; got {reference.shape}"
+        )
+    scale = np.maximum(np.abs(reference), _LARGEST_CHANGE * np.sqrt(np.mean(reference**2)))
+    with np.errstate(invalid="ignore", over="ignore"):
+        broken = ~np.isfinite(differences) | (np.abs(differences) > _LARGEST_CHANGE * scale)
+    lost_in = np.zeros((len(differences), protocol.n_electrodes), bool)
+    for frame in np.flatnonzero(broken.sum(axis=1) > 0):
+        electrodes = _broken_electrodes(protocol, broken[frame])
+        on_them = _uses(protocol, electrodes)
+        # Lost electrodes leave most readings; the rest broken too is a glitch of the whole frame.
+        few = np.sum(~on_them) >= _LEAST_LEFT * protocol.n_measurements
+        if electrodes.any() and few and np.sum(broken[frame] & ~on_them) <= _STRAY_SHARE * np.sum(~on_them):
+            lost_in[frame] = electrodes
+    lost = lost_in.sum(axis=0) >= _LOST_FRAMES
+    return tuple(int(e) for e in np.flatnonzero(lost)), lost_in[:, lost].any(axis=1), _uses(protocol, lost)
+
+
 def glitched_frames(
     differences: np.ndarray, reference: np.ndarray, frames: np.ndarray, recorded: np.ndarray
 ) -> np.ndarray:
@@ -454,7 +516,9 @@ def _change_from(frames: np.ndarray, about: np.ndarray) -> np.ndarray:
 
 
 @host_algebra
-def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Recording, np.ndarray | None]:
+def drift_corrected(
+    recording: Recording, reference_set: np.ndarray, readings: np.ndarray | None = None
+) -> tuple[Recording, np.ndarray | None]:
     """The recording with each frame divided by its common gain against the reference, and
     the gains (T,); the recording as it is and None when `reference_set` holds fewer than
     `_NOISE_FRAMES` frames, or ones identical to round-off (no noise to tell untouched frames by).
@@ -486,6 +550,8 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
     Arguments:
         recording: The recording (frames as recorded).
         reference_set: (N, M) the frames its reference is the mean of (`reference_frames`).
+        readings: (M,) bool, the readings the gains are estimated from (None: every one; a lost
+            electrode's are left out, `lost_electrodes`); every reading is divided by them.
 
     Returns:
         The recording, its frames divided by the gains, and the gains; or the recording and
@@ -496,12 +562,16 @@ def drift_corrected(recording: Recording, reference_set: np.ndarray) -> tuple[Re
             recording's M, or, with a drift to take out, times that go backwards.
     """
     reference_set = _checked_frames(reference_set, recording.frames.shape[1])
-    drift = _DriftReference.of(reference_set)
+    readings = np.ones(reference_set.shape[1], bool) if readings is None else np.asarray(readings, bool)
+    if readings.shape != reference_set.shape[1:] or not readings.any():
+        raise ValueError(f"readings must be a ({reference_set.shape[1]},) mask keeping a reading; got {readings.shape}")
+    drift = _DriftReference.of(reference_set[:, readings])
     if drift is None or recording.n_frames == 0:
         return recording, None
-    common = drift.gains(recording.frames)
+    frames = recording.frames[:, readings]
+    common = drift.gains(frames)
     ordered = not np.any(np.diff(recording.times) < 0)
-    still = drift.untouched(recording.frames, common)
+    still = drift.untouched(frames, common)
     if ordered:
         still = _rests_not_presses(recording.times, common, still, drift.jitter)
     gains = np.ones_like(common)
