@@ -160,8 +160,8 @@ def reconstruct(
     readings on it broken from some frame on, the others not: `lost_electrodes`) is warned of,
     and the readings on it are masked in every frame ("lost_electrodes", "lost_frames" and
     "lost_readings" in the provenance; `diffeit.touches` leaves them out); without that, each
-    frame after it went would be a glitch, read as no touch. Where the frames drift beyond the reference's
-    jitter, every frame is divided by its common gain against the reference
+    frame after it went would be a glitch, read as no touch. Where the frames drift beyond the
+    reference's jitter, every frame is divided by its common gain against the reference
     (`drift_corrected`), the gains kept as "frame_gains", their range warned of, and the
     returned recording's frames the corrected ones. The model
     (the sheet `mesh`, else `default_mesh(recording, h)`; the recording's protocol;
