@@ -16,7 +16,11 @@ labelled presses and `--test` more, one frame each. The layouts:
   presses one after another;
 - **in rows**: as "rests between", the presses in rows from the bottom up (a robot's raster),
   so that the 50 the calibration uses cover the lower part of the skin alone (its lower 45%),
-  and the test presses the rest: what the labelled presses teach must carry beyond them.
+  and the test presses the rest: what the labelled presses teach must carry beyond them;
+- **an electrode lost**: as "rests between", electrode 5 coming off half way through the test
+  presses (the readings on it read zero, those of the drives through it saturate at ten times
+  the largest reading): `de.reconstruct` finds it and masks the readings on it
+  (`diffeit.calibration.lost_electrodes`).
 
 Each is read three ways: with no calibration (`de.reconstruct`, `de.touches` at their
 defaults), after `de.calibrate` from the reference alone, and after `de.calibrate` with the
@@ -26,6 +30,7 @@ first 50 presses; a press without a touch read counts as missed, left out of the
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -36,7 +41,15 @@ from _common import MarkdownTable, skin_benchmark, write_tables
 from calibration import REFERENCE_FRAMES, cell, errors, session
 
 CALIBRATION_PRESSES = 50
-LAYOUTS = ("rests between", "back to back", "one untouched frame", "a separate reference", "in rows")
+LAYOUTS = (
+    "rests between",
+    "back to back",
+    "one untouched frame",
+    "a separate reference",
+    "in rows",
+    "an electrode lost",
+)
+LOST_ELECTRODE = 5
 
 
 def laid_out(layout: str, seed: int, n_presses: int):
@@ -44,8 +57,18 @@ def laid_out(layout: str, seed: int, n_presses: int):
     the presses."""
     import diffeit as de
 
-    period = 2 if layout in ("rests between", "in rows") else 1
+    period = 2 if layout in ("rests between", "in rows", "an electrode lost") else 1
     recording, presses, _ = session(seed, n_presses, period=period, rows=layout == "in rows")
+    if layout == "an electrode lost":
+        protocol = recording.protocol
+        through = protocol.drive[protocol.drive_index, LOST_ELECTRODE] != 0
+        on = (protocol.measure[:, LOST_ELECTRODE] != 0) | through
+        frames = np.array(recording.frames)
+        # Half way through the test presses (the first CALIBRATION_PRESSES are the calibration's).
+        lost = REFERENCE_FRAMES + period * (CALIBRATION_PRESSES + (n_presses - CALIBRATION_PRESSES) // 2)
+        frames[lost:, on] = 0.0
+        frames[lost:, through] = 10 * np.abs(frames).max()
+        return dataclasses.replace(recording, frames=frames), presses
     if layout in ("rests between", "back to back", "in rows"):
         return recording, presses
     frames, times = np.asarray(recording.frames), np.asarray(recording.times)
