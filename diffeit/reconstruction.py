@@ -276,9 +276,9 @@ def reconstruct(
     # the drift's gains, and each frame after they went is no glitch), and are masked below.
     recorded = recording
     before = recording.reference if recording.reference is not None else np.median(recording.frames[:3], axis=0)
-    lost, lost_frames, on_lost = lost_electrodes(recording.frames - before, before, recording.protocol)
+    lost, lost_frames, lost_readings = lost_electrodes(recording.frames - before, before, recording.protocol)
     if lost:
-        held = np.where(lost_frames[:, None] & on_lost, before, recording.frames)
+        held = np.where(lost_frames[:, None] & lost_readings, before, recording.frames)
         recording = dataclasses.replace(recording, frames=held)
     reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
     reference = reference_set.mean(axis=0)
@@ -288,7 +288,7 @@ def reconstruct(
     spread = reading_spread(reference_set) if from_frames else None
     frame_gains = None
     if spread is not None:  # a drift's common gain out of every frame (`drift_corrected`)
-        recording, frame_gains = drift_corrected(recording, reference_set, ~on_lost)
+        recording, frame_gains = drift_corrected(recording, reference_set, ~lost_readings)
         if frame_gains is not None:  # the reference frames, and their spread, without the drift
             reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
             reference = reference_set.mean(axis=0)
@@ -339,7 +339,8 @@ def reconstruct(
         }
     differences = frames - signed_reference
     readings = np.flatnonzero(calibration.used)  # the recording's index of each reading imaged
-    on_lost = on_lost[calibration.used]  # the readings imaged that are on a lost electrode
+    lost_readings &= calibration.used  # the readings imaged that are on a lost electrode: masked
+    on_lost = lost_readings[calibration.used]
     if lost:
         warnings.warn(
             f"electrode(s) {name_indices(np.array(lost))} lost during the recording (half their readings changed by "
@@ -351,9 +352,7 @@ def reconstruct(
         model = model.replace(protocol=model.protocol.select(~on_lost))
     dv, signed_reference, readings = differences[:, ~on_lost], signed_reference[~on_lost], readings[~on_lost]
     # Damaged frames are imaged as they are, but a selection over every frame is theirs alone.
-    intact = np.ones(len(reference), bool)
-    intact[np.flatnonzero(calibration.used)[on_lost]] = False
-    damaged = glitched_frames(dv, signed_reference, recording.frames[:, intact], reference[intact])
+    damaged = glitched_frames(dv, signed_reference, recording.frames[:, ~lost_readings], reference[~lost_readings])
     # The readings' noise in the calibration's units: its own, else the reference frames' spread
     # (a lost electrode's readings with none: no test looks at them).
     noise = _reading_noise(calibration, reference_set if spread is not None else None)
@@ -421,7 +420,7 @@ def reconstruct(
         # them (the recording's indices), masked in every frame; `diffeit.touches` leaves them out.
         "lost_electrodes": list(lost),
         "lost_frames": np.flatnonzero(lost_frames).tolist(),
-        "lost_readings": np.flatnonzero(calibration.used)[on_lost].tolist(),
+        "lost_readings": np.flatnonzero(lost_readings).tolist(),
         "difference": difference,
         "difference_reason": difference_reason,
         "unsafe_ratio_readings": unsafe,

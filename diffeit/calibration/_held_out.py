@@ -19,7 +19,7 @@ from ..io import Presses, Recording
 from ..mesh import Mesh, surface_distance
 from ._maps import _COVERED_RADII, PositionMap, _coverage, _leave_one_out_errors
 from ._press_fit import _CONTRADICTS, _ContradictsReference, _ElectrodeResponse, _fit_presses, _PressGroups, _PressState
-from ._presses import _read_presses, imaging_spread
+from ._presses import _read_presses
 from ._reference import _SKIN_LEAST_CORRELATION
 from ._refine import _with_warnings
 from ._skin import _IDENTITY_FRAME, _RINGING_CAP, _RINGING_QUANTILE, SkinCalibration
@@ -273,7 +273,7 @@ def _with_position_map(
             mapping(found.position[:, 0]),
             tuple(notes),
             hyperparameter,
-            imaging_spread(calibration),
+            calibration.imaging_spread,
             polarity,
             ringing,
         ),

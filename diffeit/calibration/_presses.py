@@ -16,7 +16,7 @@ import numpy as np
 from .._arrays import frame_period
 from ..fit import memory_from_press_readings
 from ..forward import ForwardModel
-from ..inverse import CONTACT_IMPEDANCE_SPREAD, LinearisedProblem, OneStep, select_hyperparameter
+from ..inverse import LinearisedProblem, OneStep, select_hyperparameter
 from ..inverse.hyperparameter import DEFAULT_CANDIDATES
 from ..io import Presses, Recording
 from ..mesh import Mesh, disc_fractions
@@ -57,14 +57,6 @@ def _press_patterns(mesh: Mesh, presses: Presses) -> np.ndarray:
     the frame's central differences (`_FRAME_DELTA`) differentiate it, and a sampled footprint
     moves in steps (docs/tutorials/calibration.md: fewer trial steps, the same errors)."""
     return disc_fractions(mesh, presses.centres, presses.radius, level=None).T.toarray()
-
-
-def imaging_spread(calibration: SkinCalibration) -> float:
-    """The contact spread the presses are imaged at: the calibration's own once it holds one
-    (a background map's calibration images them again as before), else `diffeit.reconstruct`'s
-    default (`CONTACT_IMPEDANCE_SPREAD`), which images touches to be read through the map."""
-    spread = calibration.contact_impedance_spread
-    return CONTACT_IMPEDANCE_SPREAD if spread is None else spread
 
 
 def auto_hyperparameter(
@@ -377,7 +369,7 @@ def _read_presses(
         calibration.noise_frames,
     )
     level = calibration.background
-    problem = LinearisedProblem(calibration.model, "noser", level, contact_impedance_spread=imaging_spread(calibration))
+    problem = LinearisedProblem(calibration.model, "noser", level, contact_impedance_spread=calibration.imaging_spread)
     if hyperparameter is None:
         hyperparameter, _ = auto_hyperparameter(calibration.model, dv, "noser", level, problem=problem)
     solver = OneStep(

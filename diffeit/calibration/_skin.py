@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from ..forward import ForwardModel
+from ..inverse import CONTACT_IMPEDANCE_SPREAD
 from ..io import Recording, create_checked, read_attributes, read_checked, write_atomically, write_attributes
 from ..memory import MemoryParameters
 from ..mesh import Mesh
@@ -142,6 +143,14 @@ class SkinCalibration(eqx.Module):
     size_map: SizeMap | None = None
     reference: np.ndarray | None = None
     contact_impedance_spread: float | None = None
+
+    @property
+    def imaging_spread(self) -> float:
+        """The contact spread its one-step images are made at: its own once it holds one (its
+        presses were imaged at it, and a position map fitted on them), else
+        `diffeit.reconstruct`'s default, `diffeit.inverse.CONTACT_IMPEDANCE_SPREAD`."""
+        spread = self.contact_impedance_spread
+        return CONTACT_IMPEDANCE_SPREAD if spread is None else spread
 
     @property
     def driven_readings(self) -> str:

@@ -537,13 +537,12 @@ class _LiveViewer:
             hyperparameter = settings.hyperparameter_at(model, level)
             chosen = "noise figure" if settings.hyperparameter == "auto" else "given"
         # Each contact free to drift, as `diffeit reconstruct` images (at the spread a position map was fitted at).
-        spread = CONTACT_IMPEDANCE_SPREAD if skin is None else skin.contact_impedance_spread
         self.solver = OneStep(
             model,
             prior=settings.prior,
             hyperparameter=hyperparameter,
             background=level,
-            contact_impedance_spread=CONTACT_IMPEDANCE_SPREAD if spread is None else spread,
+            contact_impedance_spread=CONTACT_IMPEDANCE_SPREAD if skin is None else skin.imaging_spread,
         )
         used = f"{int(calibration.used.sum())} of {len(calibration.used)} readings"
         if skin is None:
