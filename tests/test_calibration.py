@@ -479,6 +479,11 @@ def test_lost_electrodes_are_told_from_glitches_and_touches():
     assert de.calibration.lost_electrodes(frames[:12] - reference, reference, protocol)[0] == ()
     with pytest.raises(ValueError, match="one value per reading"):
         de.calibration.lost_electrodes(frames - reference, reference[:-1], protocol)
+    recording = de.io.Recording(frames=frames, times=np.arange(20.0), protocol=protocol)
+    with pytest.raises(ValueError, match="readings must be a"):
+        de.calibration.drift_corrected(recording, frames[:8], np.ones(3, bool))
+    with pytest.raises(ValueError, match="keeping a reading"):
+        de.calibration.drift_corrected(recording, frames[:8], np.zeros(protocol.n_measurements, bool))
 
 
 @pytest.mark.parametrize("lead", [3, 10])
