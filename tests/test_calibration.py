@@ -263,6 +263,30 @@ def test_a_session_of_presses_one_after_another_takes_no_faint_press_among_its_u
     np.testing.assert_array_equal(kept, (between * drift)[rests])
 
 
+def test_faint_presses_held_several_frames_are_no_untouched_frames():
+    """20 untouched frames, then presses held 10 frames with 10 untouched between, the first
+    three faint (a change 0.7 times the noise's size: each frame passes for untouched on its
+    own), the others strong. Measured before: the first run took in 6 frames of the first
+    faint press (26 frames), and the session's untouched frames 28 of the faint presses' frames
+    (of 128). A held press's mean stands out of the noise: the first run is the 20 untouched
+    frames, and no pressed frame is among the session's untouched ones (88 of the 110)."""
+    rng = np.random.default_rng(12)
+    readings = PROTOCOL.n_measurements
+    level = 1.0 + rng.uniform(0.0, 1.0, readings)
+    size = 1e-3 * np.linalg.norm(level)
+    patterns = rng.standard_normal((8, readings))
+    patterns *= (np.where(np.arange(8) < 3, 0.7, 6.0) * size / np.linalg.norm(patterns, axis=1))[:, None]
+    change = np.concatenate([np.zeros((20, readings)), *[np.stack([p] * 10 + [0 * p] * 10) for p in patterns]])
+    frames = level * (1.0 + 1e-3 * rng.standard_normal(change.shape)) + change
+    pressed = np.any(change != 0, axis=1)
+    recording = de.io.Recording(frames=frames, times=0.1 * np.arange(len(frames)), protocol=PROTOCOL)
+    first, source = de.calibration.reference_frames(recording)
+    assert source.startswith("mean of the first 20 frames"), source
+    kept, _ = de.calibration.reference_frames(recording, every_frame=True)
+    index = [int(np.flatnonzero(np.all(frames == frame, axis=1))[0]) for frame in kept]
+    assert not pressed[index].any() and len(index) >= 80, (np.flatnonzero(pressed[index]), len(index))
+
+
 @pytest.mark.parametrize("damage", ["readings off by up to 50%", "zeros", "3 times the gain"])
 def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin, damage):
     """A board's first frame after it connects can be garbage: each reading off by up to 50%,
