@@ -14,6 +14,8 @@ labelled presses and `--test` more, one frame each. The layouts:
   noise to test frames against: each is tested against its own, `subspace_statistic`);
 - **a separate reference**: the recording's reference is one untouched frame, its frames the
   presses one after another;
+- **held 1 s**: as "rests between", each press held 10 frames (1 s) with 10 untouched frames
+  after it, labelled with its hold (start and end: `de.calibrate` fits the skin's memory);
 - **in rows**: as "rests between", the presses in rows from the bottom up (a robot's raster),
   so that the 50 the calibration uses cover the lower part of the skin alone (its lower 45%),
   and the test presses the rest: what the labelled presses teach must carry beyond them;
@@ -46,10 +48,12 @@ LAYOUTS = (
     "back to back",
     "one untouched frame",
     "a separate reference",
+    "held 1 s",
     "in rows",
     "an electrode lost",
 )
 LOST_ELECTRODE = 5
+HELD_FRAMES = 10  # "held 1 s": frames of each hold, at the calibration benchmark's 10 frames a second
 
 
 def laid_out(layout: str, seed: int, n_presses: int):
@@ -57,8 +61,9 @@ def laid_out(layout: str, seed: int, n_presses: int):
     the presses."""
     import diffeit as de
 
-    period = 2 if layout in ("rests between", "in rows", "an electrode lost") else 1
-    recording, presses, _ = session(seed, n_presses, period=period, rows=layout == "in rows")
+    hold = HELD_FRAMES if layout == "held 1 s" else 1
+    period = 2 * hold if layout in ("rests between", "held 1 s", "in rows", "an electrode lost") else 1
+    recording, presses, _ = session(seed, n_presses, hold=hold, period=period, rows=layout == "in rows")
     if layout == "an electrode lost":
         protocol = recording.protocol
         through = protocol.drive[protocol.drive_index, LOST_ELECTRODE] != 0
@@ -69,7 +74,7 @@ def laid_out(layout: str, seed: int, n_presses: int):
         frames[lost:, on] = 0.0
         frames[lost:, through] = 10 * np.abs(frames).max()
         return dataclasses.replace(recording, frames=frames), presses
-    if layout in ("rests between", "back to back", "in rows"):
+    if layout in ("rests between", "back to back", "held 1 s", "in rows"):
         return recording, presses
     frames, times = np.asarray(recording.frames), np.asarray(recording.times)
     kept = slice(REFERENCE_FRAMES - 1, None) if layout == "one untouched frame" else slice(REFERENCE_FRAMES, None)
