@@ -282,6 +282,7 @@ def test_faint_presses_held_several_frames_are_no_untouched_frames():
     recording = de.io.Recording(frames=frames, times=0.1 * np.arange(len(frames)), protocol=PROTOCOL)
     first, source = de.calibration.reference_frames(recording)
     assert source.startswith("mean of the first 20 frames"), source
+    np.testing.assert_array_equal(first, frames[:20])
     kept, _ = de.calibration.reference_frames(recording, every_frame=True)
     index = [int(np.flatnonzero(np.all(frames == frame, axis=1))[0]) for frame in kept]
     assert not pressed[index].any() and len(index) >= 80, (np.flatnonzero(pressed[index]), len(index))
