@@ -423,8 +423,8 @@ def _within_noise_of(frames: np.ndarray, times: np.ndarray, still: np.ndarray, l
     drifts is followed outwards from the run. A faint press held several frames passes frame
     by frame, but not in its frames' mean: the blocks of kept frames outside the run whose mean
     differs from the trend (`_changed_blocks`, at the run's `_change_limit`) are left out (on
-    that skin pressed 1 s in every 2, 10 frames each, 140 frames were kept, 30 of them presses;
-    78 now, none)."""
+    that skin pressed 1 s in every 2, 10 frames each, 150 frames had been kept, 40 of them
+    presses; 78 now, none of them)."""
     run = np.zeros(len(frames), bool)
     run[leading] = True
     n = int(run.sum())
