@@ -260,7 +260,9 @@ def reconstruct(
         raise ValueError(f"hyperparameter must be finite and positive; got {hyperparameter}")
     given = calibration is not None
     shorthand = solver is None
-    solver, method = _unbound_solver(method, solver, prior, max_iterations)
+    # A position map was fitted on one-step images made at its calibration's contact spread.
+    spread = calibration.contact_impedance_spread if _maps_positions(calibration) else CONTACT_IMPEDANCE_SPREAD
+    solver, method = _unbound_solver(method, solver, prior, max_iterations, spread)
     if shorthand:
         prior = "noser" if prior is None else prior
         hyperparameter = "auto" if hyperparameter is None else hyperparameter
@@ -312,11 +314,8 @@ def reconstruct(
     level = calibration.background  # the level, or a calibration's background map (E,)
     frames = calibration.signed(recording.frames)
     signed_reference = calibration.signed(reference)
-    if shorthand and method == "one_step" and _maps_positions(calibration):
-        # The position map was fitted on images made at its hyperparameter and contact spread.
-        if hyperparameter == "auto":
-            hyperparameter = calibration.hyperparameter
-        solver = OneStep(prior=solver.prior, contact_impedance_spread=calibration.contact_impedance_spread)
+    if shorthand and method == "one_step" and hyperparameter == "auto" and _maps_positions(calibration):
+        hyperparameter = calibration.hyperparameter  # the position map was fitted on images made at it
     map_summary = None
     if background_map:
         fitted = fit_background(
@@ -535,10 +534,15 @@ def _hyperparameter(model, dv, hyperparameter, prior, level, problem) -> tuple[f
 
 
 def _unbound_solver(
-    method: str | None, solver: AbstractSolver | None, prior: str | None, max_iterations: int | None
+    method: str | None,
+    solver: AbstractSolver | None,
+    prior: str | None,
+    max_iterations: int | None,
+    contact_impedance_spread: float,
 ) -> tuple[AbstractSolver, str]:
     """The solver `reconstruct` binds to the calibrated model (the one `method` names, or
-    `solver`) and the method's name for the metadata, after checking the options."""
+    `solver`) and the method's name for the metadata, after checking the options; "one_step"
+    images at `contact_impedance_spread`."""
     if solver is not None:
         if method is not None:
             raise ValueError("give a method or a solver, not both")
@@ -573,7 +577,7 @@ def _unbound_solver(
     limit = {} if max_iterations is None else {"max_iterations": int(max_iterations)}
     prior = "noser" if prior is None else prior
     if method == "one_step":
-        return OneStep(prior=prior, contact_impedance_spread=CONTACT_IMPEDANCE_SPREAD), method
+        return OneStep(prior=prior, contact_impedance_spread=contact_impedance_spread), method
     if method == "gauss_newton":
         return GaussNewton(prior=prior, **limit), method
     if method == "total_variation":

@@ -108,15 +108,14 @@ class LinearisedProblem(eqx.Module):
         normalised: bool = False,
         contact_impedance_spread: float = 0.0,
     ) -> None:
-        if not (np.isfinite(contact_impedance_spread) and contact_impedance_spread >= 0):
-            raise ValueError(f"contact_impedance_spread must be finite and >= 0; got {contact_impedance_spread}")
+        spread = checked_spread(contact_impedance_spread)
         self.model = model
         self.prior = prior_named(prior) if isinstance(prior, str) else prior
         if not isinstance(self.prior, AbstractPrior):
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
         self.background = _checked_background(background, model.n_elements)
         self.normalised = bool(normalised)
-        self.contact_impedance_spread = float(contact_impedance_spread)
+        self.contact_impedance_spread = spread
         self.reference = np.asarray(model.measure(jnp.asarray(self.background)))
         self.data_scale = _data_scale(self.reference, self.normalised)
         self.jacobian = (
@@ -152,6 +151,13 @@ class LinearisedProblem(eqx.Module):
         if not self.normalised:
             return voltage_difference / self.data_scale
         return voltage_difference / (self.reference if reference is None else reference)
+
+
+def checked_spread(contact_impedance_spread: float) -> float:
+    """A contact spread q as a float, or a ValueError for one negative or not finite."""
+    if not (np.isfinite(contact_impedance_spread) and contact_impedance_spread >= 0):
+        raise ValueError(f"contact_impedance_spread must be finite and >= 0; got {contact_impedance_spread}")
+    return float(contact_impedance_spread)
 
 
 def _contact_jacobian(model: ForwardModel, background: np.ndarray, data_scale: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from .._arrays import is_concrete
 from .._messages import name_indices
 from ..forward import ForwardModel
 from ..results import RESULTS
-from .linearised import LinearisedProblem, apply_matrix, check_frames, regularised_inverse
+from .linearised import LinearisedProblem, apply_matrix, check_frames, checked_spread, regularised_inverse
 from .priors import AbstractPrior, prior_named
 from .solution import AbstractSolver, Solution, finished, finite_codes, model_of
 
@@ -100,9 +100,7 @@ class OneStep(AbstractSolver):
             raise ValueError(f"prior must be a name or a diffeit.inverse prior; got {prior!r}")
         self.background = background
         self.normalised = bool(normalised)
-        if not (np.isfinite(contact_impedance_spread) and contact_impedance_spread >= 0):
-            raise ValueError(f"contact_impedance_spread must be finite and >= 0; got {contact_impedance_spread}")
-        self.contact_impedance_spread = float(contact_impedance_spread)
+        self.contact_impedance_spread = checked_spread(contact_impedance_spread)
         if reference is not None and not normalised:
             raise ValueError("a reference is only used for normalised differences (normalised=True)")
         self.reference = None if model is None or reference is None else _checked_reference(reference, model)
