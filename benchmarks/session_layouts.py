@@ -16,6 +16,9 @@ labelled presses and `--test` more, one frame each. The layouts:
   presses one after another;
 - **held 1 s**: as "rests between", each press held 10 frames (1 s) with 10 untouched frames
   after it, labelled with its hold (start and end: `de.calibrate` fits the skin's memory);
+- **labelled at random**: as "held 1 s", the 50 presses the calibration uses drawn at random
+  from the session's (a split of a labelled session into calibration and test presses), so
+  that presses not labelled come before the first labelled one;
 - **in rows**: as "rests between", the presses in rows from the bottom up (a robot's raster),
   so that the 50 the calibration uses cover the lower part of the skin alone (its lower 45%),
   and the test presses the rest: what the labelled presses teach must carry beyond them;
@@ -25,8 +28,9 @@ labelled presses and `--test` more, one frame each. The layouts:
   (`diffeit.calibration.lost_electrodes`).
 
 Each is read three ways: with no calibration (`de.reconstruct`, `de.touches` at their
-defaults), after `de.calibrate` from the reference alone, and after `de.calibrate` with the
-first 50 presses; a press without a touch read counts as missed, left out of the median.
+defaults), after `de.calibrate` from the reference alone, and after `de.calibrate` with 50
+presses (the first, or those drawn); the test presses are the others, and a press without a
+touch read counts as missed, left out of the median.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ LAYOUTS = (
     "one untouched frame",
     "a separate reference",
     "held 1 s",
+    "labelled at random",
     "in rows",
     "an electrode lost",
 )
@@ -61,8 +66,9 @@ def laid_out(layout: str, seed: int, n_presses: int):
     the presses."""
     import diffeit as de
 
-    hold = HELD_FRAMES if layout == "held 1 s" else 1
-    period = 2 * hold if layout in ("rests between", "held 1 s", "in rows", "an electrode lost") else 1
+    hold = HELD_FRAMES if layout in ("held 1 s", "labelled at random") else 1
+    between = ("rests between", "held 1 s", "labelled at random", "in rows", "an electrode lost")
+    period = 2 * hold if layout in between else 1
     recording, presses, _ = session(seed, n_presses, hold=hold, period=period, rows=layout == "in rows")
     if layout == "an electrode lost":
         protocol = recording.protocol
@@ -74,7 +80,7 @@ def laid_out(layout: str, seed: int, n_presses: int):
         frames[lost:, on] = 0.0
         frames[lost:, through] = 10 * np.abs(frames).max()
         return dataclasses.replace(recording, frames=frames), presses
-    if layout in ("rests between", "back to back", "held 1 s", "in rows"):
+    if layout in ("rests between", "back to back", "held 1 s", "labelled at random", "in rows"):
         return recording, presses
     frames, times = np.asarray(recording.frames), np.asarray(recording.times)
     kept = slice(REFERENCE_FRAMES - 1, None) if layout == "one untouched frame" else slice(REFERENCE_FRAMES, None)
@@ -93,6 +99,14 @@ def laid_out(layout: str, seed: int, n_presses: int):
     )
 
 
+def labelled(layout: str, seed: int, n_presses: int) -> np.ndarray:
+    """The indices of the `CALIBRATION_PRESSES` presses of `layout`'s session of `seed` (of
+    `n_presses`) that the calibration uses: the first, or for "labelled at random" a draw."""
+    if layout != "labelled at random":
+        return np.arange(CALIBRATION_PRESSES)
+    return np.sort(np.random.default_rng(seed).choice(n_presses, CALIBRATION_PRESSES, replace=False))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     started = skin_benchmark(parser, __file__, seeds=2, test=60)
@@ -103,16 +117,17 @@ def main() -> None:
 
     print(
         f"\nmedian position error (mm) of the strongest touch on {options.test} test presses, misses in brackets; "
-        f"the calibration from the reference alone and with the first {CALIBRATION_PRESSES} presses\n"
+        f"the calibration from the reference alone and with {CALIBRATION_PRESSES} presses (the first, or those drawn)\n"
     )
     table = MarkdownTable(["layout", "seed", "no calibration", "reference alone", f"{CALIBRATION_PRESSES} presses"])
     for layout in LAYOUTS:
         for seed in range(options.seeds):
             recording, presses = laid_out(layout, seed, CALIBRATION_PRESSES + options.test)
-            test = presses.select(np.arange(CALIBRATION_PRESSES, presses.n_presses))
+            used = labelled(layout, seed, presses.n_presses)
+            test = presses.select(np.setdiff1d(np.arange(presses.n_presses), used))
             cells = [cell(errors(recording, test, None))]
-            for labelled in (None, presses.select(np.arange(CALIBRATION_PRESSES))):
-                cells.append(cell(errors(recording, test, de.calibrate(recording, labelled))))
+            for given in (None, presses.select(used)):
+                cells.append(cell(errors(recording, test, de.calibrate(recording, given))))
             table.row([layout, str(seed), *cells])
     print()
     write_tables("session_layouts", printed)

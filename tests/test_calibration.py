@@ -269,7 +269,10 @@ def test_faint_presses_held_several_frames_are_no_untouched_frames():
     own), the others strong. Measured before: the first run took in 6 frames of the first
     faint press (26 frames), and the session's untouched frames 28 of the faint presses' frames
     (of 128). A held press's mean stands out of the noise: the first run is the 20 untouched
-    frames, and no pressed frame is among the session's untouched ones (88 of the 110)."""
+    frames, and no pressed frame is among the session's untouched ones (88 of the 110). The same
+    with the presses labelled from the sixth on (the first five kept to test on, the faint ones
+    among them): the frames before the first labelled press are tested as a session's (before,
+    each on its own, 99 frames were kept, 29 of them the faint presses'; now 59 of the 70 untouched)."""
     rng = np.random.default_rng(12)
     readings = PROTOCOL.n_measurements
     level = 1.0 + rng.uniform(0.0, 1.0, readings)
@@ -286,6 +289,12 @@ def test_faint_presses_held_several_frames_are_no_untouched_frames():
     kept, _ = de.calibration.reference_frames(recording, every_frame=True)
     index = [int(np.flatnonzero(np.all(frames == frame, axis=1))[0]) for frame in kept]
     assert not pressed[index].any() and len(index) >= 80, (np.flatnonzero(pressed[index]), len(index))
+    starts = 0.1 * (20 + 20 * np.arange(5, 8))
+    labelled = de.io.Presses(np.zeros((3, 2)), 0.01, np.stack([starts, starts + 0.9], axis=1))
+    kept, source = de.calibration.reference_frames(recording, presses=labelled, every_frame=True)
+    index = [int(np.flatnonzero(np.all(frames == frame, axis=1))[0]) for frame in kept]
+    assert "before the first press" in source and max(index) < 120, (source, max(index))
+    assert not pressed[index].any() and len(index) >= 55, (np.flatnonzero(pressed[index]), len(index))
 
 
 @pytest.mark.parametrize("damage", ["readings off by up to 50%", "zeros", "3 times the gain"])
@@ -1171,7 +1180,7 @@ def test_the_presses_fit_is_kept_unless_the_references_calibration_reads_unseen_
     assert not any(w.startswith("the presses' fit") for w in calibrated.warnings)
     # Its sheet is uniform: a background map reads as many presses closer as farther, and goes.
     assert calibrated.background_map is None
-    assert any(w.startswith("the background map") and "sign test" in w for w in calibrated.warnings)
+    assert any(w.startswith("the background map") and "signed-rank test" in w for w in calibrated.warnings)
     found, *_ = _presses._read_presses(
         calibrated,
         recording,

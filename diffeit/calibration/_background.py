@@ -15,7 +15,7 @@ import numpy as np
 from .._arrays import rms
 from ..forward import ForwardModel
 from ..io import Presses, Recording
-from ._held_out import _SHEET_SIGNIFICANCE, _closer, _median_read, _with_position_map
+from ._held_out import _SHEET_SIGNIFICANCE, _median_read, _shifted_closer, _with_position_map
 from ._press_fit import _SHEET_PRIOR, _sheet_terms
 from ._presses import _read_presses
 from ._reference import _relative
@@ -32,10 +32,10 @@ def _with_background_map(
 ) -> SkinCalibration:
     """`calibration` with a background map fitted to the reference frames (package docstring,
     "Background map"). With `presses`, they are read at the map through a position map fitted
-    again; unless `required`, the map is kept only when their leave-one-out errors are smaller
-    than those of `calibration` read the same way at significantly more presses than they are
-    larger (a one-sided sign test at `_SHEET_SIGNIFICANCE`), else `calibration` is returned
-    with a note."""
+    again; unless `required`, the map is kept only when their leave-one-out errors are
+    significantly smaller than those of `calibration` read the same way (`_shifted_closer`, a
+    one-sided signed-rank test at `_SHEET_SIGNIFICANCE`), else `calibration` is returned with a
+    note."""
     mapped = _background_fitted(calibration, reference)
     if mapped.background_map is None or presses is None:
         return mapped
@@ -47,14 +47,15 @@ def _with_background_map(
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, chosen, polarity)
     uniform = _with_position_map(calibration, presses, found, further, chosen, polarity)
     ours, theirs = mapped.press_errors, uniform.press_errors
-    closer, farther, significance = _closer(ours, theirs)
+    closer, farther, significance = _shifted_closer(ours, theirs)
     if significance < _SHEET_SIGNIFICANCE:
         return mapped
     sheet = mapped.background_map
     note = (
         f"the background map ({sheet.min():.4g} to {sheet.max():.4g} S/sq) is not kept: it reads {closer} presses "
         f"closer and {farther} farther (leave-one-out; median {1e3 * _median_read(ours):.1f} mm against "
-        f"{1e3 * _median_read(theirs):.1f} mm without), not significantly better (sign test p = {significance:.2f})"
+        f"{1e3 * _median_read(theirs):.1f} mm without), not significantly closer (signed-rank test p = "
+        f"{significance:.2f})"
     )
     return _with_warnings(calibration, note)
 

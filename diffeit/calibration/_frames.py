@@ -124,9 +124,12 @@ def reference_frames(
     """The frames a recording's model is calibrated on, and where they come from.
 
     The recording's reference; else its frame `reference_frame`; else, with presses, the
-    frames before the first press (or, when there are none, those outside every hold) that
-    look untouched (`_untouched`, when more than `REFERENCE_FRAMES`: the presses labelled may
-    be some of the session's, the others kept to test on); else
+    frames before the first press, chosen among them as a session's below when they are more
+    than `REFERENCE_FRAMES` (the presses labelled may be some of the session's, the others
+    kept to test on, and some of those may come first: a faint press held several frames
+    passes `_untouched` frame by frame), else those not damaged; or, when no frame comes before
+    it, those outside every hold that look untouched (`_untouched`, when more than
+    `REFERENCE_FRAMES`); else
     the recording's first frames up to the first that looks touched (`_untouched`, among the
     first `_SESSION_FRAMES`, for more than `REFERENCE_FRAMES` frames), however few; when its
     first `_LEADING_DAMAGED` frames or fewer look touched (damaged), the untouched run after
@@ -141,8 +144,9 @@ def reference_frames(
         recording: The recording.
         reference_frame: A frame to use instead of the recording's reference.
         presses: The session's labelled presses, if any.
-        every_frame: Without a reference or presses, take every frame of the first ones that
-            looks untouched (a session; `_within_noise_of`), not just the first run.
+        every_frame: Without a reference, take every frame of the first ones (or of those
+            before the first press) that looks untouched (a session; `_within_noise_of`), not
+            just the first run.
 
     Returns:
         (T, M) the reference frames, and a description of them.
@@ -154,6 +158,13 @@ def reference_frames(
         # The labelled presses may be some of the session's (the rest kept to test on): the
         # frames outside them are the untouched ones among them.
         before = recording.times < presses.times[:, 0].min()
+        if before.sum() > REFERENCE_FRAMES:
+            # Presses not labelled (kept to test on) may come before the first labelled one.
+            frames, times = recording.frames[before][:_SESSION_FRAMES], recording.times[before][:_SESSION_FRAMES]
+            kept, _ = _leading_untouched(frames, times, every_frame)
+            if len(kept) == len(frames):
+                return kept, f"the {len(frames)} frames before the first press"
+            return kept, f"the {len(kept)} frames before the first press that look untouched (of {len(frames)})"
         if before.any():
             return _looking_untouched(recording.frames[before], recording.times[before], "before the first press")
         pressed = np.zeros(recording.n_frames, bool)
@@ -163,38 +174,46 @@ def reference_frames(
             return _looking_untouched(recording.frames[~pressed], recording.times[~pressed], "outside the presses")
     if recording.n_frames > REFERENCE_FRAMES:
         session, session_times = recording.frames[:_SESSION_FRAMES], recording.times[:_SESSION_FRAMES]
-        still = _untouched(session, session_times)
-        # Only the first run, up to its first change (`_unchanged`): a light press can pass for
-        # untouched frame by frame. A run shorter than `REFERENCE_FRAMES` is kept as it is: the
-        # first frames beyond it had put a press into the reference of a session with one
-        # untouched frame before its presses, and every untouched frame after them then read as
-        # touched.
-        first = int(np.argmax(still))  # `_untouched` passes some frames, the first ones when too few pass
-        run = still[first:]
-        end = first + (len(run) if run.all() else int(np.argmin(run)))
-        unchanged, changed = _unchanged(session[first:end])
-        end = first + unchanged
-        if every_frame:
-            still[end : first + changed] = False  # the change's own frames: one may pass `_within_noise_of`
-            leading = slice(first, end) if first <= _LEADING_DAMAGED else slice(0, first)
-            kept = _within_noise_of(session, session_times, still, leading)
-            return session[kept], f"the {int(kept.sum())} untouched frames of the first ones"
-        if first == 0:
-            return recording.frames[:end], f"mean of the first {end} frames (up to the first that looks touched)"
-        if first <= _LEADING_DAMAGED:
-            # A board's first frame or two after it connects can be damaged: left out.
-            return recording.frames[first:end], (
-                f"mean of frames {first} to {end - 1} (the first that look untouched; those before them look touched)"
-            )
-        # More leading frames than a glitch that look touched: the rest of the recording is most of
-        # it one long press (the untouched trend `_untouched` starts from is the frames' median),
-        # and the leading run is its reference.
-        return recording.frames[:first], f"mean of the first {first} frames (up to the first of a long press)"
+        return _leading_untouched(session, session_times, every_frame)
     whole = ~damaged_frames(recording.frames)
     if whole.all():
         return recording.frames, f"mean of the first {recording.n_frames} frames"
     kept = np.flatnonzero(whole)
     return recording.frames[kept], f"mean of frames {name_indices(kept)} (the others look damaged)"
+
+
+def _leading_untouched(session: np.ndarray, session_times: np.ndarray, every_frame: bool) -> tuple[np.ndarray, str]:
+    """`reference_frames` of a recording's leading frames `session` (T, M; more than
+    `REFERENCE_FRAMES`) recorded at `session_times` (T,), without a reference: the first
+    untouched run up to its first change, or with `every_frame` every frame that lies within
+    its noise; and their description."""
+    still = _untouched(session, session_times)
+    # Only the first run, up to its first change (`_unchanged`): a light press can pass for
+    # untouched frame by frame. A run shorter than `REFERENCE_FRAMES` is kept as it is: the
+    # first frames beyond it had put a press into the reference of a session with one
+    # untouched frame before its presses, and every untouched frame after them then read as
+    # touched.
+    first = int(np.argmax(still))  # `_untouched` passes some frames, the first ones when too few pass
+    run = still[first:]
+    end = first + (len(run) if run.all() else int(np.argmin(run)))
+    unchanged, changed = _unchanged(session[first:end])
+    end = first + unchanged
+    if every_frame:
+        still[end : first + changed] = False  # the change's own frames: one may pass `_within_noise_of`
+        leading = slice(first, end) if first <= _LEADING_DAMAGED else slice(0, first)
+        kept = _within_noise_of(session, session_times, still, leading)
+        return session[kept], f"the {int(kept.sum())} untouched frames of the first ones"
+    if first == 0:
+        return session[:end], f"mean of the first {end} frames (up to the first that looks touched)"
+    if first <= _LEADING_DAMAGED:
+        # A board's first frame or two after it connects can be damaged: left out.
+        return session[first:end], (
+            f"mean of frames {first} to {end - 1} (the first that look untouched; those before them look touched)"
+        )
+    # More leading frames than a glitch that look touched: the rest of the recording is most of
+    # it one long press (the untouched trend `_untouched` starts from is the frames' median),
+    # and the leading run is its reference.
+    return session[:first], f"mean of the first {first} frames (up to the first of a long press)"
 
 
 def calibrated_reference_frames(recording: Recording, calibration: SkinCalibration) -> tuple[np.ndarray, str, int]:
@@ -316,8 +335,8 @@ def _untouched(frames: np.ndarray, times: np.ndarray) -> np.ndarray:
 def _unchanged(run: np.ndarray) -> tuple[int, int]:
     """How many of the frames of a `run` (n, M) that each look untouched (`_untouched`) come
     before its first change (the first frame j from which a block of L = 2, 4, 8, ... frames
-    differs from the frames before it beyond their noise), and the end of the block that
-    changed there (both n: no change).
+    differs from the frames before it beyond their noise), and the end of that change (the
+    last end of a block from it that differs; both n: no change).
 
     `_untouched` tests one frame at a time against a noise it measures on the frames it passes:
     a faint press held several frames passes, and the noise it sets lets the next pass. On the
@@ -356,18 +375,28 @@ def _unchanged(run: np.ndarray) -> tuple[int, int]:
     if first is None:
         return n, n
     splits = np.arange(*first)
-    return int(splits[np.argmax(statistic(splits, np.full(len(splits), first[1])))]), first[1]
+    split = int(splits[np.argmax(statistic(splits, np.full(len(splits), first[1])))])
+    # The change lasts while the frames from it still differ: a faint press's last frames pass
+    # one by one, and alone, no block test can tell them.
+    ends = np.arange(first[1], n + 1)
+    lasting = ends[statistic(np.full(len(ends), split), ends) > limit]
+    return split, int(lasting.max()) if len(lasting) else first[1]
 
 
 def _change_limit(frames: np.ndarray) -> float | None:
     """The statistic D of `_unchanged` beyond which a block of `frames` (n, M; n >= 2, in order,
     most of them untouched or held) changed: the median of half their steps' squared norms,
-    |f_t - f_(t-1)|^2 / 2, plus `_CHANGE_SPREADS` of their robust spread; None when the steps
-    are identical to round-off (no noise to tell a change by)."""
+    |f_t - f_(t-1)|^2 / 2, plus `_CHANGE_SPREADS` of their robust spread, at least sqrt(2 / M)
+    of that median (the spread of a sum of M squared normal terms, sqrt(2 sum sigma^4), is at
+    least that share of its mean: of 9 steps between 10 untouched frames of 208 readings, the
+    robust spread came out 0.035 of the median, and a block of them passed for a change); None
+    when the steps are identical to round-off (no noise to tell a change by)."""
     half_steps = 0.5 * np.sum(np.diff(frames, axis=0) ** 2, axis=1)
     level = float(np.median(half_steps))
     spread = 1.4826 * float(np.median(np.abs(half_steps - level)))
-    return level + _CHANGE_SPREADS * spread if spread > _ROUND_OFF * level else None
+    if spread <= _ROUND_OFF * level:
+        return None
+    return level + _CHANGE_SPREADS * max(spread, level * math.sqrt(2.0 / frames.shape[1]))
 
 
 def _changed_blocks(residuals: np.ndarray, kept: np.ndarray, count: int, limit: float) -> np.ndarray:

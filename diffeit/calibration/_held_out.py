@@ -35,8 +35,8 @@ _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
 _FOLD_ROUNDS = 2
 
 
-# Kept by default when the presses are read closer with it at more presses than farther, at
-# this one-sided significance (a sign test).
+# Kept by default when the presses are read closer with it, at this one-sided significance (a
+# sign test of how often; for the sheet's map, a signed-rank test of how much: `_shifted_closer`).
 _SHEET_SIGNIFICANCE = 0.05
 
 
@@ -408,6 +408,24 @@ def _closer(ours: np.ndarray, theirs: np.ndarray) -> tuple[int, int, float]:
     ours, theirs = np.where(np.isnan(ours), np.inf, ours), np.where(np.isnan(theirs), np.inf, theirs)
     closer, farther = int(np.sum(ours < theirs)), int(np.sum(ours > theirs))
     significance = scipy.stats.binomtest(closer, closer + farther, alternative="greater").pvalue if closer else 1.0
+    return closer, farther, float(significance)
+
+
+def _shifted_closer(ours: np.ndarray, theirs: np.ndarray) -> tuple[int, int, float]:
+    """`_closer`, its p-value the one-sided Wilcoxon signed-rank test's that the errors `ours`
+    (K,) are smaller than `theirs` (K,): how much closer counts, not just how often. A press not
+    read (NaN) counts as twice the largest error read.
+
+    A map of the sheet read 32 of 50 held-out presses closer and 18 farther, by 0.1 mm in the
+    median (sign test p = 0.03; this test's 0.11): kept by the sign test, it set rim hills in
+    single frames, and 2 of 60 test presses went unread and 5 more read 20-110 mm off."""
+    read = np.concatenate([ours[~np.isnan(ours)], theirs[~np.isnan(theirs)]])
+    worst = 2.0 * float(read.max()) if len(read) else 1.0
+    ours, theirs = np.where(np.isnan(ours), worst, ours), np.where(np.isnan(theirs), worst, theirs)
+    closer, farther = int(np.sum(ours < theirs)), int(np.sum(ours > theirs))
+    if not closer:
+        return closer, farther, 1.0
+    significance = scipy.stats.wilcoxon(ours - theirs, zero_method="wilcox", alternative="less").pvalue
     return closer, farther, float(significance)
 
 
