@@ -83,6 +83,7 @@ from .calibration import (
     reading_spread,
     reference_frames,
     refine_to_reference,
+    untouched_run,
 )
 from .fit import JointImaging
 from .fit import background as fit_background
@@ -297,16 +298,27 @@ def reconstruct(
             spread = reading_spread(reference_set)
     if calibration is None:
         nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
-        calibration = calibrate_to_reference(
-            nominal,
-            reference_set,
-            readings=recording.readings,
-            background=background,
-            driven_readings=driven_readings,
-            fit=calibrate,
-        )
-        if calibrate and not background_map:  # the map fits the level and contacts its own way
-            calibration = refine_to_reference(calibration, reference_set, recording)
+
+        def calibrated(frames: np.ndarray) -> Any:
+            first = calibrate_to_reference(
+                nominal,
+                frames,
+                readings=recording.readings,
+                background=background,
+                driven_readings=driven_readings,
+                fit=calibrate,
+            )
+            # The map fits the level and contacts its own way.
+            return refine_to_reference(first, frames, recording) if calibrate and not background_map else first
+
+        calibration = calibrated(reference_set)
+        # Too few frames to measure the noise on: the model tells a faint press among them.
+        count = untouched_run(reference_set, calibration) if from_frames and spread is None else len(reference_set)
+        if count < len(reference_set):
+            reference_set, averaged = reference_set[:count], count
+            reference_source = f"{reference_source}: the first {count} of them, the model sees a touch in the next"
+            reference = reference_set.mean(axis=0)
+            calibration = calibrated(reference_set)
     notes = calibration.warnings if frame_gains is None else (*calibration.warnings, drift_note(frame_gains))
     for note in notes:
         warnings.warn(note, CalibrationWarning, stacklevel=2)

@@ -297,6 +297,32 @@ def test_faint_presses_held_several_frames_are_no_untouched_frames():
     assert not pressed[index].any() and len(index) >= 55, (np.flatnonzero(pressed[index]), len(index))
 
 
+def test_a_press_in_a_short_first_run_is_told_by_the_calibrated_model():
+    """One untouched frame, then 30 presses one after another (the mixing board, noise 0.2%):
+    every step between frames is a press, so the frames alone cannot tell a faint press from
+    noise, and the first run is 4 frames, 3 of them presses. A model calibrated on them sees a
+    touch in the second (`untouched_run`): `de.reconstruct`'s reference is the first frame alone,
+    which then reads no touch (before, one), and `de.calibrate` from the reference alone keeps
+    no press frame among its own (before, 15 frames) and misses 6 presses (before, 13)."""
+    skin = skin_session(5, mixing_board, untouched_between=False, noise=0.002)
+    recording = skin.recording
+    kept = slice(UNTOUCHED - 1, None)
+    cut = dataclasses.replace(recording, frames=recording.frames[kept], times=recording.times[kept])
+    run, _ = de.calibration.reference_frames(cut)
+    assert len(run) == 4
+    pressed = np.arange(1, cut.n_frames)
+    images = de.reconstruct(cut, progress=False)
+    metadata = images.provenance["metadata"]
+    assert metadata["reference_frames"] == 1 and "the model sees a touch" in metadata["reference"], metadata
+    found = de.touches(images)
+    assert found.count[0] == 0
+    assert np.all(found.count[pressed] > 0)
+    calibration = de.calibrate(cut)
+    assert calibration.noise_frames == 1 and calibration.noise is None
+    found = de.touches(de.reconstruct(cut, calibration=calibration, progress=False), calibration)
+    assert found.count[0] == 0 and np.sum(found.count[pressed] == 0) <= 8, found.count
+
+
 @pytest.mark.parametrize("damage", ["readings off by up to 50%", "zeros", "3 times the gain"])
 def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin, damage):
     """A board's first frame after it connects can be garbage: each reading off by up to 50%,

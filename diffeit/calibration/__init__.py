@@ -241,6 +241,7 @@ from ._frames import glitched_frames as glitched_frames
 from ._frames import lost_electrodes as lost_electrodes
 from ._frames import reading_spread as reading_spread
 from ._frames import reference_frames as reference_frames
+from ._frames import untouched_run as untouched_run
 from ._maps import PositionMap as PositionMap
 from ._maps import SizeMap as SizeMap
 from ._presses import auto_hyperparameter as auto_hyperparameter

@@ -19,7 +19,7 @@ from ..io import Presses, Recording, mesh_from_geometry
 from ..mesh import Mesh, disc
 from ..touch import SIGNIFICANCE, _statistic, subspace_statistic, touch_subspace
 from ._background import _with_background_map
-from ._frames import _change_from_about, drift_corrected, drift_note, reference_frames
+from ._frames import _NOISE_FRAMES, _change_from_about, drift_corrected, drift_note, reference_frames, untouched_run
 from ._held_out import (
     _LEAST_HELD_OUT,
     _fullest_unless_beaten,
@@ -226,15 +226,15 @@ def calibrate(
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if presses is not None:
         _check_presses(presses, recording, mesh)
-    reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
+    nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
+    options = {"readings": recording.readings, "background": background, "driven_readings": driven_readings}
+    run = _first_run(recording, reference_frame, presses, nominal, options)
+    reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True, run_frames=run)
     as_recorded = recording, reference  # the memory's fit takes any common gain out itself
     recording, gains = drift_corrected(recording, reference)
     if gains is not None:  # the reference frames, and their spread, without the drift
-        reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True)
-    nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
-    first = calibrate_to_reference(
-        nominal, reference, readings=recording.readings, background=background, driven_readings=driven_readings
-    )
+        reference, _ = reference_frames(recording, reference_frame, presses, every_frame=True, run_frames=run)
+    first = calibrate_to_reference(nominal, reference, **options)
     if gains is not None:  # said with every later stage's warnings
         first = _with_warnings(first, drift_note(gains))
     if reference_groups is None:
@@ -317,6 +317,27 @@ def calibrate(
         calibration = _with_memory(calibration, *as_recorded, _moved(presses, frame))
     calibration = _with_size_map(_held_to_skin(calibration), recording, presses, reference)
     return _far_from_labels_noted(_with_every_press(calibration, left_out, notes))
+
+
+def _first_run(
+    recording: Recording,
+    reference_frame: int | None,
+    presses: Presses | None,
+    nominal: ForwardModel,
+    options: Mapping[str, object],
+) -> int | None:
+    """How many frames the first untouched run of a recording without a reference holds
+    (`reference_frames`' `run_frames`), where it is too short to measure the noise on: those
+    before the first that a model calibrated on the run sees touched (`untouched_run`); None
+    where the frames alone tell (a reference given, the run long enough or of one frame)."""
+    if recording.reference is not None or reference_frame is not None:
+        return None
+    run, _ = reference_frames(recording, None, presses)
+    if not 1 < len(run) < _NOISE_FRAMES:
+        return None
+    calibration = refine_to_reference(calibrate_to_reference(nominal, run, **options), run, recording)
+    count = untouched_run(run, calibration)
+    return count if count < len(run) else None
 
 
 def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarray, tuple[str, ...]]:

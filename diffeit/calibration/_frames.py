@@ -21,7 +21,7 @@ from .._messages import name_indices
 from .._threads import host_algebra
 from ..io import Presses, Recording
 from ..protocol import Protocol
-from ..touch import DETECTION, _noise_test, _statistic, touch_subspace
+from ..touch import DETECTION, _noise_test, _statistic, subspace_statistic, touch_subspace
 from ._reference import _broken_electrodes, _uses
 from ._skin import SkinCalibration
 
@@ -120,6 +120,7 @@ def reference_frames(
     presses: Presses | None = None,
     *,
     every_frame: bool = False,
+    run_frames: int | None = None,
 ) -> tuple[np.ndarray, str]:
     """The frames a recording's model is calibrated on, and where they come from.
 
@@ -147,6 +148,8 @@ def reference_frames(
         every_frame: Without a reference, take every frame of the first ones (or of those
             before the first press) that looks untouched (a session; `_within_noise_of`), not
             just the first run.
+        run_frames: The first run's frames are at most this many (`untouched_run`: a model
+            saw a touch in the next); None: as the frames alone tell.
 
     Returns:
         (T, M) the reference frames, and a description of them.
@@ -161,12 +164,13 @@ def reference_frames(
         if before.sum() > REFERENCE_FRAMES:
             # Presses not labelled (kept to test on) may come before the first labelled one.
             frames, times = recording.frames[before][:_SESSION_FRAMES], recording.times[before][:_SESSION_FRAMES]
-            kept, _ = _leading_untouched(frames, times, every_frame)
+            kept, _ = _leading_untouched(frames, times, every_frame, run_frames)
             if len(kept) == len(frames):
                 return kept, f"the {len(frames)} frames before the first press"
             return kept, f"the {len(kept)} frames before the first press that look untouched (of {len(frames)})"
         if before.any():
-            return _looking_untouched(recording.frames[before], recording.times[before], "before the first press")
+            frames, times = recording.frames[before][:run_frames], recording.times[before][:run_frames]
+            return _looking_untouched(frames, times, "before the first press")
         pressed = np.zeros(recording.n_frames, bool)
         for frames in presses.frames(recording.times):
             pressed[frames] = True
@@ -174,7 +178,7 @@ def reference_frames(
             return _looking_untouched(recording.frames[~pressed], recording.times[~pressed], "outside the presses")
     if recording.n_frames > REFERENCE_FRAMES:
         session, session_times = recording.frames[:_SESSION_FRAMES], recording.times[:_SESSION_FRAMES]
-        return _leading_untouched(session, session_times, every_frame)
+        return _leading_untouched(session, session_times, every_frame, run_frames)
     whole = ~damaged_frames(recording.frames)
     if whole.all():
         return recording.frames, f"mean of the first {recording.n_frames} frames"
@@ -182,11 +186,13 @@ def reference_frames(
     return recording.frames[kept], f"mean of frames {name_indices(kept)} (the others look damaged)"
 
 
-def _leading_untouched(session: np.ndarray, session_times: np.ndarray, every_frame: bool) -> tuple[np.ndarray, str]:
+def _leading_untouched(
+    session: np.ndarray, session_times: np.ndarray, every_frame: bool, run_frames: int | None
+) -> tuple[np.ndarray, str]:
     """`reference_frames` of a recording's leading frames `session` (T, M; more than
     `REFERENCE_FRAMES`) recorded at `session_times` (T,), without a reference: the first
-    untouched run up to its first change, or with `every_frame` every frame that lies within
-    its noise; and their description."""
+    untouched run up to its first change (and of at most `run_frames` frames, or None), or
+    with `every_frame` every frame that lies within its noise; and their description."""
     still = _untouched(session, session_times)
     # Only the first run, up to its first change (`_unchanged`): a light press can pass for
     # untouched frame by frame. A run shorter than `REFERENCE_FRAMES` is kept as it is: the
@@ -197,7 +203,7 @@ def _leading_untouched(session: np.ndarray, session_times: np.ndarray, every_fra
     run = still[first:]
     end = first + (len(run) if run.all() else int(np.argmin(run)))
     unchanged, changed = _unchanged(session[first:end])
-    end = first + unchanged
+    end = first + (unchanged if run_frames is None else min(unchanged, run_frames))
     if every_frame:
         still[end : first + changed] = False  # the change's own frames: one may pass `_within_noise_of`
         leading = slice(first, end) if first <= _LEADING_DAMAGED else slice(0, first)
@@ -237,6 +243,8 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
        other: the own frames are kept when they are two or more and each lies within the noise
        of their mean;
     4. else the calibration's reference (the mean of its `noise_frames` frames).
+    Where the calibration knows no noise and the own frames are too few to measure it on, those
+    up to the first the calibrated model sees touched (`untouched_run`).
 
     Arguments:
         recording: The recording (no reference of its own).
@@ -249,6 +257,10 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
     own, source = reference_frames(recording)
     stored, noise = calibration.reference, calibration.noise
     if stored is None or noise is None:
+        count = untouched_run(own, calibration) if len(own) < _NOISE_FRAMES else len(own)
+        if count < len(own):
+            seen = f"{source}: the first {count} of them, the calibrated model sees a touch in the next"
+            return own[:count], seen, count
         return own, source, len(own)
     subspace = touch_subspace(calibration)
     count = calibration.noise_frames
@@ -286,6 +298,33 @@ def calibrated_reference_frames(recording: Recording, calibration: SkinCalibrati
         ),
         count,
     )
+
+
+def untouched_run(frames: np.ndarray, calibration: SkinCalibration) -> int:
+    """How many of a recording's first untouched frames `frames` (R, M; as recorded) come before
+    the first the calibrated model sees touched: each frame's difference from the mean of
+    those before it tested in the touch subspace against its own noise
+    (`diffeit.touch.subspace_statistic` above `DETECTION`); R when the readings are too few to
+    tell.
+
+    For frames too few to measure the readings' noise on (fewer than `_NOISE_FRAMES`): in a
+    session of one untouched frame, then presses one after another, every step between frames
+    is a press, and the frames alone cannot tell faint presses from noise. On a benchmark skin
+    the first run took 4 frames, 3 of them presses, and a calibration from them missed 18 of
+    60 presses.
+
+    Raises:
+        ValueError: For frames that are not (R, M), or hold NaN or inf.
+    """
+    frames = _checked_frames(frames, name="frames")
+    signed = calibration.signed(frames)
+    for count in range(1, len(frames)):
+        statistic = subspace_statistic((signed[count] - signed[:count].mean(axis=0))[None], calibration)
+        if statistic is None:
+            return len(frames)
+        if statistic[0] > DETECTION:
+            return count
+    return len(frames)
 
 
 def _looking_untouched(frames: np.ndarray, times: np.ndarray, where: str) -> tuple[np.ndarray, str]:
