@@ -214,8 +214,9 @@ A reference alone cannot tell a non-uniform sheet from the model's other errors 
 positions, gains), which a map absorbs as readily; so by default the map is fitted only with
 at least 20 labelled presses, to the reference, and kept only when the presses, read at it
 through a position map fitted again, land significantly closer to their labels
-(leave-one-out; a one-sided Wilcoxon signed-rank test of the differences at 5%: how much
-closer counts, not only how often); its press errors are then those leave-one-out ones. (A map the presses fit
+(leave-one-out), both more often and by more (a one-sided sign test and a one-sided Wilcoxon
+signed-rank test of the differences, each at 5%); its press errors are then those
+leave-one-out ones. (A map the presses fit
 with the electrode positions, when `press_groups` names it, is judged with the rest of their
 fit, on held-out presses: above.)
 `calibrate(..., background_map=True)` fits and keeps it in any case (the reference's map
