@@ -79,7 +79,7 @@ from .calibration import (
     drift_corrected,
     drift_note,
     glitched_frames,
-    lost_electrodes,
+    held_lost_readings,
     reading_spread,
     reference_frames,
     refine_to_reference,
@@ -273,16 +273,10 @@ def reconstruct(
         _check_calibration(calibration, recording, mesh, h)
         mesh = calibration.model.mesh
     mesh = default_mesh(recording, h) if mesh is None else mesh
-    # Electrodes lost during the recording (come off the skin, a connector come loose), found
-    # against its first frames: the readings on them keep their values from before in every
-    # frame they are lost in (so that they move neither the choice of the reference frames nor
-    # the drift's gains, and each frame after they went is no glitch), and are masked below.
+    # Electrodes lost during the recording (come off the skin, a connector come loose): the
+    # readings on them hold their values from before, and are masked below.
     recorded = recording
-    before = recording.reference if recording.reference is not None else np.median(recording.frames[:3], axis=0)
-    lost, lost_frames, lost_readings = lost_electrodes(recording.frames - before, before, recording.protocol)
-    if lost:
-        held = np.where(lost_frames[:, None] & lost_readings, before, recording.frames)
-        recording = dataclasses.replace(recording, frames=held)
+    recording, lost, lost_frames, lost_readings = held_lost_readings(recording)
     reference_set, reference_source, averaged = _reference_set(recording, reference_frame, calibration)
     reference = reference_set.mean(axis=0)
     # The readings' spread over the reference frames, when the reference is the mean of enough of

@@ -323,6 +323,35 @@ def test_a_press_in_a_short_first_run_is_told_by_the_calibrated_model():
     assert found.count[0] == 0 and np.sum(found.count[pressed] == 0) <= 8, found.count
 
 
+def test_an_electrode_lost_during_a_session_leaves_out_the_presses_after_it(mixing_skin):
+    """Electrode 5 comes off at the 21st press of 30 (its readings read zero, those of the drives
+    through it saturate): the readings on it hold their values from before
+    (`held_lost_readings`, as `de.reconstruct` does), the presses from then on are left out, and
+    the 20 before them are fitted as in a session without the loss. Before, the saturated
+    readings passed for a common gain drifting to 2.5 times the reference's, the presses' fit was
+    refused, and the presses after the loss were read up to 0.81 off (radius 1; on the
+    calibration benchmark's skin, the electrode lost at its 26th press of 50, the test presses
+    read 10.1 mm off, against 4.6 mm now)."""
+    recording, presses = mixing_skin.recording, mixing_skin.presses
+    protocol = recording.protocol
+    through = protocol.drive[protocol.drive_index, 5] != 0
+    on = (protocol.measure[:, 5] != 0) | through
+    frames = np.array(recording.frames)
+    lost = int(presses.frames(recording.times)[20][0])
+    frames[lost:, on] = 0.0
+    frames[lost:, through] = 10 * np.abs(frames).max()
+    session = dataclasses.replace(recording, frames=frames)
+    groups = ("mixing",)
+    calibration = de.calibrate(session, presses, press_groups=groups)
+    whole = de.calibrate(recording, presses.select(np.arange(20)), press_groups=groups)
+    assert any(w.startswith("electrode(s) [5] lost during the session") for w in calibration.warnings)
+    assert any("held after an electrode was lost" in w for w in calibration.warnings)
+    assert not any("common gain" in w for w in calibration.warnings), calibration.warnings
+    assert calibration.fitted["presses"] == whole.fitted["presses"] == ("mixing", "press depths")
+    assert np.all(np.isnan(calibration.press_errors[20:])) and np.all(np.isfinite(calibration.press_errors[:20]))
+    np.testing.assert_allclose(calibration.press_errors[:20], whole.press_errors, atol=0.02)
+
+
 @pytest.mark.parametrize("damage", ["readings off by up to 50%", "zeros", "3 times the gain"])
 def test_a_damaged_first_frame_is_left_out_of_the_reference(mixing_skin, damage):
     """A board's first frame after it connects can be garbage: each reading off by up to 50%,

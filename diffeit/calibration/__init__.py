@@ -239,6 +239,7 @@ from ._frames import damaged_frames as damaged_frames
 from ._frames import drift_corrected as drift_corrected
 from ._frames import drift_note as drift_note
 from ._frames import glitched_frames as glitched_frames
+from ._frames import held_lost_readings as held_lost_readings
 from ._frames import lost_electrodes as lost_electrodes
 from ._frames import reading_spread as reading_spread
 from ._frames import reference_frames as reference_frames

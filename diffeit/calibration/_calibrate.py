@@ -19,7 +19,15 @@ from ..io import Presses, Recording, mesh_from_geometry
 from ..mesh import Mesh, disc
 from ..touch import SIGNIFICANCE, _statistic, subspace_statistic, touch_subspace
 from ._background import _with_background_map
-from ._frames import _NOISE_FRAMES, _change_from_about, drift_corrected, drift_note, reference_frames, untouched_run
+from ._frames import (
+    _NOISE_FRAMES,
+    _change_from_about,
+    drift_corrected,
+    drift_note,
+    held_lost_readings,
+    reference_frames,
+    untouched_run,
+)
 from ._held_out import (
     _LEAST_HELD_OUT,
     _fullest_unless_beaten,
@@ -226,6 +234,8 @@ def calibrate(
     mesh = default_mesh(recording, h) if mesh is None else mesh
     if presses is not None:
         _check_presses(presses, recording, mesh)
+    recording, lost, lost_frames, lost_readings = held_lost_readings(recording)
+    lost_from = float(recording.times[np.argmax(lost_frames)]) if lost else None
     nominal = ForwardModel(mesh, recording.protocol, contact_impedance=contact_impedance)
     options = {"readings": recording.readings, "background": background, "driven_readings": driven_readings}
     run = _first_run(recording, reference_frame, presses, nominal, options)
@@ -237,6 +247,14 @@ def calibrate(
     first = calibrate_to_reference(nominal, reference, **options)
     if gains is not None:  # said with every later stage's warnings
         first = _with_warnings(first, drift_note(gains))
+    if lost:
+        first = _with_warnings(
+            first,
+            f"electrode(s) {name_indices(np.array(lost))} lost during the session (half their readings changed by "
+            f"more than half, in {int(lost_frames.sum())} frames from frame {int(np.argmax(lost_frames))} on): the "
+            f"{int(lost_readings.sum())} readings on them hold their values from before, and the presses from then on "
+            "are left out",
+        )
     if reference_groups is None:
         # Positions fitted to the reference trade with the sheet's gradient, which a background
         # map takes; presses enough for their own fit place them better.
@@ -258,7 +276,7 @@ def calibrate(
     calibration = refine_to_reference(first, reference, recording, priors, tuple(reference_groups))
     if presses is None:
         return _with_background_map(calibration, recording, None, reference) if background_map else calibration
-    left_out, notes = _presses_left_out(presses, recording)
+    left_out, notes = _presses_left_out(presses, recording, lost_from)
     unseen, unseen_notes = _presses_unseen(calibration, presses, recording, reference)
     left_out, notes = left_out | unseen, (*notes, *unseen_notes)
     if left_out.all():
@@ -340,8 +358,12 @@ def _first_run(
     return count if count < len(run) else None
 
 
-def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarray, tuple[str, ...]]:
-    """(K,) bool, the presses the calibration leaves out, and why, in words: those one of whose
+def _presses_left_out(
+    presses: Presses, recording: Recording, lost_from: float | None = None
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(K,) bool, the presses the calibration leaves out, and why, in words: those held at or
+    after `lost_from` (s; None: never), when an electrode was lost (its readings held at their
+    values from before: the presses' differences miss them); those one of whose
     frames looks damaged, its change from the frames about it (`_change_from_about`, over the
     whole recording) over `_GLITCH_CHANGE` and over `_GLITCH_FACTOR` times the presses' median
     (a skin whose every press changes its readings that much has none left out: a board's
@@ -352,6 +374,12 @@ def _presses_left_out(presses: Presses, recording: Recording) -> tuple[np.ndarra
     another's, labelled elsewhere (`_frames_of_another`)."""
     frames, times = presses.frames(recording.times), recording.times
     left_out, notes = np.zeros(len(frames), bool), []
+    if lost_from is not None:
+        left_out = presses.times[:, 1] >= lost_from
+        if left_out.any():
+            notes.append(
+                f"press(es) {name_indices(np.flatnonzero(left_out))} left out: held after an electrode was lost"
+            )
     if recording.n_frames >= 3:
         change = _change_from_about(recording.frames)
         largest = np.array([change[chosen].max() for chosen in frames])

@@ -548,6 +548,21 @@ def damaged_frames(frames: np.ndarray) -> np.ndarray:
     return np.zeros(len(frames), bool) if damaged.all() else damaged
 
 
+def held_lost_readings(recording: Recording) -> tuple[Recording, tuple[int, ...], np.ndarray, np.ndarray]:
+    """A recording whose electrodes lost during it (`lost_electrodes`, against its reference or
+    the median of its first 3 frames) hold their readings' values from before in every frame
+    they are lost in, so that they move neither the choice of the reference frames nor the
+    drift's gains, and no frame after they went is a glitch; and the lost electrodes, the
+    frames they are lost in (T,) and the readings on them (M,), as `lost_electrodes`."""
+    frames = recording.frames
+    before = recording.reference if recording.reference is not None else np.median(frames[:3], axis=0)
+    lost, lost_frames, lost_readings = lost_electrodes(frames - before, before, recording.protocol)
+    if lost:
+        held = np.where(lost_frames[:, None] & lost_readings, before, frames)
+        recording = dataclasses.replace(recording, frames=held)
+    return recording, lost, lost_frames, lost_readings
+
+
 def lost_electrodes(
     differences: np.ndarray, reference: np.ndarray, protocol: Protocol
 ) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
