@@ -25,7 +25,10 @@ labelled presses and `--test` more, one frame each. The layouts:
 - **an electrode lost**: as "rests between", electrode 5 coming off half way through the test
   presses (the readings on it read zero, those of the drives through it saturate at ten times
   the largest reading): `de.reconstruct` finds it and masks the readings on it
-  (`diffeit.calibration.lost_electrodes`).
+  (`diffeit.calibration.lost_electrodes`);
+- **lost while labelled**: the same, electrode 5 coming off half way through the 50 presses
+  the calibration uses: `de.calibrate` holds the readings on it and leaves out the presses
+  from then on (`diffeit.calibration.held_lost_readings`).
 
 Each is read three ways: with no calibration (`de.reconstruct`, `de.touches` at their
 defaults), after `de.calibrate` from the reference alone, and after `de.calibrate` with 50
@@ -56,6 +59,7 @@ LAYOUTS = (
     "labelled at random",
     "in rows",
     "an electrode lost",
+    "lost while labelled",
 )
 LOST_ELECTRODE = 5
 HELD_FRAMES = 10  # "held 1 s": frames of each hold, at the calibration benchmark's 10 frames a second
@@ -67,16 +71,19 @@ def laid_out(layout: str, seed: int, n_presses: int):
     import diffeit as de
 
     hold = HELD_FRAMES if layout in ("held 1 s", "labelled at random") else 1
-    between = ("rests between", "held 1 s", "labelled at random", "in rows", "an electrode lost")
+    between = ("rests between", "held 1 s", "labelled at random", "in rows", "an electrode lost", "lost while labelled")
     period = 2 * hold if layout in between else 1
     recording, presses, _ = session(seed, n_presses, hold=hold, period=period, rows=layout == "in rows")
-    if layout == "an electrode lost":
+    if layout in ("an electrode lost", "lost while labelled"):
         protocol = recording.protocol
         through = protocol.drive[protocol.drive_index, LOST_ELECTRODE] != 0
         on = (protocol.measure[:, LOST_ELECTRODE] != 0) | through
         frames = np.array(recording.frames)
-        # Half way through the test presses (the first CALIBRATION_PRESSES are the calibration's).
-        lost = REFERENCE_FRAMES + period * (CALIBRATION_PRESSES + (n_presses - CALIBRATION_PRESSES) // 2)
+        # Half way through the test presses or the calibration's (the first CALIBRATION_PRESSES).
+        if layout == "an electrode lost":
+            lost = REFERENCE_FRAMES + period * (CALIBRATION_PRESSES + (n_presses - CALIBRATION_PRESSES) // 2)
+        else:
+            lost = REFERENCE_FRAMES + period * (CALIBRATION_PRESSES // 2)
         frames[lost:, on] = 0.0
         frames[lost:, through] = 10 * np.abs(frames).max()
         return dataclasses.replace(recording, frames=frames), presses
