@@ -206,6 +206,14 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
     weak += [_bump(20, 4.0)] * 3 + [_bump(45, 12.0)]
     anchor_of, anchors = _anchors_of(weak, seed=2)
     assert anchors == [] and np.all(anchor_of == -1)
+    # A faint press held where a strong one was, after a rest back at the reference's level: its
+    # onset stands within the noise of a step, so nothing tells it from what the strong one left
+    # but the rest before it, where the strong one had left nothing. (Read as its remains, it
+    # anchored on its own frames, on seeds 0, 1 and 3.)
+    later = [untouched] * 3 + [_bump(20, 12.0)] * 3 + [untouched] * 4 + [_bump(20, 5.0)] * 6 + [_bump(45, 12.0)]
+    for seed in range(4):
+        anchor_of, anchors = _anchors_of(later, seed=seed)
+        assert anchors == [] and np.all(anchor_of == -1), (seed, anchors)
     # A weak press elsewhere right after a strong one, no step out of the noise: its multiple of
     # the strong press is within its errors of 0, so it is no remains of it. (Taking it as
     # such anchored on it.)
