@@ -80,6 +80,7 @@ from .calibration import (
     drift_note,
     glitched_frames,
     held_lost_readings,
+    lost_note,
     reading_spread,
     reference_frames,
     refine_to_reference,
@@ -348,9 +349,8 @@ def reconstruct(
     on_lost = lost_readings[calibration.used]
     if lost:
         warnings.warn(
-            f"electrode(s) {name_indices(np.array(lost))} lost during the recording (half their readings changed by "
-            f"more than half, in {int(lost_frames.sum())} frames from frame {int(np.argmax(lost_frames))} on): the "
-            f"{int(on_lost.sum())} readings on them are masked in every frame",
+            f"{lost_note(lost, lost_frames, 'recording')}: the {int(on_lost.sum())} readings on them are masked in "
+            "every frame",
             CalibrationWarning,
             stacklevel=2,
         )

@@ -241,6 +241,7 @@ from ._frames import drift_note as drift_note
 from ._frames import glitched_frames as glitched_frames
 from ._frames import held_lost_readings as held_lost_readings
 from ._frames import lost_electrodes as lost_electrodes
+from ._frames import lost_note as lost_note
 from ._frames import reading_spread as reading_spread
 from ._frames import reference_frames as reference_frames
 from ._frames import untouched_run as untouched_run

@@ -25,6 +25,7 @@ from ._frames import (
     drift_corrected,
     drift_note,
     held_lost_readings,
+    lost_note,
     reference_frames,
     untouched_run,
 )
@@ -250,10 +251,8 @@ def calibrate(
     if lost:
         first = _with_warnings(
             first,
-            f"electrode(s) {name_indices(np.array(lost))} lost during the session (half their readings changed by "
-            f"more than half, in {int(lost_frames.sum())} frames from frame {int(np.argmax(lost_frames))} on): the "
-            f"{int(lost_readings.sum())} readings on them hold their values from before, and the presses from then on "
-            "are left out",
+            f"{lost_note(lost, lost_frames, 'session')}: the {int(lost_readings.sum())} readings on them hold their "
+            "values from before, and the presses from then on are left out",
         )
     if reference_groups is None:
         # Positions fitted to the reference trade with the sheet's gradient, which a background

@@ -563,6 +563,15 @@ def held_lost_readings(recording: Recording) -> tuple[Recording, tuple[int, ...]
     return recording, lost, lost_frames, lost_readings
 
 
+def lost_note(lost: tuple[int, ...], lost_frames: np.ndarray, during: str) -> str:
+    """The electrodes `lost` during a `during` ("recording", "session") and the frames they are
+    lost in, (T,) bool (`lost_electrodes`), in words: a warning's start."""
+    return (
+        f"electrode(s) {name_indices(np.array(lost))} lost during the {during} (half their readings changed by "
+        f"more than half, in {int(lost_frames.sum())} frames from frame {int(np.argmax(lost_frames))} on)"
+    )
+
+
 def lost_electrodes(
     differences: np.ndarray, reference: np.ndarray, protocol: Protocol
 ) -> tuple[tuple[int, ...], np.ndarray, np.ndarray]:
