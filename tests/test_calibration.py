@@ -1317,9 +1317,24 @@ def test_the_position_map_recovers_an_affine_frame_and_chooses_its_degree():
     assert PositionMap.fit(read[:4], labelled[:4]).degree in (None, 0)
 
 
+def test_the_position_map_takes_no_degree_from_noise_alone():
+    """50 presses labelled where they were read, give or take noise of 0.02 (a unit disc): no
+    map in 20 seeds. The degree whose leave-one-out median was lowest (the rule before) was a
+    map in 7 of them; a degree must now also read the presses closer by a signed-rank test."""
+    chosen = []
+    for seed in range(20):
+        rng = np.random.default_rng(seed)
+        radius, turn = 0.8 * np.sqrt(rng.uniform(0, 1, 50)), rng.uniform(0, 2 * np.pi, 50)
+        read = np.stack([radius * np.cos(turn), radius * np.sin(turn)], axis=1)
+        mapping = PositionMap.fit(read, read + rng.normal(0, 0.02, read.shape))
+        chosen.append(mapping.degree)
+        assert set(mapping.errors) == {"none", "0", "1", "2", "3"}
+    assert chosen == [None] * 20
+
+
 def test_beyond_its_presses_the_position_map_fades_to_the_labels_frame():
     """50 presses in the lower half of a unit disc alone, read pulled towards the centre by
-    0.15 r^2 (an image's bias) with noise 0.02, in labels turned 20 degrees, scaled 2 and offset:
+    0.3 r^2 (an image's bias) with noise 0.02, in labels turned 20 degrees, scaled 2 and offset:
     the map (degree 3) corrects the pull where the presses are; beyond them its polynomial had
     thrown the upper half's touches 5 times as far off as the labels' frame alone reads them,
     and the map held to that frame reads them as it does. Without a frame held, it fades to the
@@ -1333,7 +1348,7 @@ def test_beyond_its_presses_the_position_map_fades_to_the_labels_frame():
         return (on_mesh - frame[2:4]) @ rotation / scale
 
     def read_of(on_mesh):
-        pulled = on_mesh * (1 - 0.15 * np.linalg.norm(on_mesh, axis=1, keepdims=True))
+        pulled = on_mesh * (1 - 0.3 * np.linalg.norm(on_mesh, axis=1, keepdims=True))
         return pulled + rng.normal(0, 0.02, on_mesh.shape)
 
     radius, turn = 0.85 * np.sqrt(rng.uniform(0, 1, 400)), rng.uniform(0, 2 * np.pi, 400)
@@ -1361,32 +1376,32 @@ def test_beyond_its_presses_the_position_map_fades_to_the_labels_frame():
 
 def test_beyond_its_presses_a_curved_skins_position_map_fades_to_none():
     """A dome's (a sphere cap of 60 degrees, radius 1 m) presses on one side of it alone, read
-    pulled towards its apex by 0.15 of their distance from it, with noise 0.02: the map (degree
-    3) corrects the pull where the presses are; beyond them its polynomial had thrown touches
-    1.2 m off, and the map reads them as unmapped touches are (curved skins' labels are in the
-    mesh's frame), on the surface."""
+    pulled towards its apex by 0.3 of their distance from it, with noise 0.01: the map (degree
+    2) corrects the pull where the presses are; beyond them it reads touches as unmapped ones
+    are (curved skins' labels are in the mesh's frame), on the surface, where its polynomial
+    unheld reads them otherwise."""
     mesh = de.mesh.sphere_cap(1.0, np.deg2rad(60.0), 16, h=0.1, electrode_width=0.2)
     rng = np.random.default_rng(0)
     apex = mesh.nodes[np.argmax(mesh.nodes[:, 2])]
 
     def read_of(points):
-        pulled = apex + (points - apex) * (1 - 0.15 * np.linalg.norm(points - apex, axis=1, keepdims=True))
-        return de.mesh.onto_surface(mesh, pulled + rng.normal(0, 0.02, points.shape))
+        pulled = apex + (points - apex) * (1 - 0.3 * np.linalg.norm(points - apex, axis=1, keepdims=True))
+        return de.mesh.onto_surface(mesh, pulled + rng.normal(0, 0.01, points.shape))
 
     inner = mesh.element_centroids[np.linalg.norm(mesh.element_centroids[:, :2], axis=1) < 0.75]
     shuffled = inner[rng.permutation(len(inner))]
     lower, upper = shuffled[shuffled[:, 1] < -0.1][:50], shuffled[shuffled[:, 1] > 0.3][:100]
     read_lower, read_upper = read_of(lower), read_of(upper)
     mapping = PositionMap.fit(read_lower, lower, mesh)
-    assert mapping.degree == 3 and mapping.region.shape[1] == 2
+    assert mapping.degree == 2 and mapping.region.shape[1] == 2
 
     def error(mapped, points):
         return np.median(np.linalg.norm(mapped - points, axis=1))
 
     assert error(mapping(read_lower), lower) < 0.5 * error(read_lower, lower)
     unmapped = error(read_upper, upper)
-    assert error(dataclasses.replace(mapping, region=None)(read_upper), upper) > 5 * unmapped
     mapped = mapping(read_upper)
+    assert np.median(np.linalg.norm(dataclasses.replace(mapping, region=None)(read_upper) - mapped, axis=1)) > 0.05
     assert error(mapped, upper) < 1.02 * unmapped
     np.testing.assert_allclose(de.mesh.onto_surface(mesh, mapped), mapped, atol=1e-12)
     # The region's plane: the dome seen from above, its directions fixed by its normal alone (a

@@ -172,7 +172,9 @@ labelled instant, and a frame a board garbled are then no rest.
   (`diffeit.touch.read`), and a smooth map from read positions to labelled ones fitted: the
   read position plus a polynomial displacement of degree 0 (a shift), 1 (affine: the skin's
   orientation, scale and offset against the labels' frame), 2 or 3, or none, chosen by
-  leave-one-out cross-validation on the presses (`PositionMap`). `diffeit.touches` applies it.
+  leave-one-out cross-validation on the presses (`PositionMap`): a degree replaces a lower one
+  only when its held-out distances are lower in the median and smaller by a one-sided
+  signed-rank test at 10%. `diffeit.touches` applies it.
   With the labels' frame found (20 presses or more, on a flat skin), a touch the polynomial
   takes off the skin (it extrapolates beyond the presses) is taken to the nearest point of the
   skin's outline in that frame: a rim hill beside a press had been placed 1.2 radii from the

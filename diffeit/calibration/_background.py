@@ -15,7 +15,8 @@ import numpy as np
 from .._arrays import rms
 from ..forward import ForwardModel
 from ..io import Presses, Recording
-from ._held_out import _SHEET_SIGNIFICANCE, _closer, _median_read, _signed_rank, _with_position_map
+from ._held_out import _median_read, _with_position_map
+from ._paired import _SIGNIFICANCE, _closer, _significance
 from ._press_fit import _SHEET_PRIOR, _sheet_terms
 from ._presses import _read_presses
 from ._reference import _relative
@@ -35,7 +36,7 @@ def _with_background_map(
     again; unless `required`, the map is kept only when their leave-one-out errors are
     significantly smaller than those of `calibration` read the same way, both more often and
     by more (a one-sided sign test, `_closer`, and signed-rank test, `_signed_rank`, each at
-    `_SHEET_SIGNIFICANCE`), else `calibration` is returned with a note.
+    `_SIGNIFICANCE`), else `calibration` is returned with a note.
 
     A map changes every image: on the benchmark skins, maps the presses read closer by one test
     and not the other read the test presses farther. Presses held 1 s, 50 of 110 labelled at
@@ -55,9 +56,9 @@ def _with_background_map(
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, chosen, polarity)
     uniform = _with_position_map(calibration, presses, found, further, chosen, polarity)
     ours, theirs = mapped.press_errors, uniform.press_errors
-    closer, farther, often = _closer(ours, theirs)
-    significance = max(often, _signed_rank(ours, theirs))
-    if significance < _SHEET_SIGNIFICANCE:
+    closer, farther, _ = _closer(ours, theirs)
+    significance = _significance(ours, theirs)
+    if significance < _SIGNIFICANCE:
         return mapped
     sheet = mapped.background_map
     note = (

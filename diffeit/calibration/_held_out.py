@@ -12,12 +12,12 @@ from typing import Any, NamedTuple
 
 import equinox as eqx
 import numpy as np
-import scipy.stats
 
 from .._messages import name_indices
 from ..io import Presses, Recording
 from ..mesh import Mesh, surface_distance
 from ._maps import _COVERED_RADII, PositionMap, _coverage, _leave_one_out_errors
+from ._paired import _SIGNIFICANCE, _closer
 from ._press_fit import _CONTRADICTS, _ContradictsReference, _ElectrodeResponse, _fit_presses, _PressGroups, _PressState
 from ._presses import _read_presses
 from ._reference import _SKIN_LEAST_CORRELATION
@@ -33,11 +33,6 @@ _HELD_OUT_FOLDS, _LEAST_HELD_OUT = 5, 20
 # The Gauss-Newton steps of each fold's fit, from where the fit of all the presses ended
 # (`_held_out_errors`).
 _FOLD_ROUNDS = 2
-
-
-# Kept by default when the presses are read closer with it, at this one-sided significance (a
-# sign test of how often; for the sheet's map, that and a signed-rank test of how much).
-_SHEET_SIGNIFICANCE = 0.05
 
 
 def _label_frame(
@@ -361,7 +356,7 @@ def _map_held_out_errors(read: np.ndarray, labelled: np.ndarray, mesh: Mesh) -> 
 def _fullest_unless_beaten(made: list[_PressFit]) -> _PressFit:
     """Of the presses' fits `made` (in `PRESS_GROUP_CHOICES`' order, the fullest set last), the
     fullest, unless a smaller set reads significantly more of the held-out presses closer than
-    farther (a one-sided sign test at `_SHEET_SIGNIFICANCE`): then the closest of those. As
+    farther (a one-sided sign test at `_SIGNIFICANCE`): then the closest of those. As
     for the reference's calibration (`_kept_if_it_generalises`), the physical fit is kept short
     of evidence against it: at 50 presses the sets' held-out medians chose the better set of
     test presses about as often as not (docs/tutorials/calibration.md), and the mixing alone,
@@ -370,7 +365,7 @@ def _fullest_unless_beaten(made: list[_PressFit]) -> _PressFit:
     fullest = made[-1]
     if fullest.held_out is None:
         return fullest
-    beaten_by = [fit for fit in made[:-1] if _closer(fit.held_out, fullest.held_out)[2] < _SHEET_SIGNIFICANCE]
+    beaten_by = [fit for fit in made[:-1] if _closer(fit.held_out, fullest.held_out)[2] < _SIGNIFICANCE]
     return min(beaten_by, key=lambda fit: _median_read(fit.held_out)) if beaten_by else fullest
 
 
@@ -380,7 +375,7 @@ def _kept_if_it_generalises(
     """`fitted` (the presses' fit) with its held-out press errors `held_out` as `press_errors`,
     unless the calibration from the reference alone with a position map (`reference_only`),
     held out in the same folds (`theirs`, `_map_held_out_errors`), reads significantly more of
-    the presses closer than farther (a one-sided sign test at `_SHEET_SIGNIFICANCE`): then that
+    the presses closer than farther (a one-sided sign test at `_SIGNIFICANCE`): then that
     one, with a warning giving both. What the presses' fit adds is measured on presses it did
     not see; a board whose readout is not the model's mixing can make it worse, not better.
     Short of that the physical fit is kept. On the calibration benchmark's sessions (5 seeds,
@@ -391,7 +386,7 @@ def _kept_if_it_generalises(
     if held_out is None:
         return _too_few_to_hold_out(reference_only, fitted.fitted["presses"])
     closer, farther, significance = _closer(theirs, held_out)
-    if significance >= _SHEET_SIGNIFICANCE:
+    if significance >= _SIGNIFICANCE:
         return eqx.tree_at(lambda c: c.press_errors, fitted, held_out)
     note = (
         f"{_not_kept(fitted.fitted['presses'])}presses it did not see were read {1e3 * _median_read(held_out):.1f} mm "
@@ -399,28 +394,6 @@ def _kept_if_it_generalises(
         f"map, which read {closer} of them closer and {farther} farther (sign test p = {significance:.2g})"
     )
     return _with_warnings(reference_only, note)
-
-
-def _closer(ours: np.ndarray, theirs: np.ndarray) -> tuple[int, int, float]:
-    """At how many presses the errors `ours` (K,) are smaller than `theirs` (K,), and larger (a
-    press not read, NaN, the largest), and the one-sided sign test's p-value that ours are
-    smaller more often than not."""
-    ours, theirs = np.where(np.isnan(ours), np.inf, ours), np.where(np.isnan(theirs), np.inf, theirs)
-    closer, farther = int(np.sum(ours < theirs)), int(np.sum(ours > theirs))
-    significance = scipy.stats.binomtest(closer, closer + farther, alternative="greater").pvalue if closer else 1.0
-    return closer, farther, float(significance)
-
-
-def _signed_rank(ours: np.ndarray, theirs: np.ndarray) -> float:
-    """The one-sided Wilcoxon signed-rank test's p-value that the errors `ours` (K,) are smaller
-    than `theirs` (K,): how much closer counts, where the sign test (`_closer`) counts how
-    often. A press not read (NaN) counts as twice the largest error read."""
-    read = np.concatenate([ours[~np.isnan(ours)], theirs[~np.isnan(theirs)]])
-    worst = 2.0 * float(read.max()) if len(read) else 1.0
-    difference = np.where(np.isnan(ours), worst, ours) - np.where(np.isnan(theirs), worst, theirs)
-    if not np.any(difference < 0):
-        return 1.0
-    return float(scipy.stats.wilcoxon(difference, zero_method="wilcox", alternative="less").pvalue)
 
 
 def _median_read(errors: np.ndarray | None) -> float:
