@@ -575,6 +575,49 @@ def test_lost_electrodes_are_told_from_glitches_and_touches():
         de.calibration.drift_corrected(recording, frames[:8], np.zeros(protocol.n_measurements, bool))
 
 
+@pytest.mark.parametrize("batch", [1, 4, 20])
+def test_a_streams_lost_electrodes_are_the_recordings_in_any_batches(batch):
+    """`LiveLost` on `test_lost_electrodes_are_told_from_glitches_and_touches`' frames, `batch`
+    frames at a time: electrode 2 lost, off from frame 12, as `lost_electrodes` finds it; the
+    readings on it held in those frames at the reference times the frame's common gain (over
+    the readings on none of them), electrode 9's in its two frames; the others as streamed."""
+    protocol = de.protocol.adjacent(16)
+    rng = np.random.default_rng(3)
+    reference = 1.0 + rng.uniform(0, 1, protocol.n_measurements)
+    gain = np.linspace(1.0, 1.02, 20)[:, None]  # a drift the held readings follow
+    frames = gain * reference * (1 + 0.01 * rng.standard_normal((20, protocol.n_measurements)))
+    frames[3] *= 1.05
+    on_two = (protocol.measure[:, 2] != 0) | (protocol.drive[protocol.drive_index, 2] != 0)
+    on_nine = (protocol.measure[:, 9] != 0) | (protocol.drive[protocol.drive_index, 9] != 0)
+    frames[12:, on_two] = 0.0
+    frames[[5, 7], :] *= 3.0
+    frames[[4, 6]] = np.where(on_nine, 0.0, frames[[4, 6]])
+    state = de.calibration.LiveLost.of(reference, protocol)
+    held, off = [], []
+    for start in range(0, 20, batch):
+        values, electrodes, state = state.step(frames[start : start + batch])
+        held.append(values)
+        off.append(electrodes)
+    held, off = np.concatenate(held), np.concatenate(off)
+    assert state.lost == de.calibration.lost_electrodes(frames - reference, reference, protocol)[0] == (2,)
+    assert state.first_off[2] == 12 and state.first_off[9] == 4 and state.frames_seen == 20
+    np.testing.assert_array_equal(state.on_lost, on_two)
+    np.testing.assert_array_equal(np.flatnonzero(off[:, 2]), np.arange(12, 20))
+    np.testing.assert_array_equal(np.flatnonzero(off[:, 9]), [4, 6])
+    assert off[:, [e for e in range(16) if e not in (2, 9)]].sum() == 0  # glitches and the press are no loss
+    untouched = ~off.any(axis=1)
+    np.testing.assert_array_equal(held[untouched], frames[untouched])
+    rest = ~on_two
+    common = frames[12:, rest] @ reference[rest] / (reference[rest] @ reference[rest])
+    np.testing.assert_allclose(held[12:, on_two], common[:, None] * reference[on_two])
+    np.testing.assert_allclose(common, gain[12:, 0], atol=0.002)
+    np.testing.assert_array_equal(held[12:, rest], frames[12:, rest])
+    with pytest.raises(ValueError, match="frames must be"):
+        state.step(frames[:, :-1])
+    with pytest.raises(ValueError, match="finite readings"):
+        de.calibration.LiveLost.of(reference[:-1], protocol)
+
+
 @pytest.mark.parametrize("lead", [3, 10])
 def test_a_recording_mostly_of_one_long_press_takes_its_leading_frames_as_the_reference(lead):
     """`lead` untouched frames, then one press held 40 frames: most frames are pressed, so the

@@ -237,3 +237,37 @@ def test_live_reads_a_skin_that_keeps_part_of_each_press_against_the_rest_before
                 assert lines[frame].endswith("(likely what the last touch left)"), lines[frame]
                 assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
     assert flagged >= 15, flagged
+
+
+def test_live_holds_the_readings_of_an_electrode_that_comes_off(skin, tmp_path, capsys):
+    """Electrode 5 comes off half way through a stream (the readings on it read zero, those of
+    the drives through it saturate at ten times the largest reading): live warns of it at the
+    third frame it is off in, holds the readings on it from its first, images from the others
+    alone from then on, and the frames after read as before: untouched ones no touch, each press
+    one touch where it was. (Unheld, every frame after it was taken for a board's glitch and not
+    read; held but imaged from every reading, each press read a second touch by electrode 5.)"""
+    path, board, pressed, mesh = skin
+    protocol = de.protocol.adjacent(16)  # the stream's (the calibration's folds its readout's mixing in)
+    untouched = np.ones(mesh.n_elements)
+    a, b = pressed(PLACES[0]), pressed(PLACES[1])
+    sigmas = [untouched] * 10 + [a] * 3 + [untouched] * 5 + [b] * 3 + [untouched] * 2 + [a] * 3 + [untouched] * 2
+    frames = board(sigmas, 6)
+    through = protocol.drive[protocol.drive_index, 5] != 0
+    off = 15  # from the third untouched frame after the first press (printed frame 7)
+    frames[off:, (protocol.measure[:, 5] != 0) | through] = 0.0
+    frames[off:, through] = 10 * np.abs(frames).max()
+    options = ("--frames", str(len(sigmas)), "--reference-frames", "8", "--calibration", str(path), "--touches")
+    printed, lines = _streamed(frames, capsys, *options, "--png", str(tmp_path / "live.png"))
+    assert sorted(lines) == list(range(len(sigmas) - 8))
+    assert re.search(r"^warning: electrode\(s\) \[5\] lost, off from frame\(s\) \[7\]", printed, re.M), printed[-2000:]
+    assert all(lines[frame].endswith("(electrode(s) [5] off: the readings on them held)") for frame in range(7, 20))
+    assert not any("off:" in lines[frame] for frame in range(7))
+    pattern = r"touch 0: \(([+-][\d.]+), ([+-][\d.]+)\) mm"
+    for frame in (0, 1, 5, 6, 7, 8, 9, 13, 14, 18, 19):
+        assert re.search(r"no touch( \(electrode.*held\))?$", lines[frame]), (frame, lines[frame])
+    for pressed_frames, place in ((range(2, 5), PLACES[0]), (range(10, 13), PLACES[1]), (range(15, 18), PLACES[0])):
+        for frame in pressed_frames:
+            found = re.search(pattern, lines[frame])
+            assert found and "touch 1" not in lines[frame], (frame, lines[frame])
+            assert np.linalg.norm(1e-3 * np.array([float(found[1]), float(found[2])]) - place) < 0.1, lines[frame]
+    assert "readings held on electrodes off in 13 frames (electrode(s) [5] lost, off from frame(s) [7])" in printed

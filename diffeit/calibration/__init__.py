@@ -236,6 +236,7 @@ from ._calibrate import calibrate as calibrate
 from ._calibrate import default_mesh as default_mesh
 from ._frames import REFERENCE_FRAMES as REFERENCE_FRAMES
 from ._frames import LiveDrift as LiveDrift
+from ._frames import LiveLost as LiveLost
 from ._frames import calibrated_reference_frames as calibrated_reference_frames
 from ._frames import damaged_frames as damaged_frames
 from ._frames import drift_corrected as drift_corrected

@@ -605,6 +605,14 @@ def lost_electrodes(
             f"lost_electrodes takes the differences' reference of shape ({protocol.n_measurements},), one value per "
             f"reading of the protocol; got {reference.shape}"
         )
+    lost_in = _lost_in(differences, reference, protocol)
+    lost = lost_in.sum(axis=0) >= _LOST_FRAMES
+    return tuple(int(e) for e in np.flatnonzero(lost)), lost_in[:, lost].any(axis=1), _uses(protocol, lost)
+
+
+def _lost_in(differences: np.ndarray, reference: np.ndarray, protocol: Protocol) -> np.ndarray:
+    """(T, E) bool, the electrodes off in each frame of `differences` (T, M) from `reference`
+    (M,) (`lost_electrodes`: half their readings broken, and the readings on none of them not)."""
     scale = np.maximum(np.abs(reference), _LARGEST_CHANGE * np.sqrt(np.mean(reference**2)))
     with np.errstate(invalid="ignore", over="ignore"):
         broken = ~np.isfinite(differences) | (np.abs(differences) > _LARGEST_CHANGE * scale)
@@ -616,8 +624,93 @@ def lost_electrodes(
         few = np.sum(~on_them) >= _LEAST_LEFT * protocol.n_measurements
         if electrodes.any() and few and np.sum(broken[frame] & ~on_them) <= _STRAY_SHARE * np.sum(~on_them):
             lost_in[frame] = electrodes
-    lost = lost_in.sum(axis=0) >= _LOST_FRAMES
-    return tuple(int(e) for e in np.flatnonzero(lost)), lost_in[:, lost].any(axis=1), _uses(protocol, lost)
+    return lost_in
+
+
+class LiveLost(eqx.Module):
+    """A stream's lost electrodes (`diffeit live`): `lost_electrodes` for frames that come one
+    batch at a time.
+
+    In each frame the electrodes off in it (`lost_electrodes`' test of one frame against the
+    reference) have their readings (driven or measuring) held; an electrode off in
+    `_LOST_FRAMES` frames is lost, and its readings are held in every frame after, as
+    `diffeit.reconstruct` masks them in every frame. A held reading takes the reference's value
+    times the frame's common gain over the readings not held (its least-squares multiple of the
+    reference there): it follows a drift as the others do, and reads no change of its own, so
+    that neither a drift's gain nor a test of the frame for a touch reads the loss. An image
+    should not take the held readings for data (no change there pulls the image towards none by
+    the electrode, and a press elsewhere then rings beside it): `diffeit live` images from the
+    readings not `on_lost` alone once an electrode is lost.
+
+    Attributes:
+        reference: (M,) the stream's reference, as recorded.
+        protocol: Its readings' protocol.
+        frames_off: (E,) how many frames each electrode has been off in.
+        first_off: (E,) the first frame each electrode was off in (counted from 0 among the
+            frames stepped), -1 for one never off.
+        frames_seen: How many frames have been stepped.
+    """
+
+    reference: np.ndarray
+    protocol: Protocol
+    frames_off: np.ndarray
+    first_off: np.ndarray
+    frames_seen: int
+
+    @classmethod
+    def of(cls, reference: ArrayLike, protocol: Protocol) -> LiveLost:
+        """No electrode lost yet, against `reference` (M,), as recorded, of `protocol`.
+
+        Raises:
+            ValueError: For a reference that is not M finite values.
+        """
+        reference = np.asarray(reference, np.float64)
+        if reference.shape != (protocol.n_measurements,) or not np.all(np.isfinite(reference)):
+            raise ValueError(
+                f"the reference must be {protocol.n_measurements} finite readings, the protocol's; got shape "
+                f"{reference.shape}"
+            )
+        return cls(reference, protocol, np.zeros(protocol.n_electrodes, int), np.full(protocol.n_electrodes, -1), 0)
+
+    @property
+    def lost(self) -> tuple[int, ...]:
+        """The electrodes lost so far (ascending)."""
+        return tuple(int(e) for e in np.flatnonzero(self.frames_off >= _LOST_FRAMES))
+
+    @property
+    def on_lost(self) -> np.ndarray:
+        """(M,) bool, the readings on the electrodes lost so far (driven or measuring)."""
+        return _uses(self.protocol, self.frames_off >= _LOST_FRAMES)
+
+    def step(self, frames: ArrayLike) -> tuple[np.ndarray, np.ndarray, LiveLost]:
+        """The frames (B, M), as recorded, with the readings on the electrodes off in them, or
+        lost before, held (class docstring); (B, E) bool, the electrodes held in each; and the
+        state after them.
+
+        Raises:
+            ValueError: For frames that are not (B, M) with the reference's M readings.
+        """
+        frames = np.atleast_2d(np.asarray(frames, np.float64))
+        if frames.ndim != 2 or frames.shape[1] != len(self.reference):
+            raise ValueError(f"frames must be (B, {len(self.reference)}), the reference's readings; got {frames.shape}")
+        off_in = _lost_in(frames - self.reference, self.reference, self.protocol)
+        # An electrode lost within the batch is held from its own frame on.
+        off_so_far = self.frames_off + np.cumsum(off_in, axis=0)
+        held_electrodes = off_in | (off_so_far >= _LOST_FRAMES)
+        held = frames.copy()
+        for k in np.flatnonzero(held_electrodes.any(axis=1)):
+            on_them = _uses(self.protocol, held_electrodes[k])
+            rest = self.reference[~on_them]
+            gain = frames[k, ~on_them] @ rest / (rest @ rest) if rest @ rest > 0 else 1.0
+            held[k, on_them] = gain * self.reference[on_them]
+        first = (self.first_off < 0) & off_in.any(axis=0)
+        first_off = np.where(first, self.frames_seen + np.argmax(off_in, axis=0), self.first_off)
+        after = eqx.tree_at(
+            lambda lost: (lost.frames_off, lost.first_off, lost.frames_seen),
+            self,
+            (off_so_far[-1], first_off, self.frames_seen + len(frames)),
+        )
+        return held, held_electrodes, after
 
 
 def glitched_frames(

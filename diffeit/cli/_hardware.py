@@ -337,7 +337,7 @@ def _live(arguments: argparse.Namespace) -> int:
         shown += viewer.show(batch)
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
     corrected = " and corrected for memory" if fit is not None else ""
-    drifted = "" if viewer is None else viewer.drift_note()
+    drifted = "" if viewer is None else viewer.stream_note()
     print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}{drifted}")
     nonfinite = viewer.nonfinite if viewer is not None else []
     if nonfinite:
@@ -435,7 +435,15 @@ class _LiveViewer:
 
     With 6 or more reference frames, the skin's drift (every reading moving with a common gain:
     a hydrogel drying, a board warming) is followed and each frame divided by its gain before
-    it is imaged (`diffeit.calibration.LiveDrift`); `drift_note` gives the gains' range.
+    it is imaged (`diffeit.calibration.LiveDrift`); `stream_note` gives the gains' range.
+
+    An electrode off the skin (half its readings changed by more than half, the others not)
+    has the readings on it held in that frame, and in every frame once it has been off in 3
+    (`diffeit.calibration.LiveLost`): neither the drift nor the touches' tests read the loss.
+    Once it is lost, the images are made from the other readings alone (the reconstruction
+    matrix made again on them, as `diffeit.reconstruct` masks them; with `--memory`, at the
+    held readings). A warning says when it is lost, a frame's touch line that readings were
+    held, and `stream_note` in how many frames.
 
     The solves are direct (a matrix product, a closed-form memory step): what fails is a
     non-finite image (overflowing readings, a degenerate memory). `nonfinite` lists those
@@ -467,9 +475,11 @@ class _LiveViewer:
         self.touches = touches
         self.skin = calibration
         self.start_time: float | None = None  # the host time of the first frame imaged
-        from ..calibration import LiveDrift
+        from ..calibration import LiveDrift, LiveLost
 
         self.drift = LiveDrift.of(reference)  # None for fewer than 6 reference frames
+        self.lost = LiveLost.of(reference.mean(axis=0), protocol)
+        self.held_frames = 0  # frames with an electrode off, the readings on it held
         self.recorded_reference = reference.mean(axis=0)  # as recorded: a board's stream moves its readings
         self.gains: list[float] = []  # every imaged frame's common gain, taken out
         from ..touch import _one_step_noise, image_noise
@@ -481,9 +491,10 @@ class _LiveViewer:
             from ..reconstruction import _reading_noise
 
             self._calibrate(protocol, settings, reference, calibration)
-            if touches:
-                noise = _reading_noise(self.calibration, reference)
-                self.image_noise = _one_step_noise(self.solver, noise, self.calibration.background)
+            self.every_reading = self.solver  # made again on the readings kept when an electrode is lost
+            self.kept = np.ones(len(self.reference), bool)  # of the calibration's readings (`signed`)
+            self.reading_noise = _reading_noise(self.calibration, reference) if touches else None
+            self.image_noise = _one_step_noise(self.solver, self.reading_noise, self.calibration.background)
         else:
             import equinox as eqx
 
@@ -565,12 +576,20 @@ class _LiveViewer:
         import matplotlib.pyplot as plt
 
         values = np.array([frame.values for frame in batch])
+        lost_before = self.lost.lost
+        values, held, self.lost = self.lost.step(values)
+        self.held_frames += int(held.any(axis=1).sum())
+        if self.lost.lost != lost_before:
+            self._say_lost(lost_before)
+            if self.fit is None:
+                self._image_without_lost()
         if self.drift is not None:
             values, gains, self.drift = self.drift.step(values, [_drift_time(frame) for frame in batch])
             self.gains += gains.tolist()
         if self.fit is None:
             differences = self.calibration.signed(values) - self.reference
-            images = np.asarray(self.solver.solve(differences, throw=False).value) / self.calibration.background
+            images = self.solver.solve(differences[:, self.kept], throw=False).value
+            images = np.asarray(images) / self.calibration.background
         else:
             differences = values - self.reference
             images = np.asarray(self.solver.solve(differences, throw=False).value)
@@ -582,7 +601,7 @@ class _LiveViewer:
             # As `diffeit.reconstruct` and `diffeit.touches`: a board's glitch is not read (and
             # is passed over by the anchors).
             damaged = glitched_frames(differences, self.reference, values, self.recorded_reference)
-            self._print_touches(batch, values, images, finite, damaged)
+            self._print_touches(batch, values, images, finite, damaged, held)
         self.nonfinite += (self.imaged + np.flatnonzero(~finite)).tolist()
         self.imaged += len(batch)
         image = images[-1]
@@ -614,19 +633,69 @@ class _LiveViewer:
             plt.pause(0.001)
         return len(batch)
 
-    def drift_note(self) -> str:
-        """What the drift's correction took out, in words ("" when it took out nothing)."""
+    def stream_note(self) -> str:
+        """What the drift's correction took out, and the readings held on electrodes off, in
+        words ("" when neither)."""
         gains = np.array(self.gains)
-        if not np.any(gains != 1.0):
-            return ""
-        return f"; the common gain drifted, taken out: {gains.min():.4f} to {gains.max():.4f}"
+        note = ""
+        if np.any(gains != 1.0):
+            note = f"; the common gain drifted, taken out: {gains.min():.4f} to {gains.max():.4f}"
+        if self.held_frames:
+            from .._messages import name_indices
+
+            lost = np.array(self.lost.lost, int)
+            note += f"; readings held on electrodes off in {self.held_frames} frames"
+            if len(lost):
+                first = name_indices(self.lost.first_off[lost])
+                note += f" (electrode(s) {name_indices(lost)} lost, off from frame(s) {first})"
+        return note
+
+    def _image_without_lost(self) -> None:
+        """Image from the readings on no lost electrode alone from now on, as `diffeit.reconstruct`
+        masks them: the reconstruction matrix made again on them, and the images' noise with it."""
+        import equinox as eqx
+
+        from ..touch import _one_step_noise
+
+        self.kept = ~self.lost.on_lost[self.calibration.used]
+        model = self.calibration.model
+        self.solver = self.every_reading.bound(model.replace(protocol=model.protocol.select(self.kept)))
+        if self.reading_noise is not None:
+            noise = self.reading_noise[self.kept]
+            self.image_noise = _one_step_noise(self.solver, noise, self.calibration.background)
+            if self.live_touches is not None:
+                self.live_touches = eqx.tree_at(
+                    lambda live: live.image_noise, self.live_touches, self.image_noise, is_leaf=lambda x: x is None
+                )
+
+    def _say_lost(self, before: tuple[int, ...]) -> None:
+        """Warn of the electrodes lost since `before` (`diffeit.calibration.LiveLost`)."""
+        from .._messages import name_indices
+
+        new = np.array(sorted(set(self.lost.lost) - set(before)), int)
+        first = name_indices(self.lost.first_off[new])
+        print(
+            f"warning: electrode(s) {name_indices(new)} lost, off from frame(s) {first} "
+            "(half their readings changed by more than half, in 3 frames): the readings on them hold the reference's "
+            "values times the frame's common gain, and images are made from the other readings alone",
+            flush=True,
+        )
 
     def _print_touches(
-        self, batch: list[hw.Frame], values: np.ndarray, images: np.ndarray, finite: np.ndarray, damaged: np.ndarray
+        self,
+        batch: list[hw.Frame],
+        values: np.ndarray,
+        images: np.ndarray,
+        finite: np.ndarray,
+        damaged: np.ndarray,
+        held: np.ndarray,
     ) -> None:
         """Print a line per frame of the batch: its index among the frames imaged, its time, its
         image's peak and its touches (`diffeit.touch.LiveTouches`, the state carried); frames
-        whose image is not `finite`, or that are `damaged`, are not read."""
+        whose image is not `finite`, or that are `damaged`, are not read; those with electrodes
+        `held` (B, E) say so."""
+        from .._messages import name_indices
+
         read = finite & ~damaged
         found, left_behind, self.live_touches = self.live_touches.step(values, images, read)
         row = np.cumsum(read) - 1  # each read image's row in `found`
@@ -645,6 +714,8 @@ class _LiveViewer:
                 text = f"peak {peak:+.3f}; " + ("; ".join(found.lines(int(row[k]))) or "no touch")
                 if left_behind[k]:
                     text += " (likely what the last touch left)"
+                if held[k].any():
+                    text += f" (electrode(s) {name_indices(np.flatnonzero(held[k]))} off: the readings on them held)"
             print(f"frame {self.imaged + k}{when}: {text}", flush=True)
 
     def _corrected(self, images: np.ndarray, batch: list[hw.Frame]) -> np.ndarray:
