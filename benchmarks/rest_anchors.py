@@ -14,9 +14,11 @@ presses (their holds labelled); the whole session is reconstructed at it
 (`de.reconstruct(..., calibration=...)`) and its touches read on the `--test` presses after
 those 50. A press's error is the median, over its held frames, of the distance from its centre
 to the strongest touch read; a press without a touch on any held frame is missed (left out of
-the median, counted). Beside it: the frames between the test presses that read a touch, and
-the time `de.touches` takes a frame (the image method). The last two rows read the same skin
-without memory, whose rest level does not move: the two baselines read the same touches.
+the median, counted). Beside it: the frames between the test presses that read a touch (and of
+them, those `de.touches` says are likely what the last touch left, `Touches.remains`), the test
+presses' held frames it says so of (against the rest before), and the time `de.touches` takes
+a frame (the image method). The last two rows read the same skin without memory, whose rest
+level does not move: the two baselines read the same touches.
 """
 
 from __future__ import annotations
@@ -36,9 +38,10 @@ HOLD, PERIOD = 5, 10  # frames
 CALIBRATION_PRESSES = 50
 
 
-def read(images, calibration, presses, between: np.ndarray, baseline: str) -> tuple[np.ndarray, int, float]:
-    """(K,) each test press's error, m (NaN: missed), the frames `between` (bool, (T,)) that read
-    a touch, and the seconds `de.touches` took a frame."""
+def read(images, calibration, presses, between: np.ndarray, baseline: str) -> tuple[np.ndarray, str, str, float]:
+    """(K,) each test press's error, m (NaN: missed); how many of the frames `between` (bool,
+    (T,)) read a touch, and of them were said remains, and how many of the presses' held frames
+    were said remains (as text); and the seconds `de.touches` took a frame."""
     import diffeit as de
 
     start = time.perf_counter()
@@ -48,7 +51,12 @@ def read(images, calibration, presses, between: np.ndarray, baseline: str) -> tu
     for centre, frames in zip(presses.centres, presses.frames(images.times), strict=True):
         distance = np.linalg.norm(found.position[frames, 0] - centre, axis=1)
         errors.append(np.nanmedian(distance) if np.isfinite(distance).any() else np.nan)
-    return np.array(errors), int(np.sum(found.count[between] > 0)), seconds
+    remains = np.zeros(images.n_frames, bool) if found.remains is None else found.remains
+    touched = between & (found.count > 0)
+    held = ~between & np.isin(np.arange(images.n_frames), np.concatenate(presses.frames(images.times)))
+    said = f" ({int(np.sum(touched & remains))} said remains)" if found.remains is not None else ""
+    count = f"{int(touched.sum())}/{int(between.sum())}{said}"
+    return np.array(errors), count, f"{int(np.sum(held & remains))}/{int(held.sum())}", seconds
 
 
 def main() -> None:
@@ -66,7 +74,16 @@ def main() -> None:
         "that read a touch; `de.touches` time a frame\n"
     )
     table = MarkdownTable(
-        ["skin", "seed", "calibration", "against the reference", "against the rest before", "touched between", "time"]
+        [
+            "skin",
+            "seed",
+            "calibration",
+            "against the reference",
+            "against the rest before",
+            "touched between",
+            "held frames said remains",
+            "time",
+        ]
     )
     runs = [(seed, over_foam()) for seed in range(options.seeds)] + [(0, None)]
     for seed, memory in runs:
@@ -93,9 +110,9 @@ def main() -> None:
             images = de.reconstruct(recording, calibration=calibration, progress=False, throw=False)
             cells, touched, seconds = [], [], []
             for baseline in ("reference", "rest"):
-                errors, count_between, per_frame = read(images, calibration, test_presses, between, baseline)
+                errors, count_between, said, per_frame = read(images, calibration, test_presses, between, baseline)
                 cells.append(f"{1e3 * np.nanmedian(errors):.1f} ({int(np.isnan(errors).sum())})")
-                touched.append(f"{count_between}/{int(between.sum())}")
+                touched.append(count_between)
                 seconds.append(f"{1e3 * per_frame:.2f} ms")
             table.row(
                 [
@@ -104,6 +121,7 @@ def main() -> None:
                     label,
                     *cells,
                     " -> ".join(touched),
+                    said,
                     " -> ".join(seconds),
                 ]
             )

@@ -127,7 +127,11 @@ each touch is read against the rest just before it instead, frame by frame:
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
-   Gauss-Newton's nearly so). `Touches.anchor` says which frames each frame's anchor holds.
+   Gauss-Newton's nearly so). `Touches.anchor` says which frames each frame's anchor holds,
+   and `Touches.remains` which frames step 2 took for what the last touch left (against the
+   anchor in force then): their touches stand where it was, and `Touches.lines` says so.
+   After the last touch of a recording, or where the rest before an onset did not move the
+   anchor, no anchor takes the remains in, and they read as touches.
 
 On the skin above (`benchmarks/rest_anchors.py`), from the reference alone: 5.0 and 5.8 mm, 41
 and 36 of 200 frames between presses touched where all 200 had been, 3 and 0 of 40 presses
@@ -248,6 +252,8 @@ DAMAGED_LINE = (
     "damaged frame (a board's glitch: its differences exceed half the reference, or its readings are moved along): "
     "not read"
 )
+# What `Touches.lines` (and `diffeit live`) add to a touch of a frame of `Touches.remains`.
+REMAINS_NOTE = "(likely what the last touch left)"
 
 
 class Touches(eqx.Module):
@@ -281,6 +287,10 @@ class Touches(eqx.Module):
             a damaged frame among them is left out of it); -1, -1 where it was read against the
             recording's reference. None where every frame was read against the reference
             (`baseline="reference"`, or no readings' noise to find anchors with).
+        remains: (T,) bool, with `anchor`, the frames whose change from their anchor is likely
+            what the last touch left, not a touch of their own (module docstring, "Rest
+            anchors", step 2: a skin with memory keeps part of a press after its release, where
+            it was, fading); `lines` says so of their touches. None without `anchor`.
     """
 
     count: np.ndarray
@@ -293,6 +303,7 @@ class Touches(eqx.Module):
     misfit: np.ndarray | None = None
     damaged: np.ndarray | None = None
     anchor: np.ndarray | None = None
+    remains: np.ndarray | None = None
 
     def lines(self, frame: int) -> list[str]:
         """One frame's touches as text, a line each.
@@ -305,7 +316,8 @@ class Touches(eqx.Module):
 
         Returns:
             One line per touch of the frame (none for an untouched frame; one saying so for a
-            damaged frame).
+            damaged frame), each ending "(likely what the last touch left)" for a frame of
+            `remains`.
         """
         if self.damaged is not None and self.damaged[frame]:
             return [DAMAGED_LINE]
@@ -323,6 +335,8 @@ class Touches(eqx.Module):
                 line += f"depth {self.depth[frame, k]:+.3f} +- {ed:.3f}"
             if self.pressure is not None:
                 line += f", {self.pressure[frame, k]:.1f} kPa"
+            if self.remains is not None and self.remains[frame]:
+                line += f" {REMAINS_NOTE}"
             lines.append(line)
         return lines
 
@@ -435,7 +449,7 @@ def touches(
     if baseline == "rest" and test is not None:
         scores = polarity * images if element_noise is None else polarity * images / element_noise
         start = _Anchoring.at_reference(test, images.shape[1], tuple(values.shape[1] for values in (images, *signed)))
-        anchor_of, anchors, _, _ = _rest_anchors(test, scores, (images, *signed), detection, ~intact, start)
+        anchor_of, anchors, left_behind, _ = _rest_anchors(test, scores, (images, *signed), detection, ~intact, start)
         images = _against(images, 2, anchor_of, anchors)
         signed = tuple(_against(values, 3, anchor_of, anchors) for values in signed)
         frames_touched, spans = _against_anchors_tested(test, anchor_of, anchors, detection)
@@ -468,7 +482,9 @@ def touches(
     if method == "fit":
         found = _refined(calibration, signed[0], found, mapping, stack, _lost_readings(recording)[calibration.used])
     if spans is not None:
-        found = eqx.tree_at(lambda t: t.anchor, found, spans, is_leaf=lambda node: node is None)
+        found = eqx.tree_at(
+            lambda t: (t.anchor, t.remains), found, (spans, left_behind), is_leaf=lambda node: node is None
+        )
     return found
 
 
@@ -592,7 +608,9 @@ class LiveTouches(eqx.Module):
             relative=relative_floor(skin),
             image_noise=self.image_noise,
         )
-        found = eqx.tree_at(lambda t: t.anchor, found, spans, is_leaf=lambda node: node is None)
+        if spans is not None:
+            marks = (spans, left_behind[readable])
+            found = eqx.tree_at(lambda t: (t.anchor, t.remains), found, marks, is_leaf=lambda node: node is None)
         return found, left_behind, eqx.tree_at(lambda live: live.frame, state, self.frame + len(frames))
 
 

@@ -1148,7 +1148,13 @@ def test_a_skin_that_keeps_part_of_each_press_has_each_press_read_against_the_re
     assert all(np.isin(np.arange(first, last + 1), released).all() for first, last in found.anchor[anchored])
     starts = np.array(pressed[3::3])
     assert np.sum(np.all(found.anchor[starts] == np.stack([starts - 3, starts - 1], axis=1), axis=1)) >= 4
-    assert against_reference.anchor is None
+    assert against_reference.anchor is None and against_reference.remains is None
+    # The frames after the last press read what it left (no onset follows to anchor at): said so,
+    # and of no pressed frame.
+    after = released[-3:]
+    assert np.all(found.count[after] > 0) and np.all(found.remains[after]) and not found.remains[pressed].any()
+    assert all(line.endswith("(likely what the last touch left)") for line in found.lines(int(after[0])))
+    assert not any("left)" in line for frame in pressed for line in found.lines(int(frame)))
     with pytest.raises(ValueError, match="baseline"):
         de.touches(images, calibrated, baseline="previous")
 
@@ -1173,6 +1179,7 @@ def test_a_stream_read_a_batch_at_a_time_reads_each_press_as_the_recording_does(
         counts += batch.count.tolist()
         positions += list(batch.position[:, 0])
         left += left_behind.tolist()
+        np.testing.assert_array_equal(batch.remains, left_behind)  # every frame read: one row each
     counts, positions, left = np.array(counts), np.array(positions), np.array(left)
     np.testing.assert_array_equal(counts[pressed], found.count[pressed])
     np.testing.assert_allclose(positions[pressed], found.position[pressed, 0], atol=1e-12)

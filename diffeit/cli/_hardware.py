@@ -695,6 +695,7 @@ class _LiveViewer:
         whose image is not `finite`, or that are `damaged`, are not read; those with electrodes
         `held` (B, E) say so."""
         from .._messages import name_indices
+        from ..touch import DAMAGED_LINE, REMAINS_NOTE
 
         read = finite & ~damaged
         found, left_behind, self.live_touches = self.live_touches.step(values, images, read)
@@ -706,14 +707,13 @@ class _LiveViewer:
             if not finite[k]:
                 text = "not finite: no touches read"
             elif damaged[k]:
-                from ..touch import DAMAGED_LINE
-
                 text = DAMAGED_LINE
             else:
                 peak = image.flat[np.argmax(np.abs(image))]
+                # A touch's line says it is what the last touch left (`Touches.lines`); so does "no touch".
                 text = f"peak {peak:+.3f}; " + ("; ".join(found.lines(int(row[k]))) or "no touch")
-                if left_behind[k]:
-                    text += " (likely what the last touch left)"
+                if left_behind[k] and not found.count[int(row[k])]:
+                    text += f" {REMAINS_NOTE}"
                 if held[k].any():
                     text += f" (electrode(s) {name_indices(np.flatnonzero(held[k]))} off: the readings on them held)"
             print(f"frame {self.imaged + k}{when}: {text}", flush=True)
