@@ -237,6 +237,16 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
     for seed in range(4):
         anchor_of, anchors = _anchors_of(row + [_bump(50, 12.0)] * 2, seed=seed)
         assert anchors == [] and np.all(anchor_of == -1)
+    # A faint press elsewhere, held after the rest where a strong one left 0.45 of itself: its
+    # step from one frame stands within the noise, its departure from the rest frames before it
+    # does not. An onset, and those rest frames its anchor. (By steps alone, on seeds 2, 3 and 5
+    # it passed for what the strong one left, and was read against the reference.)
+    left = 0.45 * _bump(20, 12.0)
+    faint_after_rest = [untouched] * 3 + [_bump(20, 12.0)] * 3 + [left] * 5 + [left + _bump(45, 5.0)] * 4
+    for seed in range(6):
+        anchor_of, anchors = _anchors_of(faint_after_rest, seed=seed)
+        assert anchors == [[6, 7, 8, 9, 10]], (seed, anchors)
+        np.testing.assert_array_equal(anchor_of, [-1] * 6 + [0] * 9)
 
 
 def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_reference():
