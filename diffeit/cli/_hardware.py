@@ -337,8 +337,8 @@ def _live(arguments: argparse.Namespace) -> int:
         shown += viewer.show(batch)
     where = f"; the latest image is in {arguments.png}" if viewer is not None and viewer.headless and shown else ""
     corrected = " and corrected for memory" if fit is not None else ""
-    drifted = "" if viewer is None else viewer.stream_note()
-    print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}{drifted}")
+    noted = "" if viewer is None else viewer.stream_note()
+    print(f"{ending}: {shown} frames reconstructed{corrected}, {source.statistics.rejected} rejected{where}{noted}")
     nonfinite = viewer.nonfinite if viewer is not None else []
     if nonfinite:
         from .._messages import name_indices
