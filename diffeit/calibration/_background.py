@@ -16,7 +16,7 @@ from .._arrays import rms
 from ..forward import ForwardModel
 from ..io import Presses, Recording
 from ._held_out import _median_read, _with_position_map
-from ._paired import _SIGNIFICANCE, _closer, _significance
+from ._paired import _SIGNIFICANCE, _closer, _signed_rank
 from ._press_fit import _SHEET_PRIOR, _sheet_terms
 from ._presses import _read_presses
 from ._reference import _relative
@@ -56,8 +56,8 @@ def _with_background_map(
     found, further, chosen, polarity = _read_presses(calibration, recording, presses, reference, chosen, polarity)
     uniform = _with_position_map(calibration, presses, found, further, chosen, polarity)
     ours, theirs = mapped.press_errors, uniform.press_errors
-    closer, farther, _ = _closer(ours, theirs)
-    significance = _significance(ours, theirs)
+    closer, farther, often = _closer(ours, theirs)
+    significance = max(often, _signed_rank(ours, theirs))
     if significance < _SIGNIFICANCE:
         return mapped
     sheet = mapped.background_map

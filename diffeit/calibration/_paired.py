@@ -1,6 +1,6 @@
 """Paired tests of press errors: whether one calibration's (or map's) errors at the same presses
 are smaller than another's, how often (`_closer`, a sign test) and by how much (`_signed_rank`),
-each one-sided; `_significance` asks both.
+each one-sided.
 """
 
 from __future__ import annotations
@@ -32,10 +32,3 @@ def _signed_rank(ours: np.ndarray, theirs: np.ndarray) -> float:
     if not np.any(difference < 0):
         return 1.0
     return float(scipy.stats.wilcoxon(difference, zero_method="wilcox", alternative="less").pvalue)
-
-
-def _significance(ours: np.ndarray, theirs: np.ndarray) -> float:
-    """The larger of the sign test's and the signed-rank test's one-sided p-values that the
-    errors `ours` (K,) are smaller than `theirs` (K,): below `_SIGNIFICANCE`, closer both more
-    often and by more."""
-    return max(_closer(ours, theirs)[2], _signed_rank(ours, theirs))

@@ -478,9 +478,9 @@ class _LiveViewer:
         from ..calibration import LiveDrift, LiveLost
 
         self.drift = LiveDrift.of(reference)  # None for fewer than 6 reference frames
-        self.lost = LiveLost.of(reference.mean(axis=0), protocol)
-        self.held_frames = 0  # frames with an electrode off, the readings on it held
         self.recorded_reference = reference.mean(axis=0)  # as recorded: a board's stream moves its readings
+        self.lost = LiveLost.of(self.recorded_reference, protocol)
+        self.held_frames = 0  # frames with an electrode off, the readings on it held
         self.gains: list[float] = []  # every imaged frame's common gain, taken out
         from ..touch import _one_step_noise, image_noise
 
