@@ -123,12 +123,18 @@ each touch is read against the rest just before it instead, frame by frame:
    anchor, for them and the frames after; else the anchor stays. A skin back at its reference
    keeps the reference, the mean of more frames; a rest frame within the noise of the anchor
    shows the level has not moved (a weak press between untouched frames, not held, would
-   otherwise move it); one or two frames between touches one after another are too little to
-   tell rest from a touch (on the calibration benchmark's skin, 110 presses of one frame each
-   with no rest between, two faint presses after a deeper one passed for what it left and
-   became the anchor of the 60 presses after them: 9 of them missed, 4.3 mm against 3.1 mm
-   read against the reference; without a calibration, three such in a row anchored twice, and
-   16 presses were missed where 2 are now, as against the reference).
+   otherwise move it). One or two frames between touches one after another are a rest level
+   only where each is what the last touch left, alike, and that touch scaled down in full (the
+   highest value of their image within the touch's half height, their whitened change less
+   its multiple of the touch's within the noise), and the onset after them keeps them (their
+   multiple in its step is not below -`RELEASED`, a half, by `SIGNIFICANCE` standard errors):
+   what a touch leaves stays through the next onset, a faint press is released at it. Taken
+   as a rest level on step 2 alone they had anchored faint presses (on the calibration
+   benchmark's skin, 110 presses of one frame each with no rest between, two faint presses
+   after a deeper one became the anchor of the 60 presses after them: 9 of them missed; without
+   a calibration, 20 of 100 frames read other touches), and refused, a skin with memory pressed
+   once every 3 frames read every press against all that the presses before it left (25 mm
+   off from the reference alone on the rest anchors benchmark's seed 1; 12.7 mm now).
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
@@ -253,6 +259,9 @@ _ANCHOR_FRAMES, _LEAST_REST_FRAMES = 5, 3
 # the frame's whitened change from its anchor, or what it does not explain is within the noise.
 EXPLAINED = 0.1
 BASELINES = ("rest", "reference")
+# One or two frames of what a touch left are a rest level (step 3) where the next onset releases
+# less than this share of them.
+RELEASED = 0.5
 # What `Touches.lines` (and `diffeit live`) say of a damaged frame.
 DAMAGED_LINE = (
     "damaged frame (a board's glitch: its differences exceed half the reference, or its readings are moved along): "
@@ -878,9 +887,10 @@ class _Anchoring(NamedTuple):
     # The highest frame since the last onset, against the anchor: differences, whitened, scores.
     peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     rest_start: int  # the first frame after the last that held a touch
-    # The last _ANCHOR_FRAMES intact frames since: index, differences, scores, values, and
-    # whether it stood out of the noise of the anchor then in force.
-    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool], ...]
+    # The last _ANCHOR_FRAMES intact frames since: index, differences, scores, values, whether
+    # it stood out of the noise of the anchor then in force, and whether step 2 took it for what
+    # the last touch left.
+    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...]
 
     @classmethod
     def at_reference(cls, test: _VoltageTest, elements: int, widths: tuple[int, ...]) -> _Anchoring:
@@ -938,6 +948,8 @@ def _rest_anchors(
             onset = _departs_from_rest(test, dv[i], scores[i], rest, peak, detection)
         if onset:
             moved = _moved_anchor(test, rest[-_ANCHOR_FRAMES:], anchor, detection)
+            if moved is None and step is not None and _remains_kept(test, rest, step[0], anchor, peak, detection):
+                moved = _moved_anchor(test, rest, anchor, detection, least=1)
             if moved is not None:
                 anchor = moved
                 anchors.append(anchor)
@@ -975,21 +987,22 @@ def _rest_anchors(
         if held[i]:
             rest_start, rest = first + i + 1, ()
         else:
-            frame = (first + i, dv[i], scores[i], tuple(value[i] for value in values), standing)
+            frame = (first + i, dv[i], scores[i], tuple(value[i] for value in values), standing, left_behind[i])
             rest = (*rest, frame)[-_ANCHOR_FRAMES:]
     return anchor_of, anchors, left_behind, _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest)
 
 
 def _moved_anchor(
     test: _VoltageTest,
-    window: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool], ...],
+    window: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
     anchor: _Anchor,
     detection: float,
+    least: int = _LEAST_REST_FRAMES,
 ) -> _Anchor | None:
     """The anchor the rest frames `window` (`_Anchoring.rest`'s last) make at an onset, or None
-    where the rest level did not move from `anchor`'s: fewer than `_LEAST_REST_FRAMES` of them,
-    one within the anchor's noise (it is at the anchor's level), or their mean within it."""
-    if len(window) < _LEAST_REST_FRAMES or not all(frame[4] for frame in window):
+    where the rest level did not move from `anchor`'s: fewer than `least` of them, one within
+    the anchor's noise (it is at the anchor's level), or their mean within it."""
+    if len(window) < least or not all(frame[4] for frame in window):
         return None
     columns = zip(*(frame[3] for frame in window), strict=True)
     means = (
@@ -1021,11 +1034,45 @@ def _against_anchors_tested(
     return frames_touched, spans[anchor_of]
 
 
+def _remains_kept(
+    test: _VoltageTest,
+    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
+    step: np.ndarray,
+    anchor: _Anchor,
+    peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+    detection: float,
+) -> bool:
+    """Whether one or two rest frames (`_Anchoring.rest`, fewer than `_LEAST_REST_FRAMES`) are a
+    rest level an onset's `step` (M,; from the last of them) is read against (module docstring,
+    "Rest anchors", step 3): each is what the last touch (`peak`) left, they are alike (their
+    step within the noise), their mean change from the `anchor` is that touch scaled down in
+    full (its image's highest value within the touch's half height; its whitened change less
+    the least-squares multiple of the touch's within the noise) and the onset keeps it: the
+    multiple of that change in the step's whitened differences (variance 2 s^2) is not below
+    -`RELEASED` by `SIGNIFICANCE` standard errors."""
+    if peak is None or not 0 < len(rest) < _LEAST_REST_FRAMES or not all(frame[5] for frame in rest):
+        return False
+    if len(rest) == 2 and test.statistic(rest[1][1] - rest[0][1], 2.0)[0] > detection:
+        return False
+    image = np.mean([frame[2] for frame in rest], axis=0) - anchor.means[1]
+    if peak[2][np.argmax(image)] < 0.5 * peak[2].max():
+        return False
+    change = test.whitened(np.mean([frame[1] for frame in rest], axis=0) - anchor.means[0])[0]
+    touch = peak[1]
+    scale = (change @ touch) / (touch @ touch)
+    unexplained = (change - scale * touch)[None] / np.sqrt(1 / len(rest) + 1 / anchor.count)
+    if _standardised(unexplained, test.noise_frames)[0] > detection:
+        return False
+    size = float(change @ change)
+    along = float(test.whitened(step)[0] @ change) / size
+    return along + SIGNIFICANCE * np.sqrt(2.0 / size) >= -RELEASED
+
+
 def _departs_from_rest(
     test: _VoltageTest,
     dv: np.ndarray,
     scores: np.ndarray,
-    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool], ...],
+    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
     peak: tuple[np.ndarray, np.ndarray, np.ndarray],
     detection: float,
 ) -> bool:

@@ -247,6 +247,19 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
         anchor_of, anchors = _anchors_of(faint_after_rest, seed=seed)
         assert anchors == [[6, 7, 8, 9, 10]], (seed, anchors)
         np.testing.assert_array_equal(anchor_of, [-1] * 6 + [0] * 9)
+    # Presses of one frame each, two frames of rest between, each leaving 0.45 of itself: the two
+    # frames are what the press left, and they stay through the next onset, a rest level. Each
+    # press is read against the rest just before it. (With three rest frames needed, every press
+    # was read against the reference and all that the presses before it had left.)
+    rest, quick = np.zeros(60), [untouched] * 3
+    for centre in (15, 40, 25, 50, 8):
+        quick += [rest + _bump(centre, 12.0)]
+        rest = rest + 0.45 * _bump(centre, 12.0)
+        quick += [rest] * 2
+    for seed in range(4):
+        anchor_of, anchors = _anchors_of(quick, seed=seed)
+        assert anchors[:3] == [[4, 5], [7, 8], [10, 11]], (seed, anchors)
+        np.testing.assert_array_equal(anchor_of[6:13:3], [0, 1, 2])
 
 
 def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_reference():
