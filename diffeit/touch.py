@@ -100,8 +100,11 @@ each touch is read against the rest just before it instead, frame by frame:
    one frame to the next, and was read as that touch's remains (on the benchmark's skin below,
    seed 0, two presses read 53-66 mm off, at the press before them, and 24 of 200 held frames
    were said remains; 15 now, of three faint presses near the middle not found).
-2. **Held or left.** A touched frame (against its anchor) holds a touch unless it is the
-   highest frame since the last onset scaled down, with nothing else in it: the least-squares
+2. **Held or left.** A touched frame (against its anchor, or against the one or two rest
+   frames before the last onset where they stand out of the anchor's noise and step 3 did not
+   take them for its level: after a missed rest, every later frame had been measured against
+   all that the touches since the anchor left, and no later rest was taken) holds a touch
+   unless it is the highest frame since the last onset scaled down, with nothing else in it: the least-squares
    multiple of that frame's whitened differences in its own lies more than `SIGNIFICANCE` (2)
    standard errors (the readings' noise gives them) above 0 and below `HELD` (0.7), its
    image's peak is below `HELD` of the highest frame's, that multiple of the highest frame
@@ -133,8 +136,11 @@ each touch is read against the rest just before it instead, frame by frame:
    benchmark's skin, 110 presses of one frame each with no rest between, two faint presses
    after a deeper one became the anchor of the 60 presses after them: 9 of them missed; without
    a calibration, 20 of 100 frames read other touches), and refused, a skin with memory pressed
-   once every 3 frames read every press against all that the presses before it left (25 mm
-   off from the reference alone on the rest anchors benchmark's seed 1; 12.7 mm now).
+   once every 3 frames read every press against all that the presses before it left (25 and
+   26 mm off from the reference alone on the rest anchors benchmark's two seeds; 5.5 and 4.0
+   mm now). A single frame of rest is not enough: the remains of a press of one frame, read
+   against one frame, are not significantly below `HELD` (pressed once every 2 frames, the
+   presses read 28 mm off).
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
@@ -891,13 +897,17 @@ class _Anchoring(NamedTuple):
     # it stood out of the noise of the anchor then in force, and whether step 2 took it for what
     # the last touch left.
     rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...]
+    # What step 2 measures against: the anchor, or the one or two rest frames before the last
+    # onset where they stood out of its noise and it did not move to them.
+    level: _Anchor
 
     @classmethod
     def at_reference(cls, test: _VoltageTest, elements: int, widths: tuple[int, ...]) -> _Anchoring:
         """Before the first frame: the recording's reference (its `test`'s), images of
         `elements` elements, values of `widths` columns each."""
         zeros = (np.zeros(test.frames.shape[1]), np.zeros(elements), *(np.zeros(width) for width in widths))
-        return cls(0, _Anchor(np.zeros(0, int), test.reference_frames, zeros), None, None, 0, ())
+        reference = _Anchor(np.zeros(0, int), test.reference_frames, zeros)
+        return cls(0, reference, None, None, 0, (), reference)
 
 
 def _rest_anchors(
@@ -931,7 +941,7 @@ def _rest_anchors(
         down, step 2); and the state after them.
     """
     dv = test.frames - test.reference
-    first, anchor, previous, peak, rest_start, rest = state
+    first, anchor, previous, peak, rest_start, rest, level = state
     anchors = [anchor]
     anchor_of = np.zeros(len(dv), int)
     held, left_behind = np.zeros(len(dv), bool), np.zeros(len(dv), bool)
@@ -948,24 +958,27 @@ def _rest_anchors(
             onset = _departs_from_rest(test, dv[i], scores[i], rest, peak, detection)
         if onset:
             moved = _moved_anchor(test, rest[-_ANCHOR_FRAMES:], anchor, detection)
-            if moved is None and step is not None and _remains_kept(test, rest, step[0], anchor, peak, detection):
+            if moved is None and step is not None and _remains_kept(test, rest, step[0], level, peak, detection):
                 moved = _moved_anchor(test, rest, anchor, detection, least=1)
             if moved is not None:
                 anchor = moved
                 anchors.append(anchor)
                 anchor_of[max(rest_start - first, 0) : i] = len(anchors) - 1
+            short = _moved_anchor(test, rest, anchor, detection, least=1) if len(rest) < _LEAST_REST_FRAMES else None
+            level = anchor if moved is not None or short is None else short
             peak = None  # what is held is now measured against this onset's touches
         anchor_of[i] = len(anchors) - 1
         previous = dv[i], scores[i]
-        base_dv, base_scores = anchor.means[:2]
-        standing = bool(test.statistic(dv[i] - base_dv, 1 + 1 / anchor.count)[0] > detection)
-        if not standing:
+        standing = bool(test.statistic(dv[i] - anchor.means[0], 1 + 1 / anchor.count)[0] > detection)
+        base_dv, base_scores = level.means[:2]
+        raised = bool(test.statistic(dv[i] - base_dv, 1 + 1 / level.count)[0] > detection)
+        if not raised:
             # Back at the anchor's level: the last touch left nothing, and a faint press after it
             # (its onset within the noise of a step) is no part of it. Before, such a press was
             # read as what the last one left, and its frames became an anchor that hid it (a
             # benchmark skin of 500 presses held 1 s, 10 frames of rest between: 29 of 450 missed).
             peak = None
-        if standing:
+        if raised:
             here = scores[i] - base_scores
             if peak is None or here.max() > peak[2].max():
                 peak = dv[i] - base_dv, test.whitened(dv[i] - base_dv)[0], here
@@ -974,12 +987,12 @@ def _rest_anchors(
             # its image's peak, and nothing else stands out.
             along, touch = test.whitened(dv[i] - base_dv)[0], peak[1]
             scale = (along @ touch) / (touch @ touch)
-            error = np.sqrt((1 + 1 / anchor.count) / (touch @ touch))
+            error = np.sqrt((1 + 1 / level.count) / (touch @ touch))
             left = here - scale * peak[2]
             remains = SIGNIFICANCE * error < scale < HELD - SIGNIFICANCE * error and here.max() < HELD * peak[2].max()
             # Its pattern explains a share of the frame's change, or what it leaves is noise: faint
             # presses near the middle, one after another, passed for what a deeper one left.
-            unexplained = (along - scale * touch)[None] / np.sqrt(1 + 1 / anchor.count)
+            unexplained = (along - scale * touch)[None] / np.sqrt(1 + 1 / level.count)
             alike = scale**2 * (touch @ touch) >= EXPLAINED * (along @ along)
             alike = alike or _standardised(unexplained, test.noise_frames)[0] <= detection
             left_behind[i] = here.max() > 0 and remains and alike and left.max() <= THRESHOLD * _robust_std(left)
@@ -989,7 +1002,8 @@ def _rest_anchors(
         else:
             frame = (first + i, dv[i], scores[i], tuple(value[i] for value in values), standing, left_behind[i])
             rest = (*rest, frame)[-_ANCHOR_FRAMES:]
-    return anchor_of, anchors, left_behind, _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest)
+    state = _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest, level)
+    return anchor_of, anchors, left_behind, state
 
 
 def _moved_anchor(
@@ -1038,29 +1052,30 @@ def _remains_kept(
     test: _VoltageTest,
     rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
     step: np.ndarray,
-    anchor: _Anchor,
+    level: _Anchor,
     peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     detection: float,
 ) -> bool:
     """Whether one or two rest frames (`_Anchoring.rest`, fewer than `_LEAST_REST_FRAMES`) are a
     rest level an onset's `step` (M,; from the last of them) is read against (module docstring,
     "Rest anchors", step 3): each is what the last touch (`peak`) left, they are alike (their
-    step within the noise), their mean change from the `anchor` is that touch scaled down in
-    full (its image's highest value within the touch's half height; its whitened change less
-    the least-squares multiple of the touch's within the noise) and the onset keeps it: the
-    multiple of that change in the step's whitened differences (variance 2 s^2) is not below
-    -`RELEASED` by `SIGNIFICANCE` standard errors."""
+    step within the noise), their mean change from the `level` step 2 measured them against
+    (`_Anchoring.level`) is that touch scaled down in full (its image's highest value within
+    the touch's half height; its whitened change less the least-squares multiple of the
+    touch's within the noise), and the onset keeps it: the multiple of that change in the
+    step's whitened differences (variance 2 s^2) is not below -`RELEASED` by `SIGNIFICANCE`
+    standard errors."""
     if peak is None or not 0 < len(rest) < _LEAST_REST_FRAMES or not all(frame[5] for frame in rest):
         return False
     if len(rest) == 2 and test.statistic(rest[1][1] - rest[0][1], 2.0)[0] > detection:
         return False
-    image = np.mean([frame[2] for frame in rest], axis=0) - anchor.means[1]
+    image = np.mean([frame[2] for frame in rest], axis=0) - level.means[1]
     if peak[2][np.argmax(image)] < 0.5 * peak[2].max():
         return False
-    change = test.whitened(np.mean([frame[1] for frame in rest], axis=0) - anchor.means[0])[0]
+    change = test.whitened(np.mean([frame[1] for frame in rest], axis=0) - level.means[0])[0]
     touch = peak[1]
     scale = (change @ touch) / (touch @ touch)
-    unexplained = (change - scale * touch)[None] / np.sqrt(1 / len(rest) + 1 / anchor.count)
+    unexplained = (change - scale * touch)[None] / np.sqrt(1 / len(rest) + 1 / level.count)
     if _standardised(unexplained, test.noise_frames)[0] > detection:
         return False
     size = float(change @ change)
