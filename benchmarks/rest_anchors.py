@@ -2,7 +2,7 @@
 the rest just before it (`de.touches(..., baseline="rest")`, the default; `diffeit.touch`,
 "Rest anchors").
 
-    python benchmarks/rest_anchors.py [--seeds 2] [--test 40] [--short 1 3]
+    python benchmarks/rest_anchors.py [--seeds 2] [--test 40]
 
 The skin and board of benchmarks/calibration.py (a disc of radius 80 mm, 16 electrodes,
 opposition drive, magnitudes only, the artefacts real boards have, medium noise) with the
@@ -10,9 +10,9 @@ opposition drive, magnitudes only, the artefacts real boards have, medium noise)
 the rest fades over seconds), pressed for 0.5 s once a second (presses of radius 10 mm,
 dsigma/sigma = -0.3, held 5 frames of 10 per second, 5 frames between them), after 20
 untouched frames; and pressed in quick succession, each press held one frame with two frames
-of rest between (`--short`: the memory's rest level moves at every press, and each touch is
-read against what the one before left). The calibration uses the reference frames alone, or them and the first 50
-presses (their holds labelled); the whole session is reconstructed at it
+of rest between, or one (the memory's rest level moves at every press, and each touch is read
+against what the one before left). The calibration uses the reference frames alone, or them
+and the first 50 presses (their holds labelled); the whole session is reconstructed at it
 (`de.reconstruct(..., calibration=...)`) and its touches read on the `--test` presses after
 those 50. A press's error is the median, over its held frames, of the distance from its centre
 to the strongest touch read; a press without a touch on any held frame is missed (left out of
@@ -36,8 +36,8 @@ import numpy as np
 from _common import MarkdownTable, skin_benchmark, write_tables
 from calibration import REFERENCE_FRAMES, session
 
-HOLD, PERIOD = 5, 10  # frames
-SHORT = (1, 3)  # frames: held, and one every
+# The presses' cadences, frames: held, and one every.
+CADENCES = {"held 1/2 s": (5, 10), "1 frame, 2 rest": (1, 3), "1 frame, 1 rest": (1, 2)}
 CALIBRATION_PRESSES = 50
 
 
@@ -64,9 +64,6 @@ def read(images, calibration, presses, between: np.ndarray, baseline: str) -> tu
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument(
-        "--short", type=int, nargs=2, default=SHORT, metavar=("HOLD", "PERIOD"), help="the quick presses' cadence"
-    )
     started = skin_benchmark(parser, __file__, seeds=2, test=40)
     if started is None:
         return
@@ -75,9 +72,8 @@ def main() -> None:
     from diffeit.memory import over_foam
 
     print(
-        f"\nmedian position error (mm) of the strongest touch on {options.test} test presses held {HOLD} frames, "
-        f"one every {PERIOD} frames (10 frames a second), or held {options.short[0]}, one every {options.short[1]} "
-        "(quick), misses in brackets; the frames between test presses that read a touch; `de.touches` time a frame\n"
+        f"\nmedian position error (mm) of the strongest touch on {options.test} test presses (10 frames a second), "
+        "misses in brackets; the frames between test presses that read a touch; `de.touches` time a frame\n"
     )
     table = MarkdownTable(
         [
@@ -92,12 +88,11 @@ def main() -> None:
             "time",
         ]
     )
-    cadences = {"held 1/2 s": (HOLD, PERIOD), "quick": tuple(options.short)}
-    runs = [(seed, over_foam(), cadence) for cadence in cadences for seed in range(options.seeds)]
-    runs += [(0, None, cadence) for cadence in cadences]
+    runs = [(seed, over_foam(), cadence) for cadence in CADENCES for seed in range(options.seeds)]
+    runs += [(0, None, cadence) for cadence in CADENCES]
     for seed, memory, cadence in runs:
         n_presses = CALIBRATION_PRESSES + options.test
-        hold, period = cadences[cadence]
+        hold, period = CADENCES[cadence]
         recording, presses, _ = session(seed, n_presses, hold=hold, period=period, memory=memory)
         used = REFERENCE_FRAMES + period * CALIBRATION_PRESSES
         test_presses = presses.select(np.arange(CALIBRATION_PRESSES, CALIBRATION_PRESSES + options.test))

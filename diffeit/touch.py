@@ -104,10 +104,14 @@ each touch is read against the rest just before it instead, frame by frame:
    frames before the last onset where they stand out of the anchor's noise and step 3 did not
    take them for its level: after a missed rest, every later frame had been measured against
    all that the touches since the anchor left, and no later rest was taken) holds a touch
-   unless it is the highest frame since the last onset scaled down, with nothing else in it: the least-squares
-   multiple of that frame's whitened differences in its own lies more than `SIGNIFICANCE` (2)
-   standard errors (the readings' noise gives them) above 0 and below `HELD` (0.7), its
-   image's peak is below `HELD` of the highest frame's, that multiple of the highest frame
+   unless it is the highest frame since the last onset scaled down, with nothing else in it:
+   the least-squares multiple of that frame's whitened differences in its own lies more than
+   `SIGNIFICANCE` (2) standard errors (the readings' noise gives them) above 0 and below `HELD`
+   (0.7) (below `HELD` alone where the frame dropped along the touch from the one before by
+   more than 2 standard errors: a release, which a held touch's relaxing is far too slow for;
+   a press of one frame leaves over half of itself on the memory presets, within the noise
+   of `HELD` against one frame of rest, and pressed once every 2 frames, the presses read 28
+   mm off), its image's peak is below `HELD` of the highest frame's, that multiple of the highest frame
    explains at least `EXPLAINED` (a tenth) of the frame's whitened change or leaves the rest
    within the noise (the voltage test's z at most `detection`), and its image less that multiple
    of the highest's has no value above `THRESHOLD` robust standard deviations. That is what the
@@ -138,9 +142,7 @@ each touch is read against the rest just before it instead, frame by frame:
    a calibration, 20 of 100 frames read other touches), and refused, a skin with memory pressed
    once every 3 frames read every press against all that the presses before it left (25 and
    26 mm off from the reference alone on the rest anchors benchmark's two seeds; 5.5 and 4.0
-   mm now). A single frame of rest is not enough: the remains of a press of one frame, read
-   against one frame, are not significantly below `HELD` (pressed once every 2 frames, the
-   presses read 28 mm off).
+   mm now; pressed once every 2 frames, 28 and 31 mm before, 5.9 and 4.9 mm now).
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
@@ -968,6 +970,7 @@ def _rest_anchors(
             level = anchor if moved is not None or short is None else short
             peak = None  # what is held is now measured against this onset's touches
         anchor_of[i] = len(anchors) - 1
+        before = None if previous is None else previous[0]
         previous = dv[i], scores[i]
         standing = bool(test.statistic(dv[i] - anchor.means[0], 1 + 1 / anchor.count)[0] > detection)
         base_dv, base_scores = level.means[:2]
@@ -989,7 +992,11 @@ def _rest_anchors(
             scale = (along @ touch) / (touch @ touch)
             error = np.sqrt((1 + 1 / level.count) / (touch @ touch))
             left = here - scale * peak[2]
-            remains = SIGNIFICANCE * error < scale < HELD - SIGNIFICANCE * error and here.max() < HELD * peak[2].max()
+            # A frame that dropped along the touch from the one before, significantly, was released
+            # (a held touch relaxes far slower): below HELD it is what the touch left.
+            dropped = before is not None and _dropped(test, dv[i] - before, touch)
+            ceiling = HELD if dropped else HELD - SIGNIFICANCE * error
+            remains = SIGNIFICANCE * error < scale < ceiling and here.max() < HELD * peak[2].max()
             # Its pattern explains a share of the frame's change, or what it leaves is noise: faint
             # presses near the middle, one after another, passed for what a deeper one left.
             unexplained = (along - scale * touch)[None] / np.sqrt(1 + 1 / level.count)
@@ -1004,6 +1011,13 @@ def _rest_anchors(
             rest = (*rest, frame)[-_ANCHOR_FRAMES:]
     state = _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest, level)
     return anchor_of, anchors, left_behind, state
+
+
+def _dropped(test: _VoltageTest, step: np.ndarray, touch: np.ndarray) -> bool:
+    """Whether a `step` (M,) between two frames (variance 2 s^2) lowers the whitened `touch` (k,)
+    significantly: its least-squares multiple of it is below 0 by `SIGNIFICANCE` standard errors."""
+    size = float(touch @ touch)
+    return bool(test.whitened(step)[0] @ touch / size < -SIGNIFICANCE * np.sqrt(2.0 / size))
 
 
 def _moved_anchor(

@@ -1108,17 +1108,19 @@ def _imaged(skin, calibration, sigmas: list[np.ndarray], seed: int) -> de.io.Rec
     return de.reconstruct(recording, calibration=calibration, difference="calibrated", progress=False)
 
 
-def _lasting_presses(skin, centres: np.ndarray, hold: int = 3, rests: int = 3) -> tuple[list[np.ndarray], list[int]]:
+def _lasting_presses(
+    skin, centres: np.ndarray, hold: int = 3, rests: int = 3, kept: float = 0.4
+) -> tuple[list[np.ndarray], list[int]]:
     """The conductivities of 10 untouched frames, then a press at each of `centres` held `hold`
-    frames that leaves 0.4 of its change for good, and `rests` frames at rest; and the pressed
-    frames."""
+    frames that leaves `kept` of its change for good, and `rests` frames at rest; and the
+    pressed frames."""
     rest = np.ones(skin.mesh.n_elements)
     sigmas, pressed = [rest] * 10, []
     for centre in centres:
         press = skin.pressed(centre)
         pressed += range(len(sigmas), len(sigmas) + hold)
         sigmas += [rest * press] * hold
-        rest = rest * (1 - 0.4 * (1 - press))
+        rest = rest * (1 - kept * (1 - press))
         sigmas += [rest] * rests
     return sigmas, pressed
 
@@ -1177,6 +1179,15 @@ def test_a_skin_that_keeps_part_of_each_press_pressed_in_quick_succession_reads_
     assert error < 0.045 and reference_error > 1.5 * error, (error, reference_error)
     anchors = np.unique(found.anchor[pressed], axis=0)
     assert len(anchors) >= 4 and np.all(anchors[anchors[:, 0] >= 0, 1] - anchors[anchors[:, 0] >= 0, 0] <= 1)
+    # One frame of rest, each press leaving 0.62 of itself: within the noise of HELD (0.7) from
+    # that frame, but it dropped from the press's at once, which a held touch does not: what the
+    # press left. (Measured: 0.037 of the radius; 0.058 while a drop was not told from a hold,
+    # 0.122 against the reference.)
+    sigmas, pressed = _lasting_presses(mixing_skin, centres, hold=1, rests=1, kept=0.62)
+    images = _imaged(mixing_skin, calibrated, sigmas, seed=7)
+    found = de.touches(images, calibrated)
+    error = np.median(np.linalg.norm(found.position[pressed, 0] - centres, axis=1))
+    assert np.all(found.count[pressed] >= 1) and error < 0.045, error
 
 
 def test_a_stream_read_a_batch_at_a_time_reads_each_press_as_the_recording_does(mixing_skin, calibrated):
