@@ -125,7 +125,8 @@ each touch is read against the rest just before it instead, frame by frame:
    beside a stronger one is, in its voltages, nearly the stronger scaled down, but its image's
    peak stands higher than that.
 3. **Anchors.** At an onset, the frames since the last one that held a touch are at rest.
-   When they are at least 3 and each of the last 5 of them stands out of the noise against
+   When they are at least 3, alike (each step between them within the noise: what a memory
+   leaves changes slowly), and each of the last 5 of them stands out of the noise against
    the anchor in force, and so does their mean (the rest level moved), that mean is the new
    anchor, for them and the frames after; else the anchor stays. A skin back at its reference
    keeps the reference, the mean of more frames; a rest frame within the noise of the anchor
@@ -145,8 +146,9 @@ each touch is read against the rest just before it instead, frame by frame:
    mm now; pressed once every 2 frames, 28 and 31 mm before, 5.9 and 4.9 mm now). The cost:
    presses one after another with no rest at all, on a skin without memory, where a press
    beside the one before and fainter passes for what it left (benchmarks/session_layouts.py,
-   "back to back", seed 0: 10 and 15 of 60 presses missed without a calibration and from the
-   reference alone, none before; seed 1: 3 from the reference alone).
+   "back to back", seed 0: 3 and 6 of 60 presses missed without a calibration and from the
+   reference alone, none before; seed 1: 1 from the reference alone; 10 and 15, and 3, while
+   three such presses in a row, not alike, made an anchor).
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
@@ -1032,9 +1034,14 @@ def _moved_anchor(
     least: int = _LEAST_REST_FRAMES,
 ) -> _Anchor | None:
     """The anchor the rest frames `window` (`_Anchoring.rest`'s last) make at an onset, or None
-    where the rest level did not move from `anchor`'s: fewer than `least` of them, one within
-    the anchor's noise (it is at the anchor's level), or their mean within it."""
+    where they are no rest level moved from `anchor`'s: fewer than `least` of them, a step
+    between two of them out of the noise (presses one after another that passed for what the
+    one before left), one within the anchor's noise (it is at the anchor's level), or their
+    mean within it."""
     if len(window) < least or not all(frame[4] for frame in window):
+        return None
+    steps = np.diff(np.stack([frame[1] for frame in window]), axis=0)
+    if len(steps) and np.any(test.statistic(steps, 2.0) > detection):
         return None
     columns = zip(*(frame[3] for frame in window), strict=True)
     means = (
@@ -1076,16 +1083,14 @@ def _remains_kept(
 ) -> bool:
     """Whether one or two rest frames (`_Anchoring.rest`, fewer than `_LEAST_REST_FRAMES`) are a
     rest level an onset's `step` (M,; from the last of them) is read against (module docstring,
-    "Rest anchors", step 3): each is what the last touch (`peak`) left, they are alike (their
-    step within the noise), their mean change from the `level` step 2 measured them against
+    "Rest anchors", step 3; `_moved_anchor` asks the rest): each is what the last touch
+    (`peak`) left, their mean change from the `level` step 2 measured them against
     (`_Anchoring.level`) is that touch scaled down in full (its image's highest value within
     the touch's half height; its whitened change less the least-squares multiple of the
     touch's within the noise), and the onset keeps it: the multiple of that change in the
     step's whitened differences (variance 2 s^2) is not below -`RELEASED` by `SIGNIFICANCE`
     standard errors."""
     if peak is None or not 0 < len(rest) < _LEAST_REST_FRAMES or not all(frame[5] for frame in rest):
-        return False
-    if len(rest) == 2 and test.statistic(rest[1][1] - rest[0][1], 2.0)[0] > detection:
         return False
     image = np.mean([frame[2] for frame in rest], axis=0) - level.means[1]
     if peak[2][np.argmax(image)] < 0.5 * peak[2].max():

@@ -247,6 +247,13 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
         anchor_of, anchors = _anchors_of(faint_after_rest, seed=seed)
         assert anchors == [[6, 7, 8, 9, 10]], (seed, anchors)
         np.testing.assert_array_equal(anchor_of, [-1] * 6 + [0] * 9)
+    # Three presses one after another beside a deep one, no rest between, each passing for what
+    # it left: they are not alike (their steps stand out of the noise), so no rest level. (Taken
+    # as one, they anchored the frames after them on 6 of these 8 seeds.)
+    beside = [untouched] * 3 + [_bump(20, 12.0)] + [_bump(c, 6.0) for c in (16, 22, 18)] + [_bump(45, 12.0)] * 2
+    for seed in range(8):
+        anchor_of, anchors = _anchors_of(beside, seed=seed)
+        assert anchors == [] and np.all(anchor_of == -1), (seed, anchors)
     # Presses of one frame each, two frames of rest between, each leaving 0.45 of itself: the two
     # frames are what the press left, and they stay through the next onset, a rest level. Each
     # press is read against the rest just before it. (With three rest frames needed, every press
