@@ -101,21 +101,21 @@ each touch is read against the rest just before it instead, frame by frame:
    seed 0, two presses read 53-66 mm off, at the press before them, and 24 of 200 held frames
    were said remains; 15 now, of three faint presses near the middle not found).
 2. **Held or left.** A touched frame (against its anchor, or against the one or two rest
-   frames before the last onset where they stand out of the anchor's noise and step 3 did not
-   take them for its level: after a missed rest, every later frame had been measured against
-   all that the touches since the anchor left, and no later rest was taken) holds a touch
-   unless it is the highest frame since the last onset scaled down, with nothing else in it:
-   the least-squares multiple of that frame's whitened differences in its own lies more than
-   `SIGNIFICANCE` (2) standard errors (the readings' noise gives them) above 0 and below `HELD`
-   (0.7) (below `HELD` alone where the frame dropped along the touch from the one before by
-   more than 2 standard errors: a release, which a held touch's relaxing is far too slow for;
-   a press of one frame leaves over half of itself on the memory presets, within the noise
-   of `HELD` against one frame of rest, and pressed once every 2 frames, the presses read 28
-   mm off), its image's peak is below `HELD` of the highest frame's, that multiple of the highest frame
-   explains at least `EXPLAINED` (a tenth) of the frame's whitened change or leaves the rest
-   within the noise (the voltage test's z at most `detection`), and its image less that multiple
-   of the highest's has no value above `THRESHOLD` robust standard deviations. That is what the
-   touch left where it was. Faint presses near the middle, one after another, move the
+   frames before the last onset where they are alike, stand out of the anchor's noise and
+   step 3 did not take them for the anchor: after a missed rest, every later frame had been
+   measured against all that the touches since the anchor left, and no later rest was taken)
+   holds a touch unless it is the highest frame since the last onset scaled down, with
+   nothing else in it: the least-squares multiple of that frame's whitened differences in its
+   own lies more than `SIGNIFICANCE` (2) standard errors (the readings' noise gives them) above
+   0 and below `HELD` (0.7; below `HELD` alone where the frame dropped along the touch from the
+   one before by more than 2 standard errors: a release, which a held touch's relaxing is far
+   too slow for; a press of one frame leaves over half of itself on the memory presets, within
+   the noise of `HELD` against one frame of rest, and pressed once every 2 frames, the presses
+   read 28 mm off), its image's peak is below `HELD` of the highest frame's, that multiple of
+   the highest frame explains at least `EXPLAINED` (a tenth) of the frame's whitened change or
+   leaves the rest within the noise (the voltage test's z at most `detection`), and its image
+   less that multiple of the highest's has no value above `THRESHOLD` robust standard
+   deviations. That is what the touch left where it was. Faint presses near the middle, one after another, move the
    readings' common level and little else: each was a significant multiple of a deeper press
    before them, though that multiple explained 1-3% of its change (on a skin with memory, what
    a press left: 59% in the median, 5% at least), and three of them in a row anchored the frames
@@ -142,13 +142,13 @@ each touch is read against the rest just before it instead, frame by frame:
    after a deeper one became the anchor of the 60 presses after them: 9 of them missed; without
    a calibration, 20 of 100 frames read other touches), and refused, a skin with memory pressed
    once every 3 frames read every press against all that the presses before it left (25 and
-   26 mm off from the reference alone on the rest anchors benchmark's two seeds; 5.5 and 4.0
+   26 mm off from the reference alone on the rest anchors benchmark's two seeds; 5.4 and 4.0
    mm now; pressed once every 2 frames, 28 and 31 mm before, 5.9 and 4.9 mm now). The cost:
    presses one after another with no rest at all, on a skin without memory, where a press
    beside the one before and fainter passes for what it left (benchmarks/session_layouts.py,
-   "back to back", seed 0: 3 and 6 of 60 presses missed without a calibration and from the
-   reference alone, none before; seed 1: 1 from the reference alone; 10 and 15, and 3, while
-   three such presses in a row, not alike, made an anchor).
+   "back to back", seed 0: 6 and 10 of 60 presses missed without a calibration and from the
+   reference alone, none before; seed 1: 3 from the reference alone; 10 and 15 on seed 0
+   while three such presses in a row, not alike, made an anchor).
 4. **Reading.** Each frame is read against its anchor: its differences (the voltage test,
    with the anchor's number of frames; the discs' fit) and its image (one-step images are
    linear in the differences, and the anchor's image is the mean of its frames' images;
@@ -898,7 +898,7 @@ class _Anchoring(NamedTuple):
     frame: int  # the next frame's index
     anchor: _Anchor
     previous: tuple[np.ndarray, np.ndarray] | None  # the last frame's differences and scores; None after a damaged one
-    # The highest frame since the last onset, against the anchor: differences, whitened, scores.
+    # The highest frame since the last onset, against the level: differences, whitened, scores.
     peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     rest_start: int  # the first frame after the last that held a touch
     # The last _ANCHOR_FRAMES intact frames since: index, differences, scores, values, whether
@@ -906,7 +906,7 @@ class _Anchoring(NamedTuple):
     # the last touch left.
     rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...]
     # What step 2 measures against: the anchor, or the one or two rest frames before the last
-    # onset where they stood out of its noise and it did not move to them.
+    # onset where they were alike and stood out of its noise, and it did not move to them.
     level: _Anchor
 
     @classmethod
@@ -982,9 +982,9 @@ def _rest_anchors(
         base_dv, base_scores = level.means[:2]
         raised = bool(test.statistic(dv[i] - base_dv, 1 + 1 / level.count)[0] > detection)
         if not raised:
-            # Back at the anchor's level: the last touch left nothing, and a faint press after it
-            # (its onset within the noise of a step) is no part of it. Before, such a press was
-            # read as what the last one left, and its frames became an anchor that hid it (a
+            # Back at the level step 2 measures against: the last touch left nothing, and a faint
+            # press after it (its onset within the noise of a step) is no part of it. Before, such
+            # a press was read as what the last one left, and its frames became an anchor that hid it (a
             # benchmark skin of 500 presses held 1 s, 10 frames of rest between: 29 of 450 missed).
             peak = None
         if raised:
