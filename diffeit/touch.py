@@ -879,6 +879,12 @@ def _lost_readings(recording: Recording) -> np.ndarray:
     return lost
 
 
+# The rest frames `_rest_anchors` keeps (`_Anchoring.rest`): index, differences, scores, values,
+# whether it stood out of the noise of the anchor then in force, and whether step 2 took it for
+# what the last touch left.
+_RestFrames = tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...]
+
+
 class _Anchor(NamedTuple):
     """An anchor (module docstring, "Rest anchors"): the frames whose mean it is (none for the
     recording's reference), how many frames its mean is of (the reference's for the reference),
@@ -901,10 +907,7 @@ class _Anchoring(NamedTuple):
     # The highest frame since the last onset, against the level: differences, whitened, scores.
     peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None
     rest_start: int  # the first frame after the last that held a touch
-    # The last _ANCHOR_FRAMES intact frames since: index, differences, scores, values, whether
-    # it stood out of the noise of the anchor then in force, and whether step 2 took it for what
-    # the last touch left.
-    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...]
+    rest: _RestFrames  # the last _ANCHOR_FRAMES intact frames since
     # What step 2 measures against: the anchor, or the one or two rest frames before the last
     # onset where they were alike and stood out of its noise, and it did not move to them.
     level: _Anchor
@@ -966,17 +969,18 @@ def _rest_anchors(
             onset = _departs_from_rest(test, dv[i], scores[i], rest, peak, detection)
         if onset:
             moved = _moved_anchor(test, rest[-_ANCHOR_FRAMES:], anchor, detection)
-            if moved is None and step is not None and _remains_kept(test, rest, step[0], level, peak, detection):
-                moved = _moved_anchor(test, rest, anchor, detection, least=1)
+            few = moved is None and len(rest) < _LEAST_REST_FRAMES
+            short = _moved_anchor(test, rest, anchor, detection, least=1) if few else None
+            if short is not None and step is not None and _remains_kept(test, rest, step[0], level, peak, detection):
+                moved = short
             if moved is not None:
                 anchor = moved
                 anchors.append(anchor)
                 anchor_of[max(rest_start - first, 0) : i] = len(anchors) - 1
-            short = _moved_anchor(test, rest, anchor, detection, least=1) if len(rest) < _LEAST_REST_FRAMES else None
             level = anchor if moved is not None or short is None else short
             peak = None  # what is held is now measured against this onset's touches
         anchor_of[i] = len(anchors) - 1
-        before = None if previous is None else previous[0]
+        prior = None if previous is None else previous[0]
         previous = dv[i], scores[i]
         standing = bool(test.statistic(dv[i] - anchor.means[0], 1 + 1 / anchor.count)[0] > detection)
         base_dv, base_scores = level.means[:2]
@@ -988,26 +992,28 @@ def _rest_anchors(
             # benchmark skin of 500 presses held 1 s, 10 frames of rest between: 29 of 450 missed).
             peak = None
         if raised:
-            here = scores[i] - base_scores
+            here, along = scores[i] - base_scores, test.whitened(dv[i] - base_dv)[0]
             if peak is None or here.max() > peak[2].max():
-                peak = dv[i] - base_dv, test.whitened(dv[i] - base_dv)[0], here
+                peak = dv[i] - base_dv, along, here
             # What a touch left where it was is it scaled down, significantly above 0 and below
             # HELD (the scale's standard error from the readings' noise), in its voltages and in
             # its image's peak, and nothing else stands out.
-            along, touch = test.whitened(dv[i] - base_dv)[0], peak[1]
+            touch = peak[1]
             scale = (along @ touch) / (touch @ touch)
             error = np.sqrt((1 + 1 / level.count) / (touch @ touch))
             left = here - scale * peak[2]
             # A frame that dropped along the touch from the one before, significantly, was released
             # (a held touch relaxes far slower): below HELD it is what the touch left.
-            dropped = before is not None and _dropped(test, dv[i] - before, touch)
+            dropped = False
+            if prior is not None:
+                drop, drop_error = _step_multiple(test, dv[i] - prior, touch)
+                dropped = drop < -SIGNIFICANCE * drop_error
             ceiling = HELD if dropped else HELD - SIGNIFICANCE * error
             remains = SIGNIFICANCE * error < scale < ceiling and here.max() < HELD * peak[2].max()
             # Its pattern explains a share of the frame's change, or what it leaves is noise: faint
             # presses near the middle, one after another, passed for what a deeper one left.
-            unexplained = (along - scale * touch)[None] / np.sqrt(1 + 1 / level.count)
             alike = scale**2 * (touch @ touch) >= EXPLAINED * (along @ along)
-            alike = alike or _standardised(unexplained, test.noise_frames)[0] <= detection
+            alike = alike or _unexplained(test, along, touch, 1 + 1 / level.count) <= detection
             left_behind[i] = here.max() > 0 and remains and alike and left.max() <= THRESHOLD * _robust_std(left)
             held[i] = here.max() > 0 and not left_behind[i]
         if held[i]:
@@ -1019,16 +1025,23 @@ def _rest_anchors(
     return anchor_of, anchors, left_behind, state
 
 
-def _dropped(test: _VoltageTest, step: np.ndarray, touch: np.ndarray) -> bool:
-    """Whether a `step` (M,) between two frames (variance 2 s^2) lowers the whitened `touch` (k,)
-    significantly: its least-squares multiple of it is below 0 by `SIGNIFICANCE` standard errors."""
-    size = float(touch @ touch)
-    return bool(test.whitened(step)[0] @ touch / size < -SIGNIFICANCE * np.sqrt(2.0 / size))
+def _step_multiple(test: _VoltageTest, step: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
+    """The least-squares multiple of a whitened `direction` (k,) in a `step` (M,) between two
+    frames, and its standard error (the step's variance 2 s^2)."""
+    size = float(direction @ direction)
+    return float(test.whitened(step)[0] @ direction) / size, float(np.sqrt(2.0 / size))
+
+
+def _unexplained(test: _VoltageTest, change: np.ndarray, touch: np.ndarray, variance: float) -> float:
+    """The voltage test's statistic of a whitened `change` (k,; variance `variance` s^2) less its
+    least-squares multiple of a whitened `touch` (k,)."""
+    scale = (change @ touch) / (touch @ touch)
+    return float(_standardised((change - scale * touch)[None] / np.sqrt(variance), test.noise_frames)[0])
 
 
 def _moved_anchor(
     test: _VoltageTest,
-    window: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
+    window: _RestFrames,
     anchor: _Anchor,
     detection: float,
     least: int = _LEAST_REST_FRAMES,
@@ -1075,7 +1088,7 @@ def _against_anchors_tested(
 
 def _remains_kept(
     test: _VoltageTest,
-    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
+    rest: _RestFrames,
     step: np.ndarray,
     level: _Anchor,
     peak: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
@@ -1096,21 +1109,17 @@ def _remains_kept(
     if peak[2][np.argmax(image)] < 0.5 * peak[2].max():
         return False
     change = test.whitened(np.mean([frame[1] for frame in rest], axis=0) - level.means[0])[0]
-    touch = peak[1]
-    scale = (change @ touch) / (touch @ touch)
-    unexplained = (change - scale * touch)[None] / np.sqrt(1 / len(rest) + 1 / level.count)
-    if _standardised(unexplained, test.noise_frames)[0] > detection:
+    if _unexplained(test, change, peak[1], 1 / len(rest) + 1 / level.count) > detection:
         return False
-    size = float(change @ change)
-    along = float(test.whitened(step)[0] @ change) / size
-    return along + SIGNIFICANCE * np.sqrt(2.0 / size) >= -RELEASED
+    along, error = _step_multiple(test, step, change)
+    return along + SIGNIFICANCE * error >= -RELEASED
 
 
 def _departs_from_rest(
     test: _VoltageTest,
     dv: np.ndarray,
     scores: np.ndarray,
-    rest: tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...],
+    rest: _RestFrames,
     peak: tuple[np.ndarray, np.ndarray, np.ndarray],
     detection: float,
 ) -> bool:
