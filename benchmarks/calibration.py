@@ -26,8 +26,11 @@ an electrode centre, degrees (the calibration's shift against the true offset, b
 mean: a common rotation of the electrodes rotates the sheet; where the positions are not
 fitted, the true offsets), the errors' root mean square in units of the standard errors the
 calibration reports for them (about 1 when it knows how well the data determine them; "-"
-where not fitted), and the largest error of a readout mixing weight (source, sink and every
-offset weight, relative to the pair's).
+where not fitted), the largest centre error that noise alone would leave (the median over
+draws of the largest of errors drawn with those standard errors, about their mean: what a fit
+as well determined, free of model error, would reach; "-" where not fitted), and the largest
+error of a readout mixing weight (source, sink and every offset weight, relative to the
+pair's).
 A median over 60 presses moves by about 10% from one session to the next, so a second table
 pools the seeds: the ratio of our median error to the true model's over every seed's test
 presses, with a bootstrap interval.
@@ -219,6 +222,17 @@ def model_errors(calibration, truth) -> tuple[np.ndarray, float | None, float]:
     return centre, in_errors, weight
 
 
+def noise_largest(calibration, draws: int = 4000) -> float | None:
+    """The largest electrode centre error, degrees, that noise alone would leave: the median
+    over `draws` seeded draws of the largest of the errors drawn with the standard errors the
+    calibration reports (about their mean, as `model_errors`); None where not fitted."""
+    standard = calibration.standard_errors.get("electrode_positions")
+    if standard is None or not np.all(np.asarray(standard) > 0):
+        return None
+    drawn = np.random.default_rng(0).normal(size=(draws, len(standard))) * np.rad2deg(np.asarray(standard) / RADIUS)
+    return float(np.median(np.max(np.abs(drawn - drawn.mean(axis=1, keepdims=True)), axis=1)))
+
+
 def cell(distance: np.ndarray) -> str:
     """The median error, mm, and the misses in brackets."""
     return f"{1e3 * np.nanmedian(distance):.1f} ({int(np.isnan(distance).sum())})"
@@ -296,6 +310,7 @@ def main() -> None:
             "calibration time",
             "centre error, deg (largest, RMS)",
             "in standard errors (RMS)",
+            "largest from noise alone, deg",
             "mixing weight error",
         ]
     )
@@ -320,6 +335,7 @@ def main() -> None:
             ours = errors(test, test_presses, calibration)
             ours_by_count[count].append(ours)
             centre, in_errors, weight = model_errors(calibration, truth)
+            from_noise = noise_largest(calibration)
             table.row(
                 [
                     str(count),
@@ -330,6 +346,7 @@ def main() -> None:
                     f"{seconds:.1f} s",
                     f"{np.max(np.abs(centre)):.2f}, {np.sqrt(np.mean(centre**2)):.2f}",
                     "-" if in_errors is None else f"{in_errors:.2f}",
+                    "-" if from_noise is None else f"{from_noise:.2f}",
                     f"{weight:.3f}",
                 ]
             )
