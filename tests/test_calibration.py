@@ -1368,31 +1368,6 @@ def test_with_too_few_presses_to_hold_out_the_references_calibration_is_kept(mix
     assert few.press_errors.shape == (15,) and np.isfinite(np.nanmedian(few.press_errors))
 
 
-def test_a_refused_presses_fit_leaves_the_calibration_from_the_reference_alone(mixing_skin, monkeypatch):
-    """Where the presses' fit reads presses it did not see worse, what is kept is what the
-    reference alone gives: its electrode positions fitted to the reference, as with no presses
-    (before, the fallback was the reference's fit that leaves the positions to the presses, and
-    the positions stayed the mesh's). Here the judgement is made to refuse the fit: the
-    reference's held-out errors are halved."""
-    judged = []
-
-    def refusing(fitted, reference_only, held_out, theirs):
-        judged.append(reference_only)
-        return _held_out._kept_if_it_generalises(fitted, reference_only, held_out, 0.5 * held_out)
-
-    monkeypatch.setattr(_calibrate, "_kept_if_it_generalises", refusing)
-    recording, presses = mixing_skin.recording, mixing_skin.presses.select(np.arange(20))
-    refused = de.calibrate(recording, presses, background_map=False)
-    assert len(judged) == 1
-    assert not refused.fitted.get("presses")
-    assert refused.fitted["reference"] == ("level", *_refine.REFERENCE_ONLY_GROUPS)
-    assert np.all(np.asarray(refused.standard_errors["electrode_positions"]) > 0)
-    assert np.any(np.abs(np.asarray(refused.values["electrode_positions"])) > 1e-4)  # moved off the mesh's
-    assert any(w.startswith("the presses' fit") and "did not see" in w for w in refused.warnings)
-    # Its press errors are its own position map's leave-one-out ones, from the reference alone.
-    assert np.isfinite(refused.press_errors).sum() >= 18 and np.nanmedian(refused.press_errors) < 0.03
-
-
 @pytest.mark.parametrize("count", [1, 2])
 def test_one_or_two_presses_calibrate_without_a_position_map(mixing_skin, count):
     """Fewer than 3 presses make no position map, and say so; the calibration still takes their
@@ -2365,12 +2340,7 @@ def test_a_sheet_more_conductive_to_one_side_gets_a_background_map_that_reads_pr
     is kept here, and it is made at the uniform sheet, before the map: its weights (-0.003 and
     0.001 of an ideal board's 0) take part of the sheet's effect, which the map fitted after it
     cannot undo. From the reference's calibration, the map alone reaches correlation 0.96 and
-    misfit 0.010 (below).
-
-    The reference's groups are named (those the default takes with a map in view): with them
-    defaulted, the mixing fit is judged against the reference's calibration with the electrode
-    positions fitted to it, which reads the held-out presses closer here (22 of 30, p = 0.008),
-    and a map on that reads them no closer significantly."""
+    misfit 0.010 (below)."""
     import equinox as eqx
 
     from diffeit.readout import Readout
@@ -2378,8 +2348,7 @@ def test_a_sheet_more_conductive_to_one_side_gets_a_background_map_that_reads_pr
     skin = skin_session(4, lambda rng: Readout(PROTOCOL), sheet=lambda c: np.exp(0.4 * c[:, 0]), n_presses=30)
     # The map's default is the point: the presses fit the mixing alone (the positions, tried by
     # default, would double the time).
-    groups = _refine.REFERENCE_GROUPS
-    calibration = de.calibrate(skin.recording, skin.presses, reference_groups=groups, press_groups=("mixing",))
+    calibration = de.calibrate(skin.recording, skin.presses, press_groups=("mixing",))
     sheet = calibration.background_map
     assert sheet is not None and "background_map" in calibration.fitted["reference"], calibration.warnings
     assert np.corrcoef(np.log(sheet), skin.mesh.element_centroids[:, 0])[0, 1] > 0.8

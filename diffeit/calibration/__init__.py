@@ -157,12 +157,10 @@ labelled instant, and a frame a board garbled are then no rest.
   fold read at the mixing (and positions) fitted to the other four, through a position map fitted
   on those (each fold's fit starts where the fit of all the presses ended and takes at most two
   Gauss-Newton steps: a third less time, the same choices on the calibration benchmark). When
-  the reference's calibration (as without presses: the electrode positions fitted to the
-  reference, which the presses' fit leaves to the presses) with a position map fitted on the
-  same four folds reads significantly more of the presses closer than farther (a one-sided
-  sign test, p < 0.05), the presses' fit made unseen presses worse: the reference's
-  calibration is kept instead, with a warning giving both (`_kept_if_it_generalises`). Short
-  of that the physical fit is kept.
+  the reference's calibration with a position map fitted on the same four folds reads
+  significantly more of the presses closer than farther (a one-sided sign test, p < 0.05), the
+  presses' fit made unseen presses worse: the reference's calibration is kept instead, with a
+  warning giving both (`_kept_if_it_generalises`). Short of that the physical fit is kept.
   Kept, its press errors are these held-out ones. With fewer than 20 presses (folds under
   four) nothing can show it: the reference's calibration is kept, with a warning (with 10,
   folds of two passed fits that read the benchmark's test presses worse), and the presses'

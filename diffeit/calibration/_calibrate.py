@@ -254,7 +254,6 @@ def calibrate(
             f"{lost_note(lost, lost_frames, 'session')}: the {int(lost_readings.sum())} readings on them hold their "
             "values from before, and the presses from then on are left out",
         )
-    defaulted = reference_groups is None
     if reference_groups is None:
         # Positions fitted to the reference trade with the sheet's gradient, which a background
         # map takes; presses enough for their own fit place them better.
@@ -317,12 +316,6 @@ def calibrate(
     ]
     made = [fit for fit in fits if fit.calibration is not None]
     refused = tuple(f"{_not_kept((*fit.groups, 'press depths'))}{fit.refused}" for fit in fits if fit.refused)
-    if defaulted and tuple(reference_groups) != REFERENCE_ONLY_GROUPS:
-        # What the presses' fit must beat is what a user gets without them: the reference's
-        # calibration with the electrode positions (left to the presses' fit above).
-        alone = refine_to_reference(first, reference, recording, priors, REFERENCE_ONLY_GROUPS)
-        found, *read = _read_presses(alone, recording, presses, reference, hyperparameter, None)
-        reference_only = _with_position_map(alone, presses, found, *read)
     if not made:
         calibration = _with_warnings(reference_only, *refused)
     else:
