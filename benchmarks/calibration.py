@@ -186,16 +186,26 @@ def true_calibration(fitted, truth, reference: np.ndarray):
     return eqx.tree_at(lambda c: c.noise, true, noise, is_leaf=lambda node: node is None)
 
 
-def errors(recording, presses, calibration, solver=None) -> np.ndarray:
-    """(K,) the distance, m, between the strongest touch read and each press (NaN: missed); the
-    images `de.reconstruct`'s defaults, or `solver`'s at the "auto" hyperparameter."""
+def touches_read(recording, calibration, solver=None):
+    """The touches `de.touches` reads in `recording` at `calibration`; the images
+    `de.reconstruct`'s defaults, or `solver`'s at the "auto" hyperparameter."""
     import diffeit as de
 
     chosen = {} if solver is None else {"solver": solver, "hyperparameter": "auto"}
     images = de.reconstruct(recording, calibration=calibration, progress=False, throw=False, **chosen)
-    found = de.touches(images, calibration)
+    return de.touches(images, calibration)
+
+
+def press_errors(recording, presses, found) -> np.ndarray:
+    """(K,) the distance, m, between the strongest touch of `found` and each press (NaN: missed)."""
     chosen = np.array([frames[0] for frames in presses.frames(recording.times)])
     return np.linalg.norm(found.position[chosen, 0] - presses.centres, axis=1)
+
+
+def errors(recording, presses, calibration, solver=None) -> np.ndarray:
+    """(K,) the distance, m, between the strongest touch read and each press (NaN: missed)
+    (`touches_read`)."""
+    return press_errors(recording, presses, touches_read(recording, calibration, solver))
 
 
 def model_errors(calibration, truth) -> tuple[np.ndarray, float | None, float]:

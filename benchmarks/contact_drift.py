@@ -15,7 +15,9 @@ recording is the untouched frames, then the test presses: the contacts have drif
 them. Each is read after `de.calibrate` from the reference alone at q = 0 (the contacts held),
 1, the default, 3 and 10 (a `OneStep` solver object at the "auto" hyperparameter; the default
 column is `de.reconstruct`'s defaults), and after `de.calibrate` with the first 50 presses at
-the defaults. A press without a touch read counts as missed, left out of the median.
+the defaults. A press without a touch read counts as missed, left out of the median. Beside
+each, in square brackets, how many of the untouched frames after the test presses read a
+touch (none should: a drift the rest anchors do not follow shows as touches there).
 """
 
 from __future__ import annotations
@@ -28,12 +30,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 from _common import MarkdownTable, skin_benchmark, write_tables
-from calibration import calibration_session, cell, errors, session, split
+from calibration import calibration_session, cell, press_errors, session, split, touches_read
 
 CALIBRATION_PRESSES = 50
 DRIFT = 0.3  # the largest change in ln z by the session's end
 SPREADS = (0.0, 1.0, None, 3.0, 10.0)  # None: the default
 PLACES = {"within 0.8": (0.0, 0.8), "at the rim (0.8-0.95)": (0.8, 0.95)}
+
+
+def read_cell(recording, presses, calibration, solver=None) -> str:
+    """The median error and misses (`cell`), and in square brackets how many of the untouched
+    frames, one after each press, read a touch."""
+    found = touches_read(recording, calibration, solver)
+    after = np.array([frames[-1] + 1 for frames in presses.frames(recording.times)])
+    after = after[after < recording.n_frames]
+    return f"{cell(press_errors(recording, presses, found))} [{int(np.sum(found.count[after] > 0))}]"
 
 
 def main() -> None:
@@ -46,7 +57,8 @@ def main() -> None:
     from diffeit.inverse import CONTACT_IMPEDANCE_SPREAD, OneStep
 
     print(
-        f"\nmedian position error (mm) of the strongest touch on {options.test} test presses, misses in brackets; "
+        f"\nmedian position error (mm) of the strongest touch on {options.test} test presses, misses in brackets, "
+        f"and in square brackets the untouched frames (one after each press) read touched; "
         f"from the reference alone at each spread q, and after {CALIBRATION_PRESSES} labelled presses at the "
         f"default (q = {CONTACT_IMPEDANCE_SPREAD:g})\n"
     )
@@ -63,12 +75,12 @@ def main() -> None:
                 cells = []
                 for q in SPREADS:
                     solver = None if q is None else OneStep(prior="noser", contact_impedance_spread=q)
-                    cells.append(cell(errors(test, test_presses, alone, solver)))
+                    cells.append(read_cell(test, test_presses, alone, solver))
                 labelled = de.calibrate(
                     calibration_session(recording, CALIBRATION_PRESSES),
                     presses.select(np.arange(CALIBRATION_PRESSES)),
                 )
-                cells.append(cell(errors(test, test_presses, labelled)))
+                cells.append(read_cell(test, test_presses, labelled))
                 contacts = "held" if drift == 0 else f"drifting (up to {np.exp(drift):.2f}x)"
                 table.row([place, contacts, str(seed), *cells])
     print()
