@@ -58,7 +58,7 @@ def main() -> None:
 
     print(
         f"\nmedian position error (mm) of the strongest touch on {options.test} test presses, misses in brackets, "
-        f"and in square brackets the untouched frames (one after each press) read touched; "
+        "and in square brackets the untouched frames (one after each press) read touched; "
         f"from the reference alone at each spread q, and after {CALIBRATION_PRESSES} labelled presses at the "
         f"default (q = {CONTACT_IMPEDANCE_SPREAD:g})\n"
     )
