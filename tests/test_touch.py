@@ -269,9 +269,9 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
         np.testing.assert_array_equal(anchor_of[6:13:3], [0, 1, 2])
     # Presses of one frame each, one frame of rest between, on a rest level that drifts (0.4 a
     # frame along a wide pattern: a contact's impedance creeping): each frame just after a
-    # press, the press gone from it in full, is the rest. Once five such frames alike stand out
-    # of the reference's noise, the anchor is their mean, and from then on it follows the last
-    # five at each onset. (Without, every frame was read against the reference, the drift
+    # press, the press gone from it in full, is the rest. Once three to five such frames, alike,
+    # stand out of the reference's noise, the anchor is their mean, and from then on it follows
+    # the last five at each onset. (Without, every frame was read against the reference, the drift
     # growing in each; a skin with memory, whose presses leave half of themselves, is not so
     # followed: above.)
     wide = np.exp(-0.5 * ((np.arange(60) - 30) / 15.0) ** 2)
