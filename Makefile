@@ -36,6 +36,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/contact_drift.py
 	$(BIN)/python benchmarks/touches.py
 	$(BIN)/python benchmarks/rest_anchors.py
+	$(BIN)/python benchmarks/slides.py
 	$(BIN)/python benchmarks/surface.py
 
 # The documentation site, into site/ (tests/test_docs.py builds it with --strict in `make test`).

@@ -115,7 +115,20 @@ each touch is read against the rest just before it instead, frame by frame:
    the highest frame explains at least `EXPLAINED` (a tenth) of the frame's whitened change or
    leaves the rest within the noise (the voltage test's z at most `detection`), and its image
    less that multiple of the highest's has no value above `THRESHOLD` robust standard
-   deviations. That is what the touch left where it was. Faint presses near the middle, one after another, move the
+   deviations. That is what the touch left where it was, when its image stands where the
+   highest frame's did (its highest value within that image's half height, or its value at
+   that image's peak at least half its own highest; or no hill of it stands above `LOW` robust
+   standard deviations). Elsewhere, the touch moved on: a touch sliding towards the middle
+   fades frame by frame, its voltages nearly the frame before scaled down, but its hill moves.
+   Such a frame is no part of a rest level of three frames or more (step 3), yet ends no run of
+   rest frames as a held one does (after presses one after another beside a deep one, the one
+   or two frames left in the run then passed for a rest level), and `Touches.remains` leaves it
+   out. Without the place, a slide's frames had passed for what it left and anchored the frames
+   after them (`benchmarks/slides.py`: of its 16 sessions, seed 3 at 0.3 radius a second read 80
+   frames against such an anchor, 9 of 52 untouched frames touched, 5 more of the slides' 71
+   frames missed; with slides drawn in a square, 4 of 16 sessions, 6-13 of 23-97 frames missed
+   and 15-31 of 52 untouched frames touched; now every session reads as against the reference).
+   Faint presses near the middle, one after another, move the
    readings' common level and little else: each was a significant multiple of a deeper press
    before them, though that multiple explained 1-3% of its change (on a skin with memory, what
    a press left: 59% in the median, 5% at least), and three of them in a row anchored the frames
@@ -896,9 +909,9 @@ def _lost_readings(recording: Recording) -> np.ndarray:
 
 
 # The rest frames `_rest_anchors` keeps (`_Anchoring.rest`): index, differences, scores, values,
-# whether it stood out of the noise of the anchor then in force, and whether step 2 took it for
-# what the last touch left.
-_RestFrames = tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool], ...]
+# whether it stood out of the noise of the anchor then in force, whether step 2 took it for
+# what the last touch left, and whether it was that touch moved on.
+_RestFrames = tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool, bool], ...]
 
 
 class _Anchor(NamedTuple):
@@ -975,7 +988,7 @@ def _rest_anchors(
     first, anchor, previous, peak, rest_start, rest, level, across, drifting = state
     anchors = [anchor]
     anchor_of = np.zeros(len(dv), int)
-    held, left_behind = np.zeros(len(dv), bool), np.zeros(len(dv), bool)
+    held, left_behind, moved_on = (np.zeros(len(dv), bool) for _ in range(3))
     # A frame less the one before (variance 2 s^2); the first against the state's last frame.
     before = dv[:1] if previous is None else previous[0][None]
     steps = test.statistic(np.diff(np.concatenate([before, dv]), axis=0), 2.0)
@@ -988,7 +1001,9 @@ def _rest_anchors(
         if not onset and peak is not None:
             onset = _departs_from_rest(test, dv[i], scores[i], rest, peak, detection)
         if onset:
-            moved = _moved_anchor(test, rest[-_ANCHOR_FRAMES:], anchor, detection)
+            window = rest[-_ANCHOR_FRAMES:]
+            # A touch that moved on is no rest level (step 2).
+            moved = None if any(frame[6] for frame in window) else _moved_anchor(test, window, anchor, detection)
             few = moved is None and len(rest) < _LEAST_REST_FRAMES
             short = _moved_anchor(test, rest, anchor, detection, least=1) if few else None
             if short is not None and step is not None and _remains_kept(test, rest, step[0], level, peak, detection):
@@ -1046,15 +1061,40 @@ def _rest_anchors(
             alike = alike or _unexplained(test, along, touch, 1 + 1 / level.count) <= detection
             left_behind[i] = here.max() > 0 and remains and alike and left.max() <= THRESHOLD * _robust_std(left)
             held[i] = here.max() > 0 and not left_behind[i]
+            # Passing for it but standing elsewhere, the touch moved on (a touch sliding towards the
+            # middle): no part of a rest level of three frames or more, nor said to be what it
+            # left. It ends no run of rest frames as a held frame would (the one or two after it
+            # then passed for a rest level), and `_remains_kept` places one or two itself.
+            moved_on[i] = left_behind[i] and not _where_it_was(here, peak[2])
         if held[i]:
             rest_start, rest = first + i + 1, ()
         else:
-            frame = (first + i, dv[i], scores[i], tuple(value[i] for value in values), standing, left_behind[i])
+            frame = (
+                first + i,
+                dv[i],
+                scores[i],
+                tuple(value[i] for value in values),
+                standing,
+                left_behind[i],
+                moved_on[i],
+            )
             rest = (*rest, frame)[-_ANCHOR_FRAMES:]
             if released and not left_behind[i]:
                 across = (*across, frame)[-_ANCHOR_FRAMES:]
     state = _Anchoring(first + len(dv), anchor, previous, peak, rest_start, rest, level, across, drifting)
-    return anchor_of, anchors, left_behind, state
+    return anchor_of, anchors, left_behind & ~moved_on, state
+
+
+def _where_it_was(image: np.ndarray, highest: np.ndarray) -> bool:
+    """Whether a frame's `image` (E,) stands where its touch's `highest` frame's image (E,) did,
+    as what the touch left does (step 2): its highest value within the highest frame's half
+    height, or its value at the highest frame's peak at least half its own highest; or it has no
+    hill above `LOW` robust standard deviations to place it by (the faint remains of a memory,
+    whose peak the noise moves). A touch sliding towards the middle fades frame by frame, its
+    voltages nearly the frame before scaled down, but its hill moves on."""
+    if image.max() <= LOW * _robust_std(image):
+        return True
+    return bool(highest[np.argmax(image)] >= 0.5 * highest.max() or image[np.argmax(highest)] >= 0.5 * image.max())
 
 
 def _step_multiple(test: _VoltageTest, step: np.ndarray, direction: np.ndarray) -> tuple[float, float]:

@@ -342,6 +342,63 @@ def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_refe
         de.touches(dataclasses.replace(images, provenance={**images.provenance, "metadata": metadata}))
 
 
+def test_a_touch_sliding_across_a_magnitude_boards_skin_reads_as_against_the_reference():
+    # The board and skin above (another seed), a finger sliding across it three times at one
+    # radius a second, a rest between. Towards the middle the touch fades frame by frame, and its
+    # voltages are nearly the frame before scaled down, but its image's hill has left the place of
+    # the touch's highest frame: the touch moved on, it is not what that frame left, and no anchor
+    # moves. (Read as what it left, its frames became a rest anchor: 54 of the 77 frames were read
+    # against a touch, and 3 of the 27 frames of the slides read none.)
+    from diffeit.scene import (
+        Disc,
+        MeasurementNoise,
+        Noise,
+        Path,
+        Press,
+        ReadingGains,
+        ReadoutMixing,
+        Scene,
+        Skin,
+        Touch,
+    )
+
+    radius, step, seed = 0.08, 0.1, 3
+    rng = np.random.default_rng(seed)
+    geometry = {"kind": "disc", "radius": radius, "n_electrodes": 16, "electrode_width": 0.15 * radius}
+    skin = Skin(geometry=geometry, h=0.1 * radius, protocol="opposite")
+    effects = (
+        ReadoutMixing.random(16, 0.3, seed=seed),
+        ReadingGains.random(192, 0.2, seed=seed),
+        MeasurementNoise(Noise.level("medium"), seed=seed),
+    )
+    touches, start = [], 2.0
+    for _ in range(3):
+        begin, end = rng.uniform(-0.6, 0.6, (2, 2)) * radius
+        duration = np.linalg.norm(end - begin) / radius  # one radius a second
+        path = Path([start + 0.1, start + 0.1 + duration], [begin, end])
+        touches.append(Touch(Disc(path, 0.01), -0.3, Press(start=start, ramp_in=0.1, hold=duration + 0.1)))
+        start += duration + 1.2
+    scene = Scene(skin=skin, touches=tuple(touches), frame_rate=1 / step, duration=start, effects=effects)
+    simulated = de.simulate(scene).to_recording()
+    recording = de.io.Recording(
+        frames=np.abs(np.asarray(simulated.frames)),
+        times=simulated.times,
+        protocol=simulated.protocol,
+        geometry={**geometry, "h": skin.h},
+        readings="magnitude",
+    )
+    images = de.reconstruct(recording, progress=False, throw=False)
+    found, against_reference = de.touches(images), de.touches(images, baseline="reference")
+    assert np.all(found.anchor == -1)
+    np.testing.assert_array_equal(found.count, against_reference.count)
+    np.testing.assert_array_equal(found.position, against_reference.position)
+    times = np.asarray(recording.times)
+    sliding = np.zeros(len(times), bool)
+    for touch in touches:
+        sliding |= (times > touch.envelope.start) & (times < touch.envelope.start + 0.1 + touch.envelope.hold)
+    np.testing.assert_array_equal(found.count > 0, sliding)  # a touch on every frame of the slides alone
+
+
 @pytest.mark.parametrize("noise", ["a fraction of each reading", "alike on every reading"])
 def test_with_no_noise_known_untouched_frames_read_no_touch_whatever_the_noise_is_like(noise):
     """A reference of one frame, no calibration: frames are tested against their own noise off
