@@ -884,37 +884,6 @@ def test_presses_that_pass_for_untouched_among_presses_one_after_another_are_no_
     np.testing.assert_allclose(gains[20:], growth[20:], atol=2.5e-3)
 
 
-def test_a_touch_held_near_the_middle_is_no_drift_and_a_drift_under_rests_is_followed():
-    """Three touches held 30 frames each, 8 untouched frames between them: each raises the
-    readings' common gain 0.4% and adds a pattern of its own that frame by frame stands within
-    the noise (a touch near the middle), so each of its frames passes for untouched. Held, the
-    pattern stands out of the noise of their mean: no drift is taken out (before, every held
-    frame was divided by its touch's gain, and the touch was gone). A drift of 3% over the
-    session under the same rests and touches is followed, the touches' gain kept."""
-    rng = np.random.default_rng(0)
-    readings = PROTOCOL.n_measurements
-    level = 100.0 + 20.0 * rng.standard_normal(readings)
-    pattern = rng.standard_normal(readings)
-    pattern *= np.sqrt(40.0) / np.linalg.norm(pattern)  # unit noise: z about 2 a frame, 12 for 9 frames
-    clean = [level] * 20
-    for _ in range(3):
-        clean += [level] * 8 + [1.004 * level + pattern] * 30
-    clean += [level] * 8
-    values = np.array(clean) + rng.standard_normal((len(clean), readings))
-
-    def recording(frames: np.ndarray) -> de.io.Recording:
-        return de.io.Recording(frames=frames, times=0.1 * np.arange(len(frames)), protocol=PROTOCOL)
-
-    drift = _frames._DriftReference.of(values[:20])
-    held = (np.arange(len(values)) >= 20) & ((np.arange(len(values)) - 20) % 38 >= 8)
-    assert np.all(drift.untouched(values, drift.gains(values))[held])  # frame by frame, untouched
-    assert de.calibration.drift_corrected(recording(values), values[:20])[1] is None
-    growth = 1.0 + 0.03 * np.arange(len(values)) / (len(values) - 1)
-    _, gains = de.calibration.drift_corrected(recording(values * growth[:, None]), values[:20])
-    # Every frame's gain within 0.2% of the drift's, the touches' 0.4% left in (taken out before).
-    np.testing.assert_allclose(gains, growth, atol=2e-3)
-
-
 def test_a_drift_under_presses_one_after_another_is_followed_by_their_own_gains():
     """Presses one after another with no untouched frame between them (30 after the first 10
     untouched frames), on a skin whose common gain grows 4% over the session: the untouched

@@ -8,7 +8,6 @@ the rests told from the presses by their gains.
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 from typing import NamedTuple
 
@@ -68,9 +67,6 @@ _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift
 
 
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
-
-
-_GAIN_STEP = 3.0  # standard errors of a step in the gains that cuts a run of untouched frames (`_gain_steps`)
 
 
 # Runs of untouched frames shorter than this among touched ones are rests only when their gains
@@ -812,9 +808,7 @@ def drift_corrected(
     above the noise over a session, and every frame looks touched. Each frame's gain c_t is its
     least-squares multiple of the reference (the readings weighed by their noise); a frame is
     untouched when what is left, frame - c_t reference, stands within the reference frames'
-    noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5), and
-    so does its mean over the frames about it between steps of the gain (a touch held near the
-    middle, `_DriftReference.untouched_together`), and its
+    noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5), and its
     gain does not mark it as a press that moved the common part alone (`_rests_not_presses`:
     among presses one after another, those were all the untouched frames, and the drift followed
     them). The gains are the running median of the untouched frames' c_t over `_DRIFT_WINDOW` of
@@ -859,7 +853,6 @@ def drift_corrected(
     ordered = not np.any(np.diff(recording.times) < 0)
     still = drift.untouched(frames, common)
     if ordered:
-        still = drift.untouched_together(frames, common, still)
         still = _rests_not_presses(recording.times, common, still, drift.jitter)
     gains = np.ones_like(common)
     if still.any() and ordered:
@@ -955,27 +948,6 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
     return kept
 
 
-def _gain_steps(gains: np.ndarray, jitter: float, first: int, last: int) -> list[tuple[int, int]]:
-    """The frames `first` to `last` (exclusive) cut where their `gains` (T,) step: before each
-    frame where the mean gain of the up to `_DRIFT_WINDOW` // 2 frames from it less that of as
-    many before it is largest within as many frames either side and exceeds `_GAIN_STEP` of
-    its standard error (`jitter` the variance of one gain). A held touch steps the gain at its
-    start and its end; a drift moves it slowly, a fraction of a step over so few frames. A cut
-    too many only leaves pieces of fewer frames to test."""
-    width = max(_DRIFT_WINDOW // 2, 1)
-    sums = np.r_[0.0, np.cumsum(gains[first:last])]
-    count = last - first
-    at = np.arange(1, count)
-    before, after = np.minimum(at, width), np.minimum(count - at, width)
-    difference = (sums[at + after] - sums[at]) / after - (sums[at] - sums[at - before]) / before
-    size = np.abs(difference) / np.sqrt(jitter * (1 / before + 1 / after))
-    peaks = [
-        k for k in range(len(at)) if size[k] > _GAIN_STEP and size[k] == size[max(k - width, 0) : k + width + 1].max()
-    ]
-    cuts = [first, *(first + int(at[k]) for k in peaks), last]
-    return list(itertools.pairwise(cuts))
-
-
 def _trend_at(times: np.ndarray, gains: np.ndarray, time: float) -> float:
     """The gain at `time` of gains (n,) at `times` (n,): their median moved to `time` along their
     Theil-Sen slope (the median of the slopes between pairs of them), robust to a touch among
@@ -1064,27 +1036,6 @@ class _DriftReference(NamedTuple):
     def gains(self, frames: np.ndarray) -> np.ndarray:
         """(T,) each frame's least-squares multiple of the reference, the readings weighed by their noise."""
         return frames[:, self.kept] @ self.weighed / (self.reference[self.kept] @ self.weighed)
-
-    def untouched_together(self, frames: np.ndarray, gains: np.ndarray, still: np.ndarray) -> np.ndarray:
-        """(T,) the frames `still` (T,) bool, in order, less those a touch holds together. Each
-        run of them is cut where its gains step (`_gain_steps`), and a piece of two frames or
-        more is left out where the mean of its frames, each less its gain times the reference,
-        stands out of the noise (z > `_DRIFT_DETECTION`, its variance 1/n + 1/N of the readings'
-        for n frames against N reference frames). A touch near the middle moves the readings'
-        common gain and little else, and frame by frame it passes for untouched; held, its
-        pattern stands out of the noise of their mean, where a drift's gain leaves none (on the
-        slides benchmark's skins, slow slides through the middle had been divided by their own
-        gains, and 41 to 72 of their frames were missed)."""
-        kept = still.copy()
-        edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0])).reshape(-1, 2)
-        for first, last in edges[edges[:, 1] - edges[:, 0] > 1]:
-            for start, end in _gain_steps(gains, self.jitter, first, last):
-                if end - start < 2:
-                    continue
-                left = np.mean(frames[start:end] - gains[start:end, None] * self.reference, axis=0)
-                variance = 1 / (end - start) + 1 / self.frames
-                kept[start:end] = _statistic(left[None], self.noise, self.frames, variance)[0] <= _DRIFT_DETECTION
-        return kept
 
     def untouched(self, frames: np.ndarray, gains: np.ndarray) -> np.ndarray:
         """(T,) whether frame - gain * reference stands within the reference frames' noise
