@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 from _common import MarkdownTable, skin_benchmark, write_tables
-from calibration import RADIUS, REFERENCE_FRAMES, session
+from calibration import RADIUS, REFERENCE_FRAMES, calibration_session, session
 
 SLIDES, REACH, TOUCH_RADIUS, CHANGE = 4, 0.6, 0.01, -0.3  # -, fraction of the radius, m, dsigma/sigma
 PRESS_IN, REST = 0.1, 1.0  # s
@@ -113,15 +113,7 @@ def main() -> None:
     for seed in range(options.seeds):
         for speed in options.speeds:
             recording, centre, untouched = slid(seed, speed)
-            calibration = de.calibrate(
-                de.io.Recording(
-                    frames=recording.frames[:REFERENCE_FRAMES],
-                    times=recording.times[:REFERENCE_FRAMES],
-                    protocol=recording.protocol,
-                    geometry=recording.geometry,
-                    readings=recording.readings,
-                )
-            )
+            calibration = de.calibrate(calibration_session(recording, 0))
             images = de.reconstruct(recording, calibration=calibration, progress=False, throw=False)
             sliding = ~np.isnan(centre[:, 0])
             for baseline in ("rest", "reference"):

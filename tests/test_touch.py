@@ -287,31 +287,22 @@ def test_rest_anchors_follow_what_presses_leave_and_keep_a_rest_level_that_did_n
         assert all(0 < 25 - max(anchors[a]) <= 12 for a in anchor_of[-4:]), (seed, anchors, anchor_of[-4:])
 
 
-def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_reference():
-    # An opposition-drive board of magnitudes, its readout mixing potentials in, gains per
-    # reading, medium noise; 80 presses one after another, no rest between, imaged without a
-    # calibration. A weak press beside the one before it is, in its voltages, nearly that press
-    # scaled down: its image, whose peak stands higher than that scale of the press's, tells it
-    # from what a press leaves. (Told by the voltages alone, 12 of the 100 frames read other
-    # touches: anchored on presses.)
-    from diffeit.scene import Disc, MeasurementNoise, Noise, Press, ReadingGains, ReadoutMixing, Scene, Skin, Touch
+def _magnitude_board(touches: tuple, duration: float, seed: int) -> tuple[de.io.Recording, de.io.Recording]:
+    """A skin of radius 80 mm on an opposition-drive board of magnitudes, its readout mixing
+    potentials in, gains per reading, medium noise (drawn with `seed`), 10 frames a second for
+    `duration` s with `touches`: the recording and its images by `diffeit.reconstruct`'s
+    defaults (no calibration)."""
+    from diffeit.scene import MeasurementNoise, Noise, ReadingGains, ReadoutMixing, Scene, Skin
 
-    radius, step = 0.08, 0.1
-    rng = np.random.default_rng(0)
-    angle, distance = rng.uniform(0, 2 * np.pi, 80), 0.8 * radius * np.sqrt(rng.uniform(0, 1, 80))
-    centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
+    radius = 0.08
     geometry = {"kind": "disc", "radius": radius, "n_electrodes": 16, "electrode_width": 0.15 * radius}
     skin = Skin(geometry=geometry, h=0.1 * radius, protocol="opposite")
     effects = (
-        ReadoutMixing.random(16, 0.3, seed=0),
-        ReadingGains.random(192, 0.2, seed=0),
-        MeasurementNoise(Noise.level("medium"), seed=0),
+        ReadoutMixing.random(16, 0.3, seed=seed),
+        ReadingGains.random(192, 0.2, seed=seed),
+        MeasurementNoise(Noise.level("medium"), seed=seed),
     )
-    starts = (20 + np.arange(80)) * step - 0.5 * step
-    touches = tuple(
-        Touch(Disc(tuple(c), 0.01), -0.3, Press(start=s, hold=step)) for c, s in zip(centres, starts, strict=True)
-    )
-    scene = Scene(skin=skin, touches=touches, frame_rate=1 / step, duration=100 * step, effects=effects)
+    scene = Scene(skin=skin, touches=touches, frame_rate=10.0, duration=duration, effects=effects)
     simulated = de.simulate(scene).to_recording()
     recording = de.io.Recording(
         frames=np.abs(np.asarray(simulated.frames)),
@@ -320,7 +311,26 @@ def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_refe
         geometry={**geometry, "h": skin.h},
         readings="magnitude",
     )
-    images = de.reconstruct(recording, progress=False, throw=False)
+    return recording, de.reconstruct(recording, progress=False, throw=False)
+
+
+def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_reference():
+    # The board of `_magnitude_board`; 80 presses one after another, no rest between, imaged
+    # without a calibration. A weak press beside the one before it is, in its voltages, nearly
+    # that press scaled down: its image, whose peak stands higher than that scale of the press's,
+    # tells it from what a press leaves. (Told by the voltages alone, 12 of the 100 frames read
+    # other touches: anchored on presses.)
+    from diffeit.scene import Disc, Press, Touch
+
+    radius, step = 0.08, 0.1
+    rng = np.random.default_rng(0)
+    angle, distance = rng.uniform(0, 2 * np.pi, 80), 0.8 * radius * np.sqrt(rng.uniform(0, 1, 80))
+    centres = np.stack([distance * np.cos(angle), distance * np.sin(angle)], axis=1)
+    starts = (20 + np.arange(80)) * step - 0.5 * step
+    touches = tuple(
+        Touch(Disc(tuple(c), 0.01), -0.3, Press(start=s, hold=step)) for c, s in zip(centres, starts, strict=True)
+    )
+    recording, images = _magnitude_board(touches, 100 * step, seed=0)
     found, against_reference = de.touches(images), de.touches(images, baseline="reference")
     np.testing.assert_array_equal(found.count, against_reference.count)
     np.testing.assert_array_equal(found.position, against_reference.position)
@@ -343,34 +353,16 @@ def test_presses_one_after_another_on_a_magnitude_board_read_as_against_the_refe
 
 
 def test_a_touch_sliding_across_a_magnitude_boards_skin_reads_as_against_the_reference():
-    # The board and skin above (another seed), a finger sliding across it three times at one
-    # radius a second, a rest between. Towards the middle the touch fades frame by frame, and its
-    # voltages are nearly the frame before scaled down, but its image's hill has left the place of
-    # the touch's highest frame: the touch moved on, it is not what that frame left, and no anchor
-    # moves. (Read as what it left, its frames became a rest anchor: 54 of the 77 frames were read
-    # against a touch, and 3 of the 27 frames of the slides read none.)
-    from diffeit.scene import (
-        Disc,
-        MeasurementNoise,
-        Noise,
-        Path,
-        Press,
-        ReadingGains,
-        ReadoutMixing,
-        Scene,
-        Skin,
-        Touch,
-    )
+    # The board of `_magnitude_board` (another seed), a finger sliding across it three times at
+    # one radius a second, a rest between. Towards the middle the touch fades frame by frame, and
+    # its voltages are nearly the frame before scaled down, but its image's hill has left the
+    # place of the touch's highest frame: the touch moved on, it is not what that frame left, and
+    # no anchor moves. (Read as what it left, its frames became a rest anchor: 54 of the 77
+    # frames were read against a touch, and 3 of the 27 frames of the slides read none.)
+    from diffeit.scene import Disc, Path, Press, Touch
 
-    radius, step, seed = 0.08, 0.1, 3
+    radius, seed = 0.08, 3
     rng = np.random.default_rng(seed)
-    geometry = {"kind": "disc", "radius": radius, "n_electrodes": 16, "electrode_width": 0.15 * radius}
-    skin = Skin(geometry=geometry, h=0.1 * radius, protocol="opposite")
-    effects = (
-        ReadoutMixing.random(16, 0.3, seed=seed),
-        ReadingGains.random(192, 0.2, seed=seed),
-        MeasurementNoise(Noise.level("medium"), seed=seed),
-    )
     touches, start = [], 2.0
     for _ in range(3):
         begin, end = rng.uniform(-0.6, 0.6, (2, 2)) * radius
@@ -378,16 +370,7 @@ def test_a_touch_sliding_across_a_magnitude_boards_skin_reads_as_against_the_ref
         path = Path([start + 0.1, start + 0.1 + duration], [begin, end])
         touches.append(Touch(Disc(path, 0.01), -0.3, Press(start=start, ramp_in=0.1, hold=duration + 0.1)))
         start += duration + 1.2
-    scene = Scene(skin=skin, touches=tuple(touches), frame_rate=1 / step, duration=start, effects=effects)
-    simulated = de.simulate(scene).to_recording()
-    recording = de.io.Recording(
-        frames=np.abs(np.asarray(simulated.frames)),
-        times=simulated.times,
-        protocol=simulated.protocol,
-        geometry={**geometry, "h": skin.h},
-        readings="magnitude",
-    )
-    images = de.reconstruct(recording, progress=False, throw=False)
+    recording, images = _magnitude_board(tuple(touches), start, seed)
     found, against_reference = de.touches(images), de.touches(images, baseline="reference")
     assert np.all(found.anchor == -1)
     np.testing.assert_array_equal(found.count, against_reference.count)
