@@ -90,6 +90,8 @@ def main() -> None:
     if started is None:
         return
     options, printed = started
+    if not all(np.isfinite(speed) and speed > 0 for speed in options.speeds):
+        parser.error(f"--speeds must be positive numbers of radii a second; got {options.speeds}")
     import diffeit as de
 
     print(
