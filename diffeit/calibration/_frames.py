@@ -8,6 +8,7 @@ the rests told from the presses by their gains.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from typing import NamedTuple
 
@@ -67,6 +68,9 @@ _DRIFT_DETECTION = 5.0  # z of a frame untouched but for its common gain (`drift
 
 
 _DRIFT_WINDOW = 9  # untouched frames in the running median of their gains (`drift_corrected`)
+
+
+_GAIN_STEP = 3.0  # standard errors of a step in the gains that cuts a run of untouched frames (`_gain_steps`)
 
 
 # Runs of untouched frames shorter than this among touched ones are rests only when their gains
@@ -811,17 +815,26 @@ def drift_corrected(
     noise (`diffeit.touch`'s test of differences against a reference's noise, at z = 5), and its
     gain does not mark it as a press that moved the common part alone (`_rests_not_presses`:
     among presses one after another, those were all the untouched frames, and the drift followed
-    them). The gains are the running median of the untouched frames' c_t over `_DRIFT_WINDOW` of
-    them, interpolated in time to the touched frames (the nearest one's beyond them): a touch
+    them). A touch held near the middle, or what a skin's memory leaves after a press, moves the
+    common part and little else, and passes frame by frame; its pattern stands out of the noise
+    of the mean of its frames between steps of the gain, where a drift leaves none
+    (`_DriftReference.untouched_together`: on the slides benchmark, slow slides through the
+    middle had been divided by their own gains, and 41 to 72 of their frames missed). The
+    gains are the running median of the c_t of the untouched frames left over `_DRIFT_WINDOW` of
+    them, interpolated in time to the others (the nearest one's beyond them): a touch
     moves the readings' common part too, and one that moves little else passes for untouched
     (its own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were
-    then missed). Touched frames more than half `_DRIFT_WINDOW` frame steps from every untouched
-    one (presses one after another, which the untouched frames' gains no longer follow) take
+    then missed). Touched frames before the first frame that passes for untouched frame by
+    frame, or after the last, more than half `_DRIFT_WINDOW` frame steps from each (presses one after another, which
+    the untouched frames' gains no longer follow), take
     their own c_t instead, less a press's typical part of it (the median, over the touched
     frames near untouched ones, of their c_t less the untouched frames' gain there), in a
     running median over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under 60
     presses one after another, the test presses were read 19.5 mm off with the nearest untouched
-    gain held, 4.6 mm so). Gains are taken out only when the untouched frames' c_t spread beyond
+    gain held, 4.6 mm so). Between untouched frames the gains are interpolated instead: a press
+    held there is one press, whose own gain a running median follows (on designed memory
+    sessions, 11 of 12 took presses held 1 to 4 s, each its own depth, for a drift of 0.8% to
+    1.8%, and divided them by it). Gains are taken out only when the untouched frames' c_t spread beyond
     the reference frames' own jitter from one frame to the next, or the far touched frames'
     gains beyond the uncertainty of their running median and typical part (F tests at chance
     `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the readings' common
@@ -852,19 +865,24 @@ def drift_corrected(
     common = drift.gains(frames)
     ordered = not np.any(np.diff(recording.times) < 0)
     still = drift.untouched(frames, common)
+    rests = still
     if ordered:
         still = _rests_not_presses(recording.times, common, still, drift.jitter)
+        rests = drift.untouched_together(frames, common, still)
     gains = np.ones_like(common)
-    if still.any() and ordered:
+    if rests.any() and ordered:
         # A running median over the untouched frames: a touch that moves the readings' common
         # part alone passes for untouched, and its own gain would take the touch out of its frame.
-        smooth = scipy.ndimage.median_filter(common[still], size=_DRIFT_WINDOW, mode="nearest")
-        gains = np.interp(recording.times, recording.times[still], smooth)
+        smooth = scipy.ndimage.median_filter(common[rests], size=_DRIFT_WINDOW, mode="nearest")
+        gains = np.interp(recording.times, recording.times[rests], smooth)
     # No drift beyond the reference frames' own jitter, no correction: dividing by noisy gains
     # cost a benchmark skin's nominal pipeline 4 of the 60 presses it had read.
-    drifts = still.any() and _departs(common[still] - 1.0, drift.jitter, 1, drift.frames - 1)
+    drifts = rests.any() and _departs(common[rests] - 1.0, drift.jitter, 1, drift.frames - 1)
     far = _beyond_untouched(recording.times, still) if ordered and still.any() else np.zeros_like(still)
     near = ~still & ~far
+    # Touches between untouched frames take the gains interpolated across them: a drift is slow,
+    # and a press held there is one press, whose own gain a running median would follow.
+    far &= _outside_untouched(still)
     if far.sum() > _DRIFT_WINDOW and near.sum() >= _LEAST_NEAR:
         # Presses one after another: their own gains less a press's typical part of it (the
         # median of the touched frames near untouched ones, less the untouched frames' gains
@@ -948,6 +966,32 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
     return kept
 
 
+def _gain_steps(gains: np.ndarray, jitter: float, first: int, last: int) -> list[tuple[int, int]]:
+    """The frames `first` to `last` (exclusive) cut where their `gains` (T,) step: before each
+    frame where the mean gain of the up to `_DRIFT_WINDOW` // 2 frames from it less that of as
+    many before it is largest within as many frames either side and exceeds `_GAIN_STEP` of
+    its standard error (`jitter` the variance of one gain), the run's steady drift taken out (the
+    median slope of these differences: a touch steps the gain at a few frames alone). A held
+    touch steps the gain at its start and its end; a drift moves it slowly, a fraction of a
+    step over so few frames, yet a steep one (3% over 14 s) cut a held touch in two without it,
+    and a cut too many leaves pieces too short to show a touch's pattern."""
+    width = max(_DRIFT_WINDOW // 2, 1)
+    sums = np.r_[0.0, np.cumsum(gains[first:last])]
+    count = last - first
+    at = np.arange(1, count)
+    before, after = np.minimum(at, width), np.minimum(count - at, width)
+    difference = (sums[at + after] - sums[at]) / after - (sums[at] - sums[at - before]) / before
+    # A steady drift's slope s moves the means' difference by s (before + after) / 2.
+    span = 0.5 * (before + after)
+    difference -= np.median(difference / span) * span if len(at) else 0.0
+    size = np.abs(difference) / np.sqrt(jitter * (1 / before + 1 / after))
+    peaks = [
+        k for k in range(len(at)) if size[k] > _GAIN_STEP and size[k] == size[max(k - width, 0) : k + width + 1].max()
+    ]
+    cuts = [first, *(first + int(at[k]) for k in peaks), last]
+    return list(itertools.pairwise(cuts))
+
+
 def _trend_at(times: np.ndarray, gains: np.ndarray, time: float) -> float:
     """The gain at `time` of gains (n,) at `times` (n,): their median moved to `time` along their
     Theil-Sen slope (the median of the slopes between pairs of them), robust to a touch among
@@ -974,6 +1018,13 @@ def _beyond_untouched(times: np.ndarray, still: np.ndarray) -> np.ndarray:
     between them, whose drift the untouched frames' gains no longer follow."""
     step = frame_period(times)
     return ~still & (_time_to_nearest(times, still) > (_DRIFT_WINDOW // 2 + 0.5) * step)
+
+
+def _outside_untouched(still: np.ndarray) -> np.ndarray:
+    """(T,) the frames before the first frame `still` (T,) bool and after the last."""
+    marked = np.flatnonzero(still)
+    frame = np.arange(len(still))
+    return (frame < marked[0]) | (frame > marked[-1]) if len(marked) else np.ones_like(still)
 
 
 def _time_to_nearest(times: np.ndarray, marked: np.ndarray) -> np.ndarray:
@@ -1036,6 +1087,26 @@ class _DriftReference(NamedTuple):
     def gains(self, frames: np.ndarray) -> np.ndarray:
         """(T,) each frame's least-squares multiple of the reference, the readings weighed by their noise."""
         return frames[:, self.kept] @ self.weighed / (self.reference[self.kept] @ self.weighed)
+
+    def untouched_together(self, frames: np.ndarray, gains: np.ndarray, still: np.ndarray) -> np.ndarray:
+        """(T,) the frames `still` (T,) bool, in order, less those a touch holds together. Each
+        run of them is cut where its gains step (`_gain_steps`), and a piece of two frames or
+        more is left out where the mean of its frames, each less its gain times the reference,
+        stands out of the noise (z > `_DRIFT_DETECTION`, its variance 1/n + 1/N of the readings'
+        for n frames against N reference frames). A touch near the middle moves the readings'
+        common gain and little else, and frame by frame it passes for untouched; held, its
+        pattern stands out of the noise of their mean, as what a skin's memory leaves does,
+        where a drift's gain leaves none."""
+        kept = still.copy()
+        edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0])).reshape(-1, 2)
+        for first, last in edges[edges[:, 1] - edges[:, 0] > 1]:
+            for start, end in _gain_steps(gains, self.jitter, first, last):
+                if end - start < 2:
+                    continue
+                left = np.mean(frames[start:end] - gains[start:end, None] * self.reference, axis=0)
+                variance = 1 / (end - start) + 1 / self.frames
+                kept[start:end] = _statistic(left[None], self.noise, self.frames, variance)[0] <= _DRIFT_DETECTION
+        return kept
 
     def untouched(self, frames: np.ndarray, gains: np.ndarray) -> np.ndarray:
         """(T,) whether frame - gain * reference stands within the reference frames' noise
