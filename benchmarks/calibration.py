@@ -75,6 +75,50 @@ def session(
     with `contact_drift` d, each electrode's contact impedance drifts exponentially, to a factor
     exp(u d) by the session's end, u uniform in [-1, 1] (`diffeit.scene.ContactDrift`)."""
     import diffeit as de
+
+    scene, centres, starts, offsets = session_scene(
+        seed,
+        n_presses,
+        hold=hold,
+        period=period,
+        memory=memory,
+        reach=reach,
+        inner=inner,
+        rows=rows,
+        contact_drift=contact_drift,
+    )
+    recording = de.simulate(scene).to_recording()
+    frames = np.abs(np.asarray(recording.frames))
+    recording = de.io.Recording(
+        frames=frames,
+        times=recording.times,
+        protocol=recording.protocol,
+        geometry={**dict(scene.skin.geometry), "h": scene.skin.h},
+        readings="magnitude",
+        voltage_unit="V",
+    )
+    step = 1.0 / FRAME_RATE
+    held = starts + 0.5 * step
+    if hold > 1:  # the holds, from the first held frame's time to the last's
+        held = np.stack([held, held + (hold - 1) * step], axis=1)
+    return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
+
+
+def session_scene(
+    seed: int,
+    n_presses: int,
+    *,
+    hold: int = 1,
+    period: int = 2,
+    memory=None,
+    reach: float = 0.8,
+    inner: float = 0.0,
+    rows: bool = False,
+    contact_drift: float = 0.0,
+):
+    """`session`'s scene (the same arguments), not simulated: the scene, the presses' centres
+    (K, 2) m, their start times (K,) s, and the electrodes' offsets along the rim (16,) m."""
+    import diffeit as de
     from diffeit.scene import (
         Background,
         ContactDrift,
@@ -128,21 +172,7 @@ def session(
         duration=duration,
         effects=effects,
     )
-    simulation = de.simulate(scene)
-    recording = simulation.to_recording()
-    frames = np.abs(np.asarray(recording.frames))
-    recording = de.io.Recording(
-        frames=frames,
-        times=recording.times,
-        protocol=recording.protocol,
-        geometry={**geometry, "h": skin.h},
-        readings="magnitude",
-        voltage_unit="V",
-    )
-    held = starts + 0.5 * step
-    if hold > 1:  # the holds, from the first held frame's time to the last's
-        held = np.stack([held, held + (hold - 1) * step], axis=1)
-    return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
+    return scene, centres, starts, offsets
 
 
 def true_calibration(fitted, truth, reference: np.ndarray):

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 from _common import MarkdownTable, skin_benchmark, write_tables
-from calibration import RADIUS, REFERENCE_FRAMES, calibration_session, session
+from calibration import RADIUS, REFERENCE_FRAMES, calibration_session, session_scene
 
 SLIDES, REACH, TOUCH_RADIUS, CHANGE = 4, 0.6, 0.01, -0.3  # -, fraction of the radius, m, dsigma/sigma
 PRESS_IN, REST = 0.1, 1.0  # s
@@ -40,8 +40,7 @@ def slid(seed: int, speed: float):
     import diffeit as de
     from diffeit.scene import Disc, Path, Press, Touch
 
-    _, _, truth = session(seed, 1)  # its press is replaced
-    scene = truth["scene"]
+    scene = session_scene(seed, 1)[0]  # its press is replaced
     rng = np.random.default_rng(1000 + seed)
     slides, start = [], REFERENCE_FRAMES / scene.frame_rate
     for _ in range(SLIDES):
