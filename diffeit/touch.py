@@ -908,10 +908,19 @@ def _lost_readings(recording: Recording) -> np.ndarray:
     return lost
 
 
-# The rest frames `_rest_anchors` keeps (`_Anchoring.rest`): index, differences, scores, values,
-# whether it stood out of the noise of the anchor then in force, whether step 2 took it for
-# what the last touch left, and whether it was that touch moved on.
-_RestFrames = tuple[tuple[int, np.ndarray, np.ndarray, tuple[np.ndarray, ...], bool, bool, bool], ...]
+class _RestFrame(NamedTuple):
+    """A frame `_rest_anchors` keeps (`_Anchoring.rest`, `_Anchoring.across`)."""
+
+    index: int
+    differences: np.ndarray  # (M,) against the reference
+    scores: np.ndarray  # (E,) its image
+    values: tuple[np.ndarray, ...]  # each of the values read against the anchors
+    standing: bool  # it stood out of the noise of the anchor then in force
+    left_behind: bool  # step 2 took it for what the last touch left
+    moved_on: bool  # and it was that touch moved on
+
+
+_RestFrames = tuple[_RestFrame, ...]
 
 
 class _Anchor(NamedTuple):
@@ -1003,7 +1012,7 @@ def _rest_anchors(
         if onset:
             window = rest[-_ANCHOR_FRAMES:]
             # A touch that moved on is no rest level (step 2).
-            moved = None if any(frame[6] for frame in window) else _moved_anchor(test, window, anchor, detection)
+            moved = None if any(frame.moved_on for frame in window) else _moved_anchor(test, window, anchor, detection)
             few = moved is None and len(rest) < _LEAST_REST_FRAMES
             short = _moved_anchor(test, rest, anchor, detection, least=1) if few else None
             if short is not None and step is not None and _remains_kept(test, rest, step[0], level, peak, detection):
@@ -1069,7 +1078,7 @@ def _rest_anchors(
         if held[i]:
             rest_start, rest = first + i + 1, ()
         else:
-            frame = (
+            frame = _RestFrame(
                 first + i,
                 dv[i],
                 scores[i],
@@ -1125,20 +1134,20 @@ def _moved_anchor(
     one before left), one within the anchor's noise (it is at the anchor's level), or their
     mean within it. Not `settled`, a level known to drift, the last two are not asked: the
     frames need only be alike."""
-    if len(window) < least or (settled and not all(frame[4] for frame in window)):
+    if len(window) < least or (settled and not all(frame.standing for frame in window)):
         return None
-    steps = np.diff(np.stack([frame[1] for frame in window]), axis=0)
+    steps = np.diff(np.stack([frame.differences for frame in window]), axis=0)
     if len(steps) and np.any(test.statistic(steps, 2.0) > detection):
         return None
-    columns = zip(*(frame[3] for frame in window), strict=True)
+    columns = zip(*(frame.values for frame in window), strict=True)
     means = (
-        np.stack([frame[1] for frame in window]).mean(axis=0),
-        np.stack([frame[2] for frame in window]).mean(axis=0),
+        np.stack([frame.differences for frame in window]).mean(axis=0),
+        np.stack([frame.scores for frame in window]).mean(axis=0),
         *(np.stack(values).mean(axis=0) for values in columns),
     )
     if settled and test.statistic(means[0] - anchor.means[0], 1 / len(window) + 1 / anchor.count)[0] <= detection:
         return None
-    return _Anchor(np.array([frame[0] for frame in window]), len(window), means)
+    return _Anchor(np.array([frame.index for frame in window]), len(window), means)
 
 
 def _against(values: np.ndarray, which: int, anchor_of: np.ndarray, anchors: list[_Anchor]) -> np.ndarray:
@@ -1177,12 +1186,12 @@ def _remains_kept(
     touch's within the noise), and the onset keeps it: the multiple of that change in the
     step's whitened differences (variance 2 s^2) is not below -`RELEASED` by `SIGNIFICANCE`
     standard errors."""
-    if peak is None or not 0 < len(rest) < _LEAST_REST_FRAMES or not all(frame[5] for frame in rest):
+    if peak is None or not 0 < len(rest) < _LEAST_REST_FRAMES or not all(frame.left_behind for frame in rest):
         return False
-    image = np.mean([frame[2] for frame in rest], axis=0) - level.means[1]
+    image = np.mean([frame.scores for frame in rest], axis=0) - level.means[1]
     if peak[2][np.argmax(image)] < 0.5 * peak[2].max():
         return False
-    change = test.whitened(np.mean([frame[1] for frame in rest], axis=0) - level.means[0])[0]
+    change = test.whitened(np.mean([frame.differences for frame in rest], axis=0) - level.means[0])[0]
     if _unexplained(test, change, peak[1], 1 / len(rest) + 1 / level.count) > detection:
         return False
     along, error = _step_multiple(test, step, change)
@@ -1207,10 +1216,11 @@ def _departs_from_rest(
     if len(rest) < _LEAST_REST_FRAMES:
         return False
     variance = 1 + 1 / len(rest)
-    departure = dv - np.mean([frame[1] for frame in rest], axis=0)
+    departure = dv - np.mean([frame.differences for frame in rest], axis=0)
     if test.statistic(departure, variance)[0] <= detection:
         return False
-    return _onset(test, departure, scores - np.mean([frame[2] for frame in rest], axis=0), peak, detection, variance)
+    image = scores - np.mean([frame.scores for frame in rest], axis=0)
+    return _onset(test, departure, image, peak, detection, variance)
 
 
 def _onset(
