@@ -54,39 +54,14 @@ FRAME_RATE, REFERENCE_FRAMES = 10.0, 20
 ELECTRODE_ERROR = np.deg2rad(5.0)  # the largest electrode position error, rad
 
 
-def session(
-    seed: int,
-    n_presses: int,
-    *,
-    hold: int = 1,
-    period: int = 2,
-    memory=None,
-    reach: float = 0.8,
-    inner: float = 0.0,
-    rows: bool = False,
-    contact_drift: float = 0.0,
-):
+def session(seed: int, n_presses: int, **options):
     """A simulated calibration session: the recording (magnitudes), the presses (labelled), and
-    the truth (the scene and its artefacts). Each press is held `hold` frames, one every `period`
-    frames, labelled with their holds (start and end) when longer than a frame, else an instant;
-    the presses lie between `inner` and `reach` of the skin's radius; with `memory` (a
-    `diffeit.memory.MemoryParameters`), the skin has that memory; with `rows`, the presses come
-    in rows from the bottom up (a robot's raster: the first of them cover the lower part alone);
-    with `contact_drift` d, each electrode's contact impedance drifts exponentially, to a factor
-    exp(u d) by the session's end, u uniform in [-1, 1] (`diffeit.scene.ContactDrift`)."""
+    the truth (the scene and its artefacts); `options` are `session_scene`'s. Each press is held
+    `hold` frames, labelled with their holds (start and end) when longer than a frame, else an
+    instant."""
     import diffeit as de
 
-    scene, centres, starts, offsets = session_scene(
-        seed,
-        n_presses,
-        hold=hold,
-        period=period,
-        memory=memory,
-        reach=reach,
-        inner=inner,
-        rows=rows,
-        contact_drift=contact_drift,
-    )
+    scene, centres, starts, offsets = session_scene(seed, n_presses, **options)
     recording = de.simulate(scene).to_recording()
     frames = np.abs(np.asarray(recording.frames))
     recording = de.io.Recording(
@@ -99,6 +74,7 @@ def session(
     )
     step = 1.0 / FRAME_RATE
     held = starts + 0.5 * step
+    hold = options.get("hold", 1)
     if hold > 1:  # the holds, from the first held frame's time to the last's
         held = np.stack([held, held + (hold - 1) * step], axis=1)
     return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
@@ -116,8 +92,14 @@ def session_scene(
     rows: bool = False,
     contact_drift: float = 0.0,
 ):
-    """`session`'s scene (the same arguments), not simulated: the scene, the presses' centres
-    (K, 2) m, their start times (K,) s, and the electrodes' offsets along the rim (16,) m."""
+    """A calibration session's scene, not simulated (`session` simulates it): the scene, the
+    presses' centres (K, 2) m, their start times (K,) s, and the electrodes' offsets along the
+    rim (16,) m. Each press is held `hold` frames, one every `period` frames; the presses lie
+    between `inner` and `reach` of the skin's radius; with `memory` (a
+    `diffeit.memory.MemoryParameters`), the skin has that memory; with `rows`, the presses come
+    in rows from the bottom up (a robot's raster: the first of them cover the lower part alone);
+    with `contact_drift` d, each electrode's contact impedance drifts exponentially, to a factor
+    exp(u d) by the session's end, u uniform in [-1, 1] (`diffeit.scene.ContactDrift`)."""
     import diffeit as de
     from diffeit.scene import (
         Background,

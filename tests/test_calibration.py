@@ -887,8 +887,8 @@ def test_presses_that_pass_for_untouched_among_presses_one_after_another_are_no_
 def _held_touches(parts: list[float], pattern_size: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """20 untouched frames, then touches held 30 frames each with 8 untouched frames before each
     and after the last, a frame every 0.1 s: touch k raises the readings' common gain by parts[k]
-    and adds a pattern of its own of norm `pattern_size` times the readings' noise (unit) over
-    the square root of their number. The frames (T, M) and which are held (T,) bool."""
+    and adds a pattern of its own, none of it along the readings, whose RMS over them is
+    `pattern_size` times their noise (unit). The frames (T, M) and which are held (T,) bool."""
     rng = np.random.default_rng(seed)
     readings = PROTOCOL.n_measurements
     level = 100.0 + 20.0 * rng.standard_normal(readings)
@@ -905,13 +905,14 @@ def _held_touches(parts: list[float], pattern_size: float, seed: int) -> tuple[n
 
 
 def _recording(frames: np.ndarray) -> de.io.Recording:
+    """`frames` (T, M) as a recording, a frame every 0.1 s."""
     return de.io.Recording(frames=frames, times=0.1 * np.arange(len(frames)), protocol=PROTOCOL)
 
 
 def test_a_touch_held_near_the_middle_is_no_drift_and_a_drift_under_rests_is_followed():
     """Three touches held 30 frames each, each raising the readings' common gain 0.4% and adding
     a pattern of its own that frame by frame stands within the noise (a touch near the middle,
-    z about 2), so each of its frames passes for untouched. Held, the pattern stands out of the
+    z about 1), so each of its frames passes for untouched. Held, the pattern stands out of the
     noise of their mean: no drift is taken out (before, every held frame was divided by its
     touch's gain, and the touch was gone: a slow slide through the middle lost 41 to 72 of its
     frames on the slides benchmark). A drift of 3% over the session under the same rests and

@@ -819,22 +819,23 @@ def drift_corrected(
     common part and little else, and passes frame by frame; its pattern stands out of the noise
     of the mean of its frames between steps of the gain, where a drift leaves none
     (`_DriftReference.untouched_together`: on the slides benchmark, slow slides through the
-    middle had been divided by their own gains, and 41 to 72 of their frames missed). The
-    gains are the running median of the c_t of the untouched frames left over `_DRIFT_WINDOW` of
-    them, interpolated in time to the others (the nearest one's beyond them): a touch
-    moves the readings' common part too, and one that moves little else passes for untouched
-    (its own c_t took its touch out of 6 of 60 presses' frames on a benchmark skin, which were
-    then missed). Touched frames before the first frame that passes for untouched frame by
-    frame, or after the last, more than half `_DRIFT_WINDOW` frame steps from each (presses one after another, which
-    the untouched frames' gains no longer follow), take
-    their own c_t instead, less a press's typical part of it (the median, over the touched
-    frames near untouched ones, of their c_t less the untouched frames' gain there), in a
-    running median over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under 60
-    presses one after another, the test presses were read 19.5 mm off with the nearest untouched
-    gain held, 4.6 mm so). Between untouched frames the gains are interpolated instead: a press
-    held there is one press, whose own gain a running median follows (on designed memory
-    sessions, 11 of 12 took presses held 1 to 4 s, each its own depth, for a drift of 0.8% to
-    1.8%, and divided them by it). Gains are taken out only when the untouched frames' c_t spread beyond
+    middle had been divided by their own gains, and 41 to 72 of their frames missed); when
+    every run shows a pattern, it is the reference's, and the frames untouched frame by frame
+    are kept. The gains are the running median of the c_t of the untouched frames left over
+    `_DRIFT_WINDOW` of them, interpolated in time to the others (the nearest one's beyond
+    them): a touch moves the readings' common part too, and one that moves little else passes
+    for untouched (its own c_t took its touch out of 6 of 60 presses' frames on a benchmark
+    skin, which were then missed). Touched frames before the first frame untouched frame by
+    frame, or after the last, and more than half `_DRIFT_WINDOW` frame steps from it (presses
+    one after another, which the untouched frames' gains no longer follow), take their own c_t
+    instead, less a press's typical part of it (the median, over the touched frames near
+    untouched ones, of their c_t less the untouched frames' gain there), in a running median
+    over `_DRIFT_WINDOW` of them (on a benchmark skin whose gain grew 5% under 60 presses one
+    after another, the test presses were read 19.5 mm off with the nearest untouched gain held,
+    4.6 mm so). Between untouched frames the gains are interpolated instead: a press held there
+    is one press, whose own gain a running median follows (on designed memory sessions, 11 of
+    12 took presses held 1 to 4 s, each its own depth, for a drift of 0.8% to 1.8%, and divided
+    them by it). Gains are taken out only when the untouched frames' c_t spread beyond
     the reference frames' own jitter from one frame to the next, or the far touched frames'
     gains beyond the uncertainty of their running median and typical part (F tests at chance
     `_DRIFT_CHANCE`): estimated from the frames, each gain is as noisy as the readings' common
