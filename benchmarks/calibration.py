@@ -62,22 +62,29 @@ def session(seed: int, n_presses: int, **options):
     import diffeit as de
 
     scene, centres, starts, offsets = session_scene(seed, n_presses, **options)
-    recording = de.simulate(scene).to_recording()
-    frames = np.abs(np.asarray(recording.frames))
-    recording = de.io.Recording(
-        frames=frames,
-        times=recording.times,
-        protocol=recording.protocol,
-        geometry={**dict(scene.skin.geometry), "h": scene.skin.h},
-        readings="magnitude",
-        voltage_unit="V",
-    )
+    recording = read_by_the_board(scene)
     step = 1.0 / FRAME_RATE
     held = starts + 0.5 * step
     hold = options.get("hold", 1)
     if hold > 1:  # the holds, from the first held frame's time to the last's
         held = np.stack([held, held + (hold - 1) * step], axis=1)
     return recording, de.io.Presses(centres, PRESS_RADIUS, held), {"scene": scene, "offsets": offsets}
+
+
+def read_by_the_board(scene):
+    """`scene` simulated and read as the benchmark's board reads it: magnitudes, in volts, the
+    skin's geometry (with its mesh size) attached."""
+    import diffeit as de
+
+    recording = de.simulate(scene).to_recording()
+    return de.io.Recording(
+        frames=np.abs(np.asarray(recording.frames)),
+        times=recording.times,
+        protocol=recording.protocol,
+        geometry={**dict(scene.skin.geometry), "h": scene.skin.h},
+        readings="magnitude",
+        voltage_unit="V",
+    )
 
 
 def session_scene(

@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
 from _common import MarkdownTable, skin_benchmark, write_tables
-from calibration import RADIUS, REFERENCE_FRAMES, calibration_session, session_scene
+from calibration import RADIUS, REFERENCE_FRAMES, calibration_session, read_by_the_board, session_scene
 
 SLIDES, REACH, TOUCH_RADIUS, CHANGE = 4, 0.6, 0.01, -0.3  # -, fraction of the radius, m, dsigma/sigma
 PRESS_IN, REST = 0.1, 1.0  # s
@@ -37,7 +37,6 @@ def slid(seed: int, speed: float):
     """The session of `seed` (its skin and board, `calibration.session`) with the slides at `speed`
     radii a second: the recording (magnitudes), each frame's touch centre (T, 2) m (NaN where the
     touch is not fully pressed) and the untouched frames (T,) bool."""
-    import diffeit as de
     from diffeit.scene import Disc, Path, Press, Touch
 
     scene = session_scene(seed, 1)[0]  # its press is replaced
@@ -56,7 +55,7 @@ def slid(seed: int, speed: float):
         )
         for s, d, a, b in slides
     )
-    recording = de.simulate(scene.replace(touches=touches, duration=start)).to_recording()
+    recording = read_by_the_board(scene.replace(touches=touches, duration=start))
     times = np.asarray(recording.times)
     centre = np.full((len(times), 2), np.nan)
     untouched = np.ones(len(times), bool)
@@ -64,16 +63,7 @@ def slid(seed: int, speed: float):
         on = (times >= s + PRESS_IN) & (times <= s + PRESS_IN + d)
         centre[on] = a + np.clip((times[on] - s - PRESS_IN) / d, 0, 1)[:, None] * (b - a)
         untouched &= (times < s - 0.05) | (times > s + PRESS_IN + d + 0.15)
-    geometry = {**dict(scene.skin.geometry), "h": scene.skin.h}
-    magnitudes = de.io.Recording(
-        frames=np.abs(np.asarray(recording.frames)),
-        times=recording.times,
-        protocol=recording.protocol,
-        geometry=geometry,
-        readings="magnitude",
-        voltage_unit="V",
-    )
-    return magnitudes, centre, untouched
+    return recording, centre, untouched
 
 
 def _directions(rng: np.random.Generator, count: int) -> np.ndarray:
