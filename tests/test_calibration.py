@@ -909,6 +909,15 @@ def _recording(frames: np.ndarray) -> de.io.Recording:
     return de.io.Recording(frames=frames, times=0.1 * np.arange(len(frames)), protocol=PROTOCOL)
 
 
+def _gains_under_a_drift(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`drift_corrected`'s gains of `values` (T, M) grown 3% over the session (their first 20
+    frames the reference), and the drift's own (against the reference frames' mean)."""
+    growth = 1.0 + 0.03 * np.arange(len(values)) / (len(values) - 1)
+    drifted = values * growth[:, None]
+    _, gains = de.calibration.drift_corrected(_recording(drifted), drifted[:20])
+    return gains, growth / growth[:20].mean()
+
+
 def test_a_touch_held_near_the_middle_is_no_drift_and_a_drift_under_rests_is_followed():
     """Three touches held 30 frames each, each raising the readings' common gain 0.4% and adding
     a pattern of its own that frame by frame stands within the noise (a touch near the middle,
@@ -921,12 +930,9 @@ def test_a_touch_held_near_the_middle_is_no_drift_and_a_drift_under_rests_is_fol
     drift = _frames._DriftReference.of(values[:20])
     assert np.all(drift.untouched(values, drift.gains(values))[held])  # frame by frame, untouched
     assert de.calibration.drift_corrected(_recording(values), values[:20])[1] is None
-    growth = 1.0 + 0.03 * np.arange(len(values)) / (len(values) - 1)
-    drifted = values * growth[:, None]
-    _, gains = de.calibration.drift_corrected(_recording(drifted), drifted[:20])
-    # Every frame's gain (against the reference frames' mean) within 0.2% of the drift's, the
-    # touches' 0.4% left in (measured: 0.14%, where a running median lags so steep a drift).
-    np.testing.assert_allclose(gains, growth / growth[:20].mean(), atol=2e-3)
+    # Every frame's gain within 0.2% of the drift's, the touches' 0.4% left in (measured: 0.14%,
+    # where a running median lags so steep a drift).
+    np.testing.assert_allclose(*_gains_under_a_drift(values), atol=2e-3)
 
 
 def test_presses_held_between_untouched_frames_are_no_drift_however_deep():
@@ -942,10 +948,7 @@ def test_presses_held_between_untouched_frames_are_no_drift_however_deep():
     drift = _frames._DriftReference.of(values[:20])
     assert not np.any(drift.untouched(values, drift.gains(values))[held])
     assert de.calibration.drift_corrected(_recording(values), values[:20])[1] is None
-    growth = 1.0 + 0.03 * np.arange(len(values)) / (len(values) - 1)
-    drifted = values * growth[:, None]
-    _, gains = de.calibration.drift_corrected(_recording(drifted), drifted[:20])
-    np.testing.assert_allclose(gains, growth / growth[:20].mean(), atol=2e-3)
+    np.testing.assert_allclose(*_gains_under_a_drift(values), atol=2e-3)
 
 
 def test_a_drift_under_presses_one_after_another_is_followed_by_their_own_gains():
