@@ -91,6 +91,20 @@ _ROUND_OFF = 1e-12  # a reading's spread under this fraction of its value is rou
 _LIVE_DRIFT_ERRORS = 3.0  # a stream's running gain is taken out beyond this many standard errors from 1 (`LiveDrift`)
 
 
+# A stream's untouched frames join its drift's gains in pieces: a piece of at least _LIVE_SETTLED
+# frames whose mean gain lies within _GAIN_STEP standard errors of the gains' trend, or of
+# _LIVE_PIECE frames whose mean shows no touch's pattern (the trend's new level), once the gains
+# hold _LIVE_TREND frames (before, every untouched frame joins them: no trend to stand off).
+_LIVE_SETTLED, _LIVE_PIECE, _LIVE_TREND = 3, 2 * _DRIFT_WINDOW, 3
+# A stream's trend is the median of its latest _DRIFT_WINDOW joined gains moved along the slope of
+# the latest _LIVE_SLOPE (`LiveDrift`): a touch's step in the gain stands off a trend a few frames
+# on from them only when its slope is known to a fraction of a gain's noise over those frames.
+_LIVE_SLOPE = 3 * _DRIFT_WINDOW
+# A piece that showed a touch's pattern shows it until the z of its latest frames' mean falls to
+# this (a faint touch's z wavers about `_DRIFT_DETECTION`; `LiveDrift`).
+_LIVE_GONE = 3.0
+
+
 # A block of frames differs from the untouched frames before it beyond this many robust spreads of
 # their noise (`_unchanged`).
 _CHANGE_SPREADS = 6.0
@@ -971,10 +985,12 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
     return kept
 
 
-def _gain_steps(gains: np.ndarray, jitter: float, first: int, last: int) -> list[tuple[int, int]]:
+def _gain_steps(
+    gains: np.ndarray, jitter: float, first: int, last: int, step: float = _GAIN_STEP
+) -> list[tuple[int, int]]:
     """The frames `first` to `last` (exclusive) cut where their `gains` (T,) step: before each
     frame where the mean gain of the up to `_DRIFT_WINDOW` // 2 frames from it less that of as
-    many before it is largest within as many frames either side and exceeds `_GAIN_STEP` of
+    many before it is largest within as many frames either side and exceeds `step` of
     its standard error (`jitter` the variance of one gain), the run's steady drift taken out (the
     median slope of these differences: a touch steps the gain at a few frames alone). A held
     touch steps the gain at its start and its end; a drift moves it slowly, a fraction of a
@@ -990,22 +1006,25 @@ def _gain_steps(gains: np.ndarray, jitter: float, first: int, last: int) -> list
     span = 0.5 * (before + after)
     difference -= np.median(difference / span) * span if len(at) else 0.0
     size = np.abs(difference) / np.sqrt(jitter * (1 / before + 1 / after))
-    peaks = [
-        k for k in range(len(at)) if size[k] > _GAIN_STEP and size[k] == size[max(k - width, 0) : k + width + 1].max()
-    ]
+    peaks = [k for k in range(len(at)) if size[k] > step and size[k] == size[max(k - width, 0) : k + width + 1].max()]
     cuts = [first, *(first + int(at[k]) for k in peaks), last]
     return list(itertools.pairwise(cuts))
 
 
 def _trend_at(times: np.ndarray, gains: np.ndarray, time: float) -> float:
     """The gain at `time` of gains (n,) at `times` (n,): their median moved to `time` along their
-    Theil-Sen slope (the median of the slopes between pairs of them), robust to a touch among
-    them that passed for untouched; a median alone lags a steady drift by half their span."""
+    Theil-Sen slope (`_slope`), robust to a touch among them that passed for untouched; a median
+    alone lags a steady drift by half their span."""
+    return float(np.median(gains)) + _slope(times, gains) * (time - float(np.median(times)))
+
+
+def _slope(times: np.ndarray, gains: np.ndarray) -> float:
+    """The Theil-Sen slope, 1/s, of gains (n,) at `times` (n,): the median of the slopes between
+    pairs of them (0 for none)."""
     first, second = np.triu_indices(len(gains), k=1)
     apart = times[second] - times[first]
     slopes = (gains[second] - gains[first])[apart != 0] / apart[apart != 0]
-    slope = float(np.median(slopes)) if len(slopes) else 0.0
-    return float(np.median(gains)) + slope * (time - float(np.median(times)))
+    return float(np.median(slopes)) if len(slopes) else 0.0
 
 
 def _departs(deviations: np.ndarray, variance: float, run: int, freedom: int) -> bool:
@@ -1055,12 +1074,23 @@ def _checked_frames(
     return frames
 
 
+def _spread(reference_set: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mean (M,) of reference frames (N, M) and each reading's noise (M,), the standard
+    deviation of the frames each divided by its own gain against the mean first (the reference
+    frames may drift too)."""
+    reference = reference_set.mean(axis=0)
+    norm = reference @ reference
+    own = reference_set @ reference / norm if norm > 0 else np.ones(len(reference_set))
+    return reference, (reference_set / np.where(own > 0, own, 1.0)[:, None]).std(axis=0, ddof=1)
+
+
 class _DriftReference(NamedTuple):
     """What tells a frame's common gain against a reference (`drift_corrected`, `LiveDrift`):
     the reference (M,), the mean of `frames` frames, their noise (M,), the readings whose noise
     is above round-off (`kept`) and their weights (the reference over the noise squared), and
-    `jitter`, the variance of one frame's gain (half the mean square of successive reference
-    frames' gains' differences: blind to a slow drift among the reference frames themselves)."""
+    `jitter`, the variance of one frame's gain (a sixth of the mean square of the successive
+    reference frames' gains' second differences: blind to a steady drift among the reference
+    frames themselves), each frame's gain taken against the reference and weights of the others."""
 
     reference: np.ndarray
     noise: np.ndarray
@@ -1075,19 +1105,28 @@ class _DriftReference(NamedTuple):
         identical to round-off (no noise to weigh or test by)."""
         if len(reference_set) < _NOISE_FRAMES:
             return None
-        # The noise with each frame's own gain taken out first: the reference frames may drift too.
-        reference = reference_set.mean(axis=0)
-        norm = reference @ reference
-        own = reference_set @ reference / norm if norm > 0 else np.ones(len(reference_set))
-        noise = (reference_set / np.where(own > 0, own, 1.0)[:, None]).std(axis=0, ddof=1)
+        reference, noise = _spread(reference_set)
         # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
         # found a drift of 0% and divided the frames by it.
         kept = noise > _ROUND_OFF * np.abs(reference)
         if not kept.any():
             return None
-        weighed = reference[kept] / noise[kept] ** 2
-        gains = reference_set[:, kept] @ weighed / (reference[kept] @ weighed)
-        return cls(reference, noise, len(reference_set), kept, weighed, float(0.5 * np.mean(np.diff(gains) ** 2)))
+        # Against weights from the frames themselves, a frame weighs most the readings whose
+        # noise it happened to make small, and its gain looks steadier than a later frame's:
+        # with 6 reference frames of 192 readings, later frames' gains spread 1.4 times as far
+        # as the reference frames' on the median, 3.4 times at the 90th percentile (0.85 and
+        # 1.3 times, each left out of its own reference).
+        gains = np.empty(len(reference_set))
+        for k in range(len(reference_set)):
+            others, others_noise = _spread(np.delete(reference_set, k, axis=0))
+            # A reading that varied in frame k alone takes the noise of all of them.
+            others_noise = np.where(others_noise > _ROUND_OFF * np.abs(others), others_noise, noise)
+            weights = others[kept] / others_noise[kept] ** 2
+            gains[k] = reference_set[k, kept] @ weights / (others[kept] @ weights)
+        # Second differences: a steady drift among the reference frames cancels (in the first,
+        # a drift of 9 times the noise a frame passed for jitter, and a stream took it for none).
+        jitter = float(np.mean(np.diff(gains, 2) ** 2) / 6)
+        return cls(reference, noise, len(reference_set), kept, reference[kept] / noise[kept] ** 2, jitter)
 
     def gains(self, frames: np.ndarray) -> np.ndarray:
         """(T,) each frame's least-squares multiple of the reference, the readings weighed by their noise."""
@@ -1120,29 +1159,108 @@ class _DriftReference(NamedTuple):
         return ~_noise_test(left, self.noise, self.frames, self.frames, _DRIFT_DETECTION)
 
 
+class _Piece(NamedTuple):
+    """A stream's untouched frames not yet joined to its drift's gains (`LiveDrift`): the
+    latest `_LIVE_SLOPE` frames' `times` (n,) s and `gains` (n,), their `count`, the sums of
+    all their times and gains, the latest `_LIVE_PIECE` frames each less its gain times the
+    reference (`left`, (k, M)), and whether their mean shows a touch's pattern (`touched`)."""
+
+    times: np.ndarray
+    gains: np.ndarray
+    count: int
+    time_sum: float
+    gain_sum: float
+    left: np.ndarray
+    touched: bool
+
+    @classmethod
+    def of(cls, time: float, gain: float, left: np.ndarray) -> _Piece:
+        """A piece of one frame at `time` of `gain`, `left` (M,) the frame less its gain times the reference."""
+        return cls(np.array([time]), np.array([gain]), 1, time, gain, left[None], False)
+
+    def joined(self, time: float, gain: float, left: np.ndarray) -> _Piece:
+        """The piece with a frame at `time` of `gain`, `left` (M,) as `of`'s."""
+        return self._replace(
+            times=np.append(self.times, time)[-_LIVE_SLOPE:],
+            gains=np.append(self.gains, gain)[-_LIVE_SLOPE:],
+            count=self.count + 1,
+            time_sum=self.time_sum + time,
+            gain_sum=self.gain_sum + gain,
+            left=np.concatenate([self.left, left[None]])[-_LIVE_PIECE:],
+        )
+
+    def split(self, first: int) -> tuple[_Piece, _Piece]:
+        """The piece before its frame `first` and from it on, counted among its latest
+        `_LIVE_SLOPE` (the latter within its latest `_LIVE_PIECE`); neither `touched` yet."""
+        times, gains = self.times[first:], self.gains[first:]
+        kept = len(gains)
+        after = _Piece(times, gains, kept, float(times.sum()), float(gains.sum()), self.left[-kept:], False)
+        before = _Piece(
+            self.times[:first],
+            self.gains[:first],
+            self.count - kept,
+            self.time_sum - after.time_sum,
+            self.gain_sum - after.gain_sum,
+            self.left[:-kept],
+            False,
+        )
+        return before, after
+
+
 class LiveDrift(eqx.Module):
     """A stream's drift, followed frame by frame (`diffeit live`): `drift_corrected` for frames
     that come one batch at a time, the future unknown.
 
     Each frame's common gain against the reference and its test for a touch are
-    `drift_corrected`'s. The gain a frame is divided by comes from the latest `_DRIFT_WINDOW`
-    untouched frames' gains (itself included when it is untouched): their median, moved to the
-    frame's time along their Theil-Sen slope (the median of the slopes between pairs of them:
-    a median alone lags a steady drift by half the window, and the frames then looked touched);
-    robust, as the offline running median, to a touch that passes for untouched. It is taken
-    as 1 while the median stands within `_LIVE_DRIFT_ERRORS` of its standard errors of 1
-    (1.25 sqrt(jitter / n) for n gains), so that a steady skin's frames are not divided by
-    noise. A frame that looks touched gets the untouched frames' gain at its time.
+    `drift_corrected`'s. The gain a frame is divided by is the trend of the untouched frames'
+    gains joined so far (`_trend`): the median of the latest `_DRIFT_WINDOW`, moved to the
+    frame's time along the Theil-Sen slope of the latest `_LIVE_SLOPE` where that slope stands
+    beyond `_LIVE_DRIFT_ERRORS` of its standard errors (a median alone lags a steady drift by
+    half its window, and the frames then looked touched). It is taken as 1 while no slope does
+    and the median stands within `_LIVE_DRIFT_ERRORS` of its standard errors of 1 (1.25
+    sqrt(jitter / n) for n gains), so that a steady skin's frames are not divided by noise. A
+    frame that looks touched gets the trend at its time too.
+
+    A touch held near the middle moves the readings' common gain and little else, and frame by
+    frame passes for untouched: when each such frame joined the gains as it came, the stream
+    divided the touch out from about its fourth frame (29 to 93 of a slow slide's frames on
+    the slides benchmark's skins). So untouched frames join the gains in pieces, a few frames late:
+
+    - A frame continues the open piece when it lies within `_GAIN_STEP` standard errors of the
+      piece's trend (that trend's uncertainty and the frame's own jitter; a piece of fewer than
+      `_LIVE_TREND` frames takes no slope), or when the piece has neither settled nor shown a
+      touch (closed, a level the gains' trend lost would be dropped, and the gains would keep
+      the trend they lost). Else the piece closes, and joins the gains when settled, its last
+      frame too.
+    - A piece has settled when its mean gain lies within `_GAIN_STEP` standard errors of the
+      gains' trend and it shows no touch's pattern: the mean of its latest `_LIVE_PIECE` frames,
+      each less its gain times the reference, stands within the noise (z <= `_DRIFT_DETECTION`,
+      as `drift_corrected` tells a touch held; once above, until it falls to `_LIVE_GONE`). It
+      joins once it holds `_LIVE_SETTLED` frames.
+    - A piece whose gains step (`_gain_steps` at `_DRIFT_DETECTION` standard errors) is two: the
+      frames before the last step join when settled, or when they show no pattern and lie
+      nearer the trend than the frames after (a level the trend lost, then a touch); the piece
+      goes on from the step.
+    - A piece of `_LIVE_PIECE` frames with no touch's pattern is the gains' new level, in their
+      place (a gain that stepped: a board's, or a drift the trend lost under a long touch).
+
+    Any other piece is a touch, or frames of noise, and never joins. While the gains hold fewer
+    than `_LIVE_TREND` frames, every untouched frame joins them at once: there is no trend to
+    stand off. Under a touch, the drift is followed only along the slope the gains had before
+    it: after a touch held 15 s under a drift of 1% over 22 s, the first rest frames' gains
+    were up to 1% off.
 
     Attributes:
         reference: What tells a frame's gain and touch (the reference frames'; `of`).
-        times: (n,) the latest untouched frames' times, s, n at most `_DRIFT_WINDOW`.
+        times: (n,) the latest joined untouched frames' times, s, n at most `_LIVE_SLOPE`.
         recent: (n,) their gains.
+        piece: The untouched frames since, not yet joined, or None.
     """
 
     reference: _DriftReference
     times: np.ndarray
     recent: np.ndarray
+    piece: _Piece | None = None
 
     @classmethod
     def of(cls, reference_set: ArrayLike) -> LiveDrift | None:
@@ -1174,22 +1292,143 @@ class LiveDrift(eqx.Module):
         common = self.reference.gains(frames)
         # A frame that is not finite (reported by its caller) must not poison the gains to come.
         still = self.reference.untouched(frames, common) & np.all(np.isfinite(frames), axis=1)
-        kept_times, recent, gains = self.times, self.recent, np.ones(len(frames))
+        drift, gains = self, np.ones(len(frames))
         for t in range(len(frames)):
             if still[t]:
-                kept_times = np.append(kept_times, times[t])[-_DRIFT_WINDOW:]
-                recent = np.append(recent, common[t])[-_DRIFT_WINDOW:]
-            gains[t] = self._gain_at(kept_times, recent, times[t])
-        return frames / gains[:, None], gains, eqx.tree_at(lambda d: (d.times, d.recent), self, (kept_times, recent))
+                drift = drift._with(times[t], common[t], frames[t] - common[t] * self.reference.reference)
+            gains[t] = drift._gain_at(times[t])
+        return frames / gains[:, None], gains, drift
 
-    def _gain_at(self, times: np.ndarray, gains: np.ndarray, time: float) -> float:
-        """The gain at `time` from untouched frames' `gains` at `times` (class docstring)."""
+    def _with(self, time: float, gain: float, left: np.ndarray) -> LiveDrift:
+        """The drift after an untouched frame at `time` of `gain`, `left` (M,) the frame less
+        its gain times the reference (the class docstring's pieces)."""
+        piece = self.piece
+        if piece is not None and self._continues(piece, time, gain):
+            return self._settling(self._tested(piece.joined(time, gain, left)))
+        # Closed by a frame that steps off it, the piece joins the gains when settled, its last
+        # frame too: a rest frame and a touch's first, closed by the touch's second, had settled
+        # on their mean, and the touch's frame tilted the trend's slope.
+        settled = piece is not None and self._settled(piece)
+        settled = settled and self._off(self.times, self.recent, piece.times[-1], piece.gains[-1]) <= _GAIN_STEP
+        return (self._joined(piece) if settled else self)._settling(_Piece.of(time, gain, left))
+
+    def _continues(self, piece: _Piece, time: float, gain: float) -> bool:
+        """Whether a frame at `time` of `gain` continues `piece`: when within `_GAIN_STEP`
+        standard errors of the piece's trend, or when the piece is neither settled nor a touch
+        (a frame of noise, or a level the gains' trend lost: closed, it would be lost, and the
+        gains would follow the trend they lost)."""
+        if self._off(piece.times, piece.gains, time, gain, least=_LIVE_TREND) <= _GAIN_STEP:
+            return True
+        return not (piece.touched or self._settled(piece))
+
+    def _settling(self, piece: _Piece) -> LiveDrift:
+        """The drift with `piece` open, joined to the gains when it is settled or of
+        `_LIVE_PIECE` frames with no touch's pattern."""
+        if len(self.recent) < _LIVE_TREND:
+            return self._joined(piece)
+        cuts = (
+            []
+            if piece.touched
+            else _gain_steps(piece.gains, self.reference.jitter, 0, len(piece.gains), _DRIFT_DETECTION)
+        )
+        if len(cuts) > 1:
+            # Two levels, not one (a touch that began on frames the trend had lost, its pattern
+            # diluted by theirs, and the mean between them settled). The piece goes on from the
+            # last step; the frames before it join the gains when settled, or when, with no
+            # touch's pattern, they lie nearer the trend than the frames after (a level the trend
+            # lost, then a touch); else they are left out.
+            before, after = (self._tested(part) for part in piece.split(cuts[-1][0]))
+            trend = self._trend(self.times, self.recent, after.time_sum / after.count)[0]
+            nearer = abs(before.gain_sum / before.count - trend) < abs(after.gain_sum / after.count - trend)
+            lost = before.count >= _LIVE_SETTLED and not before.touched and nearer
+            return (self._joined(before) if self._settled(before) or lost else self)._settling(after)
+        if piece.count >= _LIVE_SETTLED and self._settled(piece):
+            return self._joined(piece)
+        if piece.count >= _LIVE_PIECE and not piece.touched:
+            # A new level: the gains before it would tilt the trend's slope across the step.
+            return self._joined(piece, anew=True)
+        return dataclasses.replace(self, piece=piece)
+
+    def _joined(self, piece: _Piece, anew: bool = False) -> LiveDrift:
+        """The drift with `piece`'s frames joined to the gains (`anew`: in their place), and no piece open."""
+        times = piece.times if anew else np.append(self.times, piece.times)[-_LIVE_SLOPE:]
+        recent = piece.gains if anew else np.append(self.recent, piece.gains)[-_LIVE_SLOPE:]
+        return dataclasses.replace(self, times=times, recent=recent, piece=None)
+
+    def _settled(self, piece: _Piece) -> bool:
+        """Whether `piece` shows no touch's pattern and its mean gain lies within `_GAIN_STEP`
+        standard errors of the gains' trend."""
+        count = piece.count
+        return (
+            not piece.touched
+            and self._off(self.times, self.recent, piece.time_sum / count, piece.gain_sum / count, count) <= _GAIN_STEP
+        )
+
+    def _tested(self, piece: _Piece) -> _Piece:
+        """The piece, `touched` once the mean of its latest `_LIVE_PIECE` frames, each less its
+        gain times the reference, stands out of the noise (`_DriftReference.untouched_together`'s
+        test), and until its z falls to `_LIVE_GONE`: a touch held, or what a skin's memory
+        leaves, until it is gone."""
+        if len(piece.left) < 2:
+            return piece
+        variance = 1 / len(piece.left) + 1 / self.reference.frames
+        mean = piece.left.mean(axis=0)[None]
+        statistic = _statistic(mean, self.reference.noise, self.reference.frames, variance)
+        return piece._replace(touched=bool(statistic[0] > (_LIVE_GONE if piece.touched else _DRIFT_DETECTION)))
+
+    def _off(
+        self,
+        times: np.ndarray,
+        gains: np.ndarray,
+        time: float | np.ndarray,
+        gain: float | np.ndarray,
+        frames: int = 1,
+        least: int = 2,
+    ) -> float | np.ndarray:
+        """How many standard errors `gain`, the mean gain of `frames` frames whose mean time is
+        `time` (or such gains at such times, arrays), stands off the trend of `gains` at `times`
+        (`_trend`): its uncertainty and the frames' own jitter."""
+        trend, variance = self._trend(times, gains, time, least)
+        return np.abs(gain - trend) / np.sqrt(self.reference.jitter * (1 / frames + variance))
+
+    def _trend(
+        self, times: np.ndarray, gains: np.ndarray, time: float | np.ndarray, least: int = 2
+    ) -> tuple[float | np.ndarray, float | np.ndarray]:
+        """The trend at `time` (or times) of `gains` (n,) at `times` (n,), joined or a piece's, and its
+        variance over a gain's jitter: the median of the latest `_DRIFT_WINDOW` moved to `time`
+        along the Theil-Sen slope of all (`_slope`), where it stands beyond `_LIVE_DRIFT_ERRORS`
+        of its standard errors of 0 (a slope of noise, carried across a touch, moved a steady
+        skin's gains, and those of the first frames after the reference went 0.3% astray along
+        a slope of three), its variance a median's, pi / 2 / n, and the slope's as a
+        least-squares slope's. The reference's gain, 1, before any gain (its variance 1 / N).
+        Of fewer than `least` gains, their mean: the joined gains take a slope from two on (a
+        steep drift just after the reference), a piece from `_LIVE_TREND` (a slope between a
+        rest and a touch's first frame would carry any frame)."""
         if not len(gains):
+            return 1.0, 1 / self.reference.frames
+        if len(gains) < least:
+            return float(np.mean(gains)), 1 / len(gains)
+        latest = min(len(gains), _DRIFT_WINDOW)
+        spread = float(np.sum((times - times.mean()) ** 2))
+        at = float(np.median(times[-latest:]))
+        moved = (time - at) ** 2 / spread if spread > 0 else 0.0
+        slope = _slope(times, gains) if spread > 0 else 0.0
+        if abs(slope) <= _LIVE_DRIFT_ERRORS * math.sqrt(self.reference.jitter / spread if spread > 0 else 0.0):
+            slope = 0.0
+        return float(np.median(gains[-latest:])) + slope * (time - at), np.pi / 2 / latest + moved
+
+    def _gain_at(self, time: float) -> float:
+        """The gain at `time` from the joined untouched frames' gains (class docstring)."""
+        if not len(self.recent):
             return 1.0
-        median = float(np.median(gains))
-        if abs(median - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(self.reference.jitter / len(gains)):
-            return 1.0
-        return _trend_at(times, gains, time)
+        trend = self._trend(self.times, self.recent, time)[0]
+        latest = self.recent[-_DRIFT_WINDOW:]
+        # The trend is the latest gains' median where `_trend` finds no slope beyond its errors.
+        level = float(np.median(latest))
+        still = trend == level and abs(level - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(
+            self.reference.jitter / len(latest)
+        )
+        return 1.0 if still else trend
 
 
 def drift_note(gains: np.ndarray) -> str:
