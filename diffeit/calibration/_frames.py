@@ -1074,16 +1074,6 @@ def _checked_frames(
     return frames
 
 
-def _spread(reference_set: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The mean (M,) of reference frames (N, M) and each reading's noise (M,), the standard
-    deviation of the frames each divided by its own gain against the mean first (the reference
-    frames may drift too)."""
-    reference = reference_set.mean(axis=0)
-    norm = reference @ reference
-    own = reference_set @ reference / norm if norm > 0 else np.ones(len(reference_set))
-    return reference, (reference_set / np.where(own > 0, own, 1.0)[:, None]).std(axis=0, ddof=1)
-
-
 class _DriftReference(NamedTuple):
     """What tells a frame's common gain against a reference (`drift_corrected`, `LiveDrift`):
     the reference (M,), the mean of `frames` frames, their noise (M,), the readings whose noise
@@ -1105,7 +1095,12 @@ class _DriftReference(NamedTuple):
         identical to round-off (no noise to weigh or test by)."""
         if len(reference_set) < _NOISE_FRAMES:
             return None
-        reference, noise = _spread(reference_set)
+        # The noise with each frame's own gain taken out first: the reference frames may drift too.
+        reference = reference_set.mean(axis=0)
+        norm = reference @ reference
+        own = reference_set @ reference / norm if norm > 0 else np.ones(len(reference_set))
+        steadied = reference_set / np.where(own > 0, own, 1.0)[:, None]
+        noise = steadied.std(axis=0, ddof=1)
         # A spread at round-off (a noise-free simulation's) is no noise: gains tested against it
         # found a drift of 0% and divided the frames by it.
         kept = noise > _ROUND_OFF * np.abs(reference)
@@ -1114,15 +1109,17 @@ class _DriftReference(NamedTuple):
         # Against weights from the frames themselves, a frame weighs most the readings whose
         # noise it happened to make small, and its gain looks steadier than a later frame's:
         # with 6 reference frames of 192 readings, later frames' gains spread 1.4 times as far
-        # as the reference frames' on the median, 3.4 times at the 90th percentile (0.85 and
-        # 1.3 times, each left out of its own reference).
-        gains = np.empty(len(reference_set))
-        for k in range(len(reference_set)):
-            others, others_noise = _spread(np.delete(reference_set, k, axis=0))
-            # A reading that varied in frame k alone takes the noise of all of them.
-            others_noise = np.where(others_noise > _ROUND_OFF * np.abs(others), others_noise, noise)
-            weights = others[kept] / others_noise[kept] ** 2
-            gains[k] = reference_set[k, kept] @ weights / (others[kept] @ weights)
+        # as the reference frames' on the median, 3.4 times at the 90th percentile (0.99 and
+        # 1.6 times, each left out of its own reference, their jitter from second differences).
+        # For each frame, the other frames' mean and (their own gains taken out) variance, (N, M').
+        count = len(reference_set)
+        others = (reference_set.sum(axis=0) - reference_set)[:, kept] / (count - 1)
+        centred = (steadied - steadied.mean(axis=0))[:, kept]
+        variance = np.sum(centred**2, axis=0) - centred**2 - (centred.sum(axis=0) - centred) ** 2 / (count - 1)
+        variance /= count - 2
+        # A reading that varied in one frame alone takes, left out of the others, the noise of all.
+        variance = np.where(variance > (_ROUND_OFF * others) ** 2, variance, noise[kept] ** 2)
+        gains = np.sum(reference_set[:, kept] * others / variance, axis=1) / np.sum(others**2 / variance, axis=1)
         # Second differences: a steady drift among the reference frames cancels (in the first,
         # a drift of 9 times the noise a frame passed for jitter, and a stream took it for none).
         jitter = float(np.mean(np.diff(gains, 2) ** 2) / 6)
