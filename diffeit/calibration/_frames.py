@@ -1204,6 +1204,147 @@ class _Piece(NamedTuple):
         return before, after
 
 
+class _Stream(NamedTuple):
+    """`LiveDrift`'s state while it steps through a batch (its fields, and the rules of its
+    docstring): a NamedTuple, cheap to replace frame by frame."""
+
+    reference: _DriftReference
+    times: np.ndarray
+    recent: np.ndarray
+    piece: _Piece | None
+
+    def after(self, time: float, gain: float, left: np.ndarray) -> _Stream:
+        """The stream after an untouched frame at `time` of `gain`, `left` (M,) the frame less
+        its gain times the reference (`LiveDrift`'s pieces)."""
+        piece = self.piece
+        if piece is not None and self._continues(piece, time, gain):
+            return self._settling(self._tested(piece.joined(time, gain, left)))
+        # Closed by a frame that steps off it, the piece joins the gains when settled, its last
+        # frame too: a rest frame and a touch's first, closed by the touch's second, had settled
+        # on their mean, and the touch's frame tilted the trend's slope.
+        settled = piece is not None and self._settled(piece)
+        settled = settled and self._off(self.times, self.recent, piece.times[-1], piece.gains[-1]) <= _GAIN_STEP
+        return (self._joined(piece) if settled else self)._settling(_Piece.of(time, gain, left))
+
+    def _continues(self, piece: _Piece, time: float, gain: float) -> bool:
+        """Whether a frame at `time` of `gain` continues `piece`: when within `_GAIN_STEP`
+        standard errors of the piece's trend, or when the piece is neither settled nor a touch
+        (a frame of noise, or a level the gains' trend lost: closed, it would be lost, and the
+        gains would follow the trend they lost)."""
+        if self._off(piece.times, piece.gains, time, gain, least=_LIVE_TREND) <= _GAIN_STEP:
+            return True
+        return not (piece.touched or self._settled(piece))
+
+    def _settling(self, piece: _Piece) -> _Stream:
+        """The drift with `piece` open, joined to the gains when it is settled or of
+        `_LIVE_PIECE` frames with no touch's pattern."""
+        if len(self.recent) < _LIVE_TREND:
+            return self._joined(piece)
+        cuts = (
+            []
+            if piece.touched
+            else _gain_steps(piece.gains, self.reference.jitter, 0, len(piece.gains), _DRIFT_DETECTION)
+        )
+        if len(cuts) > 1:
+            # Two levels, not one (a touch that began on frames the trend had lost, its pattern
+            # diluted by theirs, and the mean between them settled). The piece goes on from the
+            # last step; the frames before it join the gains when settled, or when, with no
+            # touch's pattern, they lie nearer the trend than the frames after (a level the trend
+            # lost, then a touch); else they are left out.
+            before, after = (self._tested(part) for part in piece.split(cuts[-1][0]))
+            trend = self._trend(self.times, self.recent, after.time_sum / after.count)[0]
+            nearer = abs(before.gain_sum / before.count - trend) < abs(after.gain_sum / after.count - trend)
+            lost = before.count >= _LIVE_SETTLED and not before.touched and nearer
+            return (self._joined(before) if self._settled(before) or lost else self)._settling(after)
+        if piece.count >= _LIVE_SETTLED and self._settled(piece):
+            return self._joined(piece)
+        if piece.count >= _LIVE_PIECE and not piece.touched:
+            # A new level: the gains before it would tilt the trend's slope across the step.
+            return self._joined(piece, anew=True)
+        return self._replace(piece=piece)
+
+    def _joined(self, piece: _Piece, anew: bool = False) -> _Stream:
+        """The drift with `piece`'s frames joined to the gains (`anew`: in their place), and no piece open."""
+        times = piece.times if anew else np.append(self.times, piece.times)[-_LIVE_SLOPE:]
+        recent = piece.gains if anew else np.append(self.recent, piece.gains)[-_LIVE_SLOPE:]
+        return self._replace(times=times, recent=recent, piece=None)
+
+    def _settled(self, piece: _Piece) -> bool:
+        """Whether `piece` shows no touch's pattern and its mean gain lies within `_GAIN_STEP`
+        standard errors of the gains' trend."""
+        count = piece.count
+        return (
+            not piece.touched
+            and self._off(self.times, self.recent, piece.time_sum / count, piece.gain_sum / count, count) <= _GAIN_STEP
+        )
+
+    def _tested(self, piece: _Piece) -> _Piece:
+        """The piece, `touched` once the mean of its latest `_LIVE_PIECE` frames, each less its
+        gain times the reference, stands out of the noise (`_DriftReference.untouched_together`'s
+        test), and until its z falls to `_LIVE_GONE`: a touch held, or what a skin's memory
+        leaves, until it is gone."""
+        if len(piece.left) < 2:
+            return piece
+        variance = 1 / len(piece.left) + 1 / self.reference.frames
+        mean = piece.left.mean(axis=0)[None]
+        statistic = _statistic(mean, self.reference.noise, self.reference.frames, variance)
+        return piece._replace(touched=bool(statistic[0] > (_LIVE_GONE if piece.touched else _DRIFT_DETECTION)))
+
+    def _off(
+        self,
+        times: np.ndarray,
+        gains: np.ndarray,
+        time: float | np.ndarray,
+        gain: float | np.ndarray,
+        frames: int = 1,
+        least: int = 2,
+    ) -> float | np.ndarray:
+        """How many standard errors `gain`, the mean gain of `frames` frames whose mean time is
+        `time` (or such gains at such times, arrays), stands off the trend of `gains` at `times`
+        (`_trend`): its uncertainty and the frames' own jitter."""
+        trend, variance = self._trend(times, gains, time, least)
+        return np.abs(gain - trend) / np.sqrt(self.reference.jitter * (1 / frames + variance))
+
+    def _trend(
+        self, times: np.ndarray, gains: np.ndarray, time: float | np.ndarray, least: int = 2
+    ) -> tuple[float | np.ndarray, float | np.ndarray]:
+        """The trend at `time` (or times) of `gains` (n,) at `times` (n,), joined or a piece's, and its
+        variance over a gain's jitter: the median of the latest `_DRIFT_WINDOW` moved to `time`
+        along the Theil-Sen slope of all (`_slope`), where it stands beyond `_LIVE_DRIFT_ERRORS`
+        of its standard errors of 0 (a slope of noise, carried across a touch, moved a steady
+        skin's gains, and those of the first frames after the reference went 0.3% astray along
+        a slope of three), its variance a median's, pi / 2 / n, and the slope's as a
+        least-squares slope's. The reference's gain, 1, before any gain (its variance 1 / N).
+        Of fewer than `least` gains, their mean: the joined gains take a slope from two on (a
+        steep drift just after the reference), a piece from `_LIVE_TREND` (a slope between a
+        rest and a touch's first frame would carry any frame)."""
+        if not len(gains):
+            return 1.0, 1 / self.reference.frames
+        if len(gains) < least:
+            return float(np.mean(gains)), 1 / len(gains)
+        latest = min(len(gains), _DRIFT_WINDOW)
+        spread = float(np.sum((times - times.mean()) ** 2))
+        at = float(np.median(times[-latest:]))
+        moved = (time - at) ** 2 / spread if spread > 0 else 0.0
+        slope = _slope(times, gains) if spread > 0 else 0.0
+        if abs(slope) <= _LIVE_DRIFT_ERRORS * math.sqrt(self.reference.jitter / spread if spread > 0 else 0.0):
+            slope = 0.0
+        return float(np.median(gains[-latest:])) + slope * (time - at), np.pi / 2 / latest + moved
+
+    def gain_at(self, time: float) -> float:
+        """The gain at `time` from the joined untouched frames' gains (`LiveDrift`)."""
+        if not len(self.recent):
+            return 1.0
+        trend = self._trend(self.times, self.recent, time)[0]
+        latest = self.recent[-_DRIFT_WINDOW:]
+        # The trend is the latest gains' median where `_trend` finds no slope beyond its errors.
+        level = float(np.median(latest))
+        still = trend == level and abs(level - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(
+            self.reference.jitter / len(latest)
+        )
+        return 1.0 if still else trend
+
+
 class LiveDrift(eqx.Module):
     """A stream's drift, followed frame by frame (`diffeit live`): `drift_corrected` for frames
     that come one batch at a time, the future unknown.
@@ -1289,143 +1430,13 @@ class LiveDrift(eqx.Module):
         common = self.reference.gains(frames)
         # A frame that is not finite (reported by its caller) must not poison the gains to come.
         still = self.reference.untouched(frames, common) & np.all(np.isfinite(frames), axis=1)
-        drift, gains = self, np.ones(len(frames))
+        stream, gains = _Stream(self.reference, self.times, self.recent, self.piece), np.ones(len(frames))
         for t in range(len(frames)):
             if still[t]:
-                drift = drift._with(times[t], common[t], frames[t] - common[t] * self.reference.reference)
-            gains[t] = drift._gain_at(times[t])
+                stream = stream.after(times[t], common[t], frames[t] - common[t] * self.reference.reference)
+            gains[t] = stream.gain_at(times[t])
+        drift = dataclasses.replace(self, times=stream.times, recent=stream.recent, piece=stream.piece)
         return frames / gains[:, None], gains, drift
-
-    def _with(self, time: float, gain: float, left: np.ndarray) -> LiveDrift:
-        """The drift after an untouched frame at `time` of `gain`, `left` (M,) the frame less
-        its gain times the reference (the class docstring's pieces)."""
-        piece = self.piece
-        if piece is not None and self._continues(piece, time, gain):
-            return self._settling(self._tested(piece.joined(time, gain, left)))
-        # Closed by a frame that steps off it, the piece joins the gains when settled, its last
-        # frame too: a rest frame and a touch's first, closed by the touch's second, had settled
-        # on their mean, and the touch's frame tilted the trend's slope.
-        settled = piece is not None and self._settled(piece)
-        settled = settled and self._off(self.times, self.recent, piece.times[-1], piece.gains[-1]) <= _GAIN_STEP
-        return (self._joined(piece) if settled else self)._settling(_Piece.of(time, gain, left))
-
-    def _continues(self, piece: _Piece, time: float, gain: float) -> bool:
-        """Whether a frame at `time` of `gain` continues `piece`: when within `_GAIN_STEP`
-        standard errors of the piece's trend, or when the piece is neither settled nor a touch
-        (a frame of noise, or a level the gains' trend lost: closed, it would be lost, and the
-        gains would follow the trend they lost)."""
-        if self._off(piece.times, piece.gains, time, gain, least=_LIVE_TREND) <= _GAIN_STEP:
-            return True
-        return not (piece.touched or self._settled(piece))
-
-    def _settling(self, piece: _Piece) -> LiveDrift:
-        """The drift with `piece` open, joined to the gains when it is settled or of
-        `_LIVE_PIECE` frames with no touch's pattern."""
-        if len(self.recent) < _LIVE_TREND:
-            return self._joined(piece)
-        cuts = (
-            []
-            if piece.touched
-            else _gain_steps(piece.gains, self.reference.jitter, 0, len(piece.gains), _DRIFT_DETECTION)
-        )
-        if len(cuts) > 1:
-            # Two levels, not one (a touch that began on frames the trend had lost, its pattern
-            # diluted by theirs, and the mean between them settled). The piece goes on from the
-            # last step; the frames before it join the gains when settled, or when, with no
-            # touch's pattern, they lie nearer the trend than the frames after (a level the trend
-            # lost, then a touch); else they are left out.
-            before, after = (self._tested(part) for part in piece.split(cuts[-1][0]))
-            trend = self._trend(self.times, self.recent, after.time_sum / after.count)[0]
-            nearer = abs(before.gain_sum / before.count - trend) < abs(after.gain_sum / after.count - trend)
-            lost = before.count >= _LIVE_SETTLED and not before.touched and nearer
-            return (self._joined(before) if self._settled(before) or lost else self)._settling(after)
-        if piece.count >= _LIVE_SETTLED and self._settled(piece):
-            return self._joined(piece)
-        if piece.count >= _LIVE_PIECE and not piece.touched:
-            # A new level: the gains before it would tilt the trend's slope across the step.
-            return self._joined(piece, anew=True)
-        return dataclasses.replace(self, piece=piece)
-
-    def _joined(self, piece: _Piece, anew: bool = False) -> LiveDrift:
-        """The drift with `piece`'s frames joined to the gains (`anew`: in their place), and no piece open."""
-        times = piece.times if anew else np.append(self.times, piece.times)[-_LIVE_SLOPE:]
-        recent = piece.gains if anew else np.append(self.recent, piece.gains)[-_LIVE_SLOPE:]
-        return dataclasses.replace(self, times=times, recent=recent, piece=None)
-
-    def _settled(self, piece: _Piece) -> bool:
-        """Whether `piece` shows no touch's pattern and its mean gain lies within `_GAIN_STEP`
-        standard errors of the gains' trend."""
-        count = piece.count
-        return (
-            not piece.touched
-            and self._off(self.times, self.recent, piece.time_sum / count, piece.gain_sum / count, count) <= _GAIN_STEP
-        )
-
-    def _tested(self, piece: _Piece) -> _Piece:
-        """The piece, `touched` once the mean of its latest `_LIVE_PIECE` frames, each less its
-        gain times the reference, stands out of the noise (`_DriftReference.untouched_together`'s
-        test), and until its z falls to `_LIVE_GONE`: a touch held, or what a skin's memory
-        leaves, until it is gone."""
-        if len(piece.left) < 2:
-            return piece
-        variance = 1 / len(piece.left) + 1 / self.reference.frames
-        mean = piece.left.mean(axis=0)[None]
-        statistic = _statistic(mean, self.reference.noise, self.reference.frames, variance)
-        return piece._replace(touched=bool(statistic[0] > (_LIVE_GONE if piece.touched else _DRIFT_DETECTION)))
-
-    def _off(
-        self,
-        times: np.ndarray,
-        gains: np.ndarray,
-        time: float | np.ndarray,
-        gain: float | np.ndarray,
-        frames: int = 1,
-        least: int = 2,
-    ) -> float | np.ndarray:
-        """How many standard errors `gain`, the mean gain of `frames` frames whose mean time is
-        `time` (or such gains at such times, arrays), stands off the trend of `gains` at `times`
-        (`_trend`): its uncertainty and the frames' own jitter."""
-        trend, variance = self._trend(times, gains, time, least)
-        return np.abs(gain - trend) / np.sqrt(self.reference.jitter * (1 / frames + variance))
-
-    def _trend(
-        self, times: np.ndarray, gains: np.ndarray, time: float | np.ndarray, least: int = 2
-    ) -> tuple[float | np.ndarray, float | np.ndarray]:
-        """The trend at `time` (or times) of `gains` (n,) at `times` (n,), joined or a piece's, and its
-        variance over a gain's jitter: the median of the latest `_DRIFT_WINDOW` moved to `time`
-        along the Theil-Sen slope of all (`_slope`), where it stands beyond `_LIVE_DRIFT_ERRORS`
-        of its standard errors of 0 (a slope of noise, carried across a touch, moved a steady
-        skin's gains, and those of the first frames after the reference went 0.3% astray along
-        a slope of three), its variance a median's, pi / 2 / n, and the slope's as a
-        least-squares slope's. The reference's gain, 1, before any gain (its variance 1 / N).
-        Of fewer than `least` gains, their mean: the joined gains take a slope from two on (a
-        steep drift just after the reference), a piece from `_LIVE_TREND` (a slope between a
-        rest and a touch's first frame would carry any frame)."""
-        if not len(gains):
-            return 1.0, 1 / self.reference.frames
-        if len(gains) < least:
-            return float(np.mean(gains)), 1 / len(gains)
-        latest = min(len(gains), _DRIFT_WINDOW)
-        spread = float(np.sum((times - times.mean()) ** 2))
-        at = float(np.median(times[-latest:]))
-        moved = (time - at) ** 2 / spread if spread > 0 else 0.0
-        slope = _slope(times, gains) if spread > 0 else 0.0
-        if abs(slope) <= _LIVE_DRIFT_ERRORS * math.sqrt(self.reference.jitter / spread if spread > 0 else 0.0):
-            slope = 0.0
-        return float(np.median(gains[-latest:])) + slope * (time - at), np.pi / 2 / latest + moved
-
-    def _gain_at(self, time: float) -> float:
-        """The gain at `time` from the joined untouched frames' gains (class docstring)."""
-        if not len(self.recent):
-            return 1.0
-        trend = self._trend(self.times, self.recent, time)[0]
-        latest = self.recent[-_DRIFT_WINDOW:]
-        # The trend is the latest gains' median where `_trend` finds no slope beyond its errors.
-        level = float(np.median(latest))
-        still = trend == level and abs(level - 1.0) <= _LIVE_DRIFT_ERRORS * 1.25 * math.sqrt(
-            self.reference.jitter / len(latest)
-        )
-        return 1.0 if still else trend
 
 
 def drift_note(gains: np.ndarray) -> str:
