@@ -1236,7 +1236,7 @@ class _Stream(NamedTuple):
         return not (piece.touched or self._settled(piece))
 
     def _settling(self, piece: _Piece) -> _Stream:
-        """The drift with `piece` open, joined to the gains when it is settled or of
+        """The stream with `piece` open, joined to the gains when it is settled or of
         `_LIVE_PIECE` frames with no touch's pattern."""
         if len(self.recent) < _LIVE_TREND:
             return self._joined(piece)
@@ -1264,7 +1264,7 @@ class _Stream(NamedTuple):
         return self._replace(piece=piece)
 
     def _joined(self, piece: _Piece, anew: bool = False) -> _Stream:
-        """The drift with `piece`'s frames joined to the gains (`anew`: in their place), and no piece open."""
+        """The stream with `piece`'s frames joined to the gains (`anew`: in their place), and no piece open."""
         times = piece.times if anew else np.append(self.times, piece.times)[-_LIVE_SLOPE:]
         recent = piece.gains if anew else np.append(self.recent, piece.gains)[-_LIVE_SLOPE:]
         return self._replace(times=times, recent=recent, piece=None)
