@@ -948,7 +948,9 @@ def test_a_streamed_touch_held_near_the_middle_is_no_drift_and_a_step_in_the_gai
     above 1). Under a 3% drift over the session, every frame's gain lies within 0.3% of the
     drift's, the touches' 0.4% left in (measured: 0.16% on the held frames, 0.2% on the first
     two, before the gains have a trend). A gain that steps 1% with no touch's pattern is the
-    gains' new level once `_LIVE_PIECE` frames show none (measured: followed from the 18th)."""
+    gains' new level once `_LIVE_PIECE` frames show none (measured: followed from the 18th).
+    With 6 reference frames, every untouched frame joins the gains at once, as before: their own
+    noise hides so faint a touch's pattern."""
     values, _ = _held_touches([0.004] * 3, 0.3, seed=0)
 
     def streamed(frames: np.ndarray) -> np.ndarray:
@@ -970,6 +972,11 @@ def test_a_streamed_touch_held_near_the_middle_is_no_drift_and_a_step_in_the_gai
         _, batch_gains, drift = drift.step(drifting[at], 0.1 * at)
         batched.append(batch_gains)
     np.testing.assert_allclose(np.concatenate(batched), gains, rtol=1e-12)
+    # With fewer than 10 reference frames, every untouched frame joins the gains at once.
+    few = de.calibration.LiveDrift.of(values[14:20])
+    for frame, time in zip(values[20:], 0.1 * np.arange(20, len(values)), strict=True):
+        few = few.step(frame, time)[2]
+        assert few.piece is None
     steady, _ = _held_touches([0.0], 0.0, seed=2)  # 66 untouched frames
     steady[30:] *= 1.01
     gains = streamed(steady)

@@ -103,6 +103,11 @@ _LIVE_SLOPE = 3 * _DRIFT_WINDOW
 # A piece that showed a touch's pattern shows it until the z of its latest frames' mean falls to
 # this (a faint touch's z wavers about `_DRIFT_DETECTION`; `LiveDrift`).
 _LIVE_GONE = 3.0
+# With fewer reference frames than this, a stream's untouched frames join its gains at once: the
+# reference's own noise hides a faint touch's pattern, and its jitter, from so few frames, is
+# too uncertain to tell a touch's step (6 frames: a stream ran 2.8% astray, its gains' slope
+# tilted by a touch's frames that joined them).
+_LIVE_REFERENCE = 10
 
 
 # A block of frames differs from the untouched frames before it beyond this many robust spreads of
@@ -1238,7 +1243,7 @@ class _Stream(NamedTuple):
     def _settling(self, piece: _Piece) -> _Stream:
         """The stream with `piece` open, joined to the gains when it is settled or of
         `_LIVE_PIECE` frames with no touch's pattern."""
-        if len(self.recent) < _LIVE_TREND:
+        if len(self.recent) < _LIVE_TREND or self.reference.frames < _LIVE_REFERENCE:
             return self._joined(piece)
         cuts = (
             []
@@ -1384,9 +1389,11 @@ class LiveDrift(eqx.Module):
 
     Any other piece is a touch, or frames of noise, and never joins. While the gains hold fewer
     than `_LIVE_TREND` frames, every untouched frame joins them at once: there is no trend to
-    stand off. Under a touch, the drift is followed only along the slope the gains had before
-    it: after a touch held 15 s under a drift of 1% over 22 s, the first rest frames' gains
-    were up to 1% off.
+    stand off; and so it does with fewer than `_LIVE_REFERENCE` reference frames, whose own
+    noise hides a faint touch's pattern (with 6, a faint central touch's frames were held back
+    in 27% of cases, and one stream of 16 ran 2.8% astray). Under a touch, the drift is
+    followed only along the slope the gains had before it: after a touch held 15 s under a
+    drift of 1% over 22 s, the first rest frames' gains were up to 1% off.
 
     Attributes:
         reference: What tells a frame's gain and touch (the reference frames'; `of`).
