@@ -966,7 +966,7 @@ def test_a_streamed_touch_held_near_the_middle_is_no_drift_and_a_step_in_the_gai
     gains = streamed(drifting)
     np.testing.assert_allclose(gains, growth / growth[:20].mean(), atol=3e-3)
     # The frames held back carry over from one batch to the next: batches of 7 give the same gains
-    # (to round-off: a frame's gain is a product over the readings, summed in another order).
+    # (to round-off: a frame's gain is a sum over its readings, taken in another order in a batch).
     drift, batched = de.calibration.LiveDrift.of(drifting[:20]), []
     for at in np.array_split(np.arange(len(drifting)), np.arange(7, len(drifting), 7)):
         _, batch_gains, drift = drift.step(drifting[at], 0.1 * at)
