@@ -954,7 +954,7 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
     `_PRESS_PART` times a gain's noise (sqrt(`jitter`)) of 0, every frame `still` is kept: a
     press that moves the gain by so little moves no drift."""
     touched = np.flatnonzero(~still)
-    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0])).reshape(-1, 2)
+    edges = _runs(still)
     long = np.zeros_like(still)
     for first, last in edges[edges[:, 1] - edges[:, 0] >= _LONG_REST]:
         long[first:last] = True
@@ -988,6 +988,11 @@ def _rests_not_presses(times: np.ndarray, gains: np.ndarray, still: np.ndarray, 
     kept = still.copy()
     kept[frames[np.abs(offset) < np.abs(offset + part)]] = False
     return kept
+
+
+def _runs(marked: np.ndarray) -> np.ndarray:
+    """(R, 2) the first frame and the end (exclusive) of each run of frames `marked` (T,) bool."""
+    return np.flatnonzero(np.diff(np.r_[0, marked.astype(int), 0])).reshape(-1, 2)
 
 
 def _gain_steps(
@@ -1144,15 +1149,21 @@ class _DriftReference(NamedTuple):
         pattern stands out of the noise of their mean, as what a skin's memory leaves does,
         where a drift's gain leaves none."""
         kept = still.copy()
-        edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0])).reshape(-1, 2)
+        edges = _runs(still)
         for first, last in edges[edges[:, 1] - edges[:, 0] > 1]:
             for start, end in _gain_steps(gains, self.jitter, first, last):
                 if end - start < 2:
                     continue
                 left = np.mean(frames[start:end] - gains[start:end, None] * self.reference, axis=0)
-                variance = 1 / (end - start) + 1 / self.frames
-                kept[start:end] = _statistic(left[None], self.noise, self.frames, variance)[0] <= _DRIFT_DETECTION
+                kept[start:end] = self.pattern(left, end - start) <= _DRIFT_DETECTION
         return kept
+
+    def pattern(self, left: np.ndarray, count: int) -> float:
+        """How far `left` (M,), the mean of `count` frames each less its gain times the
+        reference, stands out of the noise: `_statistic` of it, its variance 1/n + 1/N of the
+        readings' for n frames against N reference frames (a touch's pattern, where a drift's
+        gain leaves none)."""
+        return float(_statistic(left[None], self.noise, self.frames, 1 / count + 1 / self.frames)[0])
 
     def untouched(self, frames: np.ndarray, gains: np.ndarray) -> np.ndarray:
         """(T,) whether frame - gain * reference stands within the reference frames' noise
@@ -1222,23 +1233,20 @@ class _Stream(NamedTuple):
         """The stream after an untouched frame at `time` of `gain`, `left` (M,) the frame less
         its gain times the reference (`LiveDrift`'s pieces)."""
         piece = self.piece
-        if piece is not None and self._continues(piece, time, gain):
+        if piece is None:
+            return self._settling(_Piece.of(time, gain, left))
+        # The frame continues the piece when within `_GAIN_STEP` standard errors of its trend, or
+        # when the piece is neither settled nor a touch (a frame of noise, or a level the gains'
+        # trend lost: closed, it would be lost, and the gains would follow the trend they lost).
+        stepped = self._off(piece.times, piece.gains, time, gain, least=_LIVE_TREND) > _GAIN_STEP
+        settled = stepped and self._settled(piece)
+        if not stepped or not (piece.touched or settled):
             return self._settling(self._tested(piece.joined(time, gain, left)))
         # Closed by a frame that steps off it, the piece joins the gains when settled, its last
         # frame too: a rest frame and a touch's first, closed by the touch's second, had settled
         # on their mean, and the touch's frame tilted the trend's slope.
-        settled = piece is not None and self._settled(piece)
         settled = settled and self._off(self.times, self.recent, piece.times[-1], piece.gains[-1]) <= _GAIN_STEP
         return (self._joined(piece) if settled else self)._settling(_Piece.of(time, gain, left))
-
-    def _continues(self, piece: _Piece, time: float, gain: float) -> bool:
-        """Whether a frame at `time` of `gain` continues `piece`: when within `_GAIN_STEP`
-        standard errors of the piece's trend, or when the piece is neither settled nor a touch
-        (a frame of noise, or a level the gains' trend lost: closed, it would be lost, and the
-        gains would follow the trend they lost)."""
-        if self._off(piece.times, piece.gains, time, gain, least=_LIVE_TREND) <= _GAIN_STEP:
-            return True
-        return not (piece.touched or self._settled(piece))
 
     def _settling(self, piece: _Piece) -> _Stream:
         """The stream with `piece` open, joined to the gains when it is settled or of
@@ -1285,15 +1293,13 @@ class _Stream(NamedTuple):
 
     def _tested(self, piece: _Piece) -> _Piece:
         """The piece, `touched` once the mean of its latest `_LIVE_PIECE` frames, each less its
-        gain times the reference, stands out of the noise (`_DriftReference.untouched_together`'s
-        test), and until its z falls to `_LIVE_GONE`: a touch held, or what a skin's memory
-        leaves, until it is gone."""
+        gain times the reference, stands out of the noise (`_DriftReference.pattern` above
+        `_DRIFT_DETECTION`), and until its z falls to `_LIVE_GONE`: a touch held, or what a
+        skin's memory leaves, until it is gone."""
         if len(piece.left) < 2:
             return piece
-        variance = 1 / len(piece.left) + 1 / self.reference.frames
-        mean = piece.left.mean(axis=0)[None]
-        statistic = _statistic(mean, self.reference.noise, self.reference.frames, variance)
-        return piece._replace(touched=bool(statistic[0] > (_LIVE_GONE if piece.touched else _DRIFT_DETECTION)))
+        statistic = self.reference.pattern(piece.left.mean(axis=0), len(piece.left))
+        return piece._replace(touched=statistic > (_LIVE_GONE if piece.touched else _DRIFT_DETECTION))
 
     def _off(
         self,
